@@ -1,0 +1,53 @@
+# Two entry points on a fresh Debian machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: all setup llvm demo test test-slow bench clean
+
+all: setup
+
+# Dr.Jit's LLVM backend needs LLVM >= 16 (Debian 12 ships 14/15, which abort on `fminimum`).
+llvm:
+	@if ls /usr/lib/x86_64-linux-gnu/libLLVM-1[6-9]*.so* /usr/lib/x86_64-linux-gnu/libLLVM-2*.so* >/dev/null 2>&1 \
+	   || ls /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-2*/lib/libLLVM*.so* >/dev/null 2>&1 \
+	   || [ -n "$$DRJIT_LIBLLVM_PATH" ]; then \
+	  echo "LLVM for Dr.Jit: found"; \
+	else \
+	  echo "Installing libllvm19 (needed by Dr.Jit's LLVM backend)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libllvm19; \
+	fi
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	@# CPU-only machines take the CPU torch build; an unpinned torch pulls GBs of CUDA packages.
+	@if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then \
+	  $(PY) -m pip install -q "torch>=2.3"; \
+	else \
+	  $(PY) -m pip install -q "torch==2.13.0"; \
+	fi
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $@
+
+setup: llvm $(VENV)/.installed
+
+demo: setup
+	$(VENV)/bin/vq-mitsuba make-scene demo -o data/demo
+	$(VENV)/bin/vq-mitsuba fit data/demo/scene.xml -o runs/demo --config configs/demo.yaml
+	$(VENV)/bin/vq-mitsuba render runs/demo --cameras data/demo/transforms_test.json -o runs/demo/test_views
+	@echo "Demo results: runs/demo (decomposition, envmap.exr, plots) and runs/demo/test_views (novel views and maps)"
+
+test: setup
+	$(PY) -m pytest -q
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+bench: setup
+	$(PY) benchmarks/bench_scenes.py
+
+clean:
+	rm -rf runs data benchmarks/out
