@@ -1,0 +1,1 @@
+"""Captures: image I/O, cameras and datasets (Mitsuba XML or NeRF-synthetic json)."""

@@ -1,0 +1,92 @@
+"""Pinhole cameras in Mitsuba's convention and conversions from other conventions.
+
+Mitsuba cameras look along local +Z with +Y up and +X to the left. A NeRF-synthetic /
+Blender frame (OpenGL axes: -Z forward, +Y up, +X right) converts by flipping X and Z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# Blender world (Z up) from Mitsuba's lat-long envmap frame (Y up): applied as the envmap's
+# to_world, the same EXR lights a Blender-world scene as Cycles does.
+BLENDER_ENV_TO_WORLD = np.array(
+    [[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64
+)
+OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+
+@dataclass
+class Camera:
+    """A pinhole camera: `to_world` maps Mitsuba camera space (+Z forward, +Y up, +X left)."""
+
+    name: str
+    to_world: np.ndarray  # (4, 4) float64
+    fov_x_deg: float  # horizontal field of view
+    width: int
+    height: int
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.to_world[:3, 3]
+
+    def focal_px(self) -> float:
+        return 0.5 * self.width / math.tan(0.5 * math.radians(self.fov_x_deg))
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (x right, y down; pixel centres at +0.5) of world points (N, 3)."""
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        inv = np.linalg.inv(self.to_world)
+        local = pts @ inv[:3, :3].T + inv[:3, 3]
+        f = self.focal_px()
+        # +X is left in Mitsuba camera space, so image x grows towards -X.
+        x = 0.5 * self.width - f * local[:, 0] / local[:, 2]
+        y = 0.5 * self.height - f * local[:, 1] / local[:, 2]
+        return np.stack([x, y], -1)
+
+    def to_mitsuba_dict(self, spp: int = 1) -> dict:
+        import mitsuba as mi
+
+        return {
+            "type": "perspective",
+            "fov": float(self.fov_x_deg),
+            "fov_axis": "x",
+            "near_clip": 1e-3,
+            "far_clip": 1e4,
+            "to_world": mi.ScalarTransform4f(self.to_world.tolist()),
+            "film": {
+                "type": "hdrfilm",
+                "width": int(self.width),
+                "height": int(self.height),
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgba",
+            },
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+        }
+
+
+def nerf_to_camera(name: str, transform_matrix, camera_angle_x: float, width: int, height: int) -> Camera:
+    """A NeRF-synthetic frame (camera-to-world in OpenGL axes, radians) as a Mitsuba camera."""
+    c2w = np.asarray(transform_matrix, dtype=np.float64).reshape(4, 4)
+    return Camera(name, c2w @ OPENGL_TO_MITSUBA, math.degrees(camera_angle_x), int(width), int(height))
+
+
+def camera_to_nerf(camera: Camera) -> tuple[np.ndarray, float]:
+    """Inverse of nerf_to_camera: (transform_matrix, camera_angle_x in radians)."""
+    return camera.to_world @ OPENGL_TO_MITSUBA, math.radians(camera.fov_x_deg)
+
+
+def look_at(origin, target, up) -> np.ndarray:
+    """Mitsuba camera-to-world (4, 4) looking from origin at target (same as mi's look_at)."""
+    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+    d = target - origin
+    d /= np.linalg.norm(d)
+    left = np.cross(up, d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, origin
+    return m

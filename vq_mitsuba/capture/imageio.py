@@ -1,0 +1,121 @@
+"""Image I/O in linear RGB: sRGB PNG (alpha = mask) and EXR through OpenEXR."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+
+def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding; input in [0, 1]."""
+    srgb = np.asarray(srgb, dtype=np.float32)
+    return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding; output clipped to [0, 1]."""
+    x = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read an image as linear float32 RGB (H, W, 3) and its alpha (H, W) or None.
+
+    PNG/JPEG are decoded from sRGB; EXR is taken as linear. Raises InputError naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "image file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".exr":
+            data = read_exr(path)
+        elif suffix in (".png", ".jpg", ".jpeg"):
+            import imageio.v3 as iio  # ships with scikit-image
+
+            raw = np.asarray(iio.imread(path))
+            scale = 65535.0 if raw.dtype == np.uint16 else 255.0
+            data = raw.astype(np.float32) / scale
+            if data.ndim == 2:
+                data = data[..., None]
+            if data.shape[-1] in (1, 2):  # grey or grey + alpha
+                data = np.concatenate([np.repeat(data[..., :1], 3, -1), data[..., 1:]], -1)
+            data = np.concatenate([srgb_to_linear(data[..., :3]), data[..., 3:4]], -1)
+        else:
+            raise InputError(path, f"unsupported image format '{suffix}' (use .exr or .png)")
+    except InputError:
+        raise
+    except Exception as exc:  # decoder errors differ per library
+        raise InputError(path, f"cannot read image ({type(exc).__name__}: {exc})") from exc
+    if data.ndim != 3 or data.shape[-1] < 3:
+        raise InputError(path, f"expected an RGB or RGBA image, got shape {data.shape}")
+    rgb = np.ascontiguousarray(data[..., :3], dtype=np.float32)
+    alpha = np.ascontiguousarray(data[..., 3], dtype=np.float32) if data.shape[-1] >= 4 else None
+    if not np.all(np.isfinite(rgb)) or (alpha is not None and not np.all(np.isfinite(alpha))):
+        raise InputError(path, "image contains non-finite pixels (NaN or Inf)")
+    if np.any(rgb < 0):
+        raise InputError(path, "image contains negative pixel values")
+    return rgb, alpha
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """Read an EXR file as float32 (H, W, C) with channels R, G, B[, A] (or Y as grey)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        channels = f.channels()
+        if "RGBA" in channels:
+            return np.asarray(channels["RGBA"].pixels, dtype=np.float32)
+        if "RGB" in channels:
+            return np.asarray(channels["RGB"].pixels, dtype=np.float32)
+        names = list(channels)
+        if "Y" in channels:
+            y = np.asarray(channels["Y"].pixels, dtype=np.float32)[..., None]
+            return np.concatenate([y, y, y], -1)
+        if len(names) == 1:
+            y = np.asarray(channels[names[0]].pixels, dtype=np.float32)[..., None]
+            return np.concatenate([y, y, y], -1)
+        raise ValueError(f"no RGB channels (found {names})")
+
+
+def write_exr(path: str | Path, image: np.ndarray) -> None:
+    """Write float32 (H, W), (H, W, 3) or (H, W, 4) as a linear EXR (half floats are not used)."""
+    import OpenEXR
+
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    if image.ndim == 2:
+        channels = {"Y": image}
+    elif image.shape[-1] == 3:
+        channels = {"RGB": image}
+    elif image.shape[-1] == 4:
+        channels = {"RGBA": image}
+    elif image.shape[-1] == 1:
+        channels = {"Y": np.ascontiguousarray(image[..., 0])}
+    else:
+        raise ValueError(f"cannot write an image of shape {image.shape} as EXR")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File(header, channels) as f:
+        f.write(str(path))
+
+
+def write_png(path: str | Path, image: np.ndarray, alpha: np.ndarray | None = None, srgb: bool = True) -> None:
+    """Write an 8-bit PNG. Linear RGB is sRGB-encoded unless srgb=False (data maps, ids)."""
+    import imageio.v3 as iio
+
+    image = np.asarray(image)
+    if image.dtype == np.uint8:
+        out = image
+    else:
+        x = linear_to_srgb(image) if srgb else np.clip(image, 0.0, 1.0)
+        out = np.round(x * 255.0).astype(np.uint8)
+    if alpha is not None:
+        a = np.round(np.clip(alpha, 0.0, 1.0) * 255.0).astype(np.uint8)
+        if out.ndim == 2:
+            out = np.repeat(out[..., None], 3, -1)
+        out = np.concatenate([out, a[..., None]], -1)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, out)

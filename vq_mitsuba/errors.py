@@ -1,0 +1,14 @@
+"""Errors shown to users: one message naming the file and what is wrong with it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(Exception):
+    """Bad user input, reported before any work is done."""
+
+    def __init__(self, path: str | Path | None, message: str):
+        self.path = None if path is None else Path(path)
+        self.message = message
+        super().__init__(f"{self.path}: {message}" if self.path is not None else message)
