@@ -1,0 +1,268 @@
+"""Deferred physically based shading with Mitsuba's `principled` BSDF and an envmap emitter.
+
+This is the only module that drives Dr.Jit/Mitsuba during fitting and rendering. Geometry is
+fixed, so primary hits are traced once (no gradients) and reused; at each step the material
+fields are evaluated in torch once per hit point and handed to Mitsuba through `dr.wrap`. A
+small texture plugin (`vqm_lanes`) returns those per-lane values when `principled` asks for
+`base_color`, `metallic` or `roughness`, so the BSDF code is Mitsuba's own, not a copy.
+
+Shading is direct illumination from the environment with visibility: one emitter sample
+(`scene.sample_emitter_direction`, importance-sampled from the envmap, shadow ray tested) and
+one BSDF sample per lane, combined with the power heuristic. Sampled directions carry no
+gradient (as in Mitsuba's `prb`: BSDF values are differentiated, sampling is detached).
+Interreflections between objects are not simulated (biased for concave or clustered scenes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+import drjit as dr
+import mitsuba as mi
+
+from .capture.cameras import Camera
+
+_VARIANT_READY = False
+
+
+def init_mitsuba(variant: str | None = None) -> str:
+    """Select the Mitsuba variant once: `cuda_ad_rgb` when a GPU works, else `llvm_ad_rgb`."""
+    global _VARIANT_READY
+    if not _VARIANT_READY:
+        if variant is None:
+            variant = "llvm_ad_rgb"
+            if torch.cuda.is_available():
+                try:
+                    mi.set_variant("cuda_ad_rgb")
+                    variant = "cuda_ad_rgb"
+                except Exception:  # no usable CUDA driver for Dr.Jit
+                    variant = "llvm_ad_rgb"
+        if mi.variant() != variant:
+            mi.set_variant(variant)
+        _register_plugins()
+        _VARIANT_READY = True
+    return mi.variant()
+
+
+def torch_device() -> torch.device:
+    """The torch device matching the Mitsuba variant (tensors cross `dr.wrap` without copies)."""
+    return torch.device("cuda") if mi.variant().startswith("cuda") else torch.device("cpu")
+
+
+def _register_plugins() -> None:
+    # Mitsuba classes exist only once a variant is set, so the plugin is defined here.
+    class LaneTexture(mi.Texture):
+        """A texture that returns values set per lane by the caller (one lane = one shading sample).
+
+        `principled` calls `eval` for `base_color` and `eval_1` for scalars; the values are whatever
+        the fitted fields produced for the hit point behind each lane, with their AD graph.
+        """
+
+        def __init__(self, props):
+            super().__init__(props)
+            self.values: tuple | None = None  # (Float,) or (Float, Float, Float)
+
+        def eval(self, si, active=True):
+            v = self.values
+            if v is None:  # traced by a vcall of another render: no lanes set
+                return mi.Color3f(0.5)
+            return mi.Color3f(v[0], v[1], v[2]) if len(v) == 3 else mi.Color3f(v[0])
+
+        def eval_3(self, si, active=True):
+            return self.eval(si, active)
+
+        def eval_1(self, si, active=True):
+            return mi.Float(0.5) if self.values is None else self.values[0]
+
+        def mean(self):
+            return 0.5
+
+        def traverse(self, callback):
+            pass
+
+        def to_string(self):
+            return "LaneTexture[]"
+
+    mi.register_texture("vqm_lanes", lambda props: LaneTexture(props))
+
+
+def envmap_padded(env: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) -> (H, W + 2, 3) as Mitsuba's envmap stores it (wrap-around columns 0 and W+1)."""
+    return torch.cat([env[:, -1:], env, env[:, :1]], dim=1)
+
+
+def mesh_to_mitsuba(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None) -> "mi.Mesh":
+    """A Mitsuba triangle mesh from arrays (world space), with smooth vertex normals."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.ascontiguousarray(faces, dtype=np.uint32)
+    mesh = mi.Mesh("geometry", len(vertices), len(faces), has_vertex_normals=normals is not None)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(vertices.ravel())
+    params["faces"] = mi.UInt32(faces.ravel())
+    if normals is not None:
+        params["vertex_normals"] = mi.Float(np.ascontiguousarray(normals, dtype=np.float32).ravel())
+    params.update()
+    if normals is None:
+        mesh.recompute_vertex_normals()
+    return mesh
+
+
+@dataclass
+class Hits:
+    """Surface points seen by rays (torch tensors on the shading device)."""
+
+    valid: torch.Tensor  # (N,) bool
+    position: torch.Tensor  # (N, 3) world
+    normal: torch.Tensor  # (N, 3) world, shading normal facing the viewer side
+    wi: torch.Tensor  # (N, 3) world, unit vector from the point towards the ray origin
+
+
+def camera_rays(camera: Camera, jitter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through pixels (row-major, y down). jitter: (H*W, 2) offsets in [0,1)."""
+    h, w = camera.height, camera.width
+    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    if jitter is None:
+        px, py = xs.ravel() + 0.5, ys.ravel() + 0.5
+    else:
+        px, py = xs.ravel() + jitter[:, 0], ys.ravel() + jitter[:, 1]
+    f = camera.focal_px()
+    # Inverse of Camera.project: +X is left in Mitsuba camera space.
+    local = np.stack([(0.5 * w - px) / f, (0.5 * h - py) / f, np.ones_like(px)], -1)
+    d = local @ camera.to_world[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = np.broadcast_to(camera.origin, d.shape)
+    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
+
+
+class ShadingScene:
+    """Fixed geometry + an envmap emitter + a `principled` BSDF fed by lane textures."""
+
+    def __init__(self, vertices, faces, env_init: np.ndarray, env_to_world: np.ndarray, normals=None):
+        init_mitsuba()
+        self.mesh = mesh_to_mitsuba(vertices, faces, normals)
+        env_init = np.ascontiguousarray(env_init, dtype=np.float32)
+        self.env_shape = env_init.shape
+        self.scene = mi.load_dict(
+            {
+                "type": "scene",
+                "geometry": self.mesh,
+                "env": {
+                    "type": "envmap",
+                    "bitmap": mi.Bitmap(env_init),
+                    "to_world": mi.ScalarTransform4f(np.asarray(env_to_world, dtype=np.float64).tolist()),
+                },
+            }
+        )
+        self.emitter = self.scene.environment()
+        self.params = mi.traverse(self.scene)
+        self.env_key = [k for k in self.params.keys() if k.endswith(".data")][0]
+        self.tex_base = mi.load_dict({"type": "vqm_lanes"})
+        self.tex_metal = mi.load_dict({"type": "vqm_lanes"})
+        self.tex_rough = mi.load_dict({"type": "vqm_lanes"})
+        self.bsdf = mi.load_dict(
+            {
+                "type": "principled",
+                "base_color": self.tex_base,
+                "metallic": self.tex_metal,
+                "roughness": self.tex_rough,
+                "specular": 0.5,
+            }
+        )
+        self.ctx = mi.BSDFContext()
+        self._shade = self._make_shade()
+
+    # -- primary visibility -------------------------------------------------------------
+    def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
+        """First hits of rays (no gradients). Normals are flipped to face the ray origin."""
+        with dr.suspend_grad():
+            ray = mi.Ray3f(mi.Point3f(*[mi.Float(origins[:, i]) for i in range(3)]),
+                           mi.Vector3f(*[mi.Float(directions[:, i]) for i in range(3)]))
+            si = self.scene.ray_intersect(ray)
+            valid = si.is_valid()
+            n = si.sh_frame.n
+            flip = dr.dot(n, -ray.d) < 0
+            n = dr.select(flip, -n, n)
+            out = [valid, si.p.x, si.p.y, si.p.z, n.x, n.y, n.z]
+            dr.eval(*out)
+        dev = torch_device()
+        valid_t = torch.as_tensor(np.array(out[0]), dtype=torch.bool, device=dev)
+        pos = torch.as_tensor(np.stack([np.array(a) for a in out[1:4]], -1), device=dev)
+        nrm = torch.as_tensor(np.stack([np.array(a) for a in out[4:7]], -1), device=dev)
+        pos = torch.where(valid_t[:, None], pos, torch.zeros_like(pos))
+        nrm = torch.where(valid_t[:, None], nrm, torch.zeros_like(nrm))
+        wi = -torch.as_tensor(directions, device=dev)
+        return Hits(valid_t, pos.float(), nrm.float(), wi.float())
+
+    # -- shading ------------------------------------------------------------------------
+    def _make_shade(self):
+        scene, bsdf, emitter, ctx = self.scene, self.bsdf, self.emitter, self.ctx
+        params, key = self.params, self.env_key
+        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+
+        @dr.wrap(source="torch", target="drjit")
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, env, u):
+            # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
+            f = lambda t: mi.Float(t.array) if isinstance(t, mi.TensorXf) else mi.Float(t)
+            px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
+            br, bg, bb, metal, rough = map(f, (br, bg, bb, metal, rough))
+            u = [f(x) for x in u]
+            params[key] = env
+            params.update()
+
+            n_lanes = dr.width(px)
+            si = dr.zeros(mi.SurfaceInteraction3f, n_lanes)
+            si.p = mi.Point3f(px, py, pz)
+            normal = mi.Normal3f(nx, ny, nz)
+            si.n = normal
+            si.sh_frame = mi.Frame3f(normal)
+            si.wi = si.sh_frame.to_local(mi.Vector3f(wx, wy, wz))
+            si.t = mi.Float(1.0)
+            tb.values = (br, bg, bb)
+            tm.values = (metal,)
+            tr.values = (rough,)
+
+            # Emitter sampling with a shadow ray.
+            ds, em_weight = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), True)
+            wo = si.to_local(ds.d)
+            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo)
+            w_em = dr.detach(dr.select(ds.pdf > 0, dr.square(ds.pdf) / (dr.square(ds.pdf) + dr.square(pdf_bsdf)), 0.0))
+            radiance = f_em * em_weight * w_em
+
+            # BSDF sampling; the sampled direction is detached, its value differentiated.
+            with dr.suspend_grad():
+                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
+                ray = si.spawn_ray(si.to_world(bs.wo))
+                si_next = scene.ray_intersect(ray)
+                miss = ~si_next.is_valid() & (bs.pdf > 0)
+                ds_next = mi.DirectionSample3f(scene, si_next, si)
+                pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
+                w_bs = dr.select(miss, dr.square(bs.pdf) / (dr.square(bs.pdf) + dr.square(pdf_em)), 0.0)
+                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
+            f_bs = bsdf.eval(ctx, si, bs.wo)
+            le = emitter.eval(si_next, miss)
+            radiance += f_bs * le * (w_bs * inv_pdf)
+            tb.values = tm.values = tr.values = None
+            return radiance.x, radiance.y, radiance.z
+
+        return shade
+
+    def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
+              env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs.
+
+        basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
+        gradients; the result is differentiable with respect to all of them.
+        """
+        n = hits_position.shape[0]
+        rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()
+        p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
+        bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
+        u = torch.rand(5, n * spp, generator=generator, device=p.device)
+        rgb = self._shade(
+            p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2],
+            bc[:, 0], bc[:, 1], bc[:, 2], m, r, envmap_padded(env_linear), [u[i] for i in range(5)],
+        )
+        return torch.stack(rgb, -1).view(n, spp, 3).mean(1)
