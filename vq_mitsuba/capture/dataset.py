@@ -1,0 +1,512 @@
+"""Captures: posed reference images plus optional known geometry and lighting.
+
+A capture is either a Mitsuba scene XML (sensors with `images/<id>.exr|png` beside the XML,
+optional `<shape>` geometry and `<emitter type="envmap">` lighting; Mitsuba world) or a
+NeRF-synthetic `transforms_*.json` (OpenGL camera axes, Blender world with Z up; optional
+`mesh.ply` beside it or a `mesh=` argument). Everything is validated before returning, and
+every problem is an InputError naming the offending file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from .imageio import read_image
+
+IMAGE_EXTS = (".exr", ".png", ".jpg", ".jpeg")
+MESH_SHAPES = ("ply", "obj", "serialized", "cube")  # loaded by Mitsuba as triangle meshes
+SPHERE_SUBDIVISIONS = 4
+
+
+@dataclass
+class Capture:
+    source: Path  # the XML or json file
+    cameras: list[Camera]  # Mitsuba-convention cameras, in the capture's world
+    images: np.ndarray  # (N, H, W, 3) float32 linear RGB
+    alpha: np.ndarray  # (N, H, W) float32 in [0, 1]; all ones when images have no alpha
+    has_alpha: bool
+    mesh: "trimesh.Trimesh | None"  # noqa: F821  known geometry in world space, or None
+    envmap: np.ndarray | None  # known lighting: (H, W, 3) float32 lat-long linear, or None
+    envmap_to_world: np.ndarray  # (4, 4) float64
+    world: str  # "mitsuba" or "blender"
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry points
+
+
+def load_capture(path: str | Path, mesh: str | Path | None = None) -> Capture:
+    """Load and validate a capture (scene XML, transforms json, or a folder holding one)."""
+    source = resolve_capture_path(path)
+    if source.suffix.lower() == ".xml":
+        return _load_xml_capture(source, mesh)
+    return _load_json_capture(source, mesh)
+
+
+def load_cameras(path: str | Path) -> tuple[list[Camera], str, Path]:
+    """Cameras only (no images needed), for rendering novel views: (cameras, world, source)."""
+    source = resolve_capture_path(path)
+    if source.suffix.lower() == ".xml":
+        root, defaults = _parse_xml(source)
+        scene = _load_mitsuba_sensors_only(source, root)
+        return _xml_cameras(source, root, defaults, scene), "mitsuba", source
+    data = _read_json(source)
+    angle, frames = _json_header(source, data)
+    width, height = _json_image_size(source, data, frames)
+    cameras = [
+        nerf_to_camera(name, matrix, angle, width, height)
+        for name, matrix in zip(_frame_names(frames), _frame_matrices(source, frames))
+    ]
+    return cameras, "blender", source
+
+
+def resolve_capture_path(path: str | Path) -> Path:
+    """The capture file for `path`: the file itself, or a folder's transforms_train.json / scene.xml."""
+    path = Path(path)
+    if path.is_dir():
+        for name in ("transforms_train.json", "scene.xml"):
+            if (path / name).is_file():
+                return path / name
+        raise InputError(path, "capture folder holds neither transforms_train.json nor scene.xml")
+    if not path.exists():
+        raise InputError(path, "capture file not found")
+    if path.suffix.lower() not in (".xml", ".json"):
+        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml or a transforms_*.json)")
+    return path
+
+
+def load_mesh(path: str | Path):
+    """A PLY/OBJ mesh as a trimesh.Trimesh (vertices kept as stored), validated."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "mesh file not found")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds on bad files
+        raise InputError(path, f"cannot read mesh file ({type(exc).__name__}: {exc})") from exc
+    if isinstance(loaded, trimesh.Scene):  # force='mesh' returns an empty scene for empty files
+        geoms = list(loaded.geometry.values())
+        loaded = trimesh.util.concatenate(geoms) if geoms else trimesh.Trimesh()
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        raise InputError(path, "mesh file is empty (no triangles)")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise InputError(path, "mesh has non-finite vertex positions")
+    return loaded
+
+
+def _ensure_variant():
+    """Import mitsuba with a variant set: keep the one already chosen, else llvm_ad_rgb."""
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        mi.set_variant("llvm_ad_rgb")
+    return mi
+
+
+# --------------------------------------------------------------------------------------------
+# Shared helpers
+
+
+def _find_image(stem: Path) -> Path | None:
+    """`stem.exr` if it exists, else `stem.png` (None when neither does)."""
+    for ext in (".exr", ".png"):
+        candidate = stem.parent / (stem.name + ext)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _stack_images(entries: list[tuple[Path, np.ndarray, np.ndarray | None]]):
+    """(images, alpha, has_alpha) from (path, rgb, alpha) triples of one size."""
+    with_alpha = [a is not None for _, _, a in entries]
+    if any(with_alpha) and not all(with_alpha):
+        has = next(p for p, _, a in entries if a is not None)
+        lacks = next(p for p, _, a in entries if a is None)
+        raise InputError(lacks, f"image has no alpha channel but {has.name} has one; "
+                                "either all images carry an alpha mask or none does")
+    images = np.stack([rgb for _, rgb, _ in entries]).astype(np.float32, copy=False)
+    if all(with_alpha):
+        alpha = np.stack([a for _, _, a in entries]).astype(np.float32, copy=False)
+        for p, _, a in entries:
+            if a.min() < 0.0 or a.max() > 1.0:
+                raise InputError(p, f"alpha outside [0, 1] (range {a.min():g}..{a.max():g})")
+        return images, alpha, True
+    return images, np.ones(images.shape[:3], dtype=np.float32), False
+
+
+def _matrix(transform) -> np.ndarray:
+    """A Mitsuba (Affine)Transform4f as a (4, 4) float64 array, in any variant."""
+    m = np.array(transform.matrix, dtype=np.float64)
+    if m.ndim == 3:
+        m = m[..., 0]
+    return m.reshape(4, 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Mitsuba XML
+
+
+def _parse_xml(xml: Path) -> tuple[ET.Element, dict[str, str]]:
+    try:
+        root = ET.parse(xml).getroot()
+    except ET.ParseError as exc:
+        raise InputError(xml, f"XML parse error ({exc})") from exc
+    except OSError as exc:
+        raise InputError(xml, f"cannot read scene file ({exc})") from exc
+    if root.tag != "scene":
+        raise InputError(xml, f"not a Mitsuba scene (root element is <{root.tag}>, expected <scene>)")
+    defaults = {d.get("name"): d.get("value", "") for d in root.iter("default") if d.get("name")}
+    return root, defaults
+
+
+def _subst(value: str | None, defaults: dict[str, str]) -> str | None:
+    """Mitsuba's `$name` substitution of <default> values in attribute text."""
+    if value is None or "$" not in value:
+        return value
+    return re.sub(r"\$(\w+)", lambda m: defaults.get(m.group(1), m.group(0)), value)
+
+
+def _string_param(elem: ET.Element, name: str, defaults: dict[str, str]) -> str | None:
+    for child in elem:
+        if child.tag == "string" and child.get("name") == name:
+            return _subst(child.get("value"), defaults)
+    return None
+
+
+def _xml_file(xml: Path, filename: str) -> Path:
+    p = Path(filename)
+    return p if p.is_absolute() else xml.parent / p
+
+
+def _load_mitsuba_scene(xml: Path, referenced: list[Path]):
+    mi = _ensure_variant()
+    try:
+        return mi.load_file(str(xml))
+    except Exception as exc:
+        message = str(exc)
+        for ref in referenced:  # name the mesh / bitmap Mitsuba choked on, when it says which
+            if f'"{ref.name}"' in message or str(ref) in message:
+                raise InputError(ref, f"cannot load file referenced by {xml.name}: {message}") from exc
+        raise InputError(xml, f"Mitsuba cannot load the scene: {message}") from exc
+
+
+def _load_mitsuba_sensors_only(xml: Path, root: ET.Element):
+    """Load only <default> and <sensor> elements, so cameras need no meshes or bitmaps."""
+    mi = _ensure_variant()
+    stripped = ET.Element("scene", dict(root.attrib))
+    for child in root:
+        if child.tag in ("default", "sensor"):
+            stripped.append(child)
+    try:
+        return mi.load_string(ET.tostring(stripped, encoding="unicode"))
+    except Exception as exc:
+        raise InputError(xml, f"Mitsuba cannot load the sensors: {exc}") from exc
+
+
+def _xml_cameras(xml: Path, root: ET.Element, defaults: dict[str, str], scene) -> list[Camera]:
+    mi = _ensure_variant()
+    sensor_elems = list(root.iter("sensor"))
+    if not sensor_elems:
+        raise InputError(xml, "no cameras: the scene has no <sensor> element")
+    ids = []
+    for k, elem in enumerate(sensor_elems):
+        sid = _subst(elem.get("id"), defaults)
+        if not sid:
+            raise InputError(xml, f"<sensor> number {k + 1} has no id attribute "
+                                  "(its reference image is images/<id>.exr or .png)")
+        ids.append(sid)
+    sensors = list(scene.sensors())
+    if len(sensors) != len(ids):
+        raise InputError(xml, f"found {len(ids)} <sensor> elements but Mitsuba loaded {len(sensors)}")
+    cameras = []
+    for sid, sensor in zip(ids, sensors):
+        kind = sensor.class_name()
+        if kind != "PerspectiveCamera":
+            raise InputError(xml, f"sensor '{sid}' is a {kind}; only type=\"perspective\" (pinhole) is supported")
+        params = mi.traverse(sensor)
+        film = sensor.film()
+        size, crop = [int(v) for v in film.size()], [int(v) for v in film.crop_size()]
+        if size != crop:
+            raise InputError(xml, f"sensor '{sid}': film crop windows are not supported")
+        for key in ("principal_point_offset_x", "principal_point_offset_y"):
+            if abs(float(np.ravel(np.array(params[key]))[0])) > 1e-7:
+                raise InputError(xml, f"sensor '{sid}': principal point offsets are not supported")
+        fov_x = float(np.ravel(np.array(params["x_fov"]))[0])
+        to_world = _matrix(params["to_world"])
+        if not (np.all(np.isfinite(to_world)) and abs(np.linalg.det(to_world[:3, :3])) > 1e-12):
+            raise InputError(xml, f"sensor '{sid}': degenerate to_world transform")
+        cameras.append(Camera(sid, to_world, fov_x, size[0], size[1]))
+    return cameras
+
+
+def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
+    root, defaults = _parse_xml(xml)
+
+    # Emitters: only envmaps (checked on the text first, for a clear message).
+    env_elems = []
+    for elem in root.iter("emitter"):
+        etype = _subst(elem.get("type"), defaults)
+        if etype != "envmap":
+            raise InputError(xml, f"unknown emitter type '{etype}': only envmap is supported "
+                                  "(known lighting is an <emitter type=\"envmap\">)")
+        env_elems.append(elem)
+    if len(env_elems) > 1:
+        raise InputError(xml, f"{len(env_elems)} envmap emitters; at most one is supported")
+
+    # Shapes: triangle meshes and spheres.
+    referenced: list[Path] = []
+    for elem in root.iter("shape"):
+        stype = _subst(elem.get("type"), defaults)
+        if stype not in MESH_SHAPES + ("sphere",):
+            raise InputError(xml, f"shape type '{stype}' is not supported as known geometry "
+                                  "(use ply/obj/serialized meshes or spheres)")
+        filename = _string_param(elem, "filename", defaults)
+        if filename is not None:
+            mesh_file = _xml_file(xml, filename)
+            if not mesh_file.is_file():
+                raise InputError(mesh_file, f"mesh file not found (shape '{stype}' in {xml.name})")
+            referenced.append(mesh_file)
+
+    env_file = None
+    if env_elems:
+        filename = _string_param(env_elems[0], "filename", defaults)
+        if filename is None:
+            raise InputError(xml, "envmap emitter has no filename parameter")
+        env_file = _xml_file(xml, filename)
+        if not env_file.is_file():
+            raise InputError(env_file, f"envmap image not found (emitter in {xml.name})")
+        referenced.append(env_file)
+    # Read the envmap first: read_image gives clearer errors than Mitsuba's loader.
+    env_rgb = _read_envmap(env_file) if env_file is not None else None
+
+    # Cameras and their reference images.
+    scene = _load_mitsuba_scene(xml, referenced)
+    cameras = _xml_cameras(xml, root, defaults, scene)
+    for cam in cameras[1:]:
+        if (cam.width, cam.height) != (cameras[0].width, cameras[0].height):
+            raise InputError(xml, f"sensor '{cam.name}' film is {cam.width}x{cam.height} but sensor "
+                                  f"'{cameras[0].name}' film is {cameras[0].width}x{cameras[0].height}; "
+                                  "all sensors of a capture must share one film size")
+    entries = []
+    for cam in cameras:
+        stem = xml.parent / "images" / cam.name
+        img_path = _find_image(stem)
+        if img_path is None:
+            raise InputError(stem.parent / (stem.name + ".exr"),
+                             f"no reference image for sensor '{cam.name}' in {xml.name} "
+                             f"(expected images/{cam.name}.exr or images/{cam.name}.png)")
+        rgb, alpha = read_image(img_path)
+        h, w = rgb.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            raise InputError(img_path, f"image size {w}x{h} differs from the film size "
+                                       f"{cam.width}x{cam.height} of sensor '{cam.name}' in {xml.name}")
+        entries.append((img_path, rgb, alpha))
+    images, alpha, has_alpha = _stack_images(entries)
+
+    # Known geometry.
+    if mesh_arg is not None:
+        mesh = load_mesh(mesh_arg)
+    else:
+        mesh = _scene_mesh(xml, scene)
+
+    # Known lighting.
+    envmap, env_to_world = None, np.eye(4)
+    if env_rgb is not None:
+        mi = _ensure_variant()
+        emitters = [e for e in scene.emitters() if e.class_name() == "EnvironmentMapEmitter"]
+        if len(emitters) != 1:
+            raise InputError(xml, "Mitsuba did not load the envmap emitter")
+        params = mi.traverse(emitters[0])
+        env_to_world = _matrix(params["to_world"])
+        scale = float(np.ravel(np.array(params["scale"]))[0]) if "scale" in params else 1.0
+        envmap = (env_rgb * np.float32(scale)).astype(np.float32)
+
+    return Capture(xml, cameras, images, alpha, has_alpha, mesh, envmap, env_to_world, "mitsuba")
+
+
+def _read_envmap(path: Path) -> np.ndarray:
+    if path.suffix.lower() in IMAGE_EXTS:
+        rgb, _ = read_image(path)
+        return rgb
+    # Radiance .hdr / .pfm and other formats Mitsuba reads itself.
+    mi = _ensure_variant()
+    try:
+        bmp = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+        rgb = np.array(bmp, dtype=np.float32)
+    except Exception as exc:
+        raise InputError(path, f"cannot read envmap image ({exc})") from exc
+    if not np.all(np.isfinite(rgb)):
+        raise InputError(path, "image contains non-finite pixels (NaN or Inf)")
+    return rgb.reshape(rgb.shape[0], rgb.shape[1], 3)
+
+
+def _scene_mesh(xml: Path, scene):
+    """All shapes of a loaded scene merged into one world-space trimesh (None without shapes)."""
+    import trimesh
+
+    mi = _ensure_variant()
+    vertices, faces, offset = [], [], 0
+    for shape in scene.shapes():
+        kind = shape.class_name()
+        if isinstance(shape, mi.Mesh):
+            v = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+            f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+            if len(f) == 0:
+                raise InputError(xml, f"shape '{shape.id() or kind}' has no triangles")
+        elif kind == "Sphere":
+            ico = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=1.0)
+            m = _matrix(mi.traverse(shape)["to_world"])
+            v = np.asarray(ico.vertices, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+            f = np.asarray(ico.faces, dtype=np.int64)
+        else:
+            raise InputError(xml, f"shape '{shape.id() or kind}' ({kind}) is not supported as known "
+                                  "geometry (use ply/obj/serialized meshes or spheres)")
+        if not np.all(np.isfinite(v)):
+            raise InputError(xml, f"shape '{shape.id() or kind}' has non-finite vertex positions")
+        vertices.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+    if not vertices:
+        return None
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
+
+
+# --------------------------------------------------------------------------------------------
+# NeRF-synthetic json
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read json file ({exc})") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"malformed json at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    if not isinstance(data, dict):
+        raise InputError(path, "malformed capture json: the top level must be an object")
+    return data
+
+
+def _json_header(path: Path, data: dict) -> tuple[float, list[dict]]:
+    if "camera_angle_x" not in data:
+        raise InputError(path, "missing 'camera_angle_x' (horizontal field of view in radians)")
+    angle = data["camera_angle_x"]
+    if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not (0.0 < angle < math.pi):
+        raise InputError(path, f"'camera_angle_x' must be a number of radians in (0, pi), got {angle!r}")
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise InputError(path, "no cameras: 'frames' is missing or empty")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise InputError(path, f"frames[{i}] is not an object")
+        if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
+            raise InputError(path, f"frames[{i}] has no 'file_path'")
+        if "transform_matrix" not in frame:
+            raise InputError(path, f"frames[{i}] ({frame['file_path']}) has no 'transform_matrix'")
+    return float(angle), frames
+
+
+def _frame_matrices(path: Path, frames: list[dict]) -> list[np.ndarray]:
+    out = []
+    for i, frame in enumerate(frames):
+        try:
+            m = np.array(frame["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            m = None
+        if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise InputError(path, f"frames[{i}] ({frame['file_path']}): malformed transform_matrix "
+                                   "(expected 4x4 finite numbers)")
+        if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+            raise InputError(path, f"frames[{i}] ({frame['file_path']}): degenerate transform_matrix")
+        out.append(m)
+    return out
+
+
+def _frame_names(frames: list[dict]) -> list[str]:
+    stems = [Path(f["file_path"]).name for f in frames]
+    stems = [s[: -len(Path(s).suffix)] if Path(s).suffix.lower() in IMAGE_EXTS else s for s in stems]
+    if len(set(stems)) == len(stems):
+        return stems
+    return [f"{i:04d}_{s}" for i, s in enumerate(stems)]
+
+
+def _frame_image_candidates(path: Path, frame: dict) -> list[Path]:
+    p = path.parent / frame["file_path"]
+    if p.suffix.lower() in IMAGE_EXTS:
+        return [p]
+    return [p.parent / (p.name + ".exr"), p.parent / (p.name + ".png")]
+
+
+def _frame_image(path: Path, i: int, frame: dict) -> Path:
+    candidates = _frame_image_candidates(path, frame)
+    for c in candidates:
+        if c.is_file():
+            return c
+    expected = " or ".join(str(c) for c in candidates)
+    raise InputError(candidates[0], f"image not found for frames[{i}] of {path.name} (expected {expected})")
+
+
+def _json_image_size(path: Path, data: dict, frames: list[dict]) -> tuple[int, int]:
+    """(width, height) for cameras-only loading: 'w'/'h' keys, else the first image found."""
+    w, h = data.get("w"), data.get("h")
+    if isinstance(w, (int, float)) and isinstance(h, (int, float)) and w > 0 and h > 0:
+        return int(w), int(h)
+    for frame in frames:
+        for c in _frame_image_candidates(path, frame):
+            if c.is_file():
+                rgb, _ = read_image(c)
+                return int(rgb.shape[1]), int(rgb.shape[0])
+    raise InputError(path, "cannot tell the image size: no 'w'/'h' keys and no frame image exists")
+
+
+def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
+    data = _read_json(path)
+    angle, frames = _json_header(path, data)
+    matrices = _frame_matrices(path, frames)
+    names = _frame_names(frames)
+
+    entries, first = [], None
+    for i, frame in enumerate(frames):
+        img_path = _frame_image(path, i, frame)
+        rgb, alpha = read_image(img_path)
+        h, w = rgb.shape[:2]
+        if first is None:
+            first = (img_path, w, h)
+        elif (w, h) != first[1:]:
+            raise InputError(img_path, f"image size {w}x{h} differs from {first[0].name} "
+                                       f"({first[1]}x{first[2]}); all frames must share one size")
+        entries.append((img_path, rgb, alpha))
+    images, alpha, has_alpha = _stack_images(entries)
+    width, height = first[1], first[2]
+    cameras = [nerf_to_camera(n, m, angle, width, height) for n, m in zip(names, matrices)]
+
+    if mesh_arg is not None:
+        mesh = load_mesh(mesh_arg)
+    elif (path.parent / "mesh.ply").exists():
+        mesh = load_mesh(path.parent / "mesh.ply")
+    else:
+        mesh = None
+
+    return Capture(path, cameras, images, alpha, has_alpha, mesh, None,
+                   BLENDER_ENV_TO_WORLD.copy(), "blender")
