@@ -1,0 +1,66 @@
+"""Tiny synthetic captures rendered with Mitsuba's path tracer, for tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def smooth_env(height: int = 16, seed: int = 0) -> np.ndarray:
+    """A smooth positive lat-long envmap with one bright lobe (Mitsuba convention)."""
+    h, w = height, 2 * height
+    v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(w) + 0.5) / w, indexing="ij")
+    env = np.stack([0.6 + 0.3 * np.cos(2 * np.pi * u), 0.6 + 0.2 * (1 - v), 0.5 + 0.4 * v], -1)
+    lobe = np.exp(-(((u - 0.3) * 2 * h / 3) ** 2 + ((v - 0.35) * h / 3) ** 2))
+    return (env + 6.0 * lobe[..., None]).astype(np.float32)
+
+
+def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: float = 0.4, metallic: float = 0.0,
+                         size: int = 24, n_views: int = 10, spp: int = 64, known_envmap: bool = True) -> Path:
+    """A uniform principled sphere (radius 0.5) seen from n_views cameras; returns the XML path."""
+    import mitsuba as mi
+    import trimesh
+
+    from vq_mitsuba.capture.cameras import Camera, look_at
+    from vq_mitsuba.capture.imageio import write_exr
+    from vq_mitsuba.rendering import init_mitsuba
+
+    init_mitsuba()
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    sphere.export(out / "sphere.ply")
+    env = smooth_env()
+    write_exr(out / "env.exr", env)
+    bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": list(base_color)},
+            "metallic": metallic, "roughness": roughness}
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
+        "shape": {"type": "ply", "filename": str(out / "sphere.ply"), "bsdf": bsdf},
+        "env": {"type": "envmap", "filename": str(out / "env.exr")},
+    })
+    golden = np.pi * (3 - np.sqrt(5))
+    sensors = []
+    for i in range(n_views):
+        y = 1 - 2 * (i + 0.5) / n_views
+        r = np.sqrt(1 - y * y)
+        origin = 2.2 * np.array([r * np.cos(golden * i), y, r * np.sin(golden * i)])
+        cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0], [0, 1, 0] if abs(y) < 0.95 else [1, 0, 0]),
+                     40.0, size, size)
+        img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=i))
+        write_exr(out / "images" / f"{cam.name}.exr", img)
+        m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
+        sensors.append(
+            f'  <sensor type="perspective" id="{cam.name}">\n'
+            f'    <float name="fov" value="40"/>\n    <string name="fov_axis" value="x"/>\n'
+            f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
+            f'    <film type="hdrfilm"><integer name="width" value="{size}"/>'
+            f'<integer name="height" value="{size}"/></film>\n  </sensor>'
+        )
+    emitter = '  <emitter type="envmap"><string name="filename" value="env.exr"/></emitter>\n' if known_envmap else ""
+    xml = ('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n"
+           '  <shape type="ply"><string name="filename" value="sphere.ply"/></shape>\n' + emitter + "</scene>\n")
+    (out / "scene.xml").write_text(xml)
+    return out / "scene.xml"
