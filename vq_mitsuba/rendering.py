@@ -250,8 +250,10 @@ class ShadingScene:
         return shade
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
-              env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs.
+              env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
+              reduce: bool = True) -> torch.Tensor:
+        """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
+        (or every sample, (N, spp, 3), when reduce=False).
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them.
@@ -265,4 +267,5 @@ class ShadingScene:
             p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2],
             bc[:, 0], bc[:, 1], bc[:, 2], m, r, envmap_padded(env_linear), [u[i] for i in range(5)],
         )
-        return torch.stack(rgb, -1).view(n, spp, 3).mean(1)
+        samples = torch.stack(rgb, -1).view(n, spp, 3)
+        return samples.mean(1) if reduce else samples

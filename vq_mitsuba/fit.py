@@ -1,0 +1,262 @@
+"""Fitting the continuous branch on known geometry: how the networks are trained.
+
+Primary hits of every training pixel are traced once (geometry is fixed); each step draws a
+random batch of foreground pixels across all views, evaluates the material field once per hit,
+and shades through Mitsuba (vq_mitsuba.rendering). Checkpoints are written atomically and a
+run resumes from its last one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import losses
+from .capture.cameras import BLENDER_ENV_TO_WORLD
+from .capture.dataset import Capture, load_capture
+from .capture.imageio import write_exr
+from .config import Config, save_config, to_dict
+from .errors import InputError
+from .materials.fields import ContinuousMaterial, EnvironmentMap
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class PixelPool:
+    """Foreground training pixels with their primary hits."""
+
+    position: torch.Tensor  # (P, 3)
+    normal: torch.Tensor  # (P, 3)
+    wi: torch.Tensor  # (P, 3)
+    rgb: torch.Tensor  # (P, 3) linear target
+    view: torch.Tensor  # (P,) view index
+
+    def __len__(self) -> int:
+        return self.position.shape[0]
+
+
+def build_scene(mesh, env_init: np.ndarray, env_to_world: np.ndarray):
+    from .rendering import ShadingScene
+
+    return ShadingScene(mesh.vertices, mesh.faces, env_init, env_to_world, normals=mesh.vertex_normals)
+
+
+def trace_training_pixels(scene, capture: Capture, alpha_threshold: float) -> tuple[PixelPool, dict]:
+    """Primary hits of pixel centres of all views; keeps pixels that are opaque and hit."""
+    from .rendering import camera_rays
+
+    parts, n_alpha, n_hit = [], 0, 0
+    for v, cam in enumerate(capture.cameras):
+        o, d = camera_rays(cam)
+        hits = scene.trace(o, d)
+        opaque = torch.as_tensor(capture.alpha[v].reshape(-1) >= alpha_threshold, device=hits.valid.device)
+        keep = hits.valid & opaque
+        n_alpha += int(opaque.sum())
+        n_hit += int(keep.sum())
+        rgb = torch.as_tensor(capture.images[v].reshape(-1, 3), device=hits.valid.device)
+        parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb[keep],
+                      torch.full((int(keep.sum()),), v, dtype=torch.int32)))
+    cat = [torch.cat(x) for x in zip(*parts)]
+    pool = PixelPool(*cat)
+    stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit,
+             "geometry_coverage": n_hit / max(n_alpha, 1)}
+    return pool, stats
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+class Run:
+    """A run directory: config, capture info, checkpoint; what render/eval read back."""
+
+    def __init__(self, run_dir: str | Path):
+        self.dir = Path(run_dir)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.dir / CHECKPOINT
+
+    def info(self) -> dict:
+        path = self.dir / "run.json"
+        if not path.is_file():
+            raise InputError(path, "not a fitted run directory (run.json missing); run `vq-mitsuba fit` first")
+        return json.loads(path.read_text())
+
+
+def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
+        resume: bool = False, progress: bool = True) -> dict:
+    """Fit materials and lighting; returns the summary written to RUN_DIR/fit.json."""
+    from tqdm import tqdm
+
+    from .rendering import init_mitsuba, torch_device
+
+    run_dir = Path(run_dir)
+    ckpt_path = run_dir / CHECKPOINT
+    if ckpt_path.exists() and not resume:
+        raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
+    if resume and not ckpt_path.exists():
+        raise InputError(ckpt_path, "no checkpoint to resume from")
+
+    capture = load_capture(capture_path, mesh=mesh_path)  # every input check happens here, first
+    if capture.mesh is None:
+        raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
+                         "(pass --mesh PATH, or put mesh.ply beside the json); the NeuS stage is not available yet")
+    torch.manual_seed(cfg.train.seed)
+    np.random.seed(cfg.train.seed)
+    init_mitsuba()
+    device = torch_device()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+    capture.mesh.export(run_dir / "mesh.ply")
+
+    mean_fg = float(np.mean(capture.images[capture.alpha >= cfg.train.alpha_threshold])) if capture.has_alpha \
+        else float(np.mean(capture.images))
+    learn_env = capture.envmap is None
+    if learn_env:
+        env_module = EnvironmentMap(cfg.envmap.height, cfg.envmap.init_scale * max(mean_fg, 1e-3)).to(device)
+        env_init = env_module().detach().cpu().numpy()
+    else:
+        env_init = capture.envmap
+    scene = build_scene(capture.mesh, env_init, capture.envmap_to_world)
+    pool, stats = trace_training_pixels(scene, capture, cfg.train.alpha_threshold)
+    if len(pool) == 0:
+        raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh and the alpha masks")
+    if stats["geometry_coverage"] < 0.9:
+        print(f"warning: only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
+              "the geometry may not match the images (units, world axes?)")
+    _write_json(run_dir / "run.json", {
+        "capture": str(Path(capture.source).resolve()),
+        "world": capture.world,
+        "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
+        "learned_envmap": learn_env,
+        "n_views": len(capture.cameras),
+        **stats,
+    })
+
+    bbox = torch.tensor(np.asarray(capture.mesh.bounds), dtype=torch.float32)
+    model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
+    groups = [{"params": model.parameters(), "lr": cfg.train.lr}]
+    if learn_env:
+        groups.append({"params": env_module.parameters(), "lr": cfg.envmap.lr})
+    optim = torch.optim.Adam(groups)
+    total = cfg.train.iterations
+    gamma_lr = cfg.train.lr_decay ** (1.0 / max(total, 1))
+    sched = torch.optim.lr_scheduler.ExponentialLR(optim, gamma_lr)
+    gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
+    history: list[dict] = []
+    step, elapsed_before = 0, 0.0
+
+    if resume:
+        state = torch.load(ckpt_path, map_location=device, weights_only=False)
+        model.load_state_dict(state["model"])
+        if learn_env:
+            env_module.load_state_dict(state["envmap"])
+        optim.load_state_dict(state["optim"])
+        sched.load_state_dict(state["sched"])
+        gen.set_state(state["generator"])
+        history, step, elapsed_before = state["history"], state["step"], state["elapsed_s"]
+        if step >= total:
+            print(f"{run_dir}: already fitted ({step} of {total} iterations); nothing to do")
+
+    def checkpoint(elapsed: float) -> None:
+        _atomic_save({
+            "model": model.state_dict(),
+            "envmap": env_module.state_dict() if learn_env else None,
+            "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
+            "optim": optim.state_dict(), "sched": sched.state_dict(), "generator": gen.get_state(),
+            "history": history, "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
+        }, ckpt_path)
+
+    fixed_env = None if learn_env else torch.as_tensor(capture.envmap, device=device)
+    t0 = time.perf_counter()
+    bar = tqdm(total=total, initial=step, desc="fit", disable=not progress, dynamic_ncols=True)
+    loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
+    B = min(cfg.train.batch_rays, len(pool))
+    while step < total:
+        idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
+        out = model(pool.position[idx])
+        env = env_module() if learn_env else fixed_env
+        samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
+                              out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False)
+        rgb = samples.mean(1)
+        target = pool.rgb[idx]
+        if cfg.loss.decorrelated:
+            l_rec = losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
+        else:
+            l_rec = losses.reconstruction_l2(rgb, target, cfg.loss.gamma)
+        l_lam = losses.lambertian_prior(out["metallic"], out["roughness"])
+        loss = cfg.loss.w_rec_c * l_rec + cfg.loss.w_lam * l_lam
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        sched.step()
+        step += 1
+        with torch.no_grad():
+            from .capture.imageio import linear_to_srgb
+
+            mse = float(torch.mean((torch.as_tensor(linear_to_srgb(rgb.detach().cpu().numpy()))
+                                    - torch.as_tensor(linear_to_srgb(target.cpu().numpy()))) ** 2))
+        loss_acc, mse_acc, n_acc = loss_acc + float(loss.detach()), mse_acc + mse, n_acc + 1
+        if step % cfg.train.log_every == 0 or step == total:
+            elapsed = elapsed_before + time.perf_counter() - t0
+            history.append({"step": step, "seconds": elapsed, "loss": loss_acc / n_acc,
+                            "psnr": losses.psnr(mse_acc / n_acc)})
+            bar.set_postfix(loss=f"{loss_acc / n_acc:.4g}", psnr=f"{history[-1]['psnr']:.2f}")
+            loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
+        bar.update(1)
+        elapsed = elapsed_before + time.perf_counter() - t0
+        if step % cfg.train.checkpoint_every == 0:
+            checkpoint(elapsed)
+        if cfg.train.time_limit_s > 0 and elapsed >= cfg.train.time_limit_s:
+            print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {step}")
+            break
+    bar.close()
+    elapsed = elapsed_before + time.perf_counter() - t0
+    checkpoint(elapsed)
+
+    env_final = (env_module() if learn_env else fixed_env).detach().cpu().numpy()
+    write_exr(run_dir / "envmap.exr", env_final)
+    plot_history(history, run_dir / "loss.png")
+    run_steps = max(step - (state["step"] if resume else 0), 0) if resume else step
+    summary = {"iterations": step, "seconds": elapsed,
+               "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
+               "final_psnr_train_batch": history[-1]["psnr"] if history else None,
+               "training_pixels": len(pool), "steps_this_call": run_steps}
+    _write_json(run_dir / "fit.json", summary)
+    return summary
+
+
+def plot_history(history: list[dict], path: Path) -> None:
+    if not history:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    ax[0].semilogy(steps, [h["loss"] for h in history])
+    ax[0].set_xlabel("iteration"); ax[0].set_ylabel("loss"); ax[0].set_title("training loss")
+    ax[1].plot(steps, [h["psnr"] for h in history])
+    ax[1].set_xlabel("iteration"); ax[1].set_ylabel("PSNR (dB, sRGB)"); ax[1].set_title("training-batch PSNR")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

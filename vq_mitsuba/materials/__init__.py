@@ -1,0 +1,1 @@
+"""Material fields: what the networks are (training lives in vq_mitsuba.fit)."""

@@ -1,0 +1,114 @@
+"""Continuous material branch (paper Sec. III-B): encoder to latent z, decoders to BRDF factors."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from ..config import FieldConfig
+
+
+class PositionalEncoding(nn.Module):
+    """gamma(p) = (p, sin(2^k pi p), cos(2^k pi p)) for k < n_freqs, p in [-1, 1]^3."""
+
+    def __init__(self, n_freqs: int):
+        super().__init__()
+        self.register_buffer("freqs", (2.0 ** torch.arange(n_freqs)) * math.pi, persistent=False)
+        self.out_dim = 3 + 6 * n_freqs
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        xb = x[..., None, :] * self.freqs[:, None]  # (N, F, 3)
+        return torch.cat([x, torch.sin(xb).flatten(-2), torch.cos(xb).flatten(-2)], -1)
+
+
+class SkipMLP(nn.Module):
+    """`n_layers` FC layers with ReLU; the input is concatenated again before layer `skip_at`."""
+
+    def __init__(self, in_dim: int, hidden: int, out_dim: int, n_layers: int, skip_at: int):
+        super().__init__()
+        self.skip_at = skip_at
+        layers = []
+        for i in range(n_layers):
+            d_in = in_dim if i == 0 else hidden
+            if i == skip_at:
+                d_in += in_dim
+            d_out = out_dim if i == n_layers - 1 else hidden
+            layers.append(nn.Linear(d_in, d_out))
+        self.layers = nn.ModuleList(layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = x
+        for i, layer in enumerate(self.layers):
+            if i == self.skip_at:
+                h = torch.cat([h, x], -1)
+            h = layer(h)
+            if i < len(self.layers) - 1:
+                h = torch.relu(h)
+        return h
+
+
+class Encoder(nn.Module):
+    """f_e: positional encoding + 7 FC layers with a skip into the 4th -> latent z."""
+
+    def __init__(self, cfg: FieldConfig):
+        super().__init__()
+        self.pe = PositionalEncoding(cfg.pe_freqs)
+        self.mlp = SkipMLP(self.pe.out_dim, cfg.hidden, cfg.latent, n_layers=7, skip_at=3)
+
+    def forward(self, x_unit: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.pe(x_unit))
+
+
+class BRDFDecoder(nn.Module):
+    """f_d: three MLPs (basecolor, metallic, roughness), each 3 FC layers with a skip."""
+
+    def __init__(self, cfg: FieldConfig):
+        super().__init__()
+        self.roughness_min = cfg.roughness_min
+        mk = lambda out: SkipMLP(cfg.latent, cfg.decoder_hidden, out, n_layers=3, skip_at=2)
+        self.basecolor = mk(3)
+        self.metallic = mk(1)
+        self.roughness = mk(1)
+
+    def forward(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        r0 = self.roughness_min
+        return {
+            "basecolor": torch.sigmoid(self.basecolor(z)),
+            "metallic": torch.sigmoid(self.metallic(z))[..., 0],
+            "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
+        }
+
+
+class ContinuousMaterial(nn.Module):
+    """Surface point (world) -> z -> basecolor (linear RGB), metallic, roughness.
+
+    Points are mapped to [-1, 1]^3 by the scene's bounding box (stored as buffers).
+    """
+
+    def __init__(self, cfg: FieldConfig, bbox_min: torch.Tensor, bbox_max: torch.Tensor):
+        super().__init__()
+        center = 0.5 * (bbox_min + bbox_max)
+        half = 0.5 * (bbox_max - bbox_min).max() * 1.05
+        self.register_buffer("center", center.float())
+        self.register_buffer("half_extent", half.float().reshape(()))
+        self.encoder = Encoder(cfg)
+        self.decoder = BRDFDecoder(cfg)
+
+    def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
+        z = self.encoder((x_world - self.center) / self.half_extent)
+        out = self.decoder(z)
+        out["z"] = z
+        return out
+
+
+class EnvironmentMap(nn.Module):
+    """Learnable lat-long radiance, positive through exp(log-radiance)."""
+
+    def __init__(self, height: int, init_radiance: float):
+        super().__init__()
+        self.log_radiance = nn.Parameter(torch.full((height, 2 * height, 3), math.log(max(init_radiance, 1e-4))))
+
+    def forward(self) -> torch.Tensor:
+        return torch.exp(self.log_radiance)

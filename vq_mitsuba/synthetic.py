@@ -1,0 +1,596 @@
+"""Bundled synthetic scenes rendered with Mitsuba, written as both capture formats.
+
+A scene is defined in `scenes/<name>.yaml` in Blender world (Z up): principled materials
+(base_color, metallic, roughness; base_color may be a procedural pattern baked into per-vertex
+colours) and shapes made with trimesh. `make_scene` writes into `out_dir`:
+
+    transforms_train.json, transforms_test.json   NeRF-synthetic cameras, Blender world
+    mesh.ply                                      all shapes merged, Blender world
+    scene.xml, scene_test.xml                     the same scene in Mitsuba world (Y up), no emitter
+    meshes/<shape>.ply                            Mitsuba world (vertex_color attribute if textured)
+    images/<id>.exr, images/<id>.png              train and test views under envmaps/train.exr
+    gt/<id>_{basecolor,metallic,roughness,normal}.exr, gt/<id>_{material,alpha}.png   test views
+    relit/<env>/<id>.exr, .png                    test views under each held-aside envmap
+    envmaps/train.exr, envmaps/<env>.exr          lat-long maps, Blender convention
+    scene.json                                    metadata
+
+Worlds: Blender_world = R @ Mitsuba_world with R the 3x3 part of BLENDER_ENV_TO_WORLD. Every
+vertex and camera of the XML is the Blender one mapped by R^-1, so an envmap with identity
+to_world in the XML's scene lights it exactly as the same EXR with to_world = R lights the
+Blender-world scene (see vq_mitsuba.envmaps for the lat-long convention).
+
+Images: EXR is linear RGBA with premultiplied colour (OpenEXR's convention; background 0),
+PNG is sRGB RGBA with straight (un-premultiplied) colour and alpha = pixel coverage.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from . import envmaps
+from .capture.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at
+from .capture.imageio import write_exr, write_png
+from .errors import InputError
+
+SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = R @ Mitsuba_world
+FOV_X_DEG = 40.0
+FILL = 0.7  # fraction of the half-frame the bounding sphere's silhouette covers
+MAX_DEPTH = 4
+# Stratified (multi-jittered) pixel samples: half the noise of `independent` at the same cost
+# under smooth sky lighting (Mitsuba may round the count up, e.g. 512 -> 528).
+SAMPLER = "multijitter"
+GT_SAMPLES = 4  # GT maps average GT_SAMPLES x GT_SAMPLES stratified rays per pixel
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def _scene_names() -> tuple[str, ...]:
+    if not SCENES_DIR.is_dir():
+        return ()
+    return tuple(sorted(p.stem for p in SCENES_DIR.glob("*.yaml")))
+
+
+SCENES: tuple[str, ...] = _scene_names()
+
+
+# --------------------------------------------------------------------------------------------
+# Scene definitions
+# --------------------------------------------------------------------------------------------
+def load_scene_spec(name: str) -> dict:
+    """The parsed and checked `scenes/<name>.yaml`."""
+    import yaml
+
+    path = SCENES_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise InputError(None, f"unknown synthetic scene '{name}' (bundled: {', '.join(SCENES) or 'none'})")
+    with open(path) as f:
+        spec = yaml.safe_load(f)
+    spec["name"] = name
+    mats = spec.get("materials") or []
+    shapes = spec.get("shapes") or []
+    if not mats or not shapes:
+        raise InputError(path, "a scene needs at least one material and one shape")
+    names = set()
+    for m in mats:
+        if not _NAME_RE.match(str(m.get("name", ""))) or m["name"] in names:
+            raise InputError(path, f"bad or duplicate material name {m.get('name')!r}")
+        names.add(m["name"])
+        m.setdefault("metallic", 0.0)
+        m.setdefault("roughness", 0.5)
+    shape_names = set()
+    for s in shapes:
+        if not _NAME_RE.match(str(s.get("name", ""))) or s["name"] in shape_names or s["name"] in names:
+            raise InputError(path, f"bad or duplicate shape name {s.get('name')!r}")
+        shape_names.add(s["name"])
+        if s.get("material") not in names:
+            raise InputError(path, f"shape {s['name']} uses unknown material {s.get('material')!r}")
+    return spec
+
+
+def is_textured(material: dict) -> bool:
+    return isinstance(material["base_color"], dict)
+
+
+def _smoothstep(e0, e1, x):
+    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def eval_base_color(base_color, points) -> np.ndarray:
+    """Base colour (N, 3) of a material at Blender-world points (N, 3): constant or pattern."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not isinstance(base_color, dict):
+        return np.tile(np.asarray(base_color, dtype=np.float64), (len(points), 1))
+    colors = np.asarray(base_color["colors"], dtype=np.float64)
+    pattern = base_color.get("pattern", "stripes")
+    freq = float(base_color.get("frequency", 2.0))
+    soft = float(base_color.get("softness", 0.1))
+    if pattern == "stripes":
+        axis = np.asarray(base_color.get("axis", [0.0, 0.0, 1.0]), dtype=np.float64)
+        t = freq * (points @ (axis / np.linalg.norm(axis)))
+        band = np.floor(t)
+        frac = t - band
+        i0 = np.mod(band, len(colors)).astype(int)
+        i1 = np.mod(i0 + 1, len(colors))
+        w = _smoothstep(1.0 - soft, 1.0, frac)[:, None]
+        return (1.0 - w) * colors[i0] + w * colors[i1]
+    if pattern == "checker":
+        s = np.prod(np.sin(math.pi * freq * points), axis=1)
+        w = _smoothstep(-soft, soft, s)[:, None]
+        return (1.0 - w) * colors[0] + w * colors[1 % len(colors)]
+    raise InputError(None, f"unknown base_color pattern '{pattern}' (use stripes or checker)")
+
+
+def _euler_xyz(deg) -> np.ndarray:
+    ax, ay, az = np.radians(np.asarray(deg, dtype=np.float64))
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    rz = np.array([[math.cos(az), -math.sin(az), 0], [math.sin(az), math.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx  # rotate about X, then Y, then Z (Blender's default XYZ Euler)
+
+
+def build_shape(shape: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, vertex normals) of a shape in Blender world."""
+    import trimesh
+
+    kind = shape.get("type", "icosphere")
+    if kind == "icosphere":
+        r = float(shape.get("radius", 0.5))
+        mesh = trimesh.creation.icosphere(subdivisions=int(shape.get("subdivisions", 4)), radius=r)
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        n = v / np.linalg.norm(v, axis=1, keepdims=True)  # exact sphere normals
+        v = n * r
+    elif kind == "torus":
+        mesh = trimesh.creation.torus(float(shape.get("major_radius", 0.3)), float(shape.get("minor_radius", 0.1)),
+                                      major_sections=int(shape.get("major_sections", 128)),
+                                      minor_sections=int(shape.get("minor_sections", 48)))
+        v, n = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals, dtype=np.float64)
+    elif kind == "capsule":
+        mesh = trimesh.creation.capsule(height=float(shape.get("height", 0.5)), radius=float(shape.get("radius", 0.15)),
+                                        count=[64, 64])
+        mesh.merge_vertices()
+        v, n = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals, dtype=np.float64)
+    else:
+        raise InputError(None, f"shape {shape.get('name')}: unknown type '{kind}' (icosphere, torus, capsule)")
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    v = v * float(shape.get("scale", 1.0))
+    rot = _euler_xyz(shape.get("rotation_deg", [0.0, 0.0, 0.0]))
+    v = v @ rot.T + np.asarray(shape.get("center", [0.0, 0.0, 0.0]), dtype=np.float64)
+    n = n @ rot.T
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return v, f, n
+
+
+def _mi_mesh(name: str, v: np.ndarray, f: np.ndarray, n: np.ndarray, colors: np.ndarray | None = None):
+    import mitsuba as mi
+
+    mesh = mi.Mesh(name, len(v), len(f), has_vertex_normals=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).ravel())
+    params["faces"] = mi.UInt32(np.ascontiguousarray(f, dtype=np.uint32).ravel())
+    params["vertex_normals"] = mi.Float(np.ascontiguousarray(n, dtype=np.float32).ravel())
+    params.update()
+    if colors is not None:
+        mesh.add_attribute("vertex_color", 3, mi.Float(np.ascontiguousarray(colors, dtype=np.float32).ravel()))
+    return mesh
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras
+# --------------------------------------------------------------------------------------------
+def make_cameras(center, radius: float, n_train: int, n_test: int, resolution: int,
+                 fov_x_deg: float = FOV_X_DEG, seed: int = 0) -> tuple[list[Camera], list[Camera], float]:
+    """Blender-world cameras: train on a Fibonacci sphere band (elevation about -20..67 deg),
+    test on a ring at 25 deg elevation at azimuths between the train ones. Returns (train, test, distance)."""
+    center = np.asarray(center, dtype=np.float64)
+    half = math.radians(fov_x_deg) / 2.0
+    dist = radius / math.sin(math.atan(FILL * math.tan(half)))
+    rng = np.random.default_rng(seed)
+    phase = rng.uniform(0.0, 2.0 * math.pi)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    z_hi, z_lo = 0.92, -0.35
+    up = np.array([0.0, 0.0, 1.0])
+
+    def cam(name, d):
+        return Camera(name, look_at(center + dist * d, center, up), fov_x_deg, resolution, resolution)
+
+    train = []
+    for i in range(n_train):
+        z = z_hi - (z_hi - z_lo) * (i + 0.5) / max(n_train, 1)
+        phi = phase + i * golden
+        s = math.sqrt(1.0 - z * z)
+        train.append(cam(f"train_{i:03d}", np.array([s * math.cos(phi), s * math.sin(phi), z])))
+    test = []
+    elev = math.radians(25.0)
+    for i in range(n_test):
+        phi = phase + 2.0 * math.pi * (i + 0.37) / max(n_test, 1)
+        test.append(cam(f"test_{i:03d}", np.array([math.cos(elev) * math.cos(phi),
+                                                    math.cos(elev) * math.sin(phi), math.sin(elev)])))
+    return train, test, dist
+
+
+def to_mitsuba_world(camera: Camera) -> Camera:
+    """The same camera in Mitsuba world (Y up): to_world left-multiplied by R^-1."""
+    m = np.eye(4)
+    m[:3, :3] = R_BLENDER_FROM_MITSUBA.T
+    return Camera(camera.name, m @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
+
+
+# --------------------------------------------------------------------------------------------
+# Writers
+# --------------------------------------------------------------------------------------------
+def _fmt(x) -> str:
+    return f"{float(x):.9g}"
+
+
+def _bsdf_xml(mat: dict) -> str:
+    lines = [f'    <bsdf type="principled" id={quoteattr("mat_" + mat["name"])}>']
+    if is_textured(mat):
+        lines += ['        <texture type="mesh_attribute" name="base_color">',
+                  '            <string name="name" value="vertex_color"/>',
+                  '        </texture>']
+    else:
+        lines.append(f'        <rgb name="base_color" value="{", ".join(_fmt(c) for c in mat["base_color"])}"/>')
+    lines += [f'        <float name="metallic" value="{_fmt(mat["metallic"])}"/>',
+              f'        <float name="roughness" value="{_fmt(mat["roughness"])}"/>',
+              '        <float name="specular" value="0.5"/>',
+              '    </bsdf>']
+    return "\n".join(lines)
+
+
+def _sensor_xml(cam: Camera, spp: int) -> str:
+    m = " ".join(_fmt(x) for x in cam.to_world.ravel())
+    return "\n".join([
+        f'    <sensor type="perspective" id={quoteattr(cam.name)}>',
+        f'        <float name="fov" value="{_fmt(cam.fov_x_deg)}"/>',
+        '        <string name="fov_axis" value="x"/>',
+        '        <float name="near_clip" value="0.001"/>',
+        '        <float name="far_clip" value="10000"/>',
+        f'        <transform name="to_world"><matrix value="{m}"/></transform>',
+        f'        <sampler type="{SAMPLER}"><integer name="sample_count" value="{int(spp)}"/></sampler>',
+        '        <film type="hdrfilm">',
+        f'            <integer name="width" value="{cam.width}"/>',
+        f'            <integer name="height" value="{cam.height}"/>',
+        '            <string name="pixel_format" value="rgba"/>',
+        '            <rfilter type="box"/>',
+        '        </film>',
+        '    </sensor>'])
+
+
+def write_scene_xml(path: Path, spec: dict, cameras_mi: list[Camera], spp: int, split: str) -> None:
+    r = R_BLENDER_FROM_MITSUBA
+    parts = [
+        '<?xml version="1.0" encoding="utf-8"?>',
+        f'<!-- vq-mitsuba synthetic scene "{spec["name"]}", {split} cameras. Mitsuba world (Y up):',
+        f'     Blender world = R @ this world, R = {r.astype(int).tolist()}. No emitter: the lighting',
+        '     is unknown to a fit. A lat-long map in Blender\'s convention lights this scene through an',
+        '     envmap with identity to_world, exactly as it lights the Blender-world capture. -->',
+        '<scene version="3.0.0">',
+    ]
+    parts += [_bsdf_xml(m) for m in spec["materials"]]
+    for s in spec["shapes"]:
+        parts += [f'    <shape type="ply" id={quoteattr(s["name"])}>',
+                  f'        <string name="filename" value="meshes/{s["name"]}.ply"/>',
+                  f'        <ref id={quoteattr("mat_" + s["material"])}/>',
+                  '    </shape>']
+    parts += [_sensor_xml(c, spp) for c in cameras_mi]
+    parts.append("</scene>\n")
+    path.write_text("\n".join(parts))
+
+
+def _write_transforms(path: Path, cameras: list[Camera]) -> None:
+    frames = []
+    angle = None
+    for cam in cameras:
+        m, angle = camera_to_nerf(cam)
+        frames.append({"file_path": f"./images/{cam.name}", "transform_matrix": m.tolist()})
+    data = {"camera_angle_x": angle if angle is not None else math.radians(FOV_X_DEG), "frames": frames}
+    path.write_text(json.dumps(data, indent=2))
+
+
+def _write_rgba(stem: Path, rgba: np.ndarray) -> None:
+    rgba = np.asarray(rgba, dtype=np.float32)
+    rgba = np.nan_to_num(rgba, nan=0.0, posinf=0.0, neginf=0.0)
+    rgba[..., :3] = np.maximum(rgba[..., :3], 0.0)
+    rgba[..., 3] = np.clip(rgba[..., 3], 0.0, 1.0)
+    write_exr(stem.with_suffix(".exr"), rgba)
+    a = rgba[..., 3]
+    straight = rgba[..., :3] / np.maximum(a, 1e-6)[..., None]
+    straight = np.where(a[..., None] > 0, straight, 0.0)
+    write_png(stem.with_suffix(".png"), straight, alpha=a)
+
+
+# --------------------------------------------------------------------------------------------
+# Ground-truth maps
+# --------------------------------------------------------------------------------------------
+def _camera_rays(cam: Camera, n_sub: int, rng: np.random.Generator):
+    """Stratified jittered rays: origins (3,), directions (N, 3) ordered (sub, y, x)."""
+    w, h, f = cam.width, cam.height, cam.focal_px()
+    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    dirs = []
+    for sy in range(n_sub):
+        for sx in range(n_sub):
+            jx = (sx + rng.uniform(size=(h, w))) / n_sub
+            jy = (sy + rng.uniform(size=(h, w))) / n_sub
+            px, py = xs + jx, ys + jy
+            local = np.stack([(0.5 * w - px) / f, (0.5 * h - py) / f, np.ones_like(px, dtype=np.float64)], -1)
+            dirs.append(local.reshape(-1, 3))
+    local = np.concatenate(dirs, 0)
+    local /= np.linalg.norm(local, axis=1, keepdims=True)
+    return cam.to_world[:3, 3], local @ cam.to_world[:3, :3].T
+
+
+def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.random.Generator,
+              n_sub: int = GT_SAMPLES) -> dict:
+    """GT maps of one view by tracing primary rays in the Mitsuba-world scene.
+
+    Returns basecolor (H,W,3), metallic (H,W), roughness (H,W), normal (H,W,3, Blender world),
+    material (H,W uint8; 0 = background, k = spec material k-1), alpha (H,W coverage).
+    """
+    import mitsuba as mi
+
+    h, w = cam_mi.height, cam_mi.width
+    origin, d = _camera_rays(cam_mi, n_sub, rng)
+    n = len(d)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(n, origin[i], dtype=np.float32)) for i in range(3)]),
+                   mi.Vector3f(*[mi.Float(np.ascontiguousarray(d[:, i], dtype=np.float32)) for i in range(3)]))
+    si = scene.ray_intersect(ray)
+    valid = np.array(si.is_valid(), dtype=bool)
+    p_mi = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], -1).astype(np.float64)
+    n_mi = np.stack([np.array(si.sh_frame.n.x), np.array(si.sh_frame.n.y), np.array(si.sh_frame.n.z)], -1)
+    prim = np.array(si.prim_index, dtype=np.int64)
+    r = R_BLENDER_FROM_MITSUBA
+    p_bl, n_bl = p_mi @ r.T, n_mi.astype(np.float64) @ r.T
+
+    mat_index = {m["name"]: k for k, m in enumerate(spec["materials"])}
+    mat_id = np.zeros(n, dtype=np.int64)  # per sample, 0 = miss
+    base = np.zeros((n, 3))
+    metal = np.zeros(n)
+    rough = np.zeros(n)
+    for shape in scene.shapes():
+        info = shape_info[shape.id()]
+        mask = valid & np.array(si.shape == mi.ShapePtr(shape), dtype=bool)
+        if not mask.any():
+            continue
+        mat = spec["materials"][mat_index[info["material"]]]
+        mat_id[mask] = mat_index[info["material"]] + 1
+        metal[mask] = mat["metallic"]
+        rough[mask] = mat["roughness"]
+        if is_textured(mat):
+            # Interpolate the vertex colours Mitsuba renders with (barycentric, from the hit point).
+            params = mi.traverse(shape)
+            verts = np.array(params["vertex_positions"], dtype=np.float64).reshape(-1, 3)
+            faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)
+            cols = np.array(params["vertex_color"], dtype=np.float64).reshape(-1, 3)
+            tri = faces[prim[mask]]
+            a, b, c = verts[tri[:, 0]], verts[tri[:, 1]], verts[tri[:, 2]]
+            bary = _barycentric(p_mi[mask], a, b, c)
+            base[mask] = np.einsum("nk,nkc->nc", bary, cols[tri])
+        else:
+            base[mask] = np.asarray(mat["base_color"], dtype=np.float64)
+
+    def per_pixel(x):  # (n_sub^2 * H * W, ...) -> (n_sub^2, H, W, ...)
+        return x.reshape((n_sub * n_sub, h, w) + x.shape[1:])
+
+    hits = per_pixel(valid.astype(np.float64))
+    cnt = hits.sum(0)
+    alpha = cnt / (n_sub * n_sub)
+    denom = np.maximum(cnt, 1.0)
+    basecolor = (per_pixel(base) * hits[..., None]).sum(0) / denom[..., None]
+    metallic = (per_pixel(metal) * hits).sum(0) / denom
+    roughness = (per_pixel(rough) * hits).sum(0) / denom
+    normal = (per_pixel(n_bl) * hits[..., None]).sum(0)
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    ids = per_pixel(mat_id)
+    k = len(spec["materials"])
+    votes = np.stack([(ids == j).sum(0) for j in range(k + 1)], -1)
+    material = np.argmax(votes, -1).astype(np.uint8)
+    return {"basecolor": basecolor.astype(np.float32), "metallic": metallic.astype(np.float32),
+            "roughness": roughness.astype(np.float32), "normal": normal.astype(np.float32),
+            "material": material, "alpha": alpha.astype(np.float32)}
+
+
+def _barycentric(p, a, b, c) -> np.ndarray:
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-30, den, 1e-30)
+    bv = (d11 * d20 - d01 * d21) / den
+    bw = (d00 * d21 - d01 * d20) / den
+    bary = np.clip(np.stack([1.0 - bv - bw, bv, bw], -1), 0.0, 1.0)
+    return bary / np.maximum(bary.sum(-1, keepdims=True), 1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# The whole scene
+# --------------------------------------------------------------------------------------------
+def _ensure_variant() -> None:
+    import mitsuba as mi
+
+    if mi.variant() is None or not mi.variant().endswith("_rgb"):
+        mi.set_variant("llvm_ad_rgb")
+
+
+def _versions() -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    from . import __version__
+
+    return {"vq_mitsuba": __version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "numpy": np.__version__, "variant": mi.variant()}
+
+
+def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
+               n_test: int | None = None, spp: int | None = None, seed: int = 0,
+               progress: bool = True) -> Path:
+    """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
+    relit test views). None for resolution / n_train / n_test / spp takes the scene's default
+    (scenes/<name>.yaml). Returns out_dir."""
+    import mitsuba as mi
+    from tqdm.auto import tqdm
+
+    _ensure_variant()
+    t_start = time.time()
+    spec = load_scene_spec(name)
+    res = int(resolution or spec.get("resolution", 128))
+    n_train = int(spec.get("n_train", 64) if n_train is None else n_train)
+    n_test = int(spec.get("n_test", 16) if n_test is None else n_test)
+    spp = int(spp or spec.get("spp", 256))
+    if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
+        raise InputError(None, "resolution, view counts and spp must be positive")
+    out = Path(out_dir)
+    for sub in ("images", "gt", "meshes", "envmaps", "relit"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+
+    # Geometry: Blender world for mesh.ply, Mitsuba world (R^-1) for the XML's meshes.
+    r = R_BLENDER_FROM_MITSUBA
+    mats = {m["name"]: m for m in spec["materials"]}
+    all_v, all_f, all_n, shape_info = [], [], [], {}
+    offset = 0
+    for s in spec["shapes"]:
+        v, f, nrm = build_shape(s)
+        mat = mats[s["material"]]
+        colors = eval_base_color(mat["base_color"], v) if is_textured(mat) else None
+        _mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(out / "meshes" / f"{s['name']}.ply"))
+        all_v.append(v), all_f.append(f + offset), all_n.append(nrm)
+        offset += len(v)
+        shape_info[s["name"]] = {"material": s["material"], "file": f"meshes/{s['name']}.ply",
+                                 "vertices": int(len(v)), "faces": int(len(f))}
+    verts = np.concatenate(all_v)
+    _mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n)).write_ply(str(out / "mesh.ply"))
+    lo, hi = verts.min(0), verts.max(0)
+    center = 0.5 * (lo + hi)
+    radius = float(np.linalg.norm(verts - center, axis=1).max())
+
+    train, test, dist = make_cameras(center, radius, n_train, n_test, res, seed=seed)
+    train_mi, test_mi = [to_mitsuba_world(c) for c in train], [to_mitsuba_world(c) for c in test]
+    _write_transforms(out / "transforms_train.json", train)
+    _write_transforms(out / "transforms_test.json", test)
+    write_scene_xml(out / "scene.xml", spec, train_mi, spp, "train")
+    write_scene_xml(out / "scene_test.xml", spec, test_mi, spp, "test")
+
+    # Lighting.
+    env_train_name = spec.get("envmap", "sky")
+    env_train = envmaps.named_envmap(env_train_name)
+    envmaps.save_envmap(out / "envmaps" / "train.exr", env_train)
+    relights = []
+    for env_name in spec.get("relight", ["sunset", "studio"]):
+        arr = envmaps.named_envmap(env_name)
+        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
+        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": "preset", "array": arr})
+    for probe, path in envmaps.blender_probes().items():
+        arr = envmaps.load_envmap(path)
+        env_name = f"blender_{probe}"
+        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
+        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": str(path), "array": arr})
+
+    # One Mitsuba scene per envmap (Mitsuba world, identity to_world), sensors built once.
+    base = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True}}
+    for m in spec["materials"]:
+        bsdf = {"type": "principled", "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
+                "specular": 0.5}
+        bsdf["base_color"] = ({"type": "mesh_attribute", "name": "vertex_color"} if is_textured(m)
+                              else {"type": "rgb", "value": [float(c) for c in m["base_color"]]})
+        base["mat_" + m["name"]] = bsdf
+    for s in spec["shapes"]:
+        base[s["name"]] = {"type": "ply", "filename": str((out / "meshes" / f"{s['name']}.ply").resolve()),
+                           "bsdf": {"type": "ref", "id": "mat_" + s["material"]}}
+
+    def scene_with(env: np.ndarray):
+        return mi.load_dict(dict(base, envmap=envmaps.to_mitsuba_dict(env, blender_world=False)))
+
+    def make_sensor(cam: Camera):
+        d = cam.to_mitsuba_dict(spp)
+        d["sampler"] = {"type": SAMPLER, "sample_count": spp}
+        return mi.load_dict(d)
+
+    log_level = mi.logger().log_level()
+    mi.logger().set_log_level(mi.LogLevel.Error)  # no "sample count rounded" warnings
+    try:
+        sensors = {c.name: make_sensor(c) for c in train_mi + test_mi}
+    finally:
+        mi.logger().set_log_level(log_level)
+    spp_used = int(next(iter(sensors.values())).sampler().sample_count())
+    total = n_train + n_test + n_test * len(relights)
+    bar = tqdm(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
+    counter = [seed * 1_000_003]
+
+    def render(scene, cam: Camera, stem: Path):
+        img = mi.render(scene, sensor=sensors[cam.name], seed=counter[0] % (2**32))
+        counter[0] += 1
+        _write_rgba(stem, np.array(img))
+        bar.update(1)
+
+    t_render = time.time()
+    scene = scene_with(env_train)
+    for cam in train_mi + test_mi:
+        render(scene, cam, out / "images" / cam.name)
+    rng = np.random.default_rng(seed + 1)
+    for cam in test_mi:
+        gt = render_gt(scene, cam, spec, shape_info, rng)
+        stem = out / "gt" / cam.name
+        write_exr(f"{stem}_basecolor.exr", gt["basecolor"])
+        write_exr(f"{stem}_metallic.exr", gt["metallic"])
+        write_exr(f"{stem}_roughness.exr", gt["roughness"])
+        write_exr(f"{stem}_normal.exr", gt["normal"])
+        write_png(f"{stem}_material.png", gt["material"])
+        write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
+    del scene
+    for rl in relights:
+        scene = scene_with(rl.pop("array"))
+        (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
+        for cam in test_mi:
+            render(scene, cam, out / "relit" / rl["name"] / cam.name)
+        del scene
+    bar.close()
+    t_end = time.time()
+
+    meta = {
+        "name": name,
+        "description": spec.get("description", ""),
+        "resolution": [res, res],
+        "n_train": n_train,
+        "n_test": n_test,
+        "spp": spp_used,
+        "sampler": SAMPLER,
+        "seed": seed,
+        "max_depth": MAX_DEPTH,
+        "integrator": "path",
+        "fov_x_deg": FOV_X_DEG,
+        "camera_distance": dist,
+        "bounding_sphere": {"center": center.tolist(), "radius": radius},
+        "materials": [{"id": k + 1, "name": m["name"],
+                       "base_color": m["base_color"] if not is_textured(m) else None,
+                       "base_color_pattern": m["base_color"] if is_textured(m) else None,
+                       "mean_base_color": eval_base_color(m["base_color"], verts).mean(0).tolist()
+                       if is_textured(m) else list(map(float, m["base_color"])),
+                       "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
+                       "textured": is_textured(m)} for k, m in enumerate(spec["materials"])],
+        "shapes": [dict(name=k, **v) for k, v in shape_info.items()],
+        "envmap": {"train": "envmaps/train.exr", "preset": env_train_name,
+                   "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
+                   "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
+        "relight": relights,
+        "worlds": {"json_and_mesh_ply": "Blender (Z up)", "xml_and_meshes_dir": "Mitsuba (Y up)",
+                   "blender_from_mitsuba": r.tolist(),
+                   "envmap_convention": "Blender lat-long; to_world = BLENDER_ENV_TO_WORLD in Blender "
+                                        "world, identity in the XML's Mitsuba world"},
+        "images": {"exr": "linear RGBA, premultiplied", "png": "sRGB RGBA, straight alpha = coverage"},
+        "render_seconds": round(t_end - t_render, 2),
+        "total_seconds": round(t_end - t_start, 2),
+        "versions": _versions(),
+    }
+    (out / "scene.json").write_text(json.dumps(meta, indent=2))
+    return out
