@@ -7,17 +7,18 @@ from pathlib import Path
 import numpy as np
 
 
-def smooth_env(height: int = 16, seed: int = 0) -> np.ndarray:
-    """A smooth positive lat-long envmap with one bright lobe (Mitsuba convention)."""
+def smooth_env(height: int = 32, lobe_strength: float = 40.0, lobe_width: float = 1.0) -> np.ndarray:
+    """A smooth positive lat-long envmap with one bright sun-like lobe (Mitsuba convention)."""
     h, w = height, 2 * height
     v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(w) + 0.5) / w, indexing="ij")
     env = np.stack([0.6 + 0.3 * np.cos(2 * np.pi * u), 0.6 + 0.2 * (1 - v), 0.5 + 0.4 * v], -1)
-    lobe = np.exp(-(((u - 0.3) * 2 * h / 3) ** 2 + ((v - 0.35) * h / 3) ** 2))
-    return (env + 6.0 * lobe[..., None]).astype(np.float32)
+    du, dv = (u - 0.3) * 2 * np.pi, (v - 0.35) * np.pi  # radians
+    sun = np.exp(-(du**2 + dv**2) / (2 * (0.08 * lobe_width) ** 2))
+    return (env + lobe_strength * sun[..., None]).astype(np.float32)
 
 
-def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: float = 0.4, metallic: float = 0.0,
-                         size: int = 24, n_views: int = 10, spp: int = 64, known_envmap: bool = True) -> Path:
+def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: float = 0.3, metallic: float = 0.0,
+                         size: int = 32, n_views: int = 12, spp: int = 64, known_envmap: bool = True) -> Path:
     """A uniform principled sphere (radius 0.5) seen from n_views cameras; returns the XML path."""
     import mitsuba as mi
     import trimesh
