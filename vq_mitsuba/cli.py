@@ -1,0 +1,128 @@
+"""Command line: `vq-mitsuba fit | render | make-scene` (thin: parses, then calls the library)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import InputError
+
+
+def _cmd_fit(args) -> int:
+    from .config import describe, load_config
+    from .fit import fit
+
+    if args.help_config:
+        print("Config keys (set them in a YAML file or with --set section.key=value):")
+        print("\n".join(describe()))
+        return 0
+    if args.capture is None:
+        raise InputError(None, "fit needs a CAPTURE (scene XML, transforms json, or its folder)")
+    run_dir = Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
+    base = None
+    if args.resume and (run_dir / "config.yaml").is_file():
+        import yaml
+
+        base = yaml.safe_load((run_dir / "config.yaml").read_text())
+    cfg = load_config(args.config, args.set, base=base)
+    summary = fit(args.capture, run_dir, cfg, mesh_path=args.mesh, resume=args.resume, progress=not args.quiet)
+    print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
+          f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from .render import render_run
+
+    out = render_run(args.run_dir, args.cameras, args.output, envmap_path=args.envmap,
+                     env_rotate_deg=args.env_rotate, exposure_ev=args.exposure, spp=args.spp,
+                     progress=not args.quiet)
+    print(f"rendered views in {out}/")
+    return 0
+
+
+def _cmd_make_scene(args) -> int:
+    from . import synthetic
+
+    if args.list or args.name is None:
+        print("bundled scenes: " + ", ".join(synthetic.SCENES))
+        return 0
+    if args.name not in synthetic.SCENES:
+        raise InputError(None, f"unknown scene '{args.name}' (bundled: {', '.join(synthetic.SCENES)})")
+    out = Path(args.output) if args.output else Path("data") / args.name
+    kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
+                                ("n_test", args.n_test)) if v is not None}
+    synthetic.make_scene(args.name, out, seed=args.seed, **kwargs)
+    print(f"scene '{args.name}' written to {out}/ (scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="vq-mitsuba",
+        description="Neural reflectance decomposition (VQ-NeRF) on Mitsuba 3: fit materials and lighting "
+                    "to posed images, then render novel views, material maps and relighting.",
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+
+    f = sub.add_parser("fit", help="fit materials (and lighting, if unknown) to a capture",
+                       description="Fit the continuous material branch and the environment map to a capture "
+                                   "with known geometry. Writes RUN_DIR (config.yaml, checkpoint.pt, mesh.ply, "
+                                   "envmap.exr, loss.png, fit.json).")
+    f.add_argument("capture", nargs="?", help="Mitsuba scene XML (sensors + images/<id>.exr|png), a "
+                                              "transforms_*.json (NeRF-synthetic), or the folder holding one")
+    f.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
+    f.add_argument("--config", help="YAML preset, e.g. configs/demo.yaml (see --help-config)")
+    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config key, e.g. --set train.iterations=500 (repeatable)")
+    f.add_argument("--mesh", help="known geometry (PLY/OBJ) for a NeRF-synthetic capture")
+    f.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.add_argument("--help-config", action="store_true", help="list every config key with its default and meaning")
+    f.set_defaults(func=_cmd_fit)
+
+    r = sub.add_parser("render", help="render novel views, material maps and relighting of a fitted run",
+                       description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, "
+                                   "NAME_metallic.exr, NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png.")
+    r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
+    r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
+    r.add_argument("--envmap", help="relight with this lat-long HDR image (EXR), in the capture's world "
+                                    "convention (Blender's for NeRF/Blender captures)")
+    r.add_argument("--env-rotate", type=float, default=0.0, metavar="DEG",
+                   help="rotate the lighting about the up axis by DEG degrees")
+    r.add_argument("--exposure", type=float, default=0.0, metavar="EV", help="scale the lighting by 2^EV")
+    r.add_argument("--spp", type=int, help="samples per pixel (default: render.spp of the run's config)")
+    r.add_argument("-o", "--output", help="output folder (default: RUN_DIR/renders)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=_cmd_render)
+
+    m = sub.add_parser("make-scene", help="render a bundled synthetic scene with ground truth",
+                       description="Render a bundled scene with Mitsuba's path tracer: training and test views "
+                                   "in both capture formats, ground-truth maps and relit test views.")
+    m.add_argument("name", nargs="?", help="scene name (see --list)")
+    m.add_argument("-o", "--output", help="output folder (default: data/NAME)")
+    m.add_argument("--resolution", type=int, help="image width and height in pixels (default per scene)")
+    m.add_argument("--spp", type=int, help="path-tracing samples per pixel")
+    m.add_argument("--n-train", type=int, help="number of training views")
+    m.add_argument("--n-test", type=int, help="number of test views")
+    m.add_argument("--seed", type=int, default=0, help="random seed")
+    m.add_argument("--list", action="store_true", help="list the bundled scenes")
+    m.set_defaults(func=_cmd_make_scene)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

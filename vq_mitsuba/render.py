@@ -1,0 +1,175 @@
+"""Rendering a fitted run: novel views, material maps and relighting (reads a finished run)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .capture.cameras import BLENDER_ENV_TO_WORLD, Camera
+from .capture.dataset import load_cameras, load_mesh
+from .capture.imageio import read_image, write_exr, write_png
+from .config import Config, load_config
+from .errors import InputError
+from .fit import CHECKPOINT, Run, build_scene
+from .materials.fields import ContinuousMaterial
+
+# Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
+_R = BLENDER_ENV_TO_WORLD[:3, :3]
+
+
+def convert_world(camera: Camera, src: str, dst: str) -> Camera:
+    """Express a camera given in world `src` in world `dst` ("mitsuba" Y-up / "blender" Z-up)."""
+    if src == dst:
+        return camera
+    rot = np.eye(4)
+    rot[:3, :3] = _R if (src, dst) == ("mitsuba", "blender") else _R.T
+    return Camera(camera.name, rot @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
+
+
+def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:
+    """Rotate an envmap about its own up axis (local +Y of Mitsuba's lat-long frame)."""
+    a = math.radians(degrees)
+    rot = np.eye(4)
+    rot[0, 0], rot[0, 2], rot[2, 0], rot[2, 2] = math.cos(a), math.sin(a), -math.sin(a), math.cos(a)
+    return np.asarray(env_to_world) @ rot
+
+
+@dataclass
+class FittedRun:
+    run: Run
+    cfg: Config
+    info: dict
+    model: ContinuousMaterial
+    envmap: np.ndarray
+    mesh: "trimesh.Trimesh"  # noqa: F821
+
+
+def load_run(run_dir: str | Path) -> FittedRun:
+    from .rendering import init_mitsuba, torch_device
+
+    run = Run(run_dir)
+    info = run.info()
+    if not run.checkpoint_path.is_file():
+        raise InputError(run.checkpoint_path, "checkpoint missing: the run did not finish its first checkpoint")
+    cfg = load_config(base=__import__("yaml").safe_load((run.dir / "config.yaml").read_text()))
+    init_mitsuba()
+    state = torch.load(run.checkpoint_path, map_location=torch_device(), weights_only=False)
+    mesh = load_mesh(run.dir / "mesh.ply")
+    bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
+    model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(torch_device())
+    model.load_state_dict(state["model"])
+    model.eval()
+    if state.get("envmap") is not None:
+        envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
+    else:
+        envmap = state["envmap_fixed"].cpu().numpy()
+    return FittedRun(run, cfg, info, model, envmap, mesh)
+
+
+class Renderer:
+    """Renders views of a fitted run under its own lighting or another envmap."""
+
+    def __init__(self, fitted: FittedRun, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
+                 exposure_ev: float = 0.0):
+        self.fitted = fitted
+        env = fitted.envmap if envmap is None else envmap
+        self.envmap = np.ascontiguousarray(env * (2.0 ** exposure_ev), dtype=np.float32)
+        to_world = rotate_about_up(np.asarray(fitted.info["envmap_to_world"]), env_rotate_deg)
+        self.scene = build_scene(fitted.mesh, self.envmap, to_world)
+        self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
+
+    @torch.no_grad()
+    def render(self, camera: Camera, spp: int | None = None, aa: int = 4, seed: int = 0) -> dict[str, np.ndarray]:
+        """Images of one view: rgb (linear, HxWx3), alpha, basecolor, metallic, roughness, normal.
+
+        Each pixel averages `aa` jittered primary rays; each hit is shaded with spp/aa light samples.
+        """
+        from .rendering import camera_rays
+
+        cfg = self.fitted.cfg.render
+        spp = spp or cfg.spp
+        h, w = camera.height, camera.width
+        n_pix = h * w
+        gen = torch.Generator(device=self.env_t.device).manual_seed(seed)
+        rng = np.random.default_rng(seed)
+        acc = {k: np.zeros((n_pix, c), np.float64) for k, c in
+               (("rgb", 3), ("basecolor", 3), ("metallic", 1), ("roughness", 1), ("normal", 3))}
+        hits_count = np.zeros(n_pix, np.float64)
+        light_spp = max(2, spp // aa)
+        for a in range(aa):
+            jitter = np.full((n_pix, 2), 0.5) if aa == 1 else rng.random((n_pix, 2))
+            o, d = camera_rays(camera, jitter)
+            hits = self.scene.trace(o, d)
+            idx = torch.nonzero(hits.valid)[:, 0]
+            for s in range(0, len(idx), cfg.chunk):
+                sel = idx[s:s + cfg.chunk]
+                out = self.fitted.model(hits.position[sel])
+                rgb = self.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out["basecolor"],
+                                       out["metallic"], out["roughness"], self.env_t, light_spp, generator=gen)
+                sel_np = sel.cpu().numpy()
+                acc["rgb"][sel_np] += rgb.cpu().numpy()
+                acc["basecolor"][sel_np] += out["basecolor"].cpu().numpy()
+                acc["metallic"][sel_np, 0] += out["metallic"].cpu().numpy()
+                acc["roughness"][sel_np, 0] += out["roughness"].cpu().numpy()
+                acc["normal"][sel_np] += hits.normal[sel].cpu().numpy()
+            hits_count += hits.valid.cpu().numpy()
+        alpha = hits_count / aa
+        out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
+        # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
+        out["rgb"] = (acc["rgb"] / aa).reshape(h, w, 3).astype(np.float32)
+        safe = np.maximum(hits_count, 1)[:, None]
+        for k in ("basecolor", "metallic", "roughness"):
+            out[k] = (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
+        nrm = acc["normal"] / safe
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
+        out["normal"] = nrm.reshape(h, w, 3).astype(np.float32)
+        out["metallic"], out["roughness"] = out["metallic"][..., 0], out["roughness"][..., 0]
+        return out
+
+
+def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
+    """The per-view files of INTERFACE.md."""
+    a = images["alpha"]
+    write_exr(out_dir / f"{name}_rgb.exr", np.concatenate([images["rgb"], a[..., None]], -1))
+    # The PNG is straight (not premultiplied) colour with alpha, as image viewers expect.
+    straight = images["rgb"] / np.maximum(a, 1e-6)[..., None]
+    write_png(out_dir / f"{name}_rgb.png", straight, alpha=a)
+    write_exr(out_dir / f"{name}_basecolor.exr", images["basecolor"])
+    write_exr(out_dir / f"{name}_metallic.exr", images["metallic"])
+    write_exr(out_dir / f"{name}_roughness.exr", images["roughness"])
+    write_exr(out_dir / f"{name}_normal.exr", images["normal"])
+    write_png(out_dir / f"{name}_alpha.png", a, srgb=False)
+
+
+def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Path | None = None,
+               envmap_path: str | Path | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
+               spp: int | None = None, progress: bool = True) -> Path:
+    """`vq-mitsuba render`: all frames of CAMERAS, under the fitted lighting or ENVMAP."""
+    from tqdm import tqdm
+
+    fitted = load_run(run_dir)
+    cameras, world, _ = load_cameras(cameras_path)  # input checks first
+    envmap = None
+    if envmap_path is not None:
+        envmap, _ = read_image(envmap_path)
+    out_dir = Path(out_dir) if out_dir is not None else Path(run_dir) / "renders"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
+    run_world = fitted.info["world"]
+    for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
+        images = renderer.render(convert_world(cam, world, run_world), spp=spp)
+        if world != run_world:  # normals in the cameras' world
+            rot = _R if (run_world, world) == ("mitsuba", "blender") else _R.T
+            images["normal"] = images["normal"] @ rot.T
+        write_view(out_dir, cam.name, images)
+    (out_dir / "render.json").write_text(json.dumps({
+        "run": str(Path(run_dir).resolve()), "cameras": str(Path(cameras_path).resolve()),
+        "envmap": str(Path(envmap_path).resolve()) if envmap_path else "fitted",
+        "env_rotate_deg": env_rotate_deg, "exposure_ev": exposure_ev, "views": [c.name for c in cameras],
+    }, indent=2))
+    return out_dir
