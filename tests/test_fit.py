@@ -1,0 +1,91 @@
+"""Fitting: CLI smoke run, resume, render, bad inputs, and recovery of a known material."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tiny_scene import write_sphere_capture
+from vq_mitsuba.cli import main
+from vq_mitsuba.config import load_config
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.fit import fit
+
+
+@pytest.fixture(scope="module")
+def sphere_capture(tmp_path_factory):
+    return write_sphere_capture(tmp_path_factory.mktemp("sphere"), size=24, n_views=8, spp=32)
+
+
+def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=6",
+            "--set", "train.batch_rays=256", "--set", "train.log_every=2", "--set", "train.checkpoint_every=3"]
+    assert main(args) == 0
+    for name in ("config.yaml", "checkpoint.pt", "mesh.ply", "envmap.exr", "loss.png", "fit.json", "run.json"):
+        assert (run / name).is_file(), name
+    assert json.loads((run / "fit.json").read_text())["iterations"] == 6
+    # Fitting into an existing run without --resume is refused; nothing is overwritten.
+    mtime = (run / "checkpoint.pt").stat().st_mtime
+    assert main(args) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert (run / "checkpoint.pt").stat().st_mtime == mtime
+    # Resume continues from the checkpoint to the new iteration count.
+    assert main(args[:-8] + ["--resume", "--set", "train.iterations=9"]) == 0
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 9
+    assert [h["step"] for h in state["history"]][:3] == [2, 4, 6]
+    # Render: every file of the interface, finite values, coverage where the sphere is.
+    out = tmp_path / "views"
+    assert main(["render", str(run), "--cameras", str(sphere_capture), "-o", str(out), "--quiet", "--spp", "8",
+                 "--exposure", "1", "--env-rotate", "30"]) == 0
+    from vq_mitsuba.capture.imageio import read_image
+
+    for kind in ("rgb.exr", "rgb.png", "basecolor.exr", "metallic.exr", "roughness.exr", "normal.exr", "alpha.png"):
+        assert (out / f"view_00_{kind}").is_file(), kind
+    rgb, alpha = read_image(out / "view_00_rgb.exr")
+    assert np.isfinite(rgb).all() and alpha[12, 12] == 1.0 and alpha[0, 0] == 0.0
+
+
+def test_fit_rejects_bad_inputs_before_training(sphere_capture, tmp_path):
+    cfg = load_config(None, ["train.iterations=1"])
+    with pytest.raises(InputError, match="transforms"):
+        fit(tmp_path / "missing" / "transforms_train.json", tmp_path / "r1", cfg)
+    with pytest.raises(InputError, match="unknown config key 'train.iteration'"):
+        load_config(None, ["train.iteration=5"])
+    with pytest.raises(InputError, match="expects int"):
+        load_config(None, ["train.iterations=many"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train: [1, 2]\n")
+    with pytest.raises(InputError, match="bad.yaml"):
+        load_config(bad)
+    # A capture without geometry stops before any run directory is written.
+    no_geo = tmp_path / "nogeo"
+    no_geo.mkdir()
+    (no_geo / "images").symlink_to(sphere_capture.parent / "images")
+    (no_geo / "env.exr").symlink_to(sphere_capture.parent / "env.exr")
+    xml = sphere_capture.read_text()
+    xml = xml.replace('  <shape type="ply"><string name="filename" value="sphere.ply"/></shape>\n', "")
+    (no_geo / "scene.xml").write_text(xml)
+    with pytest.raises(InputError, match="no known geometry"):
+        fit(no_geo / "scene.xml", tmp_path / "r2", cfg)
+    assert not (tmp_path / "r2").exists()
+
+
+def test_fit_recovers_uniform_sphere_material(tmp_path):
+    """Known lighting, known geometry: basecolor within 0.05 and roughness within 0.1."""
+    xml = write_sphere_capture(tmp_path / "cap", base_color=(0.7, 0.35, 0.2), roughness=0.3, size=32,
+                               n_views=12, spp=64)
+    cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8"])
+    fit(xml, tmp_path / "run", cfg, progress=False)
+    from vq_mitsuba.render import load_run
+
+    fitted = load_run(tmp_path / "run")
+    pts = torch.tensor(np.asarray(fitted.mesh.vertices), dtype=torch.float32)
+    with torch.no_grad():
+        out = fitted.model(pts)
+    base = out["basecolor"].mean(0).numpy()
+    np.testing.assert_allclose(base, [0.7, 0.35, 0.2], atol=0.05)
+    assert abs(out["roughness"].mean().item() - 0.3) < 0.1
+    assert out["metallic"].mean().item() < 0.1
