@@ -1,0 +1,217 @@
+#!/usr/bin/env python
+"""Benchmark: generate, fit and evaluate the bundled synthetic scenes; record the machine.
+
+    python benchmarks/bench_scenes.py [--scenes demo texture balls] [--time-limit 600]
+        [--iterations N] [--resolution 128] [--out benchmarks/out] [--compare OLD.json]
+
+For each scene: `make_scene` into OUT/data/NAME (reused when its scene.json has the same
+resolution), `fit` from its scene.xml into OUT/runs/NAME (an old run there is deleted first) with
+configs/NAME.yaml if present, then `evaluate` on the test views. Writes OUT/bench_scenes.json and
+OUT/bench_scenes.md and prints the table; when an older JSON exists (OUT/bench_scenes.json, or
+--compare), prints new / old ratios. All figures are single runs. See benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from vq_mitsuba import synthetic  # noqa: E402
+from vq_mitsuba.config import load_config  # noqa: E402
+from vq_mitsuba.evaluate import evaluate, format_table, json_safe  # noqa: E402
+from vq_mitsuba.fit import fit  # noqa: E402
+
+# Headline figures: (key, label, number format). Ratios new/old are printed for these.
+FIGURES = [
+    ("fit_s", "fit s", ".1f"), ("iterations", "iters", "d"), ("it_per_s", "it/s", ".2f"),
+    ("novel_psnr", "view PSNR", ".2f"), ("novel_ssim", "view SSIM", ".3f"),
+    ("basecolor_psnr", "albedo PSNR", ".2f"), ("basecolor_ssim", "albedo SSIM", ".3f"),
+    ("metallic_psnr", "metal PSNR", ".2f"), ("roughness_psnr", "rough PSNR", ".2f"),
+    ("relit_albedo_scale_psnr", "relit PSNR (albedo scale)", ".2f"),
+    ("relit_image_scale_psnr", "relit PSNR (image scale)", ".2f"),
+]
+
+
+def machine_info() -> dict:
+    import drjit
+    import mitsuba
+    import numpy
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {
+        "cpu": cpu, "cores": os.cpu_count(), "gpu": gpu, "os": platform.platform(),
+        "python": platform.python_version(), "mitsuba": mitsuba.__version__, "mitsuba_variant": mitsuba.variant(),
+        "drjit": drjit.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
+    }
+
+
+def ensure_dataset(name: str, out: Path, resolution: int, progress: bool) -> Path:
+    meta = out / "scene.json"
+    if meta.is_file() and json.loads(meta.read_text()).get("resolution") == [resolution, resolution]:
+        print(f"[{name}] reusing dataset {out}")
+        return out
+    print(f"[{name}] generating dataset {out} at {resolution}x{resolution}")
+    return synthetic.make_scene(name, out, resolution=resolution, progress=progress)
+
+
+def headline(m: dict, fit_summary: dict) -> dict:
+    """The flat figures of one scene (the JSON keeps the full metrics too)."""
+    rel = m["relighting"]
+    fig = {
+        "fit_s": fit_summary["seconds"], "iterations": fit_summary["iterations"],
+        "it_per_s": fit_summary["iterations_per_s"],
+        "novel_psnr": m["novel_view"]["psnr"], "novel_ssim": m["novel_view"]["ssim"],
+        "basecolor_psnr": m["basecolor"]["psnr"], "basecolor_ssim": m["basecolor"]["ssim"],
+        "metallic_psnr": m["metallic"]["psnr"], "roughness_psnr": m["roughness"]["psnr"],
+    }
+    for variant in ("albedo_scale", "image_scale"):
+        fig[f"relit_{variant}_psnr"] = rel[variant]["mean"]["psnr"] if rel[variant]["mean"] else None
+        for env, v in rel[variant]["envs"].items():
+            fig[f"relit_{env}_{variant}_psnr"] = v["psnr"]
+    return fig
+
+
+def run_scene(name: str, args, out: Path) -> dict:
+    data = ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet)
+    preset = REPO / "configs" / f"{name}.yaml"
+    cfg = load_config(preset if preset.is_file() else None, [f"train.time_limit_s={args.time_limit}"])
+    if args.iterations is not None:
+        cfg.train.iterations = min(cfg.train.iterations, args.iterations)
+    run_dir = out / "runs" / name
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    print(f"[{name}] fitting {data / 'scene.xml'} -> {run_dir} (config: "
+          f"{preset.relative_to(REPO) if preset.is_file() else 'defaults'}, {cfg.train.iterations} iterations, "
+          f"time limit {args.time_limit:g} s)")
+    summary = fit(data / "scene.xml", run_dir, cfg, progress=not args.quiet)
+    print(f"[{name}] evaluating on the test views")
+    m = evaluate(run_dir, data, spp=args.spp, progress=not args.quiet)
+    print(format_table(m))
+    return {
+        "scene": name, "resolution": args.resolution, "dataset": str(data), "run": str(run_dir),
+        "config": str(preset.relative_to(REPO)) if preset.is_file() else "defaults",
+        "time_limit_s": args.time_limit, "iterations_planned": cfg.train.iterations,
+        "n_test_views": m["n_views"], "eval_spp": m["render"]["spp"], "eval_seconds": m["seconds"],
+        "alignment": m["alignment"],
+        "figures": headline(m, summary),
+    }
+
+
+def _fmt(x, spec: str = ".2f") -> str:
+    if x is None or isinstance(x, str):
+        return "-" if x is None else x
+    if not math.isfinite(x):
+        return str(x)
+    return f"{int(x)}" if spec == "d" else f"{x:{spec}}"
+
+
+def markdown(result: dict) -> str:
+    scenes = result["scenes"]
+    lines = [f"# bench_scenes ({result['date']})", "",
+             "Single runs (no repeats): differences of a few tenths of a dB are within run-to-run noise.",
+             f"Fit time limit {result['settings']['time_limit_s']:g} s, resolution {result['settings']['resolution']}, "
+             f"iteration cap {result['settings']['iterations'] or 'none'}; images and albedo in sRGB, albedo "
+             "aligned per channel (lstsq); metallic / roughness linear.", "",
+             "| scene | " + " | ".join(label for _, label, _ in FIGURES) + " |",
+             "|---|" + "---:|" * len(FIGURES)]
+    for s in scenes:
+        cells = [_fmt(s["figures"].get(k), spec) for k, _, spec in FIGURES]
+        lines.append(f"| {s['scene']} | " + " | ".join(cells) + " |")
+    lines += ["", "Relighting PSNR per envmap (albedo scale / image scale):", "",
+              "| scene | env | albedo scale | image scale |", "|---|---|---:|---:|"]
+    for s in scenes:
+        f = s["figures"]
+        envs = [k[len("relit_"):-len("_albedo_scale_psnr")] for k in f
+                if k.endswith("_albedo_scale_psnr") and k != "relit_albedo_scale_psnr"]
+        for env in envs:
+            lines.append(f"| {s['scene']} | {env} | {_fmt(f[f'relit_{env}_albedo_scale_psnr'])} | "
+                         f"{_fmt(f[f'relit_{env}_image_scale_psnr'])} |")
+    mach = result["machine"]
+    lines += ["", "Machine: " + ", ".join(f"{k} {v}" for k, v in mach.items()), "",
+              f"Command: `{result['command']}`", ""]
+    return "\n".join(lines)
+
+
+def compare(new: dict, old: dict) -> str:
+    """new / old ratios of the headline figures of the scenes both results hold."""
+    old_by = {s["scene"]: s["figures"] for s in old.get("scenes", [])}
+    rows = []
+    for s in new["scenes"]:
+        prev = old_by.get(s["scene"])
+        if prev is None:
+            continue
+        cells = []
+        for key, label, _ in FIGURES:
+            a, b = s["figures"].get(key), prev.get(key)
+            ok = isinstance(a, (int, float)) and isinstance(b, (int, float)) and b not in (0, 0.0) \
+                and math.isfinite(a) and math.isfinite(b)
+            cells.append(f"{label} {a / b:.3f}" if ok else f"{label} -")
+        rows.append(f"{s['scene']}: " + ", ".join(cells))
+    if not rows:
+        return "no scene in common with the previous results"
+    return f"new / old (old from {old.get('date', '?')}, {old.get('machine', {}).get('cpu', '?')}):\n" + "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=list(synthetic.SCENES), choices=synthetic.SCENES,
+                   help="scenes to run (default: all bundled)")
+    p.add_argument("--time-limit", type=float, default=600.0, metavar="SECONDS",
+                   help="fit time limit per scene (train.time_limit_s; default 600)")
+    p.add_argument("--iterations", type=int, help="cap on fit iterations (default: the config's)")
+    p.add_argument("--resolution", type=int, default=128, help="image size of the generated datasets (default 128)")
+    p.add_argument("--spp", type=int, help="evaluation render spp (default: the run's render.spp)")
+    p.add_argument("--out", default=str(REPO / "benchmarks" / "out"), help="output folder (default benchmarks/out)")
+    p.add_argument("--compare", help="previous bench_scenes.json (default: OUT/bench_scenes.json if it exists)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / "bench_scenes.json"
+    old_path = Path(args.compare) if args.compare else json_path
+    old = json.loads(old_path.read_text()) if old_path.is_file() else None
+
+    scenes = [run_scene(name, args, out) for name in args.scenes]
+    result = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.executable).name] + sys.argv) if argv is None
+        else "bench_scenes.py " + " ".join(argv),
+        "settings": {"scenes": args.scenes, "time_limit_s": args.time_limit, "iterations": args.iterations,
+                     "resolution": args.resolution, "eval_spp": args.spp},
+        "note": "single runs: no repeats, no error bars",
+        "machine": machine_info(),
+        "scenes": scenes,
+    }
+    json_path.write_text(json.dumps(json_safe(result), indent=2))
+    md = markdown(result)
+    (out / "bench_scenes.md").write_text(md)
+    print()
+    print(md)
+    print(f"written: {json_path}, {out / 'bench_scenes.md'}")
+    if old is not None:
+        print(compare(result, old))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

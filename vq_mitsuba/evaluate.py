@@ -1,0 +1,316 @@
+"""`vq-mitsuba eval`: score a fitted run against a synthetic dataset's ground truth.
+
+The dataset is one written by `vq_mitsuba.synthetic.make_scene` (layout in its docstring). The
+run may have been fitted on its scene.xml (Mitsuba world) or its transforms_train.json (Blender
+world); the test cameras come from transforms_test.json and are converted to the run's world.
+Every test view is rendered with the fitted lighting (novel view, material maps) and under each
+held-aside envmap (relighting), and compared inside the ground-truth foreground (gt alpha > 0.5):
+
+- novel view: premultiplied linear RGB of `images/<id>.exr`, compared in sRGB (PSNR, SSIM);
+- basecolor: `gt/<id>_basecolor.exr` after a per-channel scale alignment computed once over all
+  test views jointly (method "lstsq" as NeRFactor or "median" as TensoIR), compared in sRGB;
+- metallic, roughness: PSNR of the linear [0, 1] maps, no alignment;
+- normals: mean angular error in degrees (world normals, both in Blender world);
+- relighting under `relit/<env>/<id>.exr`, compared in sRGB, in two labelled variants:
+  `albedo_scale` (the relit render times the basecolor alignment scales, as NeRFactor) and
+  `image_scale` (each relit render aligned to its reference by its own per-channel least-squares
+  scale, which also absorbs an exposure mismatch of the fitted lighting).
+
+Figures are means of per-view values (NeRF convention). Renders are Monte Carlo estimates
+(`spp` samples per pixel): their noise lowers PSNR slightly, more at low spp.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import metrics as M
+from .capture.imageio import read_exr, read_image
+from .errors import InputError
+
+MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
+DEFAULT_AA = 4  # jittered primary rays per pixel (Renderer.render's `aa`)
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth
+
+
+def dataset_root(path: str | Path) -> Path:
+    """The dataset folder for a folder or any file inside it (scene.json, scene.xml, transforms json)."""
+    path = Path(path)
+    root = path if path.is_dir() else path.parent
+    for name in ("scene.json", "transforms_test.json"):
+        if not (root / name).is_file():
+            raise InputError(root / name, "not a dataset written by `vq-mitsuba make-scene` (file missing)")
+    return root
+
+
+def relight_envs(root: Path, meta: dict) -> list[tuple[str, Path]]:
+    """(name, envmap path) of every relighting condition with its envmap and relit views on disk."""
+    entries = meta.get("relight")
+    if entries is None:  # older datasets: discover them
+        entries = [{"name": p.name, "file": f"envmaps/{p.name}.exr"} for p in sorted((root / "relit").glob("*"))
+                   if p.is_dir()]
+    out = []
+    for e in entries:
+        env_path = root / e.get("file", f"envmaps/{e['name']}.exr")
+        if not env_path.is_file():
+            raise InputError(env_path, f"envmap of relighting condition '{e['name']}' missing")
+        out.append((e["name"], env_path))
+    return out
+
+
+def _read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    if not path.is_file():
+        raise InputError(path, "ground-truth image missing")
+    data = read_exr(path)
+    return data[..., :3].astype(np.float64), (data[..., 3].astype(np.float64) if data.shape[-1] > 3 else None)
+
+
+def _read_map(path: Path) -> np.ndarray:
+    """A scalar EXR map (stored as Y) as (H, W)."""
+    rgb, _ = _read_rgba(path)
+    return rgb[..., 0]
+
+
+def _read_mask(root: Path, name: str, image_alpha: np.ndarray | None) -> np.ndarray:
+    """Foreground mask: gt/<id>_alpha.png (coverage, stored linearly), else the image's alpha."""
+    png = root / "gt" / f"{name}_alpha.png"
+    if png.is_file():
+        import imageio.v3 as iio
+
+        a = np.asarray(iio.imread(png)).astype(np.float64)
+        a = a[..., 0] if a.ndim == 3 else a
+        return a / (65535.0 if a.max() > 255 else 255.0) > MASK_THRESHOLD
+    if image_alpha is None:
+        raise InputError(png, "no ground-truth alpha (neither this file nor an alpha channel in the image)")
+    return image_alpha > MASK_THRESHOLD
+
+
+def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
+    """Ground truth of one test view: rgb (linear, premultiplied), mask, basecolor, metallic,
+    roughness, normal (Blender world)."""
+    rgb, alpha = _read_rgba(root / "images" / f"{name}.exr")
+    gt = {"rgb": rgb, "mask": _read_mask(root, name, alpha)}
+    gt["basecolor"], _ = _read_rgba(root / "gt" / f"{name}_basecolor.exr")
+    gt["metallic"] = _read_map(root / "gt" / f"{name}_metallic.exr")
+    gt["roughness"] = _read_map(root / "gt" / f"{name}_roughness.exr")
+    normal_path = root / "gt" / f"{name}_normal.exr"
+    if normal_path.is_file():
+        gt["normal"], _ = _read_rgba(normal_path)
+    return gt
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def _mean(values) -> float:
+    vals = [v for v in values if not (isinstance(v, float) and math.isnan(v))]
+    return float(np.mean(vals)) if vals else math.nan
+
+
+def _normal_error_deg(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    p, g = pred[mask], gt[mask]
+    p = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
+    g = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+    cos = np.clip(np.sum(p * g, -1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean()) if len(cos) else math.nan
+
+
+def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
+             progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA) -> dict:
+    """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
+    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 64)."""
+    from tqdm import tqdm
+
+    from .capture.dataset import load_cameras
+    from .render import _R, Renderer, convert_world, load_run
+
+    if scale_method not in M.SCALE_METHODS:
+        raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
+    t0 = time.perf_counter()
+    root = dataset_root(dataset_dir)
+    meta = json.loads((root / "scene.json").read_text())
+    fitted = load_run(run_dir)
+    cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
+    envs = relight_envs(root, meta)
+    for env_name, _ in envs:
+        for cam in cameras:
+            p = root / "relit" / env_name / f"{cam.name}.exr"
+            if not p.is_file():
+                raise InputError(p, f"relit view missing for '{env_name}'")
+    gts = [load_ground_truth(root, cam.name) for cam in cameras]
+    for cam, gt in zip(cameras, gts):
+        if gt["rgb"].shape[:2] != (cam.height, cam.width):
+            raise InputError(root / "images" / f"{cam.name}.exr", "size differs from transforms_test.json")
+
+    run_world = fitted.info["world"]
+    views = [convert_world(cam, cam_world, run_world) for cam in cameras]
+    spp = int(spp or fitted.cfg.render.spp)
+    bar = tqdm(total=len(views) * (1 + len(envs)), desc="eval", unit="view", disable=not progress,
+               dynamic_ncols=True)
+
+    # Fitted lighting: novel views and material maps.
+    renderer = Renderer(fitted)
+    preds = []
+    for i, cam in enumerate(views):
+        out = renderer.render(cam, spp=spp, aa=aa, seed=i)
+        if run_world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
+            out["normal"] = out["normal"] @ _R.T
+        preds.append(out)
+        bar.update(1)
+    del renderer
+
+    masks = np.stack([gt["mask"] for gt in gts])
+    _, bc_scales = M.scale_align(np.stack([p["basecolor"] for p in preds]), np.stack([gt["basecolor"] for gt in gts]),
+                                 masks, method=scale_method)
+    per_view = []
+    for cam, pred, gt in zip(cameras, preds, gts):
+        m = gt["mask"]
+        nv = M.image_metrics(pred["rgb"], gt["rgb"], m)
+        bc = M.image_metrics(pred["basecolor"] * bc_scales, gt["basecolor"], m)
+        row = {"view": cam.name, "pixels": int(m.sum()),
+               "novel_view_psnr": nv["psnr"], "novel_view_ssim": nv["ssim"],
+               "basecolor_psnr": bc["psnr"], "basecolor_ssim": bc["ssim"],
+               "basecolor_psnr_unaligned": M.psnr(M.srgb(pred["basecolor"]), M.srgb(gt["basecolor"]), m),
+               "metallic_psnr": M.psnr(pred["metallic"], gt["metallic"], m),
+               "roughness_psnr": M.psnr(pred["roughness"], gt["roughness"], m),
+               "metallic_mae": float(np.abs(pred["metallic"] - gt["metallic"])[m].mean()) if m.any() else math.nan,
+               "roughness_mae": float(np.abs(pred["roughness"] - gt["roughness"])[m].mean()) if m.any() else math.nan}
+        if "normal" in gt:
+            row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
+        per_view.append(row)
+    del preds
+
+    # Relighting under each held-aside envmap.
+    relit: dict[str, dict] = {"albedo_scale": {}, "image_scale": {}}
+    for env_name, env_path in envs:
+        env, _ = read_image(env_path)
+        renderer = Renderer(fitted, envmap=env)
+        rows = {"albedo_scale": [], "image_scale": []}
+        for i, (cam, view, gt) in enumerate(zip(cameras, views, gts)):
+            ref, _ = _read_rgba(root / "relit" / env_name / f"{cam.name}.exr")
+            pred = renderer.render(view, spp=spp, aa=aa, seed=i)["rgb"].astype(np.float64)
+            m = gt["mask"]
+            rows["albedo_scale"].append(M.image_metrics(pred * bc_scales, ref, m))
+            aligned, _ = M.scale_align(pred, ref, m, method="lstsq")
+            rows["image_scale"].append(M.image_metrics(aligned, ref, m))
+            for variant in rows:
+                per_view[i][f"relit_{env_name}_{variant}_psnr"] = rows[variant][-1]["psnr"]
+            bar.update(1)
+        del renderer
+        for variant, r in rows.items():
+            relit[variant][env_name] = {"psnr": _mean(x["psnr"] for x in r), "ssim": _mean(x["ssim"] for x in r)}
+    bar.close()
+
+    def avg(key):
+        return _mean(row[key] for row in per_view if key in row)
+
+    relighting = {}
+    notes = {"albedo_scale": "relit render x basecolor alignment scales (" + scale_method + ")",
+             "image_scale": "relit render aligned per image and channel (lstsq)"}
+    for variant, per_env in relit.items():
+        relighting[variant] = {
+            "alignment": notes[variant], "envs": per_env,
+            "mean": {"psnr": _mean(v["psnr"] for v in per_env.values()),
+                     "ssim": _mean(v["ssim"] for v in per_env.values())} if per_env else None,
+        }
+    fit_summary = {}
+    fit_json = Path(run_dir) / "fit.json"
+    if fit_json.is_file():
+        fit_summary = {k: v for k, v in json.loads(fit_json.read_text()).items()
+                       if k in ("iterations", "seconds", "iterations_per_s")}
+    result = {
+        "run": str(Path(run_dir).resolve()),
+        "dataset": str(root.resolve()),
+        "scene": meta.get("name"),
+        "n_views": len(cameras),
+        "resolution": [cameras[0].width, cameras[0].height] if cameras else None,
+        "render": {"spp": spp, "aa": aa},
+        "mask": f"ground-truth alpha > {MASK_THRESHOLD}",
+        "color_space": "images and basecolor: sRGB of clipped linear values; metallic, roughness: linear [0, 1]",
+        "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},
+        "basecolor": {"psnr": avg("basecolor_psnr"), "ssim": avg("basecolor_ssim"),
+                      "psnr_unaligned": avg("basecolor_psnr_unaligned"), "aligned_with": scale_method},
+        "alignment": {"method": scale_method, "scales": [float(s) for s in bc_scales],
+                      "computed_over": "all test views jointly, foreground pixels, linear basecolor"},
+        "metallic": {"psnr": avg("metallic_psnr"), "mae": avg("metallic_mae")},
+        "roughness": {"psnr": avg("roughness_psnr"), "mae": avg("roughness_mae")},
+        "normal": {"mae_deg": avg("normal_mae_deg")},
+        "relighting": relighting,
+        "fit": fit_summary,
+        "per_view": per_view,
+        "seconds": time.perf_counter() - t0,
+    }
+    out_path = Path(output) if output is not None else Path(run_dir) / "metrics.json"
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(json_safe(result), indent=2))
+    return result
+
+
+def json_safe(obj):
+    """Non-finite floats as the strings "inf", "-inf", "nan" (JSON has no literal for them)."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return x if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+
+
+def _fmt(x, digits: int) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, str):
+        return x
+    if math.isnan(x):
+        return "nan"
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return f"{x:.{digits}f}"
+
+
+def table_rows(metrics: dict) -> list[tuple[str, object, object]]:
+    """(label, PSNR, SSIM) rows of the readable table; SSIM None where not computed."""
+    method = metrics["alignment"]["method"]
+    rows = [("novel view", metrics["novel_view"]["psnr"], metrics["novel_view"]["ssim"]),
+            (f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
+            ("metallic (linear)", metrics["metallic"]["psnr"], None),
+            ("roughness (linear)", metrics["roughness"]["psnr"], None)]
+    for variant in ("albedo_scale", "image_scale"):
+        block = metrics["relighting"][variant]
+        for env, v in block["envs"].items():
+            rows.append((f"relit {env} ({variant})", v["psnr"], v["ssim"]))
+        if block["mean"] is not None and len(block["envs"]) > 1:
+            rows.append((f"relit mean ({variant})", block["mean"]["psnr"], block["mean"]["ssim"]))
+    return rows
+
+
+def format_table(metrics: dict) -> str:
+    """A plain-text table of the headline figures."""
+    rows = table_rows(metrics)
+    width = max(len(r[0]) for r in rows)
+    lines = [f"{metrics.get('scene') or 'run'}: {metrics['n_views']} test views, {metrics['render']['spp']} spp, "
+             f"mask {metrics['mask']}",
+             f"{'':{width}}  {'PSNR':>7}  {'SSIM':>6}"]
+    lines += [f"{label:{width}}  {_fmt(p, 2):>7}  {_fmt(s, 4):>6}" for label, p, s in rows]
+    scales = ", ".join(f"{s:.3f}" for s in metrics["alignment"]["scales"])
+    lines.append(f"basecolor scales ({metrics['alignment']['method']}): {scales}")
+    if metrics["normal"]["mae_deg"] is not None and not math.isnan(metrics["normal"]["mae_deg"]):
+        lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
+    return "\n".join(lines)
