@@ -451,6 +451,11 @@ def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int |
     if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
     out = Path(out_dir)
+    if (out / "scene.json").is_file():  # an earlier make_scene output: drop its stale views
+        import shutil
+
+        for sub in ("images", "gt", "meshes", "envmaps", "relit"):
+            shutil.rmtree(out / sub, ignore_errors=True)
     for sub in ("images", "gt", "meshes", "envmaps", "relit"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
