@@ -42,6 +42,17 @@ def _cmd_render(args) -> int:
     return 0
 
 
+def _cmd_eval(args) -> int:
+    from .evaluate import evaluate, format_table
+
+    metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
+                       progress=not args.quiet, output=args.output)
+    print(format_table(metrics))
+    out = args.output or str(Path(args.run_dir) / "metrics.json")
+    print(f"metrics written to {out}")
+    return 0
+
+
 def _cmd_make_scene(args) -> int:
     from . import synthetic
 
@@ -96,6 +107,22 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", help="output folder (default: RUN_DIR/renders)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_render)
+
+    e = sub.add_parser("eval", help="score a fitted run against a synthetic dataset's ground truth",
+                       description="Render the dataset's test views (transforms_test.json) and compare inside "
+                                   "the ground-truth foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after "
+                                   "per-channel scale alignment, metallic/roughness PSNR, and relighting PSNR/SSIM "
+                                   "under each held-aside envmap (albedo-scale and image-scale variants).")
+    e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
+    e.add_argument("--gt", required=True, metavar="DATASET",
+                   help="dataset folder written by `vq-mitsuba make-scene` (scene.json, transforms_test.json, "
+                        "images/, gt/, relit/, envmaps/)")
+    e.add_argument("-o", "--output", help="metrics JSON path (default: RUN_DIR/metrics.json)")
+    e.add_argument("--spp", type=int, help="render samples per pixel (default: render.spp of the run's config)")
+    e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",
+                   help="basecolor scale alignment: lstsq (NeRFactor) or median (TensoIR)")
+    e.add_argument("--quiet", action="store_true", help="no progress bar")
+    e.set_defaults(func=_cmd_eval)
 
     m = sub.add_parser("make-scene", help="render a bundled synthetic scene with ground truth",
                        description="Render a bundled scene with Mitsuba's path tracer: training and test views "
