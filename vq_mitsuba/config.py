@@ -22,6 +22,7 @@ class FieldConfig:
     latent: int = 16  # dimension of the latent z
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
+    pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
 
 
 @dataclass
@@ -29,6 +30,7 @@ class EnvmapConfig:
     height: int = 32  # rows of the learned lat-long envmap (width is twice this)
     init_scale: float = 2.0  # initial radiance = init_scale x mean foreground pixel value
     lr: float = 0.02  # Adam learning rate of the log-radiance texels
+    tv_weight: float = 1e-5  # smoothness of the log radiance (neighbouring texels)
 
 
 @dataclass

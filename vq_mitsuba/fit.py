@@ -191,6 +191,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     B = min(cfg.train.batch_rays, len(pool))
     while step < total:
         idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
+        model.set_progress(step / max(total, 1), cfg.field.pe_anneal)
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
@@ -203,6 +204,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             l_rec = losses.reconstruction_l2(rgb, target, cfg.loss.gamma)
         l_lam = losses.lambertian_prior(out["metallic"], out["roughness"])
         loss = cfg.loss.w_rec_c * l_rec + cfg.loss.w_lam * l_lam
+        if learn_env and cfg.envmap.tv_weight > 0:
+            loss = loss + cfg.envmap.tv_weight * env_module.smoothness()
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()

@@ -16,11 +16,16 @@ class PositionalEncoding(nn.Module):
     def __init__(self, n_freqs: int):
         super().__init__()
         self.register_buffer("freqs", (2.0 ** torch.arange(n_freqs)) * math.pi, persistent=False)
+        # Coarse-to-fine: frequency k is weighted by a cosine ramp of `progress` (in frequencies);
+        # without it the field fits shading and highlights into basecolor before the light is found.
+        self.register_buffer("progress", torch.tensor(float(n_freqs)))
         self.out_dim = 3 + 6 * n_freqs
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xb = x[..., None, :] * self.freqs[:, None]  # (N, F, 3)
-        return torch.cat([x, torch.sin(xb).flatten(-2), torch.cos(xb).flatten(-2)], -1)
+        k = torch.arange(self.freqs.shape[0], device=x.device, dtype=x.dtype)
+        w = 0.5 * (1 - torch.cos(math.pi * torch.clamp(self.progress - k, 0.0, 1.0)))[:, None]
+        return torch.cat([x, (torch.sin(xb) * w).flatten(-2), (torch.cos(xb) * w).flatten(-2)], -1)
 
 
 class SkipMLP(nn.Module):
@@ -96,6 +101,12 @@ class ContinuousMaterial(nn.Module):
         self.encoder = Encoder(cfg)
         self.decoder = BRDFDecoder(cfg)
 
+    def set_progress(self, fraction: float, anneal: float) -> None:
+        """Open the positional-encoding frequencies over the first `anneal` fraction of training."""
+        pe = self.encoder.pe
+        n = pe.freqs.shape[0]
+        pe.progress.fill_(n if anneal <= 0 else min(n, n * fraction / anneal))
+
     def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
         z = self.encoder((x_world - self.center) / self.half_extent)
         out = self.decoder(z)
@@ -112,3 +123,10 @@ class EnvironmentMap(nn.Module):
 
     def forward(self) -> torch.Tensor:
         return torch.exp(self.log_radiance)
+
+    def smoothness(self) -> torch.Tensor:
+        """Mean squared difference of neighbouring log-radiance texels (longitude wraps around)."""
+        x = self.log_radiance
+        dv = x[1:] - x[:-1]
+        du = x - torch.roll(x, 1, dims=1)
+        return torch.mean(dv**2) + torch.mean(du**2)
