@@ -52,6 +52,8 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between checkpoints (a run resumes from the last one)
     log_every: int = 50  # steps between loss-curve entries
     alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
+    pixel_jitter: int = 4  # primary hits traced per pixel at random positions (0: pixel centre only)
+    bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     time_limit_s: float = 0.0  # stop early after this many seconds (0: no limit)
 
 

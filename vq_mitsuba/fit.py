@@ -49,21 +49,27 @@ def build_scene(mesh, env_init: np.ndarray, env_to_world: np.ndarray):
     return ShadingScene(mesh.vertices, mesh.faces, env_init, env_to_world, normals=mesh.vertex_normals)
 
 
-def trace_training_pixels(scene, capture: Capture, alpha_threshold: float) -> tuple[PixelPool, dict]:
-    """Primary hits of pixel centres of all views; keeps pixels that are opaque and hit."""
+def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitter: int = 0,
+                          seed: int = 0) -> tuple[PixelPool, dict]:
+    """Primary hits of all views' opaque pixels: the pixel centre, or `jitter` random positions
+    inside each pixel (a pixel's value is an area average; centres alias thin highlights)."""
     from .rendering import camera_rays
 
+    rng = np.random.default_rng(seed)
     parts, n_alpha, n_hit = [], 0, 0
     for v, cam in enumerate(capture.cameras):
-        o, d = camera_rays(cam)
-        hits = scene.trace(o, d)
-        opaque = torch.as_tensor(capture.alpha[v].reshape(-1) >= alpha_threshold, device=hits.valid.device)
-        keep = hits.valid & opaque
-        n_alpha += int(opaque.sum())
-        n_hit += int(keep.sum())
-        rgb = torch.as_tensor(capture.images[v].reshape(-1, 3), device=hits.valid.device)
-        parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb[keep],
-                      torch.full((int(keep.sum()),), v, dtype=torch.int32)))
+        opaque_np = capture.alpha[v].reshape(-1) >= alpha_threshold
+        rgb = torch.as_tensor(capture.images[v].reshape(-1, 3))
+        n_alpha += int(opaque_np.sum())
+        for k in range(max(jitter, 1)):
+            offsets = rng.random((cam.width * cam.height, 2)) if jitter > 0 else None
+            o, d = camera_rays(cam, offsets)
+            hits = scene.trace(o, d)
+            keep = hits.valid & torch.as_tensor(opaque_np, device=hits.valid.device)
+            if k == 0:
+                n_hit += int(keep.sum())
+            parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb.to(keep.device)[keep],
+                          torch.full((int(keep.sum()),), v, dtype=torch.int32)))
     cat = [torch.cat(x) for x in zip(*parts)]
     pool = PixelPool(*cat)
     stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit,
@@ -135,7 +141,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     else:
         env_init = capture.envmap
     scene = build_scene(capture.mesh, env_init, capture.envmap_to_world)
-    pool, stats = trace_training_pixels(scene, capture, cfg.train.alpha_threshold)
+    pool, stats = trace_training_pixels(scene, capture, cfg.train.alpha_threshold, cfg.train.pixel_jitter,
+                                        cfg.train.seed)
     if len(pool) == 0:
         raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh and the alpha masks")
     if stats["geometry_coverage"] < 0.9:
@@ -195,7 +202,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
-                              out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False)
+                              out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False,
+                              material_fn=model if cfg.train.bounces > 0 else None)
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         if cfg.loss.decorrelated:

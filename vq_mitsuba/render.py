@@ -110,7 +110,8 @@ class Renderer:
                 sel = idx[s:s + cfg.chunk]
                 out = self.fitted.model(hits.position[sel])
                 rgb = self.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out["basecolor"],
-                                       out["metallic"], out["roughness"], self.env_t, light_spp, generator=gen)
+                                       out["metallic"], out["roughness"], self.env_t, light_spp, generator=gen,
+                                       material_fn=self.fitted.model if self.fitted.cfg.train.bounces > 0 else None)
                 sel_np = sel.cpu().numpy()
                 acc["rgb"][sel_np] += rgb.cpu().numpy()
                 acc["basecolor"][sel_np] += out["basecolor"].cpu().numpy()

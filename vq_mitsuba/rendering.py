@@ -6,11 +6,13 @@ fields are evaluated in torch once per hit point and handed to Mitsuba through `
 small texture plugin (`vqm_lanes`) returns those per-lane values when `principled` asks for
 `base_color`, `metallic` or `roughness`, so the BSDF code is Mitsuba's own, not a copy.
 
-Shading is direct illumination from the environment with visibility: one emitter sample
-(`scene.sample_emitter_direction`, importance-sampled from the envmap, shadow ray tested) and
-one BSDF sample per lane, combined with the power heuristic. Sampled directions carry no
-gradient (as in Mitsuba's `prb`: BSDF values are differentiated, sampling is detached).
-Interreflections between objects are not simulated (biased for concave or clustered scenes).
+Each lane takes one emitter sample (`scene.sample_emitter_direction`, importance-sampled from
+the envmap, shadow ray tested) and one BSDF sample, combined with the power heuristic. When the
+BSDF sample hits the object itself, the radiance arriving along it can be supplied by the
+caller (`shade(..., bounces=1)` shades that second hit with the same fields, direct light only),
+so one interreflection is simulated; deeper paths are not (biased dark in deep concavities).
+Sampled directions carry no gradient (as in Mitsuba's `prb`: BSDF values are differentiated,
+sampling is detached).
 """
 
 from __future__ import annotations
@@ -202,27 +204,47 @@ class ShadingScene:
         params, key = self.params, self.env_key
         tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
 
-        @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, env, u):
-            # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
-            f = lambda t: mi.Float(t.array) if isinstance(t, mi.TensorXf) else mi.Float(t)
-            px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
-            br, bg, bb, metal, rough = map(f, (br, bg, bb, metal, rough))
-            u = [f(x) for x in u]
-            params[key] = env
-            params.update()
+        f = lambda t: mi.Float(t.array) if isinstance(t, mi.TensorXf) else mi.Float(t)
 
-            n_lanes = dr.width(px)
-            si = dr.zeros(mi.SurfaceInteraction3f, n_lanes)
+        def setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough):
+            # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
+            px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
+            si = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
             si.p = mi.Point3f(px, py, pz)
             normal = mi.Normal3f(nx, ny, nz)
             si.n = normal
             si.sh_frame = mi.Frame3f(normal)
             si.wi = si.sh_frame.to_local(mi.Vector3f(wx, wy, wz))
             si.t = mi.Float(1.0)
-            tb.values = (br, bg, bb)
-            tm.values = (metal,)
-            tr.values = (rough,)
+            tb.values = (f(br), f(bg), f(bb))
+            tm.values = (f(metal),)
+            tr.values = (f(rough),)
+            return si
+
+        @dr.wrap(source="torch", target="drjit")
+        def bounce(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, u):
+            """Where the BSDF sample of each lane goes: hit flag and the hit (p, n facing back, wi)."""
+            with dr.suspend_grad():
+                si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
+                u = [f(x) for x in u]
+                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
+                ray = si.spawn_ray(si.to_world(bs.wo))
+                si_next = scene.ray_intersect(ray)
+                hit = si_next.is_valid() & (bs.pdf > 0)
+                n2 = si_next.sh_frame.n
+                n2 = dr.select(dr.dot(n2, -ray.d) < 0, -n2, n2)
+                out = (dr.select(hit, 1.0, 0.0), si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z,
+                       -ray.d.x, -ray.d.y, -ray.d.z)
+                out = tuple(dr.select(hit, o, 0.0) for o in out)
+            tb.values = tm.values = tr.values = None
+            return out
+
+        @dr.wrap(source="torch", target="drjit")
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, env, u, li):
+            params[key] = env
+            params.update()
+            si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
+            u = [f(x) for x in u]
 
             # Emitter sampling with a shadow ray.
             ds, em_weight = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), True)
@@ -241,19 +263,27 @@ class ShadingScene:
                 pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
                 w_bs = dr.select(miss, dr.square(bs.pdf) / (dr.square(bs.pdf) + dr.square(pdf_em)), 0.0)
                 inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
+                hit_obj = si_next.is_valid() & (bs.pdf > 0)
             f_bs = bsdf.eval(ctx, si, bs.wo)
             le = emitter.eval(si_next, miss)
-            radiance += f_bs * le * (w_bs * inv_pdf)
+            # Radiance arriving from the object itself (one bounce), supplied by the caller; the
+            # emitter sample is occluded in that direction, so its MIS weight is 1.
+            li_obj = mi.Color3f(f(li[0]), f(li[1]), f(li[2]))
+            radiance += f_bs * dr.select(hit_obj, li_obj, le * w_bs) * inv_pdf
             tb.values = tm.values = tr.values = None
             return radiance.x, radiance.y, radiance.z
 
+        self._bounce = bounce
         return shade
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
-              reduce: bool = True) -> torch.Tensor:
+              reduce: bool = True, material_fn=None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
+
+        With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
+        samples that hit the object are lit by that point's direct radiance (one bounce).
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them.
@@ -263,9 +293,21 @@ class ShadingScene:
         p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
         bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
         u = torch.rand(5, n * spp, generator=generator, device=p.device)
-        rgb = self._shade(
-            p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2],
-            bc[:, 0], bc[:, 1], bc[:, 2], m, r, envmap_padded(env_linear), [u[i] for i in range(5)],
-        )
+        geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
+        li = torch.zeros(n * spp, 3, device=p.device)
+        if material_fn is not None:
+            with torch.no_grad():
+                out = self._bounce(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(),
+                                   m.detach(), r.detach(), [u[i] for i in range(5)])
+            hit = torch.nonzero(out[0] > 0.5)[:, 0]
+            if len(hit) > 0:
+                p2 = torch.stack(out[1:4], -1)[hit]
+                n2 = torch.stack(out[4:7], -1)[hit]
+                wi2 = torch.stack(out[7:10], -1)[hit]
+                mat2 = material_fn(p2)
+                li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
+                                                     mat2["roughness"], env_linear, 1, generator))
+        rgb = self._shade(*geo, bc[:, 0], bc[:, 1], bc[:, 2], m, r, envmap_padded(env_linear),
+                          [u[i] for i in range(5)], [li[:, 0], li[:, 1], li[:, 2]])
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
