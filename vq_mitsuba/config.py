@@ -30,7 +30,7 @@ class EnvmapConfig:
     height: int = 32  # rows of the learned lat-long envmap (width is twice this)
     init_scale: float = 2.0  # initial radiance = init_scale x mean foreground pixel value
     lr: float = 0.02  # Adam learning rate of the log-radiance texels
-    tv_weight: float = 1e-5  # smoothness of the log radiance (neighbouring texels)
+    tv_weight: float = 1e-4  # smoothness of the log radiance (neighbouring texels)
 
 
 @dataclass
