@@ -11,10 +11,9 @@ all: setup
 
 # Dr.Jit's LLVM backend needs LLVM >= 16 (Debian 12 ships 14/15, which abort on `fminimum`).
 llvm:
-	@if ls /usr/lib/x86_64-linux-gnu/libLLVM-1[6-9]*.so* /usr/lib/x86_64-linux-gnu/libLLVM-2*.so* >/dev/null 2>&1 \
-	   || ls /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-2*/lib/libLLVM*.so* >/dev/null 2>&1 \
-	   || [ -n "$$DRJIT_LIBLLVM_PATH" ]; then \
-	  echo "LLVM for Dr.Jit: found"; \
+	@if [ -n "$$DRJIT_LIBLLVM_PATH" ] || ls /usr/lib/x86_64-linux-gnu/libLLVM-1[6-9]*.so* /usr/lib/x86_64-linux-gnu/libLLVM-[2-9][0-9]*.so* \
+	     /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so* 2>/dev/null | grep -q .; then \
+	  echo "LLVM >= 16 for Dr.Jit: found"; \
 	else \
 	  echo "Installing libllvm19 (needed by Dr.Jit's LLVM backend)"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libllvm19; \

@@ -59,7 +59,7 @@ class TrainConfig:
 
 @dataclass
 class RenderConfig:
-    spp: int = 64  # samples per pixel when rendering views (pixel jitter x light samples)
+    spp: int = 128  # samples per pixel when rendering views (pixel jitter x light samples)
     chunk: int = 16384  # shading points per Mitsuba call
 
 
