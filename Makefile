@@ -33,9 +33,12 @@ $(VENV)/.installed: pyproject.toml
 
 setup: llvm $(VENV)/.installed
 
+# Re-running skips what is done: the dataset is kept, a finished fit is not redone, an
+# interrupted one resumes from its checkpoint.
 demo: setup
-	$(VENV)/bin/vq-mitsuba make-scene demo -o data/demo
-	$(VENV)/bin/vq-mitsuba fit data/demo/scene.xml -o runs/demo --config configs/demo.yaml
+	@[ -f data/demo/scene.json ] || $(VENV)/bin/vq-mitsuba make-scene demo -o data/demo
+	$(VENV)/bin/vq-mitsuba fit data/demo/scene.xml -o runs/demo --config configs/demo.yaml \
+	  $$([ -f runs/demo/checkpoint.pt ] && echo --resume)
 	$(VENV)/bin/vq-mitsuba render runs/demo --cameras data/demo/transforms_test.json -o runs/demo/test_views
 	@echo "Demo results: runs/demo (decomposition, envmap.exr, plots) and runs/demo/test_views (novel views and maps)"
 
