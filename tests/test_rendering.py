@@ -226,3 +226,23 @@ def test_one_bounce_matches_mitsuba_path_depth_3():
         inside = (ref[:, 3] > 0.999) & v.numpy()
         np.testing.assert_allclose(full[inside].mean(0), ref[inside, :3].mean(0), rtol=0.02, err_msg=integrator[0])
     assert one_bounce.mean() > 1.03 * direct.mean()  # the bounce matters in this scene
+
+
+def test_stratified_samples_cover_each_stratum_once_per_group():
+    from vq_mitsuba.rendering import pixel_jitter, stratified_samples
+
+    n, spp, groups = 7, 16, 2
+    u = stratified_samples(n, spp, groups, torch.Generator().manual_seed(0), "cpu")
+    assert u.shape == (5, n * spp) and (u >= 0).all() and (u < 1).all()
+    m = spp // groups
+    for dim in range(5):
+        sets = u[dim].reshape(n * groups, m)
+        strata = torch.sort(torch.floor(((sets - sets[:, :1]) % 1.0) * m + 1e-4), dim=1).values
+        assert torch.equal(strata, torch.arange(m, dtype=strata.dtype).expand_as(strata)), dim
+    # Not square / not divisible: plain uniform numbers of the right shape.
+    assert stratified_samples(3, 6, 4, None, "cpu").shape == (5, 18)
+    # Pixel jitter: ray k of 4 lands in cell k of the 2x2 grid.
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        off = pixel_jitter(100, k, 4, rng)
+        assert ((off[:, 0] >= 0.5) == bool(k % 2)).all() and ((off[:, 1] >= 0.5) == bool(k // 2)).all()

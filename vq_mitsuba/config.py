@@ -52,14 +52,15 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between checkpoints (a run resumes from the last one)
     log_every: int = 50  # steps between loss-curve entries
     alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
-    pixel_jitter: int = 4  # primary hits traced per pixel at random positions (0: pixel centre only)
+    pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     time_limit_s: float = 0.0  # stop early after this many seconds (0: no limit)
 
 
 @dataclass
 class RenderConfig:
-    spp: int = 128  # samples per pixel when rendering views (pixel jitter x light samples)
+    spp: int = 128  # samples per pixel when rendering views (primary rays x light samples)
+    aa: int = 16  # primary rays per pixel, stratified over the pixel (a square number)
     chunk: int = 16384  # shading points per Mitsuba call
 
 

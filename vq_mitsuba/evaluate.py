@@ -34,7 +34,7 @@ from .capture.imageio import read_exr, read_image
 from .errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
-DEFAULT_AA = 4  # jittered primary rays per pixel (Renderer.render's `aa`)
+DEFAULT_AA = None  # primary rays per pixel: None takes the run's render.aa
 
 
 # --------------------------------------------------------------------------------------------
@@ -233,7 +233,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         "scene": meta.get("name"),
         "n_views": len(cameras),
         "resolution": [cameras[0].width, cameras[0].height] if cameras else None,
-        "render": {"spp": spp, "aa": aa},
+        "render": {"spp": spp, "aa": aa or fitted.cfg.render.aa},
         "mask": f"ground-truth alpha > {MASK_THRESHOLD}",
         "color_space": "images and basecolor: sRGB of clipped linear values; metallic, roughness: linear [0, 1]",
         "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},

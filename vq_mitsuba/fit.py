@@ -53,7 +53,7 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
                           seed: int = 0) -> tuple[PixelPool, dict]:
     """Primary hits of all views' opaque pixels: the pixel centre, or `jitter` random positions
     inside each pixel (a pixel's value is an area average; centres alias thin highlights)."""
-    from .rendering import camera_rays
+    from .rendering import camera_rays, pixel_jitter
 
     rng = np.random.default_rng(seed)
     parts, n_alpha, n_hit = [], 0, 0
@@ -62,7 +62,7 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
         rgb = torch.as_tensor(capture.images[v].reshape(-1, 3))
         n_alpha += int(opaque_np.sum())
         for k in range(max(jitter, 1)):
-            offsets = rng.random((cam.width * cam.height, 2)) if jitter > 0 else None
+            offsets = pixel_jitter(cam.width * cam.height, k, jitter, rng) if jitter > 0 else None
             o, d = camera_rays(cam, offsets)
             hits = scene.trace(o, d)
             keep = hits.valid & torch.as_tensor(opaque_np, device=hits.valid.device)
@@ -203,7 +203,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
                               out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False,
-                              material_fn=model if cfg.train.bounces > 0 else None)
+                              material_fn=model if cfg.train.bounces > 0 else None,
+                              groups=2 if cfg.loss.decorrelated else 1)
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         if cfg.loss.decorrelated:

@@ -84,15 +84,18 @@ class Renderer:
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
 
     @torch.no_grad()
-    def render(self, camera: Camera, spp: int | None = None, aa: int = 4, seed: int = 0) -> dict[str, np.ndarray]:
+    def render(self, camera: Camera, spp: int | None = None, aa: int | None = None, seed: int = 0) -> dict[str, np.ndarray]:
         """Images of one view: rgb (linear, HxWx3), alpha, basecolor, metallic, roughness, normal.
 
-        Each pixel averages `aa` jittered primary rays; each hit is shaded with spp/aa light samples.
+        Each pixel averages `aa` primary rays (stratified over the pixel); each hit is shaded with
+        spp/aa light samples. Pixel coverage, not light sampling, dominates the error at edges
+        and on small highlights, so aa is high by default.
         """
-        from .rendering import camera_rays
+        from .rendering import camera_rays, pixel_jitter
 
         cfg = self.fitted.cfg.render
         spp = spp or cfg.spp
+        aa = aa or cfg.aa
         h, w = camera.height, camera.width
         n_pix = h * w
         gen = torch.Generator(device=self.env_t.device).manual_seed(seed)
@@ -102,7 +105,7 @@ class Renderer:
         hits_count = np.zeros(n_pix, np.float64)
         light_spp = max(2, spp // aa)
         for a in range(aa):
-            jitter = np.full((n_pix, 2), 0.5) if aa == 1 else rng.random((n_pix, 2))
+            jitter = np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng)
             o, d = camera_rays(camera, jitter)
             hits = self.scene.trace(o, d)
             idx = torch.nonzero(hits.valid)[:, 0]

@@ -96,6 +96,43 @@ def envmap_padded(env: torch.Tensor) -> torch.Tensor:
     return torch.cat([env[:, -1:], env, env[:, :1]], dim=1)
 
 
+def _lattice_generator(m: int) -> int:
+    """A rank-1 lattice generator for m points: close to m / golden ratio, coprime to m."""
+    import math
+
+    g = max(1, round(m / 1.6180339887))
+    while math.gcd(g, m) != 1:
+        g += 1
+    return g
+
+
+def stratified_samples(n_points: int, spp: int, groups: int, generator: torch.Generator | None,
+                       device) -> torch.Tensor:
+    """(5, n_points * spp) random numbers for `shade`, stratified per point and per group.
+
+    Each point's spp samples form `groups` independent sets of spp // groups samples; within a
+    set the emitter and BSDF 2-D samples are randomly shifted rank-1 lattices and the lobe choice
+    is a shifted 1-D stratification, each in its own random order so the dimensions stay
+    independent. Far less noise than independent samples at equal count; sets are independent
+    of each other, so estimates from different sets are uncorrelated.
+    """
+    m = spp // groups
+    if m <= 1 or m * groups != spp:
+        return torch.rand(5, n_points * spp, generator=generator, device=device)
+    i = torch.arange(m, device=device, dtype=torch.float32)
+    g = _lattice_generator(m)
+    base = torch.stack([i / m, torch.remainder(i * g, m) / m])  # (2, m)
+    rows = n_points * groups
+    shift = torch.rand(5, rows, 1, generator=generator, device=device)
+    perm = torch.argsort(torch.rand(3, rows, m, generator=generator, device=device), dim=-1)
+    em = base[:, perm[0]]  # (2, rows, m)
+    lobe = (i / m)[perm[1]][None]
+    bs = base[:, perm[2]]
+    u = torch.cat([em, lobe, bs], 0)
+    u = torch.remainder(u + shift, 1.0)
+    return u.reshape(5, n_points * spp)
+
+
 def mesh_to_mitsuba(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None) -> "mi.Mesh":
     """A Mitsuba triangle mesh from arrays (world space), with smooth vertex normals."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float32)
@@ -120,6 +157,16 @@ class Hits:
     position: torch.Tensor  # (N, 3) world
     normal: torch.Tensor  # (N, 3) world, shading normal facing the viewer side
     wi: torch.Tensor  # (N, 3) world, unit vector from the point towards the ray origin
+
+
+def pixel_jitter(n_pixels: int, index: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Offsets in [0, 1)^2 for the `index`-th of `count` primary rays of each pixel: one random
+    point in cell `index` of a sqrt(count) x sqrt(count) grid (stratified; random if not square)."""
+    side = int(round(count ** 0.5))
+    if side * side != count:
+        return rng.random((n_pixels, 2))
+    cell = np.array([index % side, index // side], dtype=np.float64)
+    return (cell + rng.random((n_pixels, 2))) / side
 
 
 def camera_rays(camera: Camera, jitter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -278,12 +325,13 @@ class ShadingScene:
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
-              reduce: bool = True, material_fn=None) -> torch.Tensor:
+              reduce: bool = True, material_fn=None, groups: int = 1) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
         With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
         samples that hit the object are lit by that point's direct radiance (one bounce).
+        `groups` independent stratified sample sets per point (see `stratified_samples`).
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them.
@@ -292,7 +340,7 @@ class ShadingScene:
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()
         p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
         bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
-        u = torch.rand(5, n * spp, generator=generator, device=p.device)
+        u = stratified_samples(n, spp, groups, generator, p.device)
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
         if material_fn is not None:
