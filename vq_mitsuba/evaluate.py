@@ -127,7 +127,7 @@ def _normal_error_deg(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> flo
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
              progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
-    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 64)."""
+    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 128)."""
     from tqdm import tqdm
 
     from .capture.dataset import load_cameras
