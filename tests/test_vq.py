@@ -1,0 +1,68 @@
+"""Discrete branch pieces: straight-through gradients, EMA updates, ranking rule."""
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from vq_mitsuba.materials.vq import (VectorQuantizerEMA, choose_num_materials, dropout_rates,
+                                     sample_drop_mask)
+
+
+def test_straight_through_gradient_reaches_the_encoder():
+    torch.manual_seed(0)
+    encoder = torch.nn.Linear(3, 4)
+    vq = VectorQuantizerEMA(5, 4)
+    x = torch.randn(16, 3)
+    z_q, idx, loss = vq(encoder(x))
+    (z_q.sum() + loss).backward()
+    assert encoder.weight.grad is not None and encoder.weight.grad.abs().sum() > 0
+    # Forward value is the codeword (in eval mode the codebook does not move during the call).
+    vq.eval()
+    z_q2, idx2, _ = vq(encoder(x))
+    torch.testing.assert_close(z_q2, vq.codebook[idx2])
+
+
+def test_ema_update_matches_hand_computation():
+    vq = VectorQuantizerEMA(2, 2, decay=0.5, eps=0.0, dead_after=1000)
+    vq.init_codebook(torch.tensor([[1.0, 0.0], [0.0, 1.0]]))
+    z = F.normalize(torch.tensor([[1.0, 0.2], [1.0, -0.2], [0.1, 1.0]]), dim=-1)
+    idx = vq.nearest(z)
+    assert idx.tolist() == [0, 0, 1]
+    vq.ema_update(z, idx)
+    # count: 0.5 * 1 + 0.5 * [2, 1] = [1.5, 1.0]; sum: 0.5 * e + 0.5 * (sum of assigned z).
+    count = torch.tensor([1.5, 1.0])
+    s0 = 0.5 * torch.tensor([1.0, 0.0]) + 0.5 * (z[0] + z[1])
+    s1 = 0.5 * torch.tensor([0.0, 1.0]) + 0.5 * z[2]
+    torch.testing.assert_close(vq.ema_count, count)
+    torch.testing.assert_close(vq.codebook[0], F.normalize(s0 / 1.5, dim=0))
+    torch.testing.assert_close(vq.codebook[1], F.normalize(s1 / 1.0, dim=0))
+
+
+def test_dead_codes_are_reseeded():
+    torch.manual_seed(0)
+    vq = VectorQuantizerEMA(3, 2, dead_after=2)
+    vq.init_codebook(torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
+    z = F.normalize(torch.tensor([[1.0, 0.1], [0.1, 1.0]]), dim=-1)
+    for _ in range(2):
+        vq.ema_update(z, vq.nearest(z))
+    # Codeword 2 was never used: it now sits on one of the batch latents.
+    assert min((vq.codebook[2] - z[i]).norm() for i in range(2)) < 1e-6
+
+
+def test_dropout_rates_and_masks():
+    r = dropout_rates(8, 0.7, protected=2)
+    assert r[:2].tolist() == [0.0, 0.0] and r[-1].item() == pytest.approx(0.7)
+    assert torch.all(r[1:] >= r[:-1])
+    mask = sample_drop_mask(20000, r, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(mask.float().mean(0), r, atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("err,expected", [
+    ([0.5, 0.2, 0.05, 0.049, 0.048, 0.048], 3),  # clear elbow
+    ([0.1, 0.1, 0.1, 0.1], 1),  # flat: one material explains everything
+    ([0.3, 0.1, 0.0995, 0.101, 0.0985, 0.1005], 2),  # noisy tail within eps
+    ([0.3, 0.1, 0.099, 0.101, 0.095, 0.094], 5),  # a later drop larger than eps moves the choice
+    ([0.4, 0.3, 0.2, 0.1], 4),  # never flattens: all codewords
+])
+def test_choose_num_materials(err, expected):
+    assert choose_num_materials(err, eps=0.002) == expected

@@ -1,0 +1,110 @@
+"""Discrete branch pieces (paper Sec. III-C/D): VQ-EMA codebook on the unit sphere, codeword
+dropout for ranking, and the rule that picks the number of materials."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class VectorQuantizerEMA(nn.Module):
+    """Eq. (7)-(8): z and codewords on the unit sphere, nearest codeword, straight-through.
+
+    The codebook is not trained by gradients but by exponential moving averages of the latents
+    assigned to each codeword (VQ-VAE-2 style); the loss is the commitment term only,
+    `commitment * ||z - sg(e)||^2`. Codewords unused for `dead_after` updates are re-seeded from
+    random latents of the current batch.
+    """
+
+    def __init__(self, num_codes: int, dim: int, decay: float = 0.99, commitment: float = 0.1,
+                 eps: float = 1e-5, dead_after: int = 50):
+        super().__init__()
+        self.num_codes, self.dim = num_codes, dim
+        self.decay, self.commitment, self.eps, self.dead_after = decay, commitment, eps, dead_after
+        init = F.normalize(torch.randn(num_codes, dim), dim=-1)
+        self.register_buffer("codebook", init)
+        self.register_buffer("ema_count", torch.ones(num_codes))
+        self.register_buffer("ema_sum", init.clone())
+        self.register_buffer("unused_steps", torch.zeros(num_codes, dtype=torch.long))
+
+    @torch.no_grad()
+    def init_codebook(self, codewords: torch.Tensor) -> None:
+        """Set the codebook, e.g. from k-means centres of warm-up latents (normalised here)."""
+        c = F.normalize(codewords.to(self.codebook), dim=-1)
+        self.codebook.copy_(c)
+        self.ema_sum.copy_(c)
+        self.ema_count.fill_(1.0)
+        self.unused_steps.zero_()
+
+    def nearest(self, z_unit: torch.Tensor, drop_mask: torch.Tensor | None = None,
+                n_codes: int | None = None) -> torch.Tensor:
+        """Index of the nearest codeword (cosine). drop_mask (N, K) True = codeword unavailable to
+        that latent; n_codes keeps only the first n codewords (the ranked prefix)."""
+        sim = z_unit @ self.codebook.t()
+        if n_codes is not None:
+            sim[:, n_codes:] = -float("inf")
+        if drop_mask is not None:
+            sim = sim.masked_fill(drop_mask, -float("inf"))
+        return sim.argmax(-1)
+
+    def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
+                n_codes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns (z_q with straight-through gradient, codeword indices, VQ loss)."""
+        z_unit = F.normalize(z, dim=-1)
+        idx = self.nearest(z_unit.detach(), drop_mask, n_codes)
+        e = self.codebook[idx]
+        loss = self.commitment * torch.mean(torch.sum((z_unit - e.detach()) ** 2, -1))
+        if self.training:
+            self.ema_update(z_unit.detach(), idx)
+        z_q = z_unit + (e - z_unit).detach()
+        return z_q, idx, loss
+
+    @torch.no_grad()
+    def ema_update(self, z_unit: torch.Tensor, idx: torch.Tensor) -> None:
+        onehot = F.one_hot(idx, self.num_codes).to(z_unit.dtype)  # (N, K)
+        count = onehot.sum(0)
+        total = onehot.t() @ z_unit  # (K, D)
+        self.ema_count.mul_(self.decay).add_(count, alpha=1 - self.decay)
+        self.ema_sum.mul_(self.decay).add_(total, alpha=1 - self.decay)
+        n = self.ema_count.sum()
+        smoothed = (self.ema_count + self.eps) / (n + self.num_codes * self.eps) * n  # Laplace smoothing
+        self.codebook.copy_(F.normalize(self.ema_sum / smoothed[:, None], dim=-1))
+        # Dead codes: re-seed from random latents of this batch.
+        self.unused_steps.add_(1).masked_fill_(count > 0, 0)
+        dead = torch.nonzero(self.unused_steps >= self.dead_after)[:, 0]
+        if len(dead) > 0 and z_unit.shape[0] > 0:
+            pick = torch.randint(0, z_unit.shape[0], (len(dead),), device=z_unit.device)
+            self.codebook[dead] = z_unit[pick]
+            self.ema_sum[dead] = z_unit[pick]
+            self.ema_count[dead] = 1.0
+            self.unused_steps[dead] = 0
+
+
+def dropout_rates(num_codes: int, max_rate: float = 0.7, protected: int = 1) -> torch.Tensor:
+    """Codeword k is dropped with a rate rising linearly from 0 to `max_rate` over the codebook;
+    the first `protected` codewords are never dropped. Dropping later codewords more often makes
+    the network put the most important materials first (the ranking of Sec. III-D)."""
+    rates = torch.zeros(num_codes)
+    n = num_codes - protected
+    if n > 0:
+        rates[protected:] = torch.linspace(0.0, max_rate, n + 1)[1:]
+    return rates
+
+
+def sample_drop_mask(n: int, rates: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """(n, K) boolean mask, True where a codeword is dropped for that latent."""
+    u = torch.rand(n, rates.shape[0], generator=generator, device=rates.device)
+    return u < rates[None]
+
+
+def choose_num_materials(err: list[float] | torch.Tensor, eps: float = 0.002) -> int:
+    """The smallest k whose error err_k (prefix of k codewords, k = 1..K) is within `eps` of
+    every longer prefix: err_k - err_j <= eps for all j > k."""
+    err = [float(e) for e in err]
+    if not err:
+        raise ValueError("empty error curve")
+    for k in range(len(err)):
+        if all(err[k] - e <= eps + 1e-12 for e in err[k + 1:]):  # inclusive despite rounding
+            return k + 1
+    return len(err)
