@@ -131,3 +131,28 @@ def test_format_table_and_json_safe():
     table = format_table(metrics)
     assert "basecolor (lstsq-aligned)" in table and "relit sunset (image_scale)" in table and "inf" in table
     assert json_safe({"a": [math.inf, math.nan, np.float32(1.5)]}) == {"a": ["inf", "nan", 1.5]}
+
+
+def test_segmentation_scores_permuted_labels_give_one():
+    from vq_mitsuba.metrics import segmentation_scores
+
+    gt = np.array([[0, 1, 1, 2], [2, 3, 3, 0]])
+    perm = {0: 0, 1: 7, 2: 4, 3: 1}
+    pred = np.vectorize(perm.get)(gt)
+    s = segmentation_scores(pred, gt)
+    assert s["micro_f1"] == 1.0 and s["macro_f1"] == 1.0
+    assert s["mapping"] == {7: 1, 4: 2, 1: 3}
+
+
+def test_segmentation_scores_hand_computed():
+    from vq_mitsuba.metrics import segmentation_scores
+
+    gt = np.array([1, 1, 1, 1, 2, 2, 0])
+    pred = np.array([5, 5, 5, 6, 6, 6, 5])  # 6 -> 2 (2 of 3), one pixel of material 1 is wrong
+    s = segmentation_scores(pred, gt)
+    assert s["micro_f1"] == pytest.approx(5 / 6)
+    # material 1: P = 3/3, R = 3/4; material 2: P = 2/3, R = 2/2
+    f1_1, f1_2 = 2 * 1 * 0.75 / 1.75, 2 * (2 / 3) / (5 / 3)
+    assert s["macro_f1"] == pytest.approx((f1_1 + f1_2) / 2)
+    assert s["macro_precision"] == pytest.approx((1 + 2 / 3) / 2)
+    assert s["macro_recall"] == pytest.approx((0.75 + 1) / 2)

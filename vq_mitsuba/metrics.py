@@ -138,3 +138,39 @@ def image_metrics(pred_linear, gt_linear, mask=None, encode: bool = True) -> dic
     else:
         p, g = np.clip(_as_float(pred_linear), 0.0, 1.0), np.clip(_as_float(gt_linear), 0.0, 1.0)
     return {"psnr": psnr(p, g, mask), "ssim": ssim(p, g, mask)}
+
+
+def segmentation_scores(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict:
+    """Material segmentation against ground-truth ids (0 = background, ignored).
+
+    Each predicted id is mapped to the ground-truth id it overlaps most (majority mapping, so
+    several predicted ids may map to one material: over-segmentation is not punished by the
+    mapping itself but shows in the number of materials). Returns micro-F1 (= accuracy over
+    pixels, single label), and macro F1 / precision / recall over the ground-truth materials.
+    """
+    pred = np.asarray(pred).reshape(-1)
+    gt = np.asarray(gt).reshape(-1)
+    keep = gt > 0 if mask is None else (np.asarray(mask).reshape(-1) & (gt > 0))
+    pred, gt = pred[keep], gt[keep]
+    if gt.size == 0:
+        return {"micro_f1": float("nan"), "macro_f1": float("nan"), "macro_precision": float("nan"),
+                "macro_recall": float("nan"), "mapping": {}}
+    mapping = {}
+    for p in np.unique(pred):
+        ids, counts = np.unique(gt[pred == p], return_counts=True)
+        mapping[int(p)] = int(ids[np.argmax(counts)])
+    mapped = np.array([mapping[int(p)] for p in pred])
+    classes = np.unique(gt)
+    f1s, precs, recs = [], [], []
+    for c in classes:
+        tp = np.sum((mapped == c) & (gt == c))
+        fp = np.sum((mapped == c) & (gt != c))
+        fn = np.sum((mapped != c) & (gt == c))
+        prec = tp / (tp + fp) if tp + fp > 0 else 0.0
+        rec = tp / (tp + fn) if tp + fn > 0 else 0.0
+        precs.append(prec)
+        recs.append(rec)
+        f1s.append(2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0)
+    return {"micro_f1": float(np.mean(mapped == gt)), "macro_f1": float(np.mean(f1s)),
+            "macro_precision": float(np.mean(precs)), "macro_recall": float(np.mean(recs)),
+            "mapping": mapping}
