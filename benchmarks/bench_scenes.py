@@ -39,6 +39,8 @@ FIGURES = [
     ("metallic_psnr", "metal PSNR", ".2f"), ("roughness_psnr", "rough PSNR", ".2f"),
     ("relit_albedo_scale_psnr", "relit PSNR (albedo scale)", ".2f"),
     ("relit_image_scale_psnr", "relit PSNR (image scale)", ".2f"),
+    ("seg_micro_f1", "seg micro-F1", ".3f"), ("seg_macro_f1", "seg macro-F1", ".3f"),
+    ("materials_found", "M found", "d"), ("materials_true", "M true", "d"),
 ]
 
 
@@ -57,7 +59,15 @@ def machine_info() -> dict:
     except OSError:
         pass
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    import subprocess
+
+    try:
+        commit = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"], capture_output=True,
+                                text=True, timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
     return {
+        "commit": commit,
         "cpu": cpu, "cores": os.cpu_count(), "gpu": gpu, "os": platform.platform(),
         "python": platform.python_version(), "mitsuba": mitsuba.__version__, "mitsuba_variant": mitsuba.variant(),
         "drjit": drjit.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
@@ -83,6 +93,9 @@ def headline(m: dict, fit_summary: dict) -> dict:
         "basecolor_psnr": m["basecolor"]["psnr"], "basecolor_ssim": m["basecolor"]["ssim"],
         "metallic_psnr": m["metallic"]["psnr"], "roughness_psnr": m["roughness"]["psnr"],
     }
+    seg = m.get("segmentation") or {}
+    fig["seg_micro_f1"], fig["seg_macro_f1"] = seg.get("micro_f1"), seg.get("macro_f1")
+    fig["materials_found"], fig["materials_true"] = seg.get("num_materials_found"), seg.get("num_materials_true")
     for variant in ("albedo_scale", "image_scale"):
         fig[f"relit_{variant}_psnr"] = rel[variant]["mean"]["psnr"] if rel[variant]["mean"] else None
         for env, v in rel[variant]["envs"].items():
@@ -93,7 +106,7 @@ def headline(m: dict, fit_summary: dict) -> dict:
 def run_scene(name: str, args, out: Path) -> dict:
     data = ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet)
     preset = REPO / "configs" / f"{name}.yaml"
-    cfg = load_config(preset if preset.is_file() else None, [f"train.time_limit_s={args.time_limit}"])
+    cfg = load_config(preset if preset.is_file() else None, [f"train.time_limit_s={args.time_limit}", *args.set])
     if args.iterations is not None:
         cfg.train.iterations = min(cfg.train.iterations, args.iterations)
     run_dir = out / "runs" / name
@@ -183,6 +196,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(REPO / "benchmarks" / "out"), help="output folder (default benchmarks/out)")
     p.add_argument("--compare", help="previous bench_scenes.json (default: OUT/bench_scenes.json if it exists)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every scene, e.g. --set vq.enabled=false (ablations; repeatable)")
     args = p.parse_args(argv)
 
     out = Path(args.out)
@@ -197,6 +212,7 @@ def main(argv=None) -> int:
         "command": " ".join([Path(sys.executable).name] + sys.argv) if argv is None
         else "bench_scenes.py " + " ".join(argv),
         "settings": {"scenes": args.scenes, "time_limit_s": args.time_limit, "iterations": args.iterations,
+                     "overrides": args.set,
                      "resolution": args.resolution, "eval_spp": args.spp},
         "note": "single runs: no repeats, no error bars",
         "machine": machine_info(),

@@ -23,8 +23,12 @@ def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
     args = ["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=6",
             "--set", "train.batch_rays=256", "--set", "train.log_every=2", "--set", "train.checkpoint_every=3"]
     assert main(args) == 0
-    for name in ("config.yaml", "checkpoint.pt", "mesh.ply", "envmap.exr", "loss.png", "fit.json", "run.json"):
+    for name in ("config.yaml", "checkpoint.pt", "mesh.ply", "envmap.exr", "loss.png", "fit.json", "run.json",
+                 "materials.json", "materials_err.png"):
         assert (run / name).is_file(), name
+    materials = json.loads((run / "materials.json").read_text())
+    assert len(materials["err_k"]) == 8 and 1 <= materials["num_materials"] <= 8
+    assert len(materials["materials"]) == materials["num_materials"]
     assert json.loads((run / "fit.json").read_text())["iterations"] == 6
     # Fitting into an existing run without --resume is refused; nothing is overwritten.
     mtime = (run / "checkpoint.pt").stat().st_mtime
@@ -42,10 +46,15 @@ def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
                  "--exposure", "1", "--env-rotate", "30"]) == 0
     from vq_mitsuba.capture.imageio import read_image
 
-    for kind in ("rgb.exr", "rgb.png", "basecolor.exr", "metallic.exr", "roughness.exr", "normal.exr", "alpha.png"):
+    for kind in ("rgb.exr", "rgb.png", "basecolor.exr", "metallic.exr", "roughness.exr", "normal.exr", "alpha.png",
+                 "material.png"):
         assert (out / f"view_00_{kind}").is_file(), kind
     rgb, alpha = read_image(out / "view_00_rgb.exr")
     assert np.isfinite(rgb).all() and alpha[12, 12] == 1.0 and alpha[0, 0] == 0.0
+    import imageio.v3 as iio
+
+    ids = iio.imread(out / "view_00_material.png")
+    assert ids.dtype == np.uint8 and ids[0, 0] == 0 and 1 <= ids[12, 12] <= materials["num_materials"]
 
 
 def test_fit_rejects_bad_inputs_before_training(sphere_capture, tmp_path):

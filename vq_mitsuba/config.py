@@ -38,7 +38,28 @@ class LossConfig:
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
+    w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
+    w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
+    w_vq: float = 1.0  # w4: VQ (commitment) loss
+    w_sm: float = 0.05  # w6: colour-aware smoothness on neighbouring pixels
+    sm_alpha: float = 60.0  # alpha: how fast image differences switch the smoothness off
+    sm_beta: float = 0.1  # beta: weight of metallic/roughness differences in L_sm
     gamma: float = 2.2  # reconstruction is compared on x^(1/gamma): HDR highlights do not dominate
+
+
+@dataclass
+class VQConfig:
+    enabled: bool = True  # train the discrete branch (off: continuous branch only, the "single branch" ablation)
+    num_codes: int = 8  # M0: codebook size (15 for complex scenes)
+    warmup_frac: float = 0.3  # continuous-only warm-up, then the codebook starts from k-means of the latents
+    decay: float = 0.99  # EMA decay of the codebook updates
+    commitment: float = 0.1  # lambda of the VQ loss (Eq. 8)
+    dropout_max: float = 0.7  # codeword dropout rates rise linearly from 0 to this over the codebook
+    protected: int = 1  # first codewords that are never dropped
+    ranking: bool = True  # choose M with the err_k rule (off: M = num_codes, the "no ranking" ablation)
+    rank_eps: float = 0.002  # epsilon of the err_k flattening rule
+    rank_pixels: int = 4096  # training pixels used to measure err_k
+    joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
 
 
 @dataclass
@@ -69,6 +90,7 @@ class Config:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     envmap: EnvmapConfig = dataclasses.field(default_factory=EnvmapConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+    vq: VQConfig = dataclasses.field(default_factory=VQConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
 

@@ -104,6 +104,11 @@ def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
     normal_path = root / "gt" / f"{name}_normal.exr"
     if normal_path.is_file():
         gt["normal"], _ = _read_rgba(normal_path)
+    material_path = root / "gt" / f"{name}_material.png"
+    if material_path.is_file():
+        import imageio.v3 as iio
+
+        gt["material"] = np.asarray(iio.imread(material_path))
     return gt
 
 
@@ -187,6 +192,15 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         if "normal" in gt:
             row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
         per_view.append(row)
+    segmentation = None
+    if all("material" in p for p in preds) and all("material" in g for g in gts):
+        # Pooled over all test views: a predicted id names the same material in every view.
+        segmentation = M.segmentation_scores(np.concatenate([p["material"].ravel() for p in preds]),
+                                             np.concatenate([g["material"].ravel() for g in gts]),
+                                             np.concatenate([g["mask"].ravel() for g in gts]))
+        segmentation["mapping"] = {str(k): v for k, v in segmentation["mapping"].items()}
+        segmentation["num_materials_found"] = int(fitted.discrete.num_materials)
+        segmentation["num_materials_true"] = len(meta.get("materials", []))
     del preds
 
     # Relighting under each held-aside envmap.
@@ -245,6 +259,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         "roughness": {"psnr": avg("roughness_psnr"), "mae": avg("roughness_mae")},
         "normal": {"mae_deg": avg("normal_mae_deg")},
         "relighting": relighting,
+        "segmentation": segmentation,
         "fit": fit_summary,
         "per_view": per_view,
         "seconds": time.perf_counter() - t0,
@@ -313,4 +328,9 @@ def format_table(metrics: dict) -> str:
     lines.append(f"basecolor scales ({metrics['alignment']['method']}): {scales}")
     if metrics["normal"]["mae_deg"] is not None and not math.isnan(metrics["normal"]["mae_deg"]):
         lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
+    seg = metrics.get("segmentation")
+    if seg:
+        lines.append(f"segmentation: micro-F1 {seg['micro_f1']:.3f}, macro-F1 {seg['macro_f1']:.3f}, "
+                     f"precision {seg['macro_precision']:.3f}, recall {seg['macro_recall']:.3f}; "
+                     f"materials found {seg['num_materials_found']} (true {seg['num_materials_true']})")
     return "\n".join(lines)

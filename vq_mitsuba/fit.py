@@ -25,6 +25,7 @@ from .capture.imageio import write_exr
 from .config import Config, save_config, to_dict
 from .errors import InputError
 from .materials.fields import ContinuousMaterial, EnvironmentMap
+from .materials.vq import DiscreteBranch, choose_num_materials, dropout_rates, kmeans_codebook, sample_drop_mask
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -38,6 +39,8 @@ class PixelPool:
     wi: torch.Tensor  # (P, 3)
     rgb: torch.Tensor  # (P, 3) linear target
     view: torch.Tensor  # (P,) view index
+    pixel: torch.Tensor  # (P,) pixel index in its view (row-major)
+    copy: torch.Tensor  # (P,) which of the jittered hits of that pixel
 
     def __len__(self) -> int:
         return self.position.shape[0]
@@ -68,13 +71,32 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
             keep = hits.valid & torch.as_tensor(opaque_np, device=hits.valid.device)
             if k == 0:
                 n_hit += int(keep.sum())
+            n_keep = int(keep.sum())
             parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb.to(keep.device)[keep],
-                          torch.full((int(keep.sum()),), v, dtype=torch.int32)))
+                          torch.full((n_keep,), v, dtype=torch.int64),
+                          torch.nonzero(keep)[:, 0].cpu(), torch.full((n_keep,), k, dtype=torch.int64)))
     cat = [torch.cat(x) for x in zip(*parts)]
     pool = PixelPool(*cat)
     stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit,
              "geometry_coverage": n_hit / max(n_alpha, 1)}
     return pool, stats
+
+
+def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
+    """(Q, 2) pool indices of horizontally or vertically adjacent training pixels (first hits)."""
+    first = torch.nonzero(pool.copy == 0)[:, 0]
+    key = pool.view[first] * (width * height) + pool.pixel[first]
+    n_keys = int(pool.view.max()) + 1 if len(pool) else 0
+    lookup = torch.full((n_keys * width * height,), -1, dtype=torch.int64)
+    lookup[key] = first
+    x = pool.pixel[first] % width
+    y = pool.pixel[first] // width
+    pairs = []
+    for ok, step in ((x < width - 1, 1), (y < height - 1, width)):
+        a = first[ok]
+        b = lookup[key[ok] + step]
+        pairs.append(torch.stack([a[b >= 0], b[b >= 0]], -1))
+    return torch.cat(pairs)
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -159,7 +181,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
 
     bbox = torch.tensor(np.asarray(capture.mesh.bounds), dtype=torch.float32)
     model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
+    discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(device) \
+        if cfg.vq.enabled else None
     groups = [{"params": model.parameters(), "lr": cfg.train.lr}]
+    if discrete is not None:
+        groups.append({"params": discrete.parameters(), "lr": cfg.train.lr})
     if learn_env:
         groups.append({"params": env_module.parameters(), "lr": cfg.envmap.lr})
     optim = torch.optim.Adam(groups)
@@ -173,6 +199,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     if resume:
         state = torch.load(ckpt_path, map_location=device, weights_only=False)
         model.load_state_dict(state["model"])
+        if discrete is not None:
+            discrete.load_state_dict(state["discrete"])
         if learn_env:
             env_module.load_state_dict(state["envmap"])
         optim.load_state_dict(state["optim"])
@@ -185,6 +213,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     def checkpoint(elapsed: float) -> None:
         _atomic_save({
             "model": model.state_dict(),
+            "discrete": discrete.state_dict() if discrete is not None else None,
             "envmap": env_module.state_dict() if learn_env else None,
             "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
             "optim": optim.state_dict(), "sched": sched.state_dict(), "generator": gen.get_state(),
@@ -196,23 +225,55 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     bar = tqdm(total=total, initial=step, desc="fit", disable=not progress, dynamic_ncols=True)
     loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
     B = min(cfg.train.batch_rays, len(pool))
+    rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
+    warm_steps = int(cfg.vq.warmup_frac * total)
+    pairs = neighbour_pairs(pool, capture.width, capture.height).to(device) if cfg.loss.w_sm > 0 else None
+    groups_mc = 2 if cfg.loss.decorrelated else 1
+
+    def rec_loss(samples, target):
+        if cfg.loss.decorrelated:
+            return losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
+        return losses.reconstruction_l2(samples.mean(1), target, cfg.loss.gamma)
+
     while step < total:
+        if discrete is not None and step >= warm_steps and not bool(discrete.initialised):
+            with torch.no_grad():  # codebook from k-means of the warmed-up latents
+                sub = torch.randint(0, len(pool), (min(20000, len(pool)),), generator=gen, device=device)
+                discrete.vq.init_codebook(kmeans_codebook(model(pool.position[sub])["z"], cfg.vq.num_codes,
+                                                          cfg.train.seed))
+                discrete.initialised.fill_(True)
         idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
         model.set_progress(step / max(total, 1), cfg.field.pe_anneal)
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
                               out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False,
-                              material_fn=model if cfg.train.bounces > 0 else None,
-                              groups=2 if cfg.loss.decorrelated else 1)
+                              material_fn=model if cfg.train.bounces > 0 else None, groups=groups_mc)
         rgb = samples.mean(1)
         target = pool.rgb[idx]
-        if cfg.loss.decorrelated:
-            l_rec = losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
-        else:
-            l_rec = losses.reconstruction_l2(rgb, target, cfg.loss.gamma)
+        l_rec = rec_loss(samples, target)
         l_lam = losses.lambertian_prior(out["metallic"], out["roughness"])
         loss = cfg.loss.w_rec_c * l_rec + cfg.loss.w_lam * l_lam
+        if discrete is not None and bool(discrete.initialised):
+            z = out["z"] if cfg.vq.joint else out["z"].detach()
+            drop = sample_drop_mask(B, rates, gen) if cfg.vq.ranking else None
+            od = discrete(z, drop)
+            # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).
+            samples_d = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], od["basecolor"],
+                                    od["metallic"], od["roughness"], env, cfg.train.spp, generator=gen,
+                                    reduce=False, material_fn=model if cfg.train.bounces > 0 else None,
+                                    groups=groups_mc)
+            loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
+                + cfg.loss.w_chr * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
+                + cfg.loss.w_vq * od["vq_loss"] \
+                + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"])
+        if pairs is not None and len(pairs) > 0:
+            pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
+            oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])
+            ia = losses.encode_gamma(pool.rgb[pick[:, 0]], cfg.loss.gamma)
+            ib = losses.encode_gamma(pool.rgb[pick[:, 1]], cfg.loss.gamma)
+            loss = loss + cfg.loss.w_sm * losses.colour_aware_smoothness(oa, ob, ia, ib, cfg.loss.sm_alpha,
+                                                                         cfg.loss.sm_beta)
         if learn_env and cfg.envmap.tv_weight > 0:
             loss = loss + cfg.envmap.tv_weight * env_module.smoothness()
         optim.zero_grad(set_to_none=True)
@@ -243,7 +304,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     elapsed = elapsed_before + time.perf_counter() - t0
     checkpoint(elapsed)
 
-    env_final = (env_module() if learn_env else fixed_env).detach().cpu().numpy()
+    env_final_t = (env_module() if learn_env else fixed_env).detach()
+    if discrete is not None and bool(discrete.initialised):
+        rank_materials(scene, model, discrete, pool, env_final_t, cfg, run_dir)
+        checkpoint(elapsed)
+    env_final = env_final_t.cpu().numpy()
     write_exr(run_dir / "envmap.exr", env_final)
     plot_history(history, run_dir / "loss.png")
     run_steps = max(step - (state["step"] if resume else 0), 0) if resume else step
@@ -253,6 +318,65 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                "training_pixels": len(pool), "steps_this_call": run_steps}
     _write_json(run_dir / "fit.json", summary)
     return summary
+
+
+@torch.no_grad()
+def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, cfg: Config, run_dir: Path) -> dict:
+    """Dropout-based ranking (Sec. III-D): err_k of the discrete branch restricted to the first k
+    codewords, k = 1..M0, on a fixed set of training pixels; M = the first k within epsilon of
+    every longer prefix. Writes materials.json and materials_err.png."""
+    gen = torch.Generator(device=pool.position.device).manual_seed(cfg.train.seed + 1)
+    n = min(cfg.vq.rank_pixels, len(pool))
+    sel = torch.randperm(len(pool), generator=gen, device=pool.position.device)[:n]
+    z = model(pool.position[sel])["z"]
+    was_training = discrete.training
+    discrete.eval()
+    errs, usage = [], []
+    K = cfg.vq.num_codes
+    for k in range(1, K + 1):
+        od = discrete(z, n_codes=k)
+        g = torch.Generator(device=pool.position.device).manual_seed(cfg.train.seed + 2)  # same samples for every k
+        rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od["basecolor"], od["metallic"],
+                          od["roughness"], env, 16, generator=g, groups=1)
+        errs.append(float(losses.reconstruction_l2(rgb, pool.rgb[sel], cfg.loss.gamma)))
+        if k == K:
+            usage = torch.bincount(od["index"], minlength=K).float() / n
+    M = choose_num_materials(errs, cfg.vq.rank_eps) if cfg.vq.ranking else K
+    discrete.num_materials.fill_(M)
+    discrete.train(was_training)
+    brdf = discrete.codeword_brdfs()
+    final = discrete(z, n_codes=M)["index"]
+    usage_m = torch.bincount(final, minlength=K).float() / n
+    materials = [{"id": k + 1, "basecolor": brdf["basecolor"][k].tolist(), "metallic": float(brdf["metallic"][k]),
+                  "roughness": float(brdf["roughness"][k]), "pixel_fraction": float(usage_m[k]),
+                  "pixel_fraction_all_codewords": float(usage[k])} for k in range(K)]
+    info = {"num_materials": M, "num_codewords": K, "epsilon": cfg.vq.rank_eps, "ranking": cfg.vq.ranking,
+            "err_k": errs, "materials": materials[:M], "dropped_codewords": materials[M:],
+            "note": "materials are ranked codewords (id k = k-th); basecolor in linear RGB; err_k is the "
+                    "discrete branch's gamma-space L2 on training pixels using the first k codewords"}
+    _write_json(run_dir / "materials.json", info)
+    plot_err_k(errs, M, cfg.vq.rank_eps, run_dir / "materials_err.png")
+    return info
+
+
+def plot_err_k(errs: list[float], chosen: int, eps: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ks = list(range(1, len(errs) + 1))
+    fig, ax = plt.subplots(figsize=(4.5, 3.2))
+    ax.plot(ks, errs, "o-")
+    ax.axvline(chosen, color="tab:red", linestyle="--", label=f"M = {chosen}")
+    ax.axhspan(min(errs), min(errs) + eps, color="tab:green", alpha=0.15, label=f"min + epsilon ({eps:g})")
+    ax.set_xlabel("k (first k ranked codewords)")
+    ax.set_ylabel("err_k")
+    ax.set_title("material count by dropout ranking")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def plot_history(history: list[dict], path: Path) -> None:

@@ -38,3 +38,25 @@ def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor) -> torch.T
 def psnr(mse: torch.Tensor | float, peak: float = 1.0) -> float:
     mse = float(mse)
     return float("inf") if mse <= 0 else 10.0 * torch.log10(torch.tensor(peak**2 / mse)).item()
+
+
+def chromaticity(rgb: torch.Tensor) -> torch.Tensor:
+    """rgb / (r + g + b): colour without intensity."""
+    return rgb / (rgb.sum(-1, keepdim=True) + 1e-4)
+
+
+def chromaticity_loss(basecolor_d: torch.Tensor, basecolor_c: torch.Tensor) -> torch.Tensor:
+    """L_chr: the discrete basecolor keeps the continuous one's chromaticity (shading and
+    intensity ambiguities do not change chromaticity, so it anchors the material's colour)."""
+    return torch.mean((chromaticity(basecolor_d) - chromaticity(basecolor_c.detach())) ** 2)
+
+
+def colour_aware_smoothness(brdf_a: dict, brdf_b: dict, rgb_a: torch.Tensor, rgb_b: torch.Tensor,
+                            alpha: float, beta: float) -> torch.Tensor:
+    """L_sm on pairs of neighbouring pixels: BRDF differences weighted by exp(-alpha |I_a - I_b|),
+    so the field is smooth where the image is, and free to change across colour edges; metallic
+    and roughness differences count `beta` times."""
+    w = torch.exp(-alpha * (rgb_a - rgb_b).abs().mean(-1))
+    d = (brdf_a["basecolor"] - brdf_b["basecolor"]).abs().mean(-1)
+    d = d + beta * ((brdf_a["metallic"] - brdf_b["metallic"]).abs() + (brdf_a["roughness"] - brdf_b["roughness"]).abs())
+    return torch.mean(w * d)

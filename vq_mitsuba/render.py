@@ -17,6 +17,7 @@ from .config import Config, load_config
 from .errors import InputError
 from .fit import CHECKPOINT, Run, build_scene
 from .materials.fields import ContinuousMaterial
+from .materials.vq import DiscreteBranch
 
 # Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
 _R = BLENDER_ENV_TO_WORLD[:3, :3]
@@ -45,6 +46,7 @@ class FittedRun:
     cfg: Config
     info: dict
     model: ContinuousMaterial
+    discrete: DiscreteBranch | None  # None when the run has no (initialised) discrete branch
     envmap: np.ndarray
     mesh: "trimesh.Trimesh"  # noqa: F821
 
@@ -64,11 +66,18 @@ def load_run(run_dir: str | Path) -> FittedRun:
     model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(torch_device())
     model.load_state_dict(state["model"])
     model.eval()
+    discrete = None
+    if state.get("discrete") is not None:
+        discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(torch_device())
+        discrete.load_state_dict(state["discrete"])
+        discrete.eval()
+        if not bool(discrete.initialised):
+            discrete = None
     if state.get("envmap") is not None:
         envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
     else:
         envmap = state["envmap_fixed"].cpu().numpy()
-    return FittedRun(run, cfg, info, model, envmap, mesh)
+    return FittedRun(run, cfg, info, model, discrete, envmap, mesh)
 
 
 class Renderer:
@@ -103,6 +112,9 @@ class Renderer:
         acc = {k: np.zeros((n_pix, c), np.float64) for k, c in
                (("rgb", 3), ("basecolor", 3), ("metallic", 1), ("roughness", 1), ("normal", 3))}
         hits_count = np.zeros(n_pix, np.float64)
+        discrete = self.fitted.discrete
+        n_mat = int(discrete.num_materials) if discrete is not None else 0
+        votes = np.zeros((n_pix, n_mat + 1), np.int32) if discrete is not None else None
         light_spp = max(2, spp // aa)
         for a in range(aa):
             jitter = np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng)
@@ -121,6 +133,9 @@ class Renderer:
                 acc["metallic"][sel_np, 0] += out["metallic"].cpu().numpy()
                 acc["roughness"][sel_np, 0] += out["roughness"].cpu().numpy()
                 acc["normal"][sel_np] += hits.normal[sel].cpu().numpy()
+                if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
+                    ids = discrete.vq.nearest(torch.nn.functional.normalize(out["z"], dim=-1), n_codes=n_mat) + 1
+                    np.add.at(votes, (sel_np, ids.cpu().numpy()), 1)
             hits_count += hits.valid.cpu().numpy()
         alpha = hits_count / aa
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
@@ -133,6 +148,9 @@ class Renderer:
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
         out["normal"] = nrm.reshape(h, w, 3).astype(np.float32)
         out["metallic"], out["roughness"] = out["metallic"][..., 0], out["roughness"][..., 0]
+        if votes is not None:  # majority over the pixel's primary rays; background (alpha < 0.5) is 0
+            ids = np.argmax(votes[:, 1:], axis=1) + 1
+            out["material"] = np.where(alpha >= 0.5, ids, 0).reshape(h, w).astype(np.uint8)
         return out
 
 
@@ -148,6 +166,8 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     write_exr(out_dir / f"{name}_roughness.exr", images["roughness"])
     write_exr(out_dir / f"{name}_normal.exr", images["normal"])
     write_png(out_dir / f"{name}_alpha.png", a, srgb=False)
+    if "material" in images:
+        write_png(out_dir / f"{name}_material.png", images["material"])
 
 
 def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Path | None = None,

@@ -3,6 +3,7 @@ dropout for ranking, and the rule that picks the number of materials."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -108,3 +109,46 @@ def choose_num_materials(err: list[float] | torch.Tensor, eps: float = 0.002) ->
         if all(err[k] - e <= eps + 1e-12 for e in err[k + 1:]):  # inclusive despite rounding
             return k + 1
     return len(err)
+
+
+class DiscreteBranch(nn.Module):
+    """z -> nearest codeword (VQ) -> f_d^d: per-material basecolor, metallic, roughness."""
+
+    def __init__(self, field_cfg, num_codes: int, decay: float, commitment: float):
+        super().__init__()
+        from .fields import BRDFDecoder
+
+        self.vq = VectorQuantizerEMA(num_codes, field_cfg.latent, decay=decay, commitment=commitment)
+        self.decoder = BRDFDecoder(field_cfg)
+        self.register_buffer("initialised", torch.tensor(False))
+        self.register_buffer("num_materials", torch.tensor(num_codes))
+
+    def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
+                n_codes: int | None = None) -> dict[str, torch.Tensor]:
+        z_q, idx, loss = self.vq(z, drop_mask, n_codes)
+        out = self.decoder(z_q)
+        out["index"] = idx
+        out["vq_loss"] = loss
+        return out
+
+    @torch.no_grad()
+    def codeword_brdfs(self) -> dict[str, torch.Tensor]:
+        """The BRDF each codeword decodes to (one material per codeword)."""
+        return self.decoder(self.vq.codebook)
+
+
+def kmeans_codebook(latents: torch.Tensor, num_codes: int, seed: int = 0) -> torch.Tensor:
+    """k-means centres of unit-normalised latents (the codebook's initialisation after warm-up)."""
+    from sklearn.cluster import KMeans
+
+    x = F.normalize(latents, dim=-1).cpu().numpy()
+    k = min(num_codes, len(x))
+    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(x)
+    centres = torch.as_tensor(km.cluster_centers_, dtype=latents.dtype)
+    if k < num_codes:  # fewer distinct latents than codewords: repeat with a little noise
+        extra = centres[torch.randint(0, k, (num_codes - k,))] + 1e-3 * torch.randn(num_codes - k, x.shape[1])
+        centres = torch.cat([centres, extra])
+    # Most populated clusters first, so the protected (never dropped) codewords start on them.
+    counts = np.bincount(km.labels_, minlength=num_codes)[:num_codes]
+    order = np.argsort(-counts, kind="stable")
+    return centres[torch.as_tensor(order)]
