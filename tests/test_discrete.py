@@ -15,7 +15,7 @@ def test_two_material_scene_gives_two_materials(tmp_path):
     from vq_mitsuba.synthetic import make_scene
 
     data = make_scene("demo", tmp_path / "demo", resolution=48, n_train=16, n_test=3, spp=64, progress=False)
-    cfg = load_config(None, ["train.iterations=1200", "train.batch_rays=1024", "render.spp=32"])
+    cfg = load_config(None, ["vq.enabled=true", "train.iterations=1200", "train.batch_rays=1024", "render.spp=32"])
     fit(data / "scene.xml", tmp_path / "run", cfg, progress=False)
     materials = json.loads((tmp_path / "run" / "materials.json").read_text())
     assert materials["num_materials"] == 2, materials["err_k"]

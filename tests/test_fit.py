@@ -20,7 +20,8 @@ def sphere_capture(tmp_path_factory):
 
 def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=6",
+    args = ["fit", str(sphere_capture), "-o", str(run), "--set", "vq.enabled=true", "--set", "loss.w_sm=0.05",
+            "--quiet", "--set", "train.iterations=6",
             "--set", "train.batch_rays=256", "--set", "train.log_every=2", "--set", "train.checkpoint_every=3"]
     assert main(args) == 0
     for name in ("config.yaml", "checkpoint.pt", "mesh.ply", "envmap.exr", "loss.png", "fit.json", "run.json",

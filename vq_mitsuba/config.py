@@ -41,7 +41,7 @@ class LossConfig:
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
     w_vq: float = 1.0  # w4: VQ (commitment) loss
-    w_sm: float = 0.05  # w6: colour-aware smoothness on neighbouring pixels
+    w_sm: float = 0.0  # w6: colour-aware smoothness on neighbouring pixels (paper: 0.05; at our loss scale it over-smooths, see README)
     sm_alpha: float = 60.0  # alpha: how fast image differences switch the smoothness off
     sm_beta: float = 0.1  # beta: weight of metallic/roughness differences in L_sm
     gamma: float = 2.2  # reconstruction is compared on x^(1/gamma): HDR highlights do not dominate
@@ -49,7 +49,7 @@ class LossConfig:
 
 @dataclass
 class VQConfig:
-    enabled: bool = True  # train the discrete branch (off: continuous branch only, the "single branch" ablation)
+    enabled: bool = False  # train the discrete branch (experimental; off: continuous branch only, the "single branch" ablation)
     num_codes: int = 8  # M0: codebook size (15 for complex scenes)
     warmup_frac: float = 0.3  # continuous-only warm-up, then the codebook starts from k-means of the latents
     decay: float = 0.99  # EMA decay of the codebook updates
