@@ -221,6 +221,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         }, ckpt_path)
 
     fixed_env = None if learn_env else torch.as_tensor(capture.envmap, device=device)
+    start_step = step
     t0 = time.perf_counter()
     bar = tqdm(total=total, initial=step, desc="fit", disable=not progress, dynamic_ncols=True)
     loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
@@ -311,11 +312,10 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     env_final = env_final_t.cpu().numpy()
     write_exr(run_dir / "envmap.exr", env_final)
     plot_history(history, run_dir / "loss.png")
-    run_steps = max(step - (state["step"] if resume else 0), 0) if resume else step
     summary = {"iterations": step, "seconds": elapsed,
                "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
                "final_psnr_train_batch": history[-1]["psnr"] if history else None,
-               "training_pixels": len(pool), "steps_this_call": run_steps}
+               "training_pixels": len(pool), "steps_this_call": step - start_step}
     _write_json(run_dir / "fit.json", summary)
     return summary
 
