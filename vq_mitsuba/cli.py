@@ -64,8 +64,15 @@ def _cmd_make_scene(args) -> int:
     out = Path(args.output) if args.output else Path("data") / args.name
     kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
                                 ("n_test", args.n_test)) if v is not None}
-    synthetic.make_scene(args.name, out, seed=args.seed, **kwargs)
-    print(f"scene '{args.name}' written to {out}/ (scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
+    if args.renderer == "cycles":
+        from . import cycles
+
+        cycles.check_environment()  # before any work: names the missing interpreter and `make cycles`
+        cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
+    else:
+        synthetic.make_scene(args.name, out, seed=args.seed, **kwargs)
+    print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ "
+          "(scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
     return 0
 
 
@@ -125,12 +132,17 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_eval)
 
     m = sub.add_parser("make-scene", help="render a bundled synthetic scene with ground truth",
-                       description="Render a bundled scene with Mitsuba's path tracer: training and test views "
-                                   "in both capture formats, ground-truth maps and relit test views.")
+                       description="Render a bundled scene with Mitsuba's path tracer (or Blender Cycles with "
+                                   "--renderer cycles): training and test views in both capture formats, "
+                                   "ground-truth maps and relit test views.")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
     m.add_argument("-o", "--output", help="output folder (default: data/NAME)")
     m.add_argument("--resolution", type=int, help="image width and height in pixels (default per scene)")
-    m.add_argument("--spp", type=int, help="path-tracing samples per pixel")
+    m.add_argument("--spp", type=int, help="path-tracing samples per pixel (default: the scene's for mitsuba, "
+                                           "128 for cycles)")
+    m.add_argument("--renderer", choices=["mitsuba", "cycles"], default="mitsuba",
+                   help="mitsuba (default) or cycles: Blender Cycles through bpy in .venv-cycles (`make cycles`); "
+                        "same output layout, plus relit views under Blender's eight studio-light probes")
     m.add_argument("--n-train", type=int, help="number of training views")
     m.add_argument("--n-test", type=int, help="number of test views")
     m.add_argument("--seed", type=int, default=0, help="random seed")

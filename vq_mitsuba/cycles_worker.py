@@ -32,6 +32,7 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 
 import bpy  # noqa: E402
+import mathutils  # noqa: E402  (ships with bpy)
 import numpy as np  # noqa: E402
 
 AOVS = (("basecolor", "COLOR"), ("metallic", "VALUE"), ("roughness", "VALUE"))
@@ -159,8 +160,12 @@ def _camera_object(scene, c: dict) -> bpy.types.Object:
     cam.clip_start = 1e-3
     cam.clip_end = 1e4
     obj = bpy.data.objects.new(c["name"], cam)
-    obj.matrix_world = [list(map(float, row)) for row in np.asarray(c["transform_matrix"]).reshape(4, 4)]
     scene.collection.objects.link(obj)
+    # A plain list is silently ignored by matrix_world: it takes a mathutils.Matrix (rows).
+    m = mathutils.Matrix([list(map(float, row)) for row in np.asarray(c["transform_matrix"]).reshape(4, 4)])
+    obj.matrix_world = m
+    if (obj.matrix_world.translation - m.translation).length > 1e-6:
+        raise RuntimeError(f"camera {c['name']}: matrix_world was not applied")
     return obj
 
 
