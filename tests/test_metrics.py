@@ -156,3 +156,18 @@ def test_segmentation_scores_hand_computed():
     assert s["macro_f1"] == pytest.approx((f1_1 + f1_2) / 2)
     assert s["macro_precision"] == pytest.approx((1 + 2 / 3) / 2)
     assert s["macro_recall"] == pytest.approx((0.75 + 1) / 2)
+
+
+def test_training_srgb_mse_matches_numpy_encoding():
+    import torch
+
+    from vq_mitsuba import losses
+    from vq_mitsuba.capture.imageio import linear_to_srgb
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-0.1, 1.5, (500, 3)).astype(np.float32)  # out-of-range values are clipped by both
+    b = rng.uniform(0.0, 1.0, (500, 3)).astype(np.float32)
+    a[:10] = 0.001  # the linear segment of the sRGB curve
+    expected = np.mean((linear_to_srgb(a) - linear_to_srgb(b)) ** 2)
+    got = float(losses.srgb_mse(torch.as_tensor(a), torch.as_tensor(b)))
+    assert abs(got - expected) < 1e-6 * max(expected, 1.0)

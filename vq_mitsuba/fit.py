@@ -283,10 +283,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         sched.step()
         step += 1
         with torch.no_grad():
-            from .capture.imageio import linear_to_srgb
-
-            mse = float(torch.mean((torch.as_tensor(linear_to_srgb(rgb.detach().cpu().numpy()))
-                                    - torch.as_tensor(linear_to_srgb(target.cpu().numpy()))) ** 2))
+            mse = float(losses.srgb_mse(rgb.detach(), target))
         loss_acc, mse_acc, n_acc = loss_acc + float(loss.detach()), mse_acc + mse, n_acc + 1
         if step % cfg.train.log_every == 0 or step == total:
             elapsed = elapsed_before + time.perf_counter() - t0
