@@ -416,10 +416,9 @@ def _barycentric(p, a, b, c) -> np.ndarray:
 # The whole scene
 # --------------------------------------------------------------------------------------------
 def _ensure_variant() -> None:
-    import mitsuba as mi
+    from .rendering import init_mitsuba
 
-    if mi.variant() is None or not mi.variant().endswith("_rgb"):
-        mi.set_variant("llvm_ad_rgb")
+    init_mitsuba()
 
 
 def _versions() -> dict:

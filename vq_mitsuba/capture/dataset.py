@@ -114,11 +114,12 @@ def load_mesh(path: str | Path):
 
 
 def _ensure_variant():
-    """Import mitsuba with a variant set: keep the one already chosen, else llvm_ad_rgb."""
+    """mitsuba, with the project's variant selected (vq_mitsuba.rendering.init_mitsuba)."""
     import mitsuba as mi
 
-    if mi.variant() is None:
-        mi.set_variant("llvm_ad_rgb")
+    from ..rendering import init_mitsuba
+
+    init_mitsuba()
     return mi
 
 
