@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all setup llvm demo test test-slow bench clean
+.PHONY: all setup llvm demo test test-slow bench clean cycles
 
 all: setup
 
@@ -41,6 +41,18 @@ demo: setup
 	  $$([ -f runs/demo/checkpoint.pt ] && echo --resume)
 	$(VENV)/bin/vq-mitsuba render runs/demo --cameras data/demo/transforms_test.json -o runs/demo/test_views
 	@echo "Demo results: runs/demo (decomposition, envmap.exr, plots) and runs/demo/test_views (novel views and maps)"
+
+# Blender as a module for `make-scene --renderer cycles`: bpy needs Python 3.11 and numpy < 2, so it
+# gets its own environment; the Cycles worker runs there as a subprocess.
+CYCLES_VENV := .venv-cycles
+
+$(CYCLES_VENV)/.installed:
+	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else "bpy 5.0 needs Python 3.11 (set PYTHON=python3.11)")'
+	$(PYTHON) -m venv $(CYCLES_VENV)
+	$(CYCLES_VENV)/bin/pip install -q "bpy==5.0.1" "numpy<2"
+	touch $@
+
+cycles: $(CYCLES_VENV)/.installed
 
 test: setup
 	$(PY) -m pytest -q

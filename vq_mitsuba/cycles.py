@@ -93,6 +93,22 @@ def blender_probes(python: Path | None = None) -> dict[str, Path]:
     return {p.stem: p for p in sorted(root.glob("*/datafiles/studiolights/world/*.exr"))}
 
 
+def load_probe(path: str | Path) -> np.ndarray:
+    """A Blender studio-light probe as float32 (H, W, 3). Some of them hold a few tiny negative
+    texels (down to about -0.002, lossy EXR compression), which envmaps.load_envmap refuses:
+    they are clamped to 0. Non-finite texels are an error naming the file."""
+    from .capture.imageio import read_exr
+
+    path = Path(path)
+    try:
+        rgb = read_exr(path)[..., :3]
+    except Exception as exc:
+        raise InputError(path, f"cannot read environment map ({type(exc).__name__}: {exc})") from exc
+    if not np.all(np.isfinite(rgb)):
+        raise InputError(path, "environment map contains non-finite values")
+    return np.ascontiguousarray(np.maximum(rgb, 0.0), dtype=np.float32)
+
+
 # --------------------------------------------------------------------------------------------
 # The job file
 # --------------------------------------------------------------------------------------------
@@ -337,8 +353,9 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
         relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": "preset"})
     for probe, path in (blender_probes(python).items() if probes else ()):
         env_name = f"blender_{probe}"
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", envmaps.load_envmap(path))
-        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": str(path)})
+        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", load_probe(path))
+        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": str(path),
+                         "note": "negative texels (compression noise, > -0.003) clamped to 0"})
 
     renders = []
     train_env = (out / "envmaps" / "train.exr").resolve()
