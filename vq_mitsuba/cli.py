@@ -46,7 +46,7 @@ def _cmd_eval(args) -> int:
     from .evaluate import evaluate, format_table
 
     metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
-                       progress=not args.quiet, output=args.output)
+                       progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
     print(format_table(metrics))
     out = args.output or str(Path(args.run_dir) / "metrics.json")
     print(f"metrics written to {out}")
@@ -74,6 +74,18 @@ def _cmd_make_scene(args) -> int:
     print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ "
           "(scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
     return 0
+
+
+def _bandwidths(text: str) -> tuple[float, ...]:
+    if text.strip().lower() in ("", "none", "off"):
+        return ()
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a comma-separated list of numbers") from None
+    if any(v <= 0 for v in values):
+        raise argparse.ArgumentTypeError("bandwidths must be positive")
+    return values
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -128,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--spp", type=int, help="render samples per pixel (default: render.spp of the run's config)")
     e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",
                    help="basecolor scale alignment: lstsq (NeRFactor) or median (TensoIR)")
+    e.add_argument("--meanshift", type=_bandwidths, default=(0.2, 0.3, 0.5), metavar="BW,BW,...",
+                   help="bandwidths of the MeanShift segmentation baseline on the continuous branch's "
+                        "BRDF maps (default 0.2,0.3,0.5; 'none' skips it); needs ground-truth material ids")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
     e.set_defaults(func=_cmd_eval)
 

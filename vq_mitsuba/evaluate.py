@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
+from .baselines import MEANSHIFT_BANDWIDTHS
 from .capture.imageio import read_exr, read_image
 from .errors import InputError
 
@@ -130,7 +131,8 @@ def _normal_error_deg(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> flo
 
 
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
-             progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA) -> dict:
+             progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
+             meanshift_bandwidths=MEANSHIFT_BANDWIDTHS) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
     (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 128)."""
     from tqdm import tqdm
@@ -201,6 +203,9 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         segmentation["mapping"] = {str(k): v for k, v in segmentation["mapping"].items()}
         segmentation["num_materials_found"] = int(fitted.discrete.num_materials)
         segmentation["num_materials_true"] = len(meta.get("materials", []))
+    meanshift = None
+    if meanshift_bandwidths and all("material" in g for g in gts):
+        meanshift = meanshift_segmentation(preds, gts, meanshift_bandwidths, seed=0)
     del preds
 
     # Relighting under each held-aside envmap.
@@ -260,6 +265,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         "normal": {"mae_deg": avg("normal_mae_deg")},
         "relighting": relighting,
         "segmentation": segmentation,
+        "meanshift": meanshift,
         "fit": fit_summary,
         "per_view": per_view,
         "seconds": time.perf_counter() - t0,
@@ -268,6 +274,27 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(json_safe(result), indent=2))
     return result
+
+
+def meanshift_segmentation(preds: list[dict], gts: list[dict], bandwidths, seed: int = 0) -> dict:
+    """The MeanShift baseline on the continuous branch's BRDF maps of the test views, pooled
+    over views like the discrete branch's scores: one entry per bandwidth."""
+    from .baselines import brdf_features, meanshift_labels
+
+    fg = [g["mask"] & (g["material"] > 0) for g in gts]
+    feats = np.concatenate([brdf_features(p["basecolor"][m], p["metallic"][m], p["roughness"][m])
+                            for p, m in zip(preds, fg)])
+    truth = np.concatenate([g["material"][m] for g, m in zip(gts, fg)])
+    out = {"features": "sRGB basecolor, metallic, roughness (continuous branch, test views)"}
+    for bw in bandwidths:
+        t0 = time.perf_counter()
+        labels = meanshift_labels(feats, float(bw), seed=seed)
+        scores = M.segmentation_scores(labels, truth)
+        scores.pop("mapping")
+        scores["num_materials_found"] = int(labels.max())
+        scores["seconds"] = time.perf_counter() - t0
+        out[f"{float(bw):g}"] = scores
+    return out
 
 
 def json_safe(obj):
@@ -333,4 +360,10 @@ def format_table(metrics: dict) -> str:
         lines.append(f"segmentation: micro-F1 {seg['micro_f1']:.3f}, macro-F1 {seg['macro_f1']:.3f}, "
                      f"precision {seg['macro_precision']:.3f}, recall {seg['macro_recall']:.3f}; "
                      f"materials found {seg['num_materials_found']} (true {seg['num_materials_true']})")
+    ms = metrics.get("meanshift")
+    if ms:
+        for bw, v in ms.items():
+            if isinstance(v, dict):
+                lines.append(f"MeanShift baseline (bandwidth {bw}): micro-F1 {v['micro_f1']:.3f}, "
+                             f"macro-F1 {v['macro_f1']:.3f}; clusters {v['num_materials_found']}")
     return "\n".join(lines)
