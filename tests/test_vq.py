@@ -66,3 +66,20 @@ def test_dropout_rates_and_masks():
 ])
 def test_choose_num_materials(err, expected):
     assert choose_num_materials(err, eps=0.002) == expected
+
+
+def test_forced_assignments_get_no_straight_through_gradient_when_asked():
+    vq = VectorQuantizerEMA(2, 2, dead_after=1000)
+    vq.init_codebook(torch.tensor([[1.0, 0.0], [0.0, 1.0]]))
+    vq.eval()
+    z = torch.tensor([[1.0, 0.1], [0.1, 1.0]], requires_grad=True)
+    drop = torch.tensor([[True, False], [False, False]])  # latent 0's own codeword is dropped
+    z_q, idx, loss = vq(z, drop, forced_gradient=False)
+    assert idx.tolist() == [1, 1]
+    (z_q.sum() + loss).backward()
+    assert z.grad[0].abs().max() == 0  # forced onto codeword 1: no gradient, no commitment pull
+    assert z.grad[1].abs().max() > 0
+    z.grad = None
+    z_q, _, loss = vq(z, drop, forced_gradient=True)  # the plain estimator passes it through
+    (z_q.sum() + loss).backward()
+    assert z.grad[0].abs().max() > 0

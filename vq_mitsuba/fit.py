@@ -254,18 +254,20 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         target = pool.rgb[idx]
         l_rec = rec_loss(samples, target)
         l_lam = losses.lambertian_prior(out["metallic"], out["roughness"])
-        loss = cfg.loss.w_rec_c * l_rec + cfg.loss.w_lam * l_lam
-        if discrete is not None and bool(discrete.initialised):
+        discrete_on = discrete is not None and bool(discrete.initialised)
+        w_rec_c = 0.0 if discrete_on and cfg.vq.single_branch else cfg.loss.w_rec_c
+        loss = w_rec_c * l_rec + cfg.loss.w_lam * l_lam
+        if discrete_on:
             z = out["z"] if cfg.vq.joint else out["z"].detach()
             drop = sample_drop_mask(B, rates, gen) if cfg.vq.ranking else None
-            od = discrete(z, drop)
+            od = discrete(z, drop, forced_gradient=cfg.vq.forced_gradient)
             # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).
             samples_d = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], od["basecolor"],
                                     od["metallic"], od["roughness"], env, cfg.train.spp, generator=gen,
                                     reduce=False, material_fn=model if cfg.train.bounces > 0 else None,
                                     groups=groups_mc)
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
-                + cfg.loss.w_chr * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
+                + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
                 + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"])
         if pairs is not None and len(pairs) > 0:

@@ -50,15 +50,27 @@ class VectorQuantizerEMA(nn.Module):
         return sim.argmax(-1)
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Returns (z_q with straight-through gradient, codeword indices, VQ loss)."""
+                n_codes: int | None = None,
+                forced_gradient: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns (z_q with straight-through gradient, codeword indices, VQ loss).
+
+        forced_gradient False: latents that dropout forced onto another codeword than their
+        nearest get no straight-through gradient (the identity z_q ~ z that the estimator
+        assumes does not hold for them); they still train the decoder and the codebook."""
         z_unit = F.normalize(z, dim=-1)
         idx = self.nearest(z_unit.detach(), drop_mask, n_codes)
         e = self.codebook[idx]
-        loss = self.commitment * torch.mean(torch.sum((z_unit - e.detach()) ** 2, -1))
         if self.training:
             self.ema_update(z_unit.detach(), idx)
         z_q = z_unit + (e - z_unit).detach()
+        own = None
+        if drop_mask is not None and not forced_gradient:
+            own = idx == self.nearest(z_unit.detach(), None, n_codes)
+            z_q = torch.where(own[:, None], z_q, e.detach())
+        sq = torch.sum((z_unit - e.detach()) ** 2, -1)
+        if own is not None:  # commitment towards the latent's own codeword only
+            sq = sq * own
+        loss = self.commitment * torch.mean(sq)
         return z_q, idx, loss
 
     @torch.no_grad()
@@ -124,8 +136,8 @@ class DiscreteBranch(nn.Module):
         self.register_buffer("num_materials", torch.tensor(num_codes))
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None) -> dict[str, torch.Tensor]:
-        z_q, idx, loss = self.vq(z, drop_mask, n_codes)
+                n_codes: int | None = None, forced_gradient: bool = True) -> dict[str, torch.Tensor]:
+        z_q, idx, loss = self.vq(z, drop_mask, n_codes, forced_gradient)
         out = self.decoder(z_q)
         out["index"] = idx
         out["vq_loss"] = loss
