@@ -51,7 +51,6 @@ def _setup_render(scene, job: dict) -> None:
     cy.samples = int(r["samples"])
     cy.use_adaptive_sampling = False
     cy.use_denoising = bool(r.get("denoise", False))
-    cy.seed = int(r.get("seed", 0))
     cy.max_bounces = int(r["max_bounces"])
     cy.diffuse_bounces = int(r["max_bounces"])
     cy.glossy_bounces = int(r["max_bounces"])
@@ -211,7 +210,7 @@ def run(job: dict) -> None:
             images[path] = img
         if env_node.image != images[path]:
             env_node.image = images[path]
-        scene.cycles.seed = base_seed * 1_000_003 + i
+        scene.cycles.seed = (base_seed * 1_000_003 + i) % 2**31  # a new noise pattern per render
         scene.render.filepath = r["output"]
         bpy.ops.render.render(write_still=True)
         print(f"rendered {i + 1}/{len(renders)} {r['camera']} ({time.time() - t0:.1f} s)", flush=True)
