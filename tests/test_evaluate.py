@@ -29,6 +29,7 @@ def test_eval_writes_every_block(tiny_dataset, tmp_path, capsys):
     m = json.loads(out.read_text())
     assert m["n_views"] == 2 and math.isfinite(m["novel_view"]["psnr"]) and math.isfinite(m["basecolor"]["psnr"])
     assert set(m["relighting"]["albedo_scale"]["envs"]) == {"sunset", "studio"}
+    assert "discrete: basecolor" in text and math.isfinite(m["discrete_branch"]["basecolor"]["psnr"])
     seg = m["segmentation"]
     assert 0.0 <= seg["micro_f1"] <= 1.0 and seg["num_materials_true"] == 2 and 1 <= seg["num_materials_found"] <= 8
     assert set(k for k in m["meanshift"] if k != "features") == {"0.3", "0.5"}

@@ -10,6 +10,8 @@ held-aside envmap (relighting), and compared inside the ground-truth foreground 
 - basecolor: `gt/<id>_basecolor.exr` after a per-channel scale alignment computed once over all
   test views jointly (method "lstsq" as NeRFactor or "median" as TensoIR), compared in sRGB;
 - metallic, roughness: PSNR of the linear [0, 1] maps, no alignment;
+- with a discrete branch: its basecolor (aligned on its own), metallic and roughness maps too,
+  segmentation micro/macro F1 against `gt/<id>_material.png`, and the MeanShift baseline;
 - normals: mean angular error in degrees (world normals, both in Blender world);
 - relighting under `relit/<env>/<id>.exr`, compared in sRGB, in two labelled variants:
   `albedo_scale` (the relit render times the basecolor alignment scales, as NeRFactor) and
@@ -194,6 +196,18 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         if "normal" in gt:
             row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
         per_view.append(row)
+    discrete = None
+    if all("discrete" in p for p in preds):  # the discrete branch's maps, aligned on their own
+        dmaps = [p["discrete"] for p in preds]
+        _, d_scales = M.scale_align(np.stack([d["basecolor"] for d in dmaps]),
+                                    np.stack([gt["basecolor"] for gt in gts]), masks, method=scale_method)
+        rows_d = [M.image_metrics(d["basecolor"] * d_scales, gt["basecolor"], gt["mask"]) for d, gt in zip(dmaps, gts)]
+        discrete = {"basecolor": {"psnr": _mean(r["psnr"] for r in rows_d), "ssim": _mean(r["ssim"] for r in rows_d),
+                                  "scales": [float(x) for x in d_scales]},
+                    "metallic": {"psnr": _mean(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
+                                               for d, gt in zip(dmaps, gts))},
+                    "roughness": {"psnr": _mean(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
+                                                for d, gt in zip(dmaps, gts))}}
     segmentation = None
     if all("material" in p for p in preds) and all("material" in g for g in gts):
         # Pooled over all test views: a predicted id names the same material in every view.
@@ -264,6 +278,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         "roughness": {"psnr": avg("roughness_psnr"), "mae": avg("roughness_mae")},
         "normal": {"mae_deg": avg("normal_mae_deg")},
         "relighting": relighting,
+        "discrete_branch": discrete,
         "segmentation": segmentation,
         "meanshift": meanshift,
         "fit": fit_summary,
@@ -334,6 +349,11 @@ def table_rows(metrics: dict) -> list[tuple[str, object, object]]:
             (f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
             ("metallic (linear)", metrics["metallic"]["psnr"], None),
             ("roughness (linear)", metrics["roughness"]["psnr"], None)]
+    d = metrics.get("discrete_branch")
+    if d:
+        rows += [(f"discrete: basecolor ({method}-aligned)", d["basecolor"]["psnr"], d["basecolor"]["ssim"]),
+                 ("discrete: metallic (linear)", d["metallic"]["psnr"], None),
+                 ("discrete: roughness (linear)", d["roughness"]["psnr"], None)]
     for variant in ("albedo_scale", "image_scale"):
         block = metrics["relighting"][variant]
         for env, v in block["envs"].items():

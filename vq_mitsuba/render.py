@@ -115,6 +115,9 @@ class Renderer:
         discrete = self.fitted.discrete
         n_mat = int(discrete.num_materials) if discrete is not None else 0
         votes = np.zeros((n_pix, n_mat + 1), np.int32) if discrete is not None else None
+        if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
+            acc.update({k: np.zeros((n_pix, c), np.float64) for k, c in
+                        (("basecolor_d", 3), ("metallic_d", 1), ("roughness_d", 1))})
         light_spp = max(2, spp // aa)
         for a in range(aa):
             jitter = np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng)
@@ -136,6 +139,10 @@ class Renderer:
                 if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
                     ids = discrete.vq.nearest(torch.nn.functional.normalize(out["z"], dim=-1), n_codes=n_mat) + 1
                     np.add.at(votes, (sel_np, ids.cpu().numpy()), 1)
+                    od = discrete(out["z"], n_codes=n_mat)
+                    acc["basecolor_d"][sel_np] += od["basecolor"].cpu().numpy()
+                    acc["metallic_d"][sel_np, 0] += od["metallic"].cpu().numpy()
+                    acc["roughness_d"][sel_np, 0] += od["roughness"].cpu().numpy()
             hits_count += hits.valid.cpu().numpy()
         alpha = hits_count / aa
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
@@ -148,6 +155,11 @@ class Renderer:
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
         out["normal"] = nrm.reshape(h, w, 3).astype(np.float32)
         out["metallic"], out["roughness"] = out["metallic"][..., 0], out["roughness"][..., 0]
+        if discrete is not None:
+            out["discrete"] = {k[:-2]: (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
+                               for k in ("basecolor_d", "metallic_d", "roughness_d")}
+            for k in ("metallic", "roughness"):
+                out["discrete"][k] = out["discrete"][k][..., 0]
         if votes is not None:  # majority over the pixel's primary rays; background (alpha < 0.5) is 0
             ids = np.argmax(votes[:, 1:], axis=1) + 1
             out["material"] = np.where(alpha >= 0.5, ids, 0).reshape(h, w).astype(np.uint8)
