@@ -1,4 +1,4 @@
-"""Command line: `vq-mitsuba fit | render | make-scene` (thin: parses, then calls the library)."""
+"""Command line: `vq-mitsuba fit | geometry | render | eval | make-scene` (thin: parses, then calls the library)."""
 
 from __future__ import annotations
 
@@ -25,10 +25,44 @@ def _cmd_fit(args) -> int:
         import yaml
 
         base = yaml.safe_load((run_dir / "config.yaml").read_text())
-    cfg = load_config(args.config, args.set, base=base)
-    summary = fit(args.capture, run_dir, cfg, mesh_path=args.mesh, resume=args.resume, progress=not args.quiet)
+    neus_sets = [s for s in args.set if s.strip().startswith("neus.")]
+    cfg = load_config(args.config, [s for s in args.set if s not in neus_sets], base=base)
+    mesh_path = args.mesh
+    if args.geometry != "given" and args.mesh is None:
+        from .geometry.pipeline import capture_has_geometry, ensure_geometry
+
+        if args.geometry == "neus" or not capture_has_geometry(args.capture):
+            if (run_dir / "checkpoint.pt").exists() and not args.resume:
+                raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
+            mesh_path = ensure_geometry(args.capture, run_dir, neus_sets, config_file=args.config,
+                                        resume=args.resume, progress=not args.quiet)
+    summary = fit(args.capture, run_dir, cfg, mesh_path=mesh_path, resume=args.resume, progress=not args.quiet)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
           f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")
+    return 0
+
+
+def _cmd_geometry(args) -> int:
+    from .geometry.pipeline import run_geometry
+
+    if args.help_config:
+        from .geometry.config import describe
+
+        print("NeuS config keys (set them with --set neus.key=value, or a `neus:` section of --config):")
+        print("\n".join(describe()))
+        return 0
+    if args.capture is None:
+        raise InputError(None, "geometry needs a CAPTURE (scene XML, transforms json, or its folder)")
+    run_dir = Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
+    info = run_geometry(args.capture, run_dir, args.set, config_file=args.config, resume=args.resume,
+                        progress=not args.quiet, gt_mesh=args.gt_mesh)
+    s = info["seconds"]
+    print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
+          f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
+    if "metrics" in info:
+        m = info["metrics"]
+        print(f"against {args.gt_mesh}: Chamfer {100 * m['chamfer_rel']:.3f}% of the bounding-box diagonal, "
+              f"normal consistency {m['normal_consistency']:.4f}")
     return 0
 
 
@@ -108,9 +142,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override one config key, e.g. --set train.iterations=500 (repeatable)")
     f.add_argument("--mesh", help="known geometry (PLY/OBJ) for a NeRF-synthetic capture")
     f.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    f.add_argument("--geometry", choices=["auto", "neus", "given"], default="auto",
+                   help="auto (default): the capture's shapes / mesh.ply or --mesh when there are any, otherwise "
+                        "reconstruct with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus: always "
+                        "reconstruct from the images (needs alpha masks); given: never reconstruct")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.add_argument("--help-config", action="store_true", help="list every config key with its default and meaning")
     f.set_defaults(func=_cmd_fit)
+
+    g = sub.add_parser("geometry", help="reconstruct a mesh from posed images with alpha masks (NeuS)",
+                       description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. "
+                                   "Writes RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and "
+                                   "the NeuS checkpoint neus.pt. Known geometry in the capture is ignored.")
+    g.add_argument("capture", nargs="?", help="Mitsuba scene XML, a transforms_*.json, or the folder holding one")
+    g.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
+    g.add_argument("--config", help="YAML file whose `neus:` section sets NeuS keys")
+    g.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE",
+                   help="override one NeuS key, e.g. --set neus.iterations=3000 (repeatable)")
+    g.add_argument("--gt-mesh", help="score the mesh against this ground-truth mesh (Chamfer, normal consistency)")
+    g.add_argument("--resume", action="store_true", help="continue from RUN_DIR/neus.pt")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    g.add_argument("--help-config", action="store_true", help="list every NeuS config key with its default")
+    g.set_defaults(func=_cmd_geometry)
 
     r = sub.add_parser("render", help="render novel views, material maps and relighting of a fitted run",
                        description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, "

@@ -1,0 +1,226 @@
+"""Geometry from images: NeuS, marching cubes, mesh clean-up, metrics, and the CLI's handling."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from vq_mitsuba.capture.cameras import Camera, look_at
+from vq_mitsuba.capture.dataset import Capture
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.geometry.config import NeuSConfig, apply_overrides
+from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics
+from vq_mitsuba.geometry.neus import DenseGrid, NeuS, camera_rays, reconstruct, train
+
+RADIUS = 0.5
+
+
+def sphere_capture(n_views: int = 12, size: int = 32, with_alpha: bool = True) -> Capture:
+    """Analytic captures of a diffuse sphere (radius 0.5 at the origin) lit from one direction."""
+    cams = []
+    golden = np.pi * (3 - np.sqrt(5))
+    for i in range(n_views):
+        z = 0.8 - 1.4 * (i + 0.5) / n_views
+        r = np.sqrt(1 - z * z)
+        d = np.array([r * np.cos(golden * i), r * np.sin(golden * i), z])
+        cams.append(Camera(f"v{i}", look_at(2.5 * d, [0, 0, 0], [0, 0, 1]), 40.0, size, size))
+    light = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+    images, alphas = [], []
+    for cam in cams:
+        o, d = camera_rays(cam)
+        b = np.sum(o * d, 1)
+        c = np.sum(o * o, 1) - RADIUS ** 2
+        disc = b * b - c
+        hit = disc > 0
+        t = -b - np.sqrt(np.maximum(disc, 0))
+        n = (o + t[:, None] * d) / RADIUS
+        shade = 0.1 + 0.7 * np.clip(n @ light, 0, None)
+        rgb = np.where(hit[:, None], shade[:, None] * np.array([0.9, 0.6, 0.3]), 0.0)
+        images.append(rgb.reshape(size, size, 3))
+        alphas.append(hit.reshape(size, size).astype(np.float32))
+    images = np.stack(images).astype(np.float32)
+    alpha = np.stack(alphas) if with_alpha else np.ones(images.shape[:3], np.float32)
+    return Capture(Path("analytic_sphere.json"), cams, images, alpha, with_alpha, None, None, np.eye(4), "blender")
+
+
+def small_cfg(**kw) -> NeuSConfig:
+    base = dict(batch_rays=256, n_samples=16, levels=3, base_res=8, max_res=24, hidden=32, hull_resolution=48,
+                march_steps=64, mesh_resolution=48, checkpoint_every=0, warmup=10, threads=1)
+    base.update(kw)
+    return apply_overrides(NeuSConfig(), [f"{k}={v}" for k, v in base.items()])
+
+
+def sdf_world(neus: NeuS, points: np.ndarray) -> np.ndarray:
+    """The NeuS SDF at world points, in world units."""
+    p = neus.to_box(torch.tensor(points))
+    with torch.no_grad():
+        s = neus.model.sdf(p, [1.0] * neus.cfg.levels)[0]
+    return s.numpy() * neus.half
+
+
+def test_dense_grid_is_trilinear_and_twice_differentiable():
+    torch.manual_seed(0)
+    grid = DenseGrid(2, 4, 8, 1)
+    # Fill every level with the linear function a.x + b (trilinear interpolation reproduces it exactly).
+    a = torch.tensor([0.3, -0.7, 0.2])
+    with torch.no_grad():
+        start = 0
+        for r in grid.res:
+            c = (torch.arange(r) + 0.5) / r * 2 - 1
+            pts = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
+            grid.table[start:start + r ** 3, 0] = pts @ a + 0.1
+            start += r ** 3
+    p = (torch.rand(200, 3) * 1.4 - 0.7).requires_grad_(True)
+    out = grid(p, [1.0, 1.0])
+    expected = (p @ a + 0.1).detach()
+    assert torch.allclose(out[:, 0], expected, atol=1e-5)
+    assert torch.allclose(out[:, 1], expected, atol=1e-5)
+    g = torch.autograd.grad(out.sum(), p, create_graph=True)[0]
+    assert torch.allclose(g, (2 * a).expand_as(g), atol=1e-4)
+    # The eikonal-style loss on the gradient reaches the grid values (double backward).
+    ((g.norm(dim=-1) - 1) ** 2).mean().backward()
+    assert grid.table.grad is not None and grid.table.grad.abs().sum() > 0
+    # A disabled level contributes nothing.
+    assert torch.all(grid(p.detach(), [1.0, 0.0])[:, 1] == 0)
+
+
+def test_marching_cubes_on_analytic_sphere_gives_radius():
+    n, r = 48, 0.6
+    ax = np.linspace(-1, 1, n)
+    x, y, z = np.meshgrid(ax, ax, ax, indexing="ij")
+    vol = np.sqrt(x ** 2 + y ** 2 + (z - 0.1) ** 2) - r
+    mesh = marching_cubes(vol, (-1, -1, -1), (1, 1, 1))
+    radii = np.linalg.norm(mesh.vertices - [0, 0, 0.1], axis=1)
+    assert abs(radii.mean() - r) < 0.01 and radii.std() < 0.01
+    assert mesh.volume > 0  # outward normals
+    assert abs(mesh.volume - 4 / 3 * np.pi * r ** 3) < 0.03 * 4 / 3 * np.pi * r ** 3
+    with pytest.raises(ValueError):
+        marching_cubes(np.ones((4, 4, 4)), (-1, -1, -1), (1, 1, 1))
+
+
+def test_clean_mesh_removes_small_floating_piece_but_keeps_other_objects():
+    big = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    twin = trimesh.creation.icosphere(subdivisions=3, radius=0.45)
+    twin.apply_translation([2.0, 0, 0])
+    speck = trimesh.creation.icosphere(subdivisions=0, radius=0.02)
+    speck.apply_translation([0, 1.5, 0])
+    mesh = trimesh.util.concatenate([big, twin, speck])
+    assert len(component_sizes(mesh)) == 3
+    cleaned = clean_mesh(mesh, min_component=0.05)
+    sizes = sorted(component_sizes(cleaned))
+    assert sizes == [len(big.faces), len(twin.faces)]  # the speck is gone, both objects stay
+    assert np.linalg.norm(cleaned.vertices, axis=1).max() < 2.5
+    largest = clean_mesh(mesh, keep_largest=True)
+    assert len(component_sizes(largest)) == 1 and len(largest.faces) == len(big.faces)
+    decimated = clean_mesh(big, max_faces=300)
+    assert len(decimated.faces) <= 300 and decimated.volume > 0
+
+
+def test_mesh_metrics_measure_distance_and_normals():
+    a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    same = mesh_metrics(a, a, n_points=20000)
+    assert same["chamfer_rel"] < 0.005 and same["normal_consistency"] > 0.98
+    b = trimesh.creation.icosphere(subdivisions=4, radius=0.55)
+    off = mesh_metrics(b, a, n_points=20000)
+    diag = np.linalg.norm(np.ptp(a.vertices, axis=0))
+    assert abs(off["chamfer"] - 0.05) < 0.01
+    assert abs(off["chamfer_rel"] - 0.05 / diag) < 0.01 / diag
+    box = trimesh.creation.box((1, 1, 1))
+    assert mesh_metrics(box, a, n_points=20000)["normal_consistency"] < same["normal_consistency"] - 0.05
+
+
+def test_neus_moves_a_wrong_sphere_to_the_true_surface():
+    capture = sphere_capture()
+    cfg = small_cfg(init="sphere", init_radius=0.5, iterations=150, seed=1)
+    neus = NeuS(capture, cfg)
+    d = np.random.default_rng(0).normal(size=(500, 3))
+    on_surface = RADIUS * d / np.linalg.norm(d, axis=1, keepdims=True)
+    before = np.abs(sdf_world(neus, on_surface)).mean()
+    train(neus, None, progress=False)
+    after = np.abs(sdf_world(neus, on_surface)).mean()
+    assert before > 0.05
+    assert after < 0.02 and after < before / 3
+    # Inside negative, outside positive.
+    assert sdf_world(neus, np.zeros((1, 3)))[0] < 0
+    assert sdf_world(neus, np.array([[0.0, 0.0, 0.8]]))[0] > 0
+
+
+def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
+    capture = sphere_capture(n_views=8, size=24)
+    info = reconstruct(capture, tmp_path, small_cfg(iterations=4, checkpoint_every=2), progress=False)
+    for name in ("mesh.ply", "geometry.json", "geometry_loss.png", "neus.pt"):
+        assert (tmp_path / name).is_file(), name
+    mesh = trimesh.load(tmp_path / "mesh.ply", force="mesh")
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    # 4 steps from the visual hull of 8 low-resolution views: a closed blob around the true sphere.
+    assert 0.45 < np.median(radii) < 0.65 and mesh.is_watertight
+    data = json.loads((tmp_path / "geometry.json").read_text())
+    assert data["iterations"] == 4 and data["mesh"]["faces"] == len(mesh.faces)
+    assert info["seconds"]["train"] > 0
+    again = reconstruct(capture, tmp_path, small_cfg(iterations=6), resume=True, progress=False)
+    assert again["iterations"] == 6
+
+
+def test_neus_needs_masks_and_foreground():
+    with pytest.raises(InputError, match="alpha"):
+        NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg())
+    empty = sphere_capture(n_views=4, size=16)
+    empty.alpha[:] = 0.0
+    with pytest.raises(InputError, match="empty"):
+        NeuS(empty, small_cfg())
+
+
+def test_config_overrides_are_checked():
+    cfg = apply_overrides(NeuSConfig(), ["neus.iterations=12", "keep_largest=true", "neus.lr=0.5"])
+    assert cfg.iterations == 12 and cfg.keep_largest is True and cfg.lr == 0.5
+    with pytest.raises(InputError, match="unknown"):
+        apply_overrides(NeuSConfig(), ["neus.nope=1"])
+    with pytest.raises(InputError, match="bad value"):
+        apply_overrides(NeuSConfig(), ["neus.iterations=many"])
+
+
+def _write_json_capture(folder: Path, with_alpha: bool, n_frames: int = 2) -> Path:
+    import imageio.v3 as iio
+
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i in range(n_frames):
+        px = np.full((8, 8, 4 if with_alpha else 3), 128, np.uint8)
+        iio.imwrite(folder / "images" / f"f{i}.png", px)
+        m = look_at([0, -3, 0.5 * i], [0, 0, 0], [0, 0, 1])
+        frames.append({"file_path": f"./images/f{i}", "transform_matrix": (m @ np.diag([-1, 1, -1, 1])).tolist()})
+    path = folder / "transforms_train.json"
+    path.write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    return path
+
+
+def test_cli_geometry_reports_bad_input(tmp_path, capsys):
+    from vq_mitsuba.cli import main
+
+    no_alpha = _write_json_capture(tmp_path / "rgb", with_alpha=False)
+    assert main(["geometry", str(no_alpha), "-o", str(tmp_path / "run"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "alpha" in err and "transforms_train.json" in err
+    assert not (tmp_path / "run" / "mesh.ply").exists()
+
+    no_frames = tmp_path / "empty" / "transforms_train.json"
+    no_frames.parent.mkdir()
+    no_frames.write_text(json.dumps({"camera_angle_x": 0.7, "frames": []}))
+    assert main(["geometry", str(no_frames), "-o", str(tmp_path / "run2"), "--quiet"]) == 2
+    assert "no cameras" in capsys.readouterr().err
+
+    assert main(["geometry", str(no_alpha), "-o", str(tmp_path / "run3"), "--set", "neus.bogus=1"]) == 2
+    assert "unknown config key" in capsys.readouterr().err
+
+
+def test_cli_fit_geometry_given_without_mesh_is_refused(tmp_path, capsys):
+    from vq_mitsuba.cli import main
+
+    capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
+    assert main(["fit", str(capture), "-o", str(tmp_path / "run"), "--geometry", "given", "--quiet"]) == 2
+    assert "geometry" in capsys.readouterr().err

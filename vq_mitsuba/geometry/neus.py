@@ -1,0 +1,702 @@
+"""NeuS on a CPU: geometry (an SDF) and appearance from posed images with alpha masks.
+
+Model (NeuS, Wang et al. 2021; VQ-NeRF supplement Eq. 1-2): an SDF network f and a colour network
+c; along a ray, section i between samples has opacity
+    alpha_i = max((Phi_s(f_i - cos * d_i / 2) - Phi_s(f_i + cos * d_i / 2)) / Phi_s(f_i - cos * d_i / 2), 0)
+with Phi_s the logistic sigmoid of learned sharpness s, and the pixel colour is the
+alpha-composited c. Losses: L1 colour, eikonal (|grad f| = 1), BCE between accumulated opacity
+and the alpha mask.
+
+What makes it fast enough for two CPU cores:
+- the SDF network is a tiny MLP fed by a multi-resolution *dense* feature grid (plain torch
+  trilinear interpolation, twice differentiable for the eikonal loss), with finer levels faded in
+  coarse-to-fine;
+- the masks give a visual hull; the object lives in the hull's bounding box (normalised to
+  [-1, 1]^3), the SDF starts as the hull's smoothed signed distance (or a sphere), and samples are
+  only placed where the ray crosses the occupancy grid: from its entry into the (dilated) hull to
+  just past the first cell the current SDF marks as deep inside (refreshed during training);
+- every ray batch is drawn from the foreground-dilated pixels of all views.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from ..errors import InputError
+from .config import NeuSConfig, validate
+
+CHECKPOINT = "neus.pt"
+
+
+class _threads:
+    """Use n torch CPU threads inside the block (n <= 0: unchanged), then restore the previous count.
+    One thread is much faster than two when the cores are shared with other work (no spinning barriers)."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def __enter__(self):
+        self.old = torch.get_num_threads()
+        if self.n > 0:
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.old)
+        return False
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras, rays and the visual hull
+
+
+def camera_rays(cam) -> tuple[np.ndarray, np.ndarray]:
+    """World-space origins and unit directions (H*W, 3) through the pixel centres of a Mitsuba camera."""
+    f = cam.focal_px()
+    ys, xs = np.meshgrid(np.arange(cam.height) + 0.5, np.arange(cam.width) + 0.5, indexing="ij")
+    # Mitsuba camera space: +X left, +Y up, +Z forward (see Camera.project).
+    local = np.stack([(0.5 * cam.width - xs) / f, (0.5 * cam.height - ys) / f, np.ones_like(xs)], -1).reshape(-1, 3)
+    d = local @ cam.to_world[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(cam.to_world[:3, 3], d.shape)
+    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
+
+
+def _look_center(cameras) -> np.ndarray:
+    """Least-squares point closest to all optical axes (where the cameras look)."""
+    a, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cameras:
+        d = cam.to_world[:3, 2] / np.linalg.norm(cam.to_world[:3, 2])
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ cam.origin
+    if np.linalg.cond(a) > 1e8:
+        return np.mean([c.origin for c in cameras], 0)
+    return np.linalg.solve(a, b)
+
+
+def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
+          candidates: torch.Tensor | None = None) -> torch.Tensor:
+    """Visual hull on a res^3 grid of cell centres in the box [lo, hi]: (res, res, res) bool.
+
+    A cell is kept when no view whose frustum holds it sees it as background, and at least
+    `min_views` of the views hold it (so space seen by no camera does not count as object).
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    axes = [torch.tensor(lo[i] + (np.arange(res) + 0.5) / res * (hi[i] - lo[i]), dtype=torch.float32)
+            for i in range(3)]
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    # cells no view has carved so far (optionally only the given candidate cells)
+    alive = torch.arange(len(pts)) if candidates is None else candidates.reshape(-1).nonzero()[:, 0]
+    seen = torch.zeros(len(pts), dtype=torch.int32)
+    for cam, mask in zip(cameras, masks):
+        inv = torch.tensor(np.linalg.inv(cam.to_world), dtype=torch.float32)
+        local = pts[alive] @ inv[:3, :3].T + inv[:3, 3]
+        z = local[:, 2]
+        f = cam.focal_px()
+        zc = z.clamp(min=1e-9)
+        x = 0.5 * cam.width - f * local[:, 0] / zc
+        y = 0.5 * cam.height - f * local[:, 1] / zc
+        inside = (z > 1e-6) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+        fg = mask[y.clamp(0, cam.height - 1).long(), x.clamp(0, cam.width - 1).long()]
+        seen[alive] += inside.int()
+        alive = alive[~inside | fg]
+    keep = torch.zeros(len(pts), dtype=torch.bool)
+    keep[alive] = True
+    keep &= seen >= max(1, int(math.ceil(min_views * len(cameras))))
+    return keep.reshape(res, res, res)
+
+
+def _hull_box(cameras, masks: torch.Tensor, cfg: NeuSConfig, source) -> tuple[np.ndarray, float, torch.Tensor]:
+    """(centre, half-size, hull grid) of the cube around the visual hull, found in two passes."""
+    center = _look_center(cameras)
+    dist = min(float(np.linalg.norm(c.origin - center)) for c in cameras)
+    half = 0.95 * dist
+    coarse = 64
+    occ = carve(cameras, masks, center - half, center + half, coarse, cfg.hull_min_views)
+    if not occ.any():
+        raise InputError(source, "the alpha masks have no common foreground: the visual hull is empty "
+                                 "(check the masks and the camera poses)")
+    idx = occ.nonzero().numpy()
+    cell = 2 * half / coarse
+    lo = center - half + (idx.min(0) - 1) * cell
+    hi = center - half + (idx.max(0) + 2) * cell
+    c = 0.5 * (lo + hi)
+    h = 0.5 * float(np.max(hi - lo)) * 1.1
+    # Coarse hull in the final box, dilated, bounds the candidates of the full-resolution pass.
+    res = cfg.hull_resolution
+    occ = carve(cameras, masks, c - h, c + h, max(res // 2, 2), cfg.hull_min_views)
+    occ = F.max_pool3d(occ.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0.5
+    cand = F.interpolate(occ.float()[None, None], size=(res, res, res), mode="nearest")[0, 0] > 0.5
+    occ = carve(cameras, masks, c - h, c + h, res, cfg.hull_min_views, candidates=cand)
+    if not occ.any():
+        raise InputError(source, "the visual hull vanished at full resolution (masks too thin?)")
+    return c, h, occ
+
+
+def hull_sdf(occ: torch.Tensor) -> torch.Tensor:
+    """Smoothed signed distance (negative inside) to a boolean grid's surface, in [-1, 1]^3 box units."""
+    from scipy import ndimage
+
+    o = occ.numpy()
+    res = o.shape[0]
+    inside = ndimage.distance_transform_edt(o)
+    outside = ndimage.distance_transform_edt(~o)
+    sdf = np.where(o, -(inside - 0.5), outside - 0.5) * (2.0 / res)
+    sdf = ndimage.gaussian_filter(sdf, 1.0)
+    return torch.tensor(sdf, dtype=torch.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Networks
+
+
+def trilinear(grid: torch.Tensor, res: int, p: torch.Tensor) -> torch.Tensor:
+    """Trilinear lookup of a (res^3, C) grid of values at cell centres of [-1, 1]^3, at points (N, 3).
+
+    Plain indexing and products, so autograd can differentiate it twice (eikonal loss)."""
+    u = ((p + 1.0) * (0.5 * res) - 0.5).clamp(0.0, res - 1.0)
+    i0 = u.detach().floor().clamp(max=res - 2).long()
+    f = u - i0
+    base = (i0[:, 0] * res + i0[:, 1]) * res + i0[:, 2]
+    offs = torch.tensor([dx * res * res + dy * res + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)],
+                        device=p.device)
+    vals = grid.index_select(0, (base[:, None] + offs).reshape(-1)).view(len(p), 8, -1)
+    fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2:3]
+    wx = torch.cat([1 - fx, fx], 1)
+    wy = torch.cat([1 - fy, fy], 1)
+    wz = torch.cat([1 - fz, fz], 1)
+    w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(len(p), 8)
+    return (vals * w[..., None]).sum(1)
+
+
+class DenseGrid(nn.Module):
+    """Multi-resolution dense feature grids (resolutions geometric from base_res to max_res), all
+    levels stored in one table and looked up with one gather (few, large tensor ops: fast on a CPU)."""
+
+    def __init__(self, levels: int, base_res: int, max_res: int, features: int):
+        super().__init__()
+        growth = (max_res / base_res) ** (1.0 / max(levels - 1, 1))
+        self.res = [int(round(base_res * growth ** level)) for level in range(levels)]
+        self.features = features
+        offsets = np.cumsum([0] + [r ** 3 for r in self.res])
+        self.table = nn.Parameter(torch.empty(int(offsets[-1]), features).uniform_(-1e-4, 1e-4))
+        r = torch.tensor(self.res, dtype=torch.long)
+        self.register_buffer("res_l", r, persistent=False)
+        self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long), persistent=False)
+        corners = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+        self.register_buffer("corner_offs", (corners[None, :, 0] * r[:, None] ** 2 + corners[None, :, 1] * r[:, None]
+                                             + corners[None, :, 2]), persistent=False)  # (L, 8)
+
+    def forward(self, p: torch.Tensor, level_weights: list[float]) -> torch.Tensor:
+        n, levels = len(p), len(self.res)
+        res = self.res_l.to(p.dtype)[None, :, None]  # (1, L, 1)
+        u = torch.minimum(((p[:, None, :] + 1.0) * (0.5 * res) - 0.5).clamp(min=0.0), res - 1.0)  # (N, L, 3)
+        i0 = torch.minimum(u.detach().floor(), res - 2.0).long()
+        f = u - i0
+        r = self.res_l[None, :]
+        base = self.offsets[None, :] + (i0[..., 0] * r + i0[..., 1]) * r + i0[..., 2]  # (N, L)
+        idx = (base[..., None] + self.corner_offs[None]).reshape(-1)
+        vals = self.table.index_select(0, idx).view(n, levels, 8, self.features)
+        wx = torch.stack([1 - f[..., 0], f[..., 0]], -1)
+        wy = torch.stack([1 - f[..., 1], f[..., 1]], -1)
+        wz = torch.stack([1 - f[..., 2], f[..., 2]], -1)
+        w = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).reshape(n, levels, 8, 1)
+        lw = torch.tensor(level_weights, dtype=p.dtype).view(1, levels, 1)
+        return ((vals * w).sum(2) * lw).reshape(n, levels * self.features)
+
+
+class SDFNetwork(nn.Module):
+    """SDF = base(x) + MLP(x, grid(x))[0]; the other outputs are features for the colour network."""
+
+    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None):
+        super().__init__()
+        self.encoding = DenseGrid(cfg.levels, cfg.base_res, cfg.max_res, cfg.features)
+        d_in = 3 + cfg.levels * cfg.features
+        self.l1 = nn.Linear(d_in, cfg.hidden)
+        self.l2 = nn.Linear(cfg.hidden, cfg.hidden)
+        self.out = nn.Linear(cfg.hidden, 1 + cfg.geo_features)
+        nn.init.normal_(self.out.weight, 0.0, 1e-4)
+        nn.init.zeros_(self.out.bias)
+        self.act = nn.Softplus(beta=100)
+        self.init_radius = cfg.init_radius
+        if base_grid is not None:
+            self.register_buffer("base_grid", base_grid.reshape(-1, 1).contiguous())
+            self.base_res = int(round(base_grid.numel() ** (1 / 3)))
+        else:
+            self.base_grid = None
+
+    def base(self, p: torch.Tensor) -> torch.Tensor:
+        if self.base_grid is None:
+            return p.norm(dim=-1) - self.init_radius
+        return trilinear(self.base_grid, self.base_res, p)[:, 0]
+
+    def forward(self, p: torch.Tensor, level_weights: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+        h = torch.cat([p, self.encoding(p, level_weights)], -1)
+        h = self.act(self.l1(h))
+        h = self.act(self.l2(h))
+        o = self.out(h)
+        return self.base(p) + o[:, 0], o[:, 1:]
+
+
+class ColorNetwork(nn.Module):
+    """Radiance from SDF features, normal and view direction (with a small frequency encoding)."""
+
+    def __init__(self, cfg: NeuSConfig, view_freqs: int = 3):
+        super().__init__()
+        self.view_freqs = view_freqs
+        d_in = cfg.geo_features + 3 + 3 + 6 * view_freqs
+        self.net = nn.Sequential(nn.Linear(d_in, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden),
+                                 nn.ReLU(), nn.Linear(cfg.hidden, 3))
+
+    def forward(self, feat, normal, view):
+        enc = [view]
+        for k in range(self.view_freqs):
+            enc += [torch.sin((2.0 ** k) * math.pi * view), torch.cos((2.0 ** k) * math.pi * view)]
+        return torch.sigmoid(self.net(torch.cat([feat, normal] + enc, -1)))
+
+
+class NeuSModel(nn.Module):
+    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None):
+        super().__init__()
+        self.sdf = SDFNetwork(cfg, base_grid)
+        self.color = ColorNetwork(cfg)
+        self.variance = nn.Parameter(torch.tensor(float(cfg.init_variance)))
+
+    def inv_s(self) -> torch.Tensor:
+        return torch.exp(10.0 * self.variance).clamp(1e-6, 1e6)
+
+    def sdf_grad(self, p: torch.Tensor, level_weights, create_graph: bool):
+        with torch.enable_grad():
+            p = p.detach().requires_grad_(True)
+            sdf, feat = self.sdf(p, level_weights)
+            grad = torch.autograd.grad(sdf.sum(), p, create_graph=create_graph)[0]
+        return sdf, feat, grad
+
+
+# --------------------------------------------------------------------------------------------
+# The reconstruction: data, occupancy, rendering
+
+
+def _srgb(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=1e-8) ** (1 / 2.4) - 0.055)
+
+
+class NeuS:
+    """A NeuS model bound to a capture's cameras, in the normalised box around the visual hull."""
+
+    def __init__(self, capture, cfg: NeuSConfig):
+        validate(cfg)
+        self.cfg = cfg
+        self.capture = capture
+        self.source = capture.source
+        if len(capture.cameras) == 0:
+            raise InputError(capture.source, "the capture has no images")
+        if not capture.has_alpha:
+            raise InputError(capture.source, "reconstructing geometry (NeuS) needs alpha masks: the images have no "
+                                             "alpha channel (give RGBA PNG/EXR images, or pass known geometry with --mesh)")
+        alpha = torch.from_numpy(np.ascontiguousarray(capture.alpha))
+        if float(alpha.max()) <= cfg.hull_threshold:
+            raise InputError(capture.source, "the alpha masks are empty: no foreground pixel in any image")
+        torch.manual_seed(cfg.seed)
+        with _threads(cfg.threads):
+            self._setup(capture, cfg, alpha)
+
+    def _setup(self, capture, cfg: NeuSConfig, alpha: torch.Tensor) -> None:
+        masks = alpha > cfg.hull_threshold
+        # Carve with masks dilated by one pixel, so the hull stays conservative at silhouettes.
+        dil = F.max_pool2d(masks.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0.5
+        t0 = time.perf_counter()
+        center, half, occ = _hull_box(capture.cameras, dil, cfg, capture.source)
+        self.center, self.half = np.asarray(center, dtype=np.float64), float(half)
+        self.hull = occ
+        self.hull_sdf = hull_sdf(occ)
+        from scipy import ndimage
+
+        self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(occ.numpy(), iterations=2))
+        self.hull_seconds = time.perf_counter() - t0
+        self.model = NeuSModel(cfg, self.hull_sdf if cfg.init == "hull" else None)
+        self.deep = torch.zeros_like(occ)  # cells the current SDF marks as well inside the object
+
+        # Training rays: pixels within a few pixels of the foreground, from every view.
+        near_fg = F.max_pool2d(masks.float()[:, None], 7, stride=1, padding=3)[:, 0] > 0.5
+        origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
+        origins = torch.from_numpy(np.concatenate(origins))
+        dirs = torch.from_numpy(np.concatenate(dirs))
+        sel = near_fg.reshape(-1)
+        self.rays_o = self.to_box(origins[sel])
+        self.rays_d = dirs[sel]
+        rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3)
+        self.rays_rgb = _srgb(rgb[sel])
+        self.rays_alpha = alpha.reshape(-1)[sel].clamp(0, 1)
+
+    # ---- coordinates
+    def to_box(self, x_world: torch.Tensor) -> torch.Tensor:
+        return ((x_world.double() - torch.from_numpy(self.center)) / self.half).float()
+
+    def to_world(self, p_box: np.ndarray) -> np.ndarray:
+        return np.asarray(p_box, dtype=np.float64) * self.half + self.center
+
+    # ---- schedule
+    def level_weights(self, step: int) -> list[float]:
+        levels = self.cfg.levels
+        span = self.cfg.coarse_to_fine * self.cfg.iterations
+        if span <= 0 or levels == 1:
+            return [1.0] * levels
+        progress = step / span * (levels - 1)  # level l fully on once progress >= l
+        return [float(np.clip(progress - (l - 1), 0.0, 1.0)) if l > 0 else 1.0 for l in range(levels)]
+
+    # ---- occupancy
+    @torch.no_grad()
+    def refresh_occupancy(self, level_weights, chunk: int = 65536) -> None:
+        """Mark hull cells whose SDF is below -margin as deep inside (ray intervals end there)."""
+        res = self.cfg.hull_resolution
+        cells = self.hull.nonzero()
+        p = (cells.float() + 0.5) / res * 2.0 - 1.0
+        sdf = torch.cat([self.model.sdf(p[i:i + chunk], level_weights)[0] for i in range(0, len(p), chunk)])
+        margin = 3.0 * 2.0 / res
+        deep = torch.zeros(res ** 3, dtype=torch.bool)
+        flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
+        deep[flat] = sdf < -margin
+        self.deep = deep.reshape(res, res, res)
+        self.codes = self.hull_dilated.to(torch.uint8) + (self.deep & self.hull_dilated).to(torch.uint8)
+        # Cache every training ray's interval (they only change with the occupancy grid).
+        near, far = [], []
+        for i in range(0, len(self.rays_o), 8192):
+            n, f = self.intervals(self.rays_o[i:i + 8192], self.rays_d[i:i + 8192])
+            near.append(n)
+            far.append(f)
+        self.ray_near, self.ray_far = torch.cat(near), torch.cat(far)
+
+    def _lookup(self, grid: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        res = grid.shape[0]
+        i = ((p + 1.0) * 0.5 * res).floor().long()
+        ok = ((i >= 0) & (i < res)).all(-1)
+        i = i.clamp(0, res - 1)
+        return grid[i[..., 0], i[..., 1], i[..., 2]] & ok
+
+    def _codes(self, p: torch.Tensor) -> torch.Tensor:
+        """Occupancy code of the cell holding each point (inside the box): 0 empty, 1 hull, 2 deep inside."""
+        res = self.codes.shape[0]
+        i = ((p + 1.0) * (0.5 * res)).to(torch.int32).clamp_(0, res - 1)
+        flat = (i[..., 0] * res + i[..., 1]) * res + i[..., 2]
+        return self.codes.view(-1)[flat.long()]
+
+    def intervals(self, o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per ray (t_near, t_far) in box units: entry into the dilated hull to just past the first
+        deep-inside cell (or the hull exit); t_near == t_far for rays that miss the hull."""
+        inv = 1.0 / torch.where(d.abs() < 1e-9, torch.full_like(d, 1e-9), d)
+        t1, t2 = (-1.0 - o) * inv, (1.0 - o) * inv
+        t_in = torch.minimum(t1, t2).amax(-1).clamp(min=0.0)
+        t_out = torch.maximum(t1, t2).amin(-1)
+        hit = t_out > t_in
+        k = self.cfg.march_steps
+        steps = (torch.arange(k, dtype=torch.float32) + 0.5) / k
+        t = t_in[:, None] + (t_out - t_in).clamp(min=0)[:, None] * steps
+        pts = o[:, None] + d[:, None] * t[..., None]
+        code = self._codes(pts) * hit[:, None]
+        occ = code > 0
+        deep = code > 1
+        any_occ = occ.any(-1)
+        idx = torch.arange(k).expand_as(occ)
+        first = torch.where(occ, idx, k).amin(-1).clamp(max=k - 1)
+        last = torch.where(occ, idx, -1).amax(-1).clamp(min=0)
+        first_deep = torch.where(deep, idx, k).amin(-1)
+        end = torch.where(first_deep < k, first_deep, last)
+        dt = (t_out - t_in).clamp(min=0) / k
+        near = t_in + first * dt - dt
+        far = t_in + (end + 1) * dt + dt
+        near = torch.where(any_occ, near.clamp(min=0), t_in)
+        far = torch.where(any_occ, far, near)
+        return near, far
+
+    # ---- rendering
+    def render(self, o, d, level_weights, n_samples: int, perturb: bool, create_graph: bool,
+               cos_anneal: float = 1.0, near=None, far=None) -> dict:
+        if near is None or far is None:
+            near, far = self.intervals(o, d)
+        valid = far > near + 1e-6
+        b = len(o)
+        out = {"rgb": o.new_zeros(b, 3), "acc": o.new_zeros(b), "eikonal": o.new_zeros(()),
+               "n_points": 0, "depth": o.new_zeros(b), "normal": o.new_zeros(b, 3)}
+        if not bool(valid.any()):
+            return out
+        ov, dv, nv, fv = o[valid], d[valid], near[valid], far[valid]
+        m = len(ov)
+        jitter = torch.rand(m, n_samples) if perturb else torch.full((m, n_samples), 0.5)
+        steps = (torch.arange(n_samples, dtype=torch.float32) + jitter) / n_samples
+        z = nv[:, None] + (fv - nv)[:, None] * steps
+        dists = ((fv - nv) / n_samples)[:, None].expand(m, n_samples)
+        pts = (ov[:, None] + dv[:, None] * z[..., None]).reshape(-1, 3)
+        sdf, feat, grad = self.model.sdf_grad(pts, level_weights, create_graph)
+        sdf = sdf.view(m, n_samples)
+        g = grad.view(m, n_samples, 3)
+        true_cos = (dv[:, None] * g).sum(-1)
+        iter_cos = -(F.relu(-true_cos * 0.5 + 0.5) * (1.0 - cos_anneal) + F.relu(-true_cos) * cos_anneal)
+        inv_s = self.model.inv_s()
+        prev_cdf = torch.sigmoid((sdf - iter_cos * dists * 0.5) * inv_s)
+        next_cdf = torch.sigmoid((sdf + iter_cos * dists * 0.5) * inv_s)
+        alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
+        trans = torch.cumprod(torch.cat([alpha.new_ones(m, 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
+        w = alpha * trans
+        normal = F.normalize(g, dim=-1)
+        color = self.model.color(feat, normal.reshape(-1, 3), dv[:, None].expand(m, n_samples, 3).reshape(-1, 3))
+        color = color.view(m, n_samples, 3)
+        rgb = torch.zeros_like(out["rgb"])
+        acc = torch.zeros_like(out["acc"])
+        rgb[valid] = (w[..., None] * color).sum(1)
+        acc[valid] = w.sum(1)
+        out["rgb"], out["acc"] = rgb, acc
+        out["eikonal"] = ((grad.norm(dim=-1) - 1.0) ** 2).mean()
+        out["n_points"] = m * n_samples
+        if not create_graph:
+            depth = torch.zeros_like(out["depth"])
+            depth[valid] = (w * z).sum(1)
+            nrm = torch.zeros_like(out["normal"])
+            nrm[valid] = (w[..., None] * normal).sum(1)
+            out["depth"], out["normal"] = depth, nrm
+        return out
+
+    @torch.no_grad()
+    def render_camera(self, cam, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """(sRGB colour (H, W, 3) on black, opacity (H, W)) of a camera, for novel-view PSNR."""
+        o, d = camera_rays(cam)
+        o = self.to_box(torch.from_numpy(o))
+        d = torch.from_numpy(d)
+        lw = [1.0] * self.cfg.levels
+        rgb, acc = [], []
+        for i in range(0, len(o), chunk):
+            r = self.render(o[i:i + chunk], d[i:i + chunk], lw, self.cfg.n_samples, False, False)
+            rgb.append(r["rgb"].detach())
+            acc.append(r["acc"].detach())
+        return (torch.cat(rgb).reshape(cam.height, cam.width, 3).numpy(),
+                torch.cat(acc).reshape(cam.height, cam.width).numpy())
+
+    # ---- mesh
+    @torch.no_grad()
+    def sdf_volume(self, res: int, chunk: int = 131072) -> np.ndarray:
+        """SDF on a res^3 grid spanning [-1, 1]^3 (box units), limited to the visual hull."""
+        axis = torch.linspace(-1.0, 1.0, res)
+        hull_res = self.cfg.hull_resolution
+        lw = [1.0] * self.cfg.levels
+        vol = torch.empty(res, res, res)
+        # Outside the (dilated) hull the SDF is the hull's own distance; inside, the network's,
+        # never below the hull distance minus a tolerance (the visual-hull constraint).
+        tol = 2.0 * 2.0 / hull_res
+        for i in range(res):
+            p = torch.stack(torch.meshgrid(axis[i:i + 1], axis, axis, indexing="ij"), -1).reshape(-1, 3)
+            hs = trilinear(self.hull_sdf.reshape(-1, 1), hull_res, p)[:, 0]
+            inside = self._lookup(self.hull_dilated, p)
+            s = hs.clone()
+            if bool(inside.any()):
+                q = p[inside]
+                s[inside] = torch.cat([self.model.sdf(q[j:j + chunk], lw)[0] for j in range(0, len(q), chunk)])
+                s = torch.maximum(s, hs - tol)
+            vol[i] = s.view(res, res)
+        return vol.numpy()
+
+    def extract_mesh(self, res: int | None = None, clean: bool = True):
+        from .mesh import clean_mesh, marching_cubes
+
+        res = res or self.cfg.mesh_resolution
+        vol = self.sdf_volume(res)
+        try:
+            mesh = marching_cubes(vol, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+        except ValueError as exc:
+            raise InputError(self.source, f"NeuS produced no surface ({exc}); check the masks and cameras") from exc
+        mesh.vertices = self.to_world(mesh.vertices)
+        if clean:
+            c = self.cfg
+            mesh = clean_mesh(mesh, c.min_component, c.keep_largest, c.smooth_iterations, c.max_faces)
+        return mesh
+
+
+# --------------------------------------------------------------------------------------------
+# Training
+
+
+def _lr_factor(cfg: NeuSConfig, step: int) -> float:
+    warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
+    prog = min(1.0, step / max(cfg.iterations, 1))
+    cos = 0.5 * (1.0 + math.cos(math.pi * prog))
+    return warm * (cfg.lr_decay + (1.0 - cfg.lr_decay) * cos)
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(neus: NeuS, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
+          callback=None, callback_every_s: float = 0.0) -> dict:
+    """Optimise the NeuS model; returns a summary. `callback(neus, step, train_seconds)` is called
+    every `callback_every_s` seconds of training (its own time is not counted)."""
+
+    with _threads(neus.cfg.threads):
+        return _train(neus, run_dir, resume, progress, callback, callback_every_s)
+
+
+def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) -> dict:
+    from tqdm import tqdm
+
+    cfg = neus.cfg
+    model = neus.model
+    mlp = [p for name, p in model.sdf.named_parameters() if not name.startswith("encoding")]
+    groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()), "base_lr": cfg.lr},
+              {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
+              {"params": [model.variance], "base_lr": cfg.lr_variance}]
+    optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    step, elapsed, history = 0, 0.0, []
+    ckpt = run_dir / CHECKPOINT if run_dir is not None else None
+    if resume and ckpt is not None and ckpt.is_file():
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        optim.load_state_dict(state["optim"])
+        gen.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        step, elapsed, history = state["step"], state["elapsed"], state["history"]
+
+    def save():
+        if ckpt is not None:
+            _atomic_save({"model": model.state_dict(), "optim": optim.state_dict(), "generator": gen.get_state(),
+                          "torch_rng": torch.get_rng_state(), "step": step, "elapsed": elapsed,
+                          "history": history, "config": asdict(cfg)}, ckpt)
+
+    n_rays = len(neus.rays_o)
+    neus.refresh_occupancy(neus.level_weights(step))
+    bar = tqdm(total=cfg.iterations, initial=step, desc="neus", unit="it", disable=not progress, dynamic_ncols=True)
+    next_cb = (elapsed // callback_every_s + 1) * callback_every_s if callback and callback_every_s > 0 else None
+    t_last = time.perf_counter()
+    stopped_by_time = False
+    try:
+        while step < cfg.iterations:
+            if cfg.time_limit_s > 0 and elapsed >= cfg.time_limit_s:
+                stopped_by_time = True
+                break
+            lw = neus.level_weights(step)
+            for group in optim.param_groups:
+                group["lr"] = group["base_lr"] * _lr_factor(cfg, step)
+            idx = torch.randint(0, n_rays, (cfg.batch_rays,), generator=gen)
+            out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
+                              near=neus.ray_near[idx], far=neus.ray_far[idx])
+            target, alpha = neus.rays_rgb[idx], neus.rays_alpha[idx]
+            color_loss = (out["rgb"] - target).abs().mean()
+            acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
+            mask_loss = F.binary_cross_entropy(acc, alpha)
+            loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            step += 1
+            now = time.perf_counter()
+            elapsed += now - t_last
+            t_last = now
+            mse = float(((out["rgb"].detach() - target) ** 2).mean())
+            history.append({"step": step, "seconds": round(elapsed, 3), "loss": float(loss.detach()), "color": float(color_loss.detach()),
+                            "eikonal": float(out["eikonal"].detach()), "mask": float(mask_loss.detach()),
+                            "psnr": -10.0 * math.log10(max(mse, 1e-10)), "s": float(model.inv_s().detach())})
+            bar.update(1)
+            if step % 10 == 0:
+                bar.set_postfix(loss=f"{history[-1]['loss']:.4f}", psnr=f"{history[-1]['psnr']:.1f}",
+                                s=f"{history[-1]['s']:.0f}")
+            if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
+                neus.refresh_occupancy(lw)
+            if cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0:
+                save()
+            if next_cb is not None and elapsed >= next_cb:
+                callback(neus, step, elapsed)
+                next_cb = (elapsed // callback_every_s + 1) * callback_every_s
+            t_last = time.perf_counter()  # time spent in saving / callbacks is not training time
+    finally:
+        bar.close()
+        save()
+    return {"iterations": step, "train_seconds": elapsed, "history": history, "stopped_by_time": stopped_by_time}
+
+
+def _plot_history(history: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not history:
+        return
+    steps = [h["step"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
+    for key in ("loss", "color", "mask", "eikonal"):
+        axes[0].semilogy(steps, [max(h[key], 1e-8) for h in history], label=key, lw=0.8)
+    axes[0].legend()
+    axes[0].set_xlabel("step")
+    axes[0].set_title("NeuS losses")
+    k = max(1, len(history) // 200)
+    psnr = np.convolve([h["psnr"] for h in history], np.ones(k) / k, mode="valid")
+    axes[1].plot(steps[k - 1:], psnr)
+    axes[1].set_xlabel("step")
+    axes[1].set_title("training-batch PSNR (dB, sRGB)")
+    axes[2].semilogy(steps, [h["s"] for h in history])
+    axes[2].set_xlabel("step")
+    axes[2].set_title("sharpness s")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def reconstruct(capture, run_dir: str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
+                progress: bool = True, callback=None, callback_every_s: float = 0.0) -> dict:
+    """NeuS on a loaded capture, then mesh export: writes RUN_DIR/mesh.ply, geometry.json,
+    geometry_loss.png (and the NeuS checkpoint neus.pt). Returns the geometry.json summary."""
+    cfg = cfg or NeuSConfig()
+    with _threads(cfg.threads):
+        return _reconstruct(capture, Path(run_dir), cfg, resume, progress, callback, callback_every_s)
+
+
+def _reconstruct(capture, run_dir: Path, cfg: NeuSConfig, resume, progress, callback, callback_every_s) -> dict:
+    t0 = time.perf_counter()
+    neus = NeuS(capture, cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    setup_s = time.perf_counter() - t0
+    summary = train(neus, run_dir, resume=resume, progress=progress, callback=callback,
+                    callback_every_s=callback_every_s)
+    t1 = time.perf_counter()
+    mesh = neus.extract_mesh()
+    export_s = time.perf_counter() - t1
+    tmp = run_dir / "mesh.tmp.ply"
+    mesh.export(tmp)
+    os.replace(tmp, run_dir / "mesh.ply")
+    _plot_history(summary["history"], run_dir / "geometry_loss.png")
+    last = summary["history"][-1] if summary["history"] else {}
+    info = {
+        "capture": str(Path(capture.source).resolve()),
+        "world": capture.world,
+        "iterations": summary["iterations"],
+        "stopped_by_time_limit": summary["stopped_by_time"],
+        "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(neus.hull_seconds, 2),
+                    "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
+                    "total": round(time.perf_counter() - t0, 2)},
+        "iterations_per_s": summary["iterations"] / max(summary["train_seconds"], 1e-9),
+        "final_train_psnr": last.get("psnr"),
+        "final_sharpness_s": last.get("s"),
+        "box_center": neus.center.tolist(),
+        "box_half_size": neus.half,
+        "training_rays": len(neus.rays_o),
+        "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+                 "watertight": bool(mesh.is_watertight)},
+        "config": asdict(cfg),
+        "torch_threads": torch.get_num_threads(),
+    }
+    (run_dir / "geometry.json").write_text(json.dumps(info, indent=2))
+    info["_neus"] = neus
+    return info
