@@ -11,7 +11,7 @@ from ..errors import InputError
 @dataclass
 class NeuSConfig:
     seed: int = 0  # network initialisation, ray batches and sample jitter
-    iterations: int = 2500  # training steps (the schedule is laid out over this many)
+    iterations: int = 2500  # training steps (schedule: steps or time_limit_s, whichever ends first)
     time_limit_s: float = 0.0  # stop training after this many seconds (0: no limit)
     batch_rays: int = 512  # rays per step, drawn from all views
     n_samples: int = 24  # stratified samples per ray inside its occupied interval
@@ -26,7 +26,7 @@ class NeuSConfig:
     features: int = 2  # features per grid level
     hidden: int = 64  # width of the SDF and colour MLPs
     geo_features: int = 15  # SDF-network features passed to the colour network
-    coarse_to_fine: float = 0.3  # fraction of the steps over which finer grid levels are faded in
+    coarse_to_fine: float = 0.3  # fraction of training (steps or time) over which finer grid levels are faded in
     init: str = "hull"  # SDF initialisation: hull (smoothed visual-hull distance) or sphere
     init_radius: float = 0.6  # sphere initialisation radius (normalised box units)
     init_variance: float = 0.5  # initial log-sharpness / 10: s = exp(10 * variance)

@@ -348,12 +348,13 @@ class NeuS:
         return np.asarray(p_box, dtype=np.float64) * self.half + self.center
 
     # ---- schedule
-    def level_weights(self, step: int) -> list[float]:
+    def level_weights(self, frac: float) -> list[float]:
+        """Grid level weights at training progress frac in [0, 1] (coarse-to-fine fade-in)."""
         levels = self.cfg.levels
-        span = self.cfg.coarse_to_fine * self.cfg.iterations
+        span = self.cfg.coarse_to_fine
         if span <= 0 or levels == 1:
             return [1.0] * levels
-        progress = step / span * (levels - 1)  # level l fully on once progress >= l
+        progress = frac / span * (levels - 1)  # level l fully on once progress >= l
         return [float(np.clip(progress - (l - 1), 0.0, 1.0)) if l > 0 else 1.0 for l in range(levels)]
 
     # ---- occupancy
@@ -525,9 +526,16 @@ class NeuS:
 # Training
 
 
-def _lr_factor(cfg: NeuSConfig, step: int) -> float:
+def _progress(cfg: NeuSConfig, step: int, elapsed: float) -> float:
+    """Training progress in [0, 1]: steps or seconds, whichever budget runs out first."""
+    frac = step / max(cfg.iterations, 1)
+    if cfg.time_limit_s > 0:
+        frac = max(frac, elapsed / cfg.time_limit_s)
+    return min(frac, 1.0)
+
+
+def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
     warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
-    prog = min(1.0, step / max(cfg.iterations, 1))
     cos = 0.5 * (1.0 + math.cos(math.pi * prog))
     return warm * (cfg.lr_decay + (1.0 - cfg.lr_decay) * cos)
 
@@ -576,9 +584,11 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
                           "history": history, "config": asdict(cfg)}, ckpt)
 
     n_rays = len(neus.rays_o)
-    neus.refresh_occupancy(neus.level_weights(step))
+    neus.refresh_occupancy(neus.level_weights(_progress(cfg, step, elapsed)))
     bar = tqdm(total=cfg.iterations, initial=step, desc="neus", unit="it", disable=not progress, dynamic_ncols=True)
     next_cb = (elapsed // callback_every_s + 1) * callback_every_s if callback and callback_every_s > 0 else None
+    if next_cb is not None and step == 0:
+        callback(neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
     t_last = time.perf_counter()
     stopped_by_time = False
     try:
@@ -586,9 +596,10 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
             if cfg.time_limit_s > 0 and elapsed >= cfg.time_limit_s:
                 stopped_by_time = True
                 break
-            lw = neus.level_weights(step)
+            prog = _progress(cfg, step, elapsed)
+            lw = neus.level_weights(prog)
             for group in optim.param_groups:
-                group["lr"] = group["base_lr"] * _lr_factor(cfg, step)
+                group["lr"] = group["base_lr"] * _lr_factor(cfg, step, prog)
             idx = torch.randint(0, n_rays, (cfg.batch_rays,), generator=gen)
             out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
                               near=neus.ray_near[idx], far=neus.ray_far[idx])

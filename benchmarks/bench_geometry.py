@@ -1,0 +1,229 @@
+"""Benchmark of the geometry stage: NeuS + mesh export on the bundled scenes, time against Chamfer.
+
+    .venv/bin/python benchmarks/bench_geometry.py [--scenes demo texture balls] [--time-limit 600]
+        [--checkpoint-every 60] [--resolution 128] [--n-train 64] [--test-views 4] [--set neus.key=value ...]
+
+For each scene: a dataset with N training views at R x R (data/NAME or data/geom_NAME when its
+scene.json matches, else benchmarks/out/data/NAME, else generated into data/geom_NAME), NeuS from
+its transforms_train.json (images and alpha masks only; Blender world) into
+benchmarks/out/geometry/NAME, with a time limit on training. Every --checkpoint-every seconds of
+training a mesh is extracted (128^3, outside the timed training) and scored; the final mesh is
+scored against the dataset's mesh.ply: Chamfer distance as a fraction of the bounding-box
+diagonal, normal consistency, F-scores, and NeuS novel-view PSNR (sRGB, black background) on
+the first test views. Results: JSON + markdown in benchmarks/results/geometry_<commit>.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def find_dataset(name: str, resolution: int, n_train: int, progress: bool) -> Path:
+    def ok(folder: Path) -> bool:
+        meta = folder / "scene.json"
+        if not meta.is_file():
+            return False
+        m = json.loads(meta.read_text())
+        return m.get("resolution") == [resolution, resolution] and m.get("n_train") == n_train
+
+    for folder in (ROOT / "data" / name, ROOT / "data" / f"geom_{name}", ROOT / "benchmarks" / "out" / "data" / name):
+        if ok(folder):
+            return folder
+    from vq_mitsuba import synthetic
+
+    out = ROOT / "data" / f"geom_{name}"
+    print(f"[{name}] generating {out} ({n_train} views at {resolution}x{resolution})")
+    synthetic.make_scene(name, out, resolution=resolution, n_train=n_train, progress=progress)
+    return out
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a - b) ** 2))
+    return float(-10 * np.log10(max(mse, 1e-12)))
+
+
+def novel_view_psnr(neus, data: Path, n_views: int) -> dict:
+    import torch
+
+    from vq_mitsuba.capture.dataset import load_capture
+    from vq_mitsuba.geometry.neus import _srgb
+
+    test = load_capture(data / "transforms_test.json", mesh=data / "mesh.ply")
+    full, masked = [], []
+    for k in range(min(n_views, len(test.cameras))):
+        rgb, _ = neus.render_camera(test.cameras[k])
+        gt = _srgb(torch.from_numpy(test.images[k])).numpy()
+        full.append(psnr(rgb, gt))
+        fg = test.alpha[k] > 0.5
+        masked.append(psnr(rgb[fg], gt[fg]))
+    return {"psnr": float(np.mean(full)), "psnr_foreground": float(np.mean(masked)), "views": len(full)}
+
+
+def versions() -> dict:
+    import pymeshlab  # noqa: F401
+    import skimage
+    import torch
+    import trimesh
+
+    out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+           "scikit-image": skimage.__version__, "trimesh": trimesh.__version__}
+    try:
+        from importlib.metadata import version
+
+        out["pymeshlab"] = version("pymeshlab")
+    except Exception:
+        pass
+    return out
+
+
+def machine() -> dict:
+    gpu = "none"
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            gpu = torch.cuda.get_device_name(0)
+    except Exception:
+        pass
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cores": os.cpu_count(), "cpu": cpu, "gpu": gpu, "os": platform.platform()}
+
+
+def commit() -> str:
+    try:
+        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True).strip()
+    except Exception:
+        return "unknown"
+
+
+def run_scene(name: str, args, overrides: list[str]) -> dict:
+    from vq_mitsuba.capture.dataset import load_capture, load_mesh
+    from vq_mitsuba.geometry.mesh import mesh_metrics
+    from vq_mitsuba.geometry.neus import reconstruct
+    from vq_mitsuba.geometry.pipeline import load_neus_config
+
+    data = find_dataset(name, args.resolution, args.n_train, not args.quiet)
+    run_dir = ROOT / args.out / name
+    for stale in ("neus.pt", "mesh.ply", "geometry.json"):
+        (run_dir / stale).unlink(missing_ok=True)
+    cfg = load_neus_config([f"neus.time_limit_s={args.time_limit}"] + overrides)
+    gt = load_mesh(data / "mesh.ply")
+    t0 = time.perf_counter()
+    capture = load_capture(data / "transforms_train.json")
+    load_s = time.perf_counter() - t0
+    load_before = os.getloadavg()
+    curve = []
+
+    def checkpoint(neus, step, seconds):
+        t = time.perf_counter()
+        m = mesh_metrics(neus.extract_mesh(128), gt, n_points=50000)
+        curve.append({"step": step, "train_seconds": round(seconds, 1), "chamfer_rel": m["chamfer_rel"],
+                      "normal_consistency": m["normal_consistency"]})
+        print(f"[{name}] step {step} at {seconds:.0f} s: Chamfer {100 * m['chamfer_rel']:.3f}% "
+              f"NC {m['normal_consistency']:.4f} (scored in {time.perf_counter() - t:.0f} s)", flush=True)
+
+    print(f"[{name}] NeuS on {data}/transforms_train.json, training limit {args.time_limit:g} s", flush=True)
+    info = reconstruct(capture, run_dir, cfg, progress=not args.quiet, callback=checkpoint,
+                       callback_every_s=args.checkpoint_every)
+    neus = info.pop("_neus")
+    # The hull-initialised start (step 0) and the final state belong on the curve too.
+    final = mesh_metrics(load_mesh(run_dir / "mesh.ply"), gt)
+    secs = info["seconds"]
+    views = novel_view_psnr(neus, data, args.test_views) if args.test_views > 0 else {}
+    result = {
+        "scene": name, "dataset": str(data), "run": str(run_dir),
+        "seconds": {"load_capture": round(load_s, 1), **secs,
+                    "pipeline": round(load_s + secs["total"], 1)},
+        "iterations": info["iterations"], "iterations_per_s": info["iterations_per_s"],
+        "final": final, "novel_views": views, "curve": curve, "mesh": info["mesh"],
+        "load_average": {"start": load_before, "end": os.getloadavg()},
+    }
+    (run_dir / "bench.json").write_text(json.dumps(result, indent=2))
+    print(f"[{name}] final: Chamfer {100 * final['chamfer_rel']:.3f}% of the diagonal, NC "
+          f"{final['normal_consistency']:.4f}, PSNR {views.get('psnr', float('nan')):.2f} dB, "
+          f"{result['seconds']['pipeline']:.0f} s in all", flush=True)
+    return result
+
+
+def write_markdown(report: dict, path: Path) -> None:
+    lines = [f"# Geometry benchmark (NeuS + mesh export), commit {report['commit']}", "",
+             f"Command: `{report['command']}`", "",
+             f"Machine: {report['machine']['cores']} cores ({report['machine']['cpu']}), GPU: {report['machine']['gpu']}; "
+             f"torch threads {report['threads']}. Versions: "
+             + ", ".join(f"{k} {v}" for k, v in report["versions"].items()) + ".", "",
+             "Targets: whole geometry stage <= 15 min on 2 cores, Chamfer <= 1% of the bounding-box diagonal.", "",
+             "| scene | iterations | train s | total s | Chamfer (% diag) | normal consistency | F@1% | "
+             "novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["scenes"]:
+        f, v = r["final"], r["novel_views"]
+        la = r["load_average"]
+        lines.append(f"| {r['scene']} | {r['iterations']} | {r['seconds']['train']:.0f} | {r['seconds']['pipeline']:.0f} | "
+                     f"{100 * f['chamfer_rel']:.3f} | {f['normal_consistency']:.4f} | {f['f_score@0.01']:.3f} | "
+                     f"{v.get('psnr', float('nan')):.2f} | {v.get('psnr_foreground', float('nan')):.2f} | "
+                     f"{la['start'][0]:.1f} / {la['end'][0]:.1f} |")
+    lines += ["", "Time against Chamfer (training seconds; meshes at 128^3 for the checkpoints, "
+                  f"{report['mesh_resolution']}^3 for the final row):", ""]
+    for r in report["scenes"]:
+        lines.append(f"**{r['scene']}**: " + ", ".join(
+            f"{c['train_seconds']:.0f} s: {100 * c['chamfer_rel']:.3f}%" for c in r["curve"])
+            + f"; final ({r['seconds']['train']:.0f} s): {100 * r['final']['chamfer_rel']:.3f}%")
+        lines.append("")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=["demo", "texture", "balls"])
+    p.add_argument("--time-limit", type=float, default=600.0, help="NeuS training seconds per scene")
+    p.add_argument("--checkpoint-every", type=float, default=60.0, help="training seconds between scored meshes")
+    p.add_argument("--resolution", type=int, default=128)
+    p.add_argument("--n-train", type=int, default=64)
+    p.add_argument("--test-views", type=int, default=4, help="test views rendered for the novel-view PSNR")
+    p.add_argument("--out", default="benchmarks/out/geometry")
+    p.add_argument("--results", default="benchmarks/results")
+    p.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args()
+
+    import torch
+
+    from vq_mitsuba.geometry.pipeline import load_neus_config
+
+    cfg = load_neus_config(args.set)
+    report = {"commit": commit(), "command": " ".join([".venv/bin/python", "benchmarks/bench_geometry.py"] + sys.argv[1:]),
+              "machine": machine(), "versions": versions(), "threads": cfg.threads or torch.get_num_threads(),
+              "time_limit_s": args.time_limit, "mesh_resolution": cfg.mesh_resolution, "overrides": args.set,
+              "scenes": []}
+    results = ROOT / args.results
+    results.mkdir(parents=True, exist_ok=True)
+    stem = results / f"geometry_{report['commit']}"
+    for name in args.scenes:
+        report["scenes"].append(run_scene(name, args, args.set))
+        stem.with_suffix(".json").write_text(json.dumps(report, indent=2))  # partial results survive a stop
+        write_markdown(report, stem.with_suffix(".md"))
+    print(stem.with_suffix(".md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
