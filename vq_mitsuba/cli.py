@@ -34,8 +34,10 @@ def _cmd_fit(args) -> int:
         if args.geometry == "neus" or not capture_has_geometry(args.capture):
             if (run_dir / "checkpoint.pt").exists() and not args.resume:
                 raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
+            reused = args.resume and (run_dir / "mesh.ply").is_file()
             mesh_path = ensure_geometry(args.capture, run_dir, neus_sets, config_file=args.config,
                                         resume=args.resume, progress=not args.quiet)
+            print(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh_path}")
     summary = fit(args.capture, run_dir, cfg, mesh_path=mesh_path, resume=args.resume, progress=not args.quiet)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
           f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")

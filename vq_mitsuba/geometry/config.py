@@ -11,8 +11,8 @@ from ..errors import InputError
 @dataclass
 class NeuSConfig:
     seed: int = 0  # network initialisation, ray batches and sample jitter
-    iterations: int = 2500  # training steps (schedule: steps or time_limit_s, whichever ends first)
-    time_limit_s: float = 0.0  # stop training after this many seconds (0: no limit)
+    iterations: int = 1000  # training steps (schedule: steps or time_limit_s, whichever ends first)
+    time_limit_s: float = 600.0  # stop training after this many seconds (0: no limit)
     batch_rays: int = 512  # rays per step, drawn from all views
     n_samples: int = 24  # stratified samples per ray inside its occupied interval
     lr: float = 1e-2  # Adam learning rate of the feature grids and the colour network
