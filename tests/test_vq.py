@@ -83,3 +83,26 @@ def test_forced_assignments_get_no_straight_through_gradient_when_asked():
     z_q, _, loss = vq(z, drop, forced_gradient=True)  # the plain estimator passes it through
     (z_q.sum() + loss).backward()
     assert z.grad[0].abs().max() > 0
+
+
+def test_warm_started_discrete_decoder_matches_the_continuous_one_at_the_codewords():
+    from types import SimpleNamespace
+
+    from vq_mitsuba.materials.fields import BRDFDecoder
+    from vq_mitsuba.materials.vq import DiscreteBranch
+
+    torch.manual_seed(1)
+    cfg = SimpleNamespace(latent=6, decoder_hidden=16, roughness_min=0.02)
+    cont = BRDFDecoder(cfg)
+    branch = DiscreteBranch(cfg, num_codes=3, decay=0.99, commitment=0.1)
+    latents = 2.5 * F.normalize(torch.randn(300, 6), dim=-1)  # typical length 2.5
+    branch.vq.init_codebook(latents[:3])
+    branch.warm_start(cont, latents)
+    assert float(branch.latent_scale) == pytest.approx(2.5, rel=1e-4)
+    got = branch.codeword_brdfs()
+    want = cont(latents[:3])  # these latents are the codewords, at the same length
+    for k in ("basecolor", "metallic", "roughness"):
+        torch.testing.assert_close(got[k], want[k], atol=1e-5, rtol=1e-5)
+    branch.eval()  # a latent equal to a codeword decodes to that codeword's BRDF
+    out = branch(latents[1:2])
+    torch.testing.assert_close(out["basecolor"], want["basecolor"][1:2], atol=1e-5, rtol=1e-5)

@@ -60,6 +60,7 @@ class VQConfig:
     rank_eps: float = 0.002  # epsilon of the err_k flattening rule
     rank_pixels: int = 4096  # training pixels used to measure err_k
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
+    warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = True  # straight-through gradient also for latents dropout forced onto another codeword
     single_branch: bool = False  # after warm-up, train the discrete branch alone (no L_rec,c, no L_chr): an ablation
 

@@ -240,8 +240,10 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         if discrete is not None and step >= warm_steps and not bool(discrete.initialised):
             with torch.no_grad():  # codebook from k-means of the warmed-up latents
                 sub = torch.randint(0, len(pool), (min(20000, len(pool)),), generator=gen, device=device)
-                discrete.vq.init_codebook(kmeans_codebook(model(pool.position[sub])["z"], cfg.vq.num_codes,
-                                                          cfg.train.seed))
+                z_warm = model(pool.position[sub])["z"]
+                discrete.vq.init_codebook(kmeans_codebook(z_warm, cfg.vq.num_codes, cfg.train.seed))
+                if cfg.vq.warm_start_decoder:
+                    discrete.warm_start(model.decoder, z_warm)
                 discrete.initialised.fill_(True)
         idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
         model.set_progress(step / max(total, 1), cfg.field.pe_anneal)

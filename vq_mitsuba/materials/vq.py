@@ -134,11 +134,23 @@ class DiscreteBranch(nn.Module):
         self.decoder = BRDFDecoder(field_cfg)
         self.register_buffer("initialised", torch.tensor(False))
         self.register_buffer("num_materials", torch.tensor(num_codes))
+        # Codewords live on the unit sphere; the decoder sees them at the latents' typical length,
+        # so a copy of the continuous decoder decodes a codeword like the latents around it.
+        self.register_buffer("latent_scale", torch.tensor(1.0))
+
+    @torch.no_grad()
+    def warm_start(self, continuous_decoder: nn.Module, latents: torch.Tensor) -> None:
+        """Start f_d^d as a copy of the continuous decoder, at the latents' mean length: right after
+        the codebook's initialisation each material then decodes to the continuous branch's BRDF
+        near its codeword, instead of a random decoder's output whose straight-through gradients
+        would disturb the shared encoder."""
+        self.decoder.load_state_dict(continuous_decoder.state_dict())
+        self.latent_scale.fill_(float(latents.norm(dim=-1).mean().clamp_min(1e-6)))
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
                 n_codes: int | None = None, forced_gradient: bool = True) -> dict[str, torch.Tensor]:
         z_q, idx, loss = self.vq(z, drop_mask, n_codes, forced_gradient)
-        out = self.decoder(z_q)
+        out = self.decoder(z_q * self.latent_scale)
         out["index"] = idx
         out["vq_loss"] = loss
         return out
@@ -146,7 +158,7 @@ class DiscreteBranch(nn.Module):
     @torch.no_grad()
     def codeword_brdfs(self) -> dict[str, torch.Tensor]:
         """The BRDF each codeword decodes to (one material per codeword)."""
-        return self.decoder(self.vq.codebook)
+        return self.decoder(self.vq.codebook * self.latent_scale)
 
 
 def kmeans_codebook(latents: torch.Tensor, num_codes: int, seed: int = 0) -> torch.Tensor:
