@@ -48,9 +48,24 @@ class NeuSConfig:
 
 
 
+def _help() -> dict[str, str]:
+    """Each key's meaning: the comment beside its field above."""
+    import inspect
+    import re
+
+    out = {}
+    for line in inspect.getsource(NeuSConfig).splitlines():
+        m = re.match(r"\s+(\w+): \w+ = .*?#\s*(.*)$", line)
+        if m:
+            out[m.group(1)] = m.group(2)
+    return out
+
+
 def describe() -> list[str]:
-    """`neus.key = default` lines, for --help output."""
-    return [f"  neus.{f.name} = {getattr(NeuSConfig(), f.name)!r}" for f in fields(NeuSConfig)]
+    """`neus.key = default  meaning` lines, for --help-config output."""
+    meaning = _help()
+    return [f"  neus.{f.name} = {getattr(NeuSConfig(), f.name)!r}  {meaning.get(f.name, '')}".rstrip()
+            for f in fields(NeuSConfig)]
 
 
 def _parse(value: str, typ):
