@@ -224,3 +224,17 @@ def test_cli_fit_geometry_given_without_mesh_is_refused(tmp_path, capsys):
     capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
     assert main(["fit", str(capture), "-o", str(tmp_path / "run"), "--geometry", "given", "--quiet"]) == 2
     assert "geometry" in capsys.readouterr().err
+
+
+def test_capture_has_geometry_reads_no_images(tmp_path):
+    from vq_mitsuba.geometry.pipeline import capture_has_geometry
+
+    capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
+    assert capture_has_geometry(capture) is False
+    trimesh.creation.icosphere(subdivisions=1).export(capture.parent / "mesh.ply")
+    assert capture_has_geometry(capture.parent) is True
+    xml = tmp_path / "scene.xml"
+    xml.write_text('<scene version="3.0.0"><sensor type="perspective" id="a"/></scene>')
+    assert capture_has_geometry(xml) is False
+    xml.write_text('<scene version="3.0.0"><sensor type="perspective" id="a"/><shape type="sphere"/></scene>')
+    assert capture_has_geometry(xml) is True
