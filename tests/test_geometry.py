@@ -238,3 +238,15 @@ def test_capture_has_geometry_reads_no_images(tmp_path):
     assert capture_has_geometry(xml) is False
     xml.write_text('<scene version="3.0.0"><sensor type="perspective" id="a"/><shape type="sphere"/></scene>')
     assert capture_has_geometry(xml) is True
+
+
+def test_cli_fit_refuses_mesh_with_geometry_neus(tmp_path, capsys):
+    from vq_mitsuba.cli import main
+
+    capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
+    mesh = tmp_path / "m.ply"
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    assert main(["fit", str(capture), "-o", str(tmp_path / "run"), "--geometry", "neus", "--mesh", str(mesh),
+                 "--quiet"]) == 2
+    assert "--geometry neus" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

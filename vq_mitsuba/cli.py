@@ -28,6 +28,8 @@ def _cmd_fit(args) -> int:
     neus_sets = [s for s in args.set if s.strip().startswith("neus.")]
     cfg = load_config(args.config, [s for s in args.set if s not in neus_sets], base=base)
     mesh_path = args.mesh
+    if args.geometry == "neus" and args.mesh is not None:
+        raise InputError(args.mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; drop one")
     if args.geometry != "given" and args.mesh is None:
         from .geometry.pipeline import capture_has_geometry, ensure_geometry
 
