@@ -106,3 +106,15 @@ def test_warm_started_discrete_decoder_matches_the_continuous_one_at_the_codewor
     branch.eval()  # a latent equal to a codeword decodes to that codeword's BRDF
     out = branch(latents[1:2])
     torch.testing.assert_close(out["basecolor"], want["basecolor"][1:2], atol=1e-5, rtol=1e-5)
+
+
+def test_reorder_permutes_codewords_and_their_statistics():
+    vq = VectorQuantizerEMA(3, 2, dead_after=1000)
+    vq.init_codebook(torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
+    vq.ema_count.copy_(torch.tensor([1.0, 2.0, 3.0]))
+    z = torch.tensor([[0.0, 1.0]])
+    assert vq.nearest(z).item() == 1
+    vq.reorder(torch.tensor([1, 2, 0]))
+    assert vq.ema_count.tolist() == [2.0, 3.0, 1.0]
+    assert vq.nearest(z).item() == 0  # the same codeword, now first
+    torch.testing.assert_close(vq.ema_sum, vq.codebook)

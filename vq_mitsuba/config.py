@@ -59,6 +59,7 @@ class VQConfig:
     ranking: bool = True  # choose M with the err_k rule (off: M = num_codes, the "no ranking" ablation)
     rank_eps: float = 0.002  # epsilon of the err_k flattening rule
     rank_pixels: int = 4096  # training pixels used to measure err_k
+    min_share: float = 0.005  # codewords picked by fewer pixels than this share are not ranked as materials
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = True  # straight-through gradient also for latents dropout forced onto another codeword

@@ -334,6 +334,12 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
     discrete.eval()
     errs, usage = [], []
     K = cfg.vq.num_codes
+    # Codewords that (almost) no pixel picks are not materials: move them behind the used ones,
+    # keeping the dropout order otherwise, so that they do not sit inside the ranked prefix.
+    share = torch.bincount(discrete(z)["index"], minlength=K).float() / max(n, 1)
+    used = share >= cfg.vq.min_share
+    order = torch.cat([torch.nonzero(used)[:, 0], torch.nonzero(~used)[:, 0]])
+    discrete.vq.reorder(order)
     for k in range(1, K + 1):
         od = discrete(z, n_codes=k)
         g = torch.Generator(device=pool.position.device).manual_seed(cfg.train.seed + 2)  # same samples for every k
@@ -343,6 +349,7 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
         if k == K:
             usage = torch.bincount(od["index"], minlength=K).float() / n
     M = choose_num_materials(errs, cfg.vq.rank_eps) if cfg.vq.ranking else K
+    M = max(1, min(M, int(used.sum()))) if cfg.vq.ranking else M
     discrete.num_materials.fill_(M)
     discrete.train(was_training)
     brdf = discrete.codeword_brdfs()
@@ -352,6 +359,8 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
                   "roughness": float(brdf["roughness"][k]), "pixel_fraction": float(usage_m[k]),
                   "pixel_fraction_all_codewords": float(usage[k])} for k in range(K)]
     info = {"num_materials": M, "num_codewords": K, "epsilon": cfg.vq.rank_eps, "ranking": cfg.vq.ranking,
+            "min_share": cfg.vq.min_share, "codewords_used": int(used.sum()),
+            "training_order": order.tolist(),
             "err_k": errs, "materials": materials[:M], "dropped_codewords": materials[M:],
             "note": "materials are ranked codewords (id k = k-th); basecolor in linear RGB; err_k is the "
                     "discrete branch's gamma-space L2 on training pixels using the first k codewords"}

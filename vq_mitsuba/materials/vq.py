@@ -38,6 +38,13 @@ class VectorQuantizerEMA(nn.Module):
         self.ema_count.fill_(1.0)
         self.unused_steps.zero_()
 
+    @torch.no_grad()
+    def reorder(self, order: torch.Tensor) -> None:
+        """Permute the codewords (and their EMA statistics): new codeword i = old codeword order[i]."""
+        for name in ("codebook", "ema_count", "ema_sum", "unused_steps"):
+            buf = getattr(self, name)
+            buf.copy_(buf[order])
+
     def nearest(self, z_unit: torch.Tensor, drop_mask: torch.Tensor | None = None,
                 n_codes: int | None = None) -> torch.Tensor:
         """Index of the nearest codeword (cosine). drop_mask (N, K) True = codeword unavailable to
