@@ -84,7 +84,7 @@ class TrainConfig:
 
 @dataclass
 class RenderConfig:
-    spp: int = 128  # samples per pixel when rendering views (primary rays x light samples)
+    spp: int = 256  # samples per pixel when rendering views (primary rays x light samples)
     aa: int = 16  # primary rays per pixel, stratified over the pixel (a square number)
     chunk: int = 16384  # shading points per Mitsuba call
 

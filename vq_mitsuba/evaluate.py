@@ -136,7 +136,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
              progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
              meanshift_bandwidths=MEANSHIFT_BANDWIDTHS) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
-    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 128)."""
+    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 256)."""
     from tqdm import tqdm
 
     from .capture.dataset import load_cameras
