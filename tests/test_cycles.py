@@ -150,6 +150,10 @@ def test_load_probe_clamps_tiny_negatives(tmp_path):
     write_exr(tmp_path / "q.exr", img)
     with pytest.raises(InputError, match="non-finite"):
         cycles.load_probe(tmp_path / "q.exr")
+    img[1, 1, 1] = -0.5  # clearly negative: refused, not clamped
+    write_exr(tmp_path / "r.exr", img)
+    with pytest.raises(InputError, match="negative"):
+        cycles.load_probe(tmp_path / "r.exr")
 
 
 def test_missing_environment_is_a_clear_error(tmp_path, monkeypatch, capsys):

@@ -94,19 +94,9 @@ def blender_probes(python: Path | None = None) -> dict[str, Path]:
 
 
 def load_probe(path: str | Path) -> np.ndarray:
-    """A Blender studio-light probe as float32 (H, W, 3). Some of them hold a few tiny negative
-    texels (down to about -0.002, lossy EXR compression), which envmaps.load_envmap refuses:
-    they are clamped to 0. Non-finite texels are an error naming the file."""
-    from .capture.imageio import read_exr
-
-    path = Path(path)
-    try:
-        rgb = read_exr(path)[..., :3]
-    except Exception as exc:
-        raise InputError(path, f"cannot read environment map ({type(exc).__name__}: {exc})") from exc
-    if not np.all(np.isfinite(rgb)):
-        raise InputError(path, "environment map contains non-finite values")
-    return np.ascontiguousarray(np.maximum(rgb, 0.0), dtype=np.float32)
+    """A Blender studio-light probe as float32 (H, W, 3) (envmaps.load_envmap: the probes' few
+    tiny negative texels, down to about -0.002, are clamped to 0)."""
+    return envmaps.load_envmap(path)
 
 
 # --------------------------------------------------------------------------------------------

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .capture.cameras import BLENDER_ENV_TO_WORLD
-from .capture.imageio import read_image, write_exr
+from .capture.imageio import clamp_tiny_negatives, read_image, write_exr
 from .errors import InputError
 
 PRESETS = ("sky", "sunset", "studio", "overcast")
@@ -283,8 +283,9 @@ def load_envmap(path: str | Path) -> np.ndarray:
             rgb = np.asarray(iio.imread(path), dtype=np.float32)[..., :3]
         except Exception as exc:
             raise InputError(path, f"cannot read environment map ({type(exc).__name__}: {exc})") from exc
-        if not np.all(np.isfinite(rgb)) or np.any(rgb < 0):
-            raise InputError(path, "environment map contains non-finite or negative values")
+        if not np.all(np.isfinite(rgb)):
+            raise InputError(path, "environment map contains non-finite values")
+        rgb = clamp_tiny_negatives(rgb, path)
     else:
         rgb, _ = read_image(path)
     if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 2:

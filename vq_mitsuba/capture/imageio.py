@@ -56,9 +56,19 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     alpha = np.ascontiguousarray(data[..., 3], dtype=np.float32) if data.shape[-1] >= 4 else None
     if not np.all(np.isfinite(rgb)) or (alpha is not None and not np.all(np.isfinite(alpha))):
         raise InputError(path, "image contains non-finite pixels (NaN or Inf)")
-    if np.any(rgb < 0):
-        raise InputError(path, "image contains negative pixel values")
-    return rgb, alpha
+    return clamp_tiny_negatives(rgb, path), alpha
+
+
+# Lossy EXR compression and denoisers leave slightly negative texels (Blender's own studio-light
+# probes hold some down to -0.002): those are clamped to 0; anything more negative is an error.
+NEGATIVE_TOLERANCE = 1e-2
+
+
+def clamp_tiny_negatives(rgb: np.ndarray, path) -> np.ndarray:
+    low = float(rgb.min()) if rgb.size else 0.0
+    if low < -NEGATIVE_TOLERANCE:
+        raise InputError(path, f"image contains negative pixel values (down to {low:.3g})")
+    return np.maximum(rgb, 0.0) if low < 0 else rgb
 
 
 def read_exr(path: str | Path) -> np.ndarray:
