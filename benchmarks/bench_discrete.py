@@ -143,6 +143,7 @@ def main(argv=None) -> int:
     p.add_argument("--compare", help="previous bench_discrete.json (default: OUT/bench_discrete.json)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    args.command = " ".join(["bench_discrete.py"] + (sys.argv[1:] if argv is None else list(argv)))
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -152,10 +153,20 @@ def main(argv=None) -> int:
     rows = []
     for scene in args.scenes:
         data = ensure_dataset(scene, out / f"data_{args.resolution}" / scene, args.resolution, not args.quiet)
-        rows += [run_one(scene, v, data, args, out) for v in args.variants]
+        for v in args.variants:
+            rows.append(run_one(scene, v, data, args, out))
+            write_results(args, rows, json_path, out)  # after every run: an interrupted benchmark keeps its rows
+    result = write_results(args, rows, json_path, out)
+    print(markdown(result))
+    if old is not None:
+        print(compare(result, old))
+    return 0
+
+
+def write_results(args, rows: list[dict], json_path: Path, out: Path) -> dict:
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": " ".join(["bench_discrete.py"] + (sys.argv[1:] if argv is None else list(argv))),
+        "command": args.command,
         "settings": {"scenes": args.scenes, "variants": args.variants, "resolution": args.resolution,
                      "iterations": args.iterations, "time_limit_s": args.time_limit, "eval_spp": args.spp,
                      "overrides": args.set},
@@ -163,12 +174,8 @@ def main(argv=None) -> int:
         "rows": rows,
     }
     json_path.write_text(json.dumps(json_safe(result), indent=2))
-    md = markdown(result)
-    (out / "bench_discrete.md").write_text(md)
-    print(md)
-    if old is not None:
-        print(compare(result, old))
-    return 0
+    (out / "bench_discrete.md").write_text(markdown(result))
+    return result
 
 
 if __name__ == "__main__":
