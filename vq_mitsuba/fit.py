@@ -145,7 +145,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     capture = load_capture(capture_path, mesh=mesh_path)  # every input check happens here, first
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
-                         "(pass --mesh PATH, or put mesh.ply beside the json); the NeuS stage is not available yet")
+                         "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from masked images "
+                         "with `fit --geometry neus` or `vq-mitsuba geometry`)")
     torch.manual_seed(cfg.train.seed)
     np.random.seed(cfg.train.seed)
     init_mitsuba()
