@@ -81,6 +81,18 @@ def test_fit_rejects_bad_inputs_before_training(sphere_capture, tmp_path):
     with pytest.raises(InputError, match="no known geometry"):
         fit(no_geo / "scene.xml", tmp_path / "r2", cfg)
     assert not (tmp_path / "r2").exists()
+    with pytest.raises(InputError, match="no run to resume"):
+        fit(sphere_capture, tmp_path / "r3", cfg, resume=True)
+
+
+def test_resume_without_checkpoint_starts_the_fit(sphere_capture, tmp_path, capsys):
+    """A run stopped before its first checkpoint (e.g. after the geometry stage) resumes from scratch."""
+    run = tmp_path / "run"
+    run.mkdir()
+    cfg = load_config(None, ["train.iterations=2", "train.batch_rays=64"])
+    summary = fit(sphere_capture, run, cfg, resume=True, progress=False)
+    assert summary["iterations"] == 2 and (run / "checkpoint.pt").is_file()
+    assert "no checkpoint yet" in capsys.readouterr().out
 
 
 def test_fit_recovers_uniform_sphere_material(tmp_path):

@@ -140,7 +140,12 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     if ckpt_path.exists() and not resume:
         raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
     if resume and not ckpt_path.exists():
-        raise InputError(ckpt_path, "no checkpoint to resume from")
+        if not run_dir.is_dir():
+            raise InputError(run_dir, "no run to resume (the folder does not exist)")
+        # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
+        # material fit from the beginning, keeping what the folder already holds (mesh.ply).
+        print(f"{ckpt_path}: no checkpoint yet; the material fit starts from the beginning")
+        resume = False
 
     capture = load_capture(capture_path, mesh=mesh_path)  # every input check happens here, first
     if capture.mesh is None:
