@@ -421,6 +421,33 @@ def _ensure_variant() -> None:
     init_mitsuba()
 
 
+def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train_name: str, relights: list,
+                      r: np.ndarray, center: np.ndarray, radius: float, dist: float, envmap_convention: str) -> dict:
+    """The scene.json entries every generator (Mitsuba, Cycles) writes alike: cameras' frame,
+    materials, shapes, lighting, world conventions and image encodings."""
+    return {
+        "fov_x_deg": FOV_X_DEG,
+        "camera_distance": dist,
+        "bounding_sphere": {"center": center.tolist(), "radius": radius},
+        "materials": [{"id": k + 1, "name": m["name"],
+                       "base_color": m["base_color"] if not is_textured(m) else None,
+                       "base_color_pattern": m["base_color"] if is_textured(m) else None,
+                       "mean_base_color": eval_base_color(m["base_color"], verts).mean(0).tolist()
+                       if is_textured(m) else list(map(float, m["base_color"])),
+                       "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
+                       "textured": is_textured(m)} for k, m in enumerate(spec["materials"])],
+        "shapes": [dict(name=k, **v) for k, v in shape_info.items()],
+        "envmap": {"train": "envmaps/train.exr", "preset": env_train_name,
+                   "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
+                   "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
+        "relight": relights,
+        "worlds": {"json_and_mesh_ply": "Blender (Z up)", "xml_and_meshes_dir": "Mitsuba (Y up)",
+                   "blender_from_mitsuba": r.tolist(),
+                   "envmap_convention": "Blender lat-long; " + envmap_convention},
+        "images": {"exr": "linear RGBA, premultiplied", "png": "sRGB RGBA, straight alpha = coverage"},
+    }
+
+
 def _versions() -> dict:
     import drjit as dr
     import mitsuba as mi
@@ -572,26 +599,9 @@ def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int |
         "seed": seed,
         "max_depth": MAX_DEPTH,
         "integrator": "path",
-        "fov_x_deg": FOV_X_DEG,
-        "camera_distance": dist,
-        "bounding_sphere": {"center": center.tolist(), "radius": radius},
-        "materials": [{"id": k + 1, "name": m["name"],
-                       "base_color": m["base_color"] if not is_textured(m) else None,
-                       "base_color_pattern": m["base_color"] if is_textured(m) else None,
-                       "mean_base_color": eval_base_color(m["base_color"], verts).mean(0).tolist()
-                       if is_textured(m) else list(map(float, m["base_color"])),
-                       "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
-                       "textured": is_textured(m)} for k, m in enumerate(spec["materials"])],
-        "shapes": [dict(name=k, **v) for k, v in shape_info.items()],
-        "envmap": {"train": "envmaps/train.exr", "preset": env_train_name,
-                   "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
-                   "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
-        "relight": relights,
-        "worlds": {"json_and_mesh_ply": "Blender (Z up)", "xml_and_meshes_dir": "Mitsuba (Y up)",
-                   "blender_from_mitsuba": r.tolist(),
-                   "envmap_convention": "Blender lat-long; to_world = BLENDER_ENV_TO_WORLD in Blender "
-                                        "world, identity in the XML's Mitsuba world"},
-        "images": {"exr": "linear RGBA, premultiplied", "png": "sRGB RGBA, straight alpha = coverage"},
+        **scene_description(spec, verts, shape_info, env_train_name, relights, r, center, radius, dist,
+                            envmap_convention="to_world = BLENDER_ENV_TO_WORLD in Blender world, identity in "
+                                              "the XML's Mitsuba world"),
         "render_seconds": round(t_end - t_render, 2),
         "total_seconds": round(t_end - t_start, 2),
         "versions": _versions(),
