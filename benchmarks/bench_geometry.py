@@ -28,6 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def find_dataset(name: str, resolution: int, n_train: int, progress: bool) -> Path:
@@ -97,15 +98,9 @@ def machine() -> dict:
             gpu = torch.cuda.get_device_name(0)
     except Exception:
         pass
-    cpu = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cores": os.cpu_count(), "cpu": cpu, "gpu": gpu, "os": platform.platform()}
+    from bench_scenes import cpu_model
+
+    return {"cores": os.cpu_count(), "cpu": cpu_model(), "gpu": gpu, "os": platform.platform()}
 
 
 def commit() -> str:
