@@ -9,6 +9,13 @@ from pathlib import Path
 from .errors import InputError
 
 
+def _run_dir(args, command: str) -> Path:
+    """RUN_DIR of a command that reads a CAPTURE: -o, else runs/<name of the capture's folder>."""
+    if args.capture is None:
+        raise InputError(None, f"{command} needs a CAPTURE (scene XML, transforms json, or its folder)")
+    return Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
+
+
 def _cmd_fit(args) -> int:
     from .config import describe, load_config
     from .fit import fit
@@ -17,9 +24,7 @@ def _cmd_fit(args) -> int:
         print("Config keys (set them in a YAML file or with --set section.key=value):")
         print("\n".join(describe()))
         return 0
-    if args.capture is None:
-        raise InputError(None, "fit needs a CAPTURE (scene XML, transforms json, or its folder)")
-    run_dir = Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
+    run_dir = _run_dir(args, "fit")
     base = None
     if args.resume and (run_dir / "config.yaml").is_file():
         import yaml
@@ -55,9 +60,7 @@ def _cmd_geometry(args) -> int:
         print("NeuS config keys (set them with --set neus.key=value, or a `neus:` section of --config):")
         print("\n".join(describe()))
         return 0
-    if args.capture is None:
-        raise InputError(None, "geometry needs a CAPTURE (scene XML, transforms json, or its folder)")
-    run_dir = Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
+    run_dir = _run_dir(args, "geometry")
     info = run_geometry(args.capture, run_dir, args.set, config_file=args.config, resume=args.resume,
                         progress=not args.quiet, gt_mesh=args.gt_mesh)
     s = info["seconds"]
