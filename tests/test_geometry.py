@@ -250,3 +250,18 @@ def test_cli_fit_refuses_mesh_with_geometry_neus(tmp_path, capsys):
                  "--quiet"]) == 2
     assert "--geometry neus" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_one_config_file_holds_the_material_and_the_neus_sections(tmp_path):
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.errors import InputError
+    from vq_mitsuba.geometry.pipeline import load_neus_config
+
+    path = tmp_path / "both.yaml"
+    path.write_text("train:\n  iterations: 7\nneus:\n  iterations: 5\n")
+    assert load_config(path).train.iterations == 7
+    assert load_neus_config(None, path).iterations == 5
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("neus: [1, 2\n")
+    with pytest.raises(InputError, match="bad.yaml"):
+        load_neus_config(None, bad)

@@ -136,21 +136,28 @@ def _apply(cfg, data: dict, source, prefix: str = "") -> None:
             setattr(cfg, key, _coerce(value, hints[key], name, source))
 
 
+def read_config_file(path: str | Path) -> dict:
+    """A YAML config file as a mapping of sections; InputError naming the file otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"invalid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a mapping of sections")
+    return data
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:
     """Defaults <- `base` (e.g. a run's saved config) <- YAML file <- `key=value` overrides."""
     cfg = Config()
     if base:
         _apply(cfg, base, "config.yaml")
     if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "config file not found")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(path, f"invalid YAML: {exc}") from None
-        if not isinstance(data, dict):
-            raise InputError(path, "expected a mapping of sections")
+        data = read_config_file(path)
+        data.pop("neus", None)  # the geometry stage's section (vq_mitsuba.geometry.config)
         _apply(cfg, data, path)
     for item in overrides or []:
         if "=" not in item:

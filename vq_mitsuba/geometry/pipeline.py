@@ -29,16 +29,10 @@ def load_neus_config(overrides: list[str] | None = None, config_file: str | Path
     """Defaults, then the `neus:` section of a YAML file (if any), then neus.key=value overrides."""
     cfg = NeuSConfig()
     if config_file is not None:
-        import yaml
+        from ..config import read_config_file
 
         path = Path(config_file)
-        if not path.is_file():
-            raise InputError(path, "config file not found")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(path, f"malformed YAML ({exc})") from exc
-        section = data.get("neus") if isinstance(data, dict) else None
+        section = read_config_file(path).get("neus")
         if section is not None:
             if not isinstance(section, dict):
                 raise InputError(path, "the `neus` section must be a mapping of keys to values")
