@@ -137,9 +137,8 @@ class Renderer:
                 acc["roughness"][sel_np, 0] += out["roughness"].cpu().numpy()
                 acc["normal"][sel_np] += hits.normal[sel].cpu().numpy()
                 if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
-                    ids = discrete.vq.nearest(torch.nn.functional.normalize(out["z"], dim=-1), n_codes=n_mat) + 1
-                    np.add.at(votes, (sel_np, ids.cpu().numpy()), 1)
-                    od = discrete(out["z"], n_codes=n_mat)
+                    od = discrete(out["z"], n_codes=n_mat)  # nearest ranked codeword and its BRDF
+                    np.add.at(votes, (sel_np, od["index"].cpu().numpy() + 1), 1)
                     acc["basecolor_d"][sel_np] += od["basecolor"].cpu().numpy()
                     acc["metallic_d"][sel_np, 0] += od["metallic"].cpu().numpy()
                     acc["roughness_d"][sel_np, 0] += od["roughness"].cpu().numpy()
