@@ -132,22 +132,67 @@ def _normal_error_deg(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> flo
     return float(np.degrees(np.arccos(cos)).mean()) if len(cos) else math.nan
 
 
+class RunPredictor:
+    """What `evaluate_predictor` needs from a fitted run: its world convention, default spp, number
+    of materials, and a renderer under its own lighting (envmap None) or another envmap."""
+
+    def __init__(self, run_dir: str | Path):
+        from .render import load_run
+
+        self.fitted = load_run(run_dir)
+        self.run_dir = Path(run_dir)
+        self.world = self.fitted.info["world"]
+        self.default_spp = int(self.fitted.cfg.render.spp)
+        self.default_aa = int(self.fitted.cfg.render.aa)
+        d = self.fitted.discrete
+        self.num_materials = int(d.num_materials) if d is not None else None
+
+    def renderer(self, envmap: np.ndarray | None = None):
+        from .render import Renderer
+
+        return Renderer(self.fitted, envmap=envmap)
+
+    def fit_summary(self) -> dict:
+        path = self.run_dir / "fit.json"
+        if not path.is_file():
+            return {}
+        return {k: v for k, v in json.loads(path.read_text()).items()
+                if k in ("iterations", "seconds", "iterations_per_s")}
+
+
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
              progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
              meanshift_bandwidths=MEANSHIFT_BANDWIDTHS) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
     (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 256)."""
+    if scale_method not in M.SCALE_METHODS:  # before loading anything
+        raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
+    dataset_root(dataset_dir)
+    predictor = RunPredictor(run_dir)
+    return evaluate_predictor(predictor, dataset_dir, spp=spp, scale_method=scale_method, progress=progress,
+                              output=Path(output) if output is not None else Path(run_dir) / "metrics.json",
+                              aa=aa, meanshift_bandwidths=meanshift_bandwidths,
+                              run_label=str(Path(run_dir).resolve()), fit_summary=predictor.fit_summary())
+
+
+def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
+                       progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
+                       meanshift_bandwidths=MEANSHIFT_BANDWIDTHS, run_label: str = "",
+                       fit_summary: dict | None = None) -> dict:
+    """The scores of `evaluate` for any predictor: an object with `world` ("mitsuba" or "blender"),
+    `default_spp`, `default_aa`, `num_materials` (None without a segmentation) and `renderer(envmap)` returning
+    an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.Renderer.render`.
+    Writes `output` when given."""
     from tqdm import tqdm
 
     from .capture.dataset import load_cameras
-    from .render import _R, Renderer, convert_world, load_run
+    from .render import _R, convert_world
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
     t0 = time.perf_counter()
     root = dataset_root(dataset_dir)
     meta = json.loads((root / "scene.json").read_text())
-    fitted = load_run(run_dir)
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
     envs = relight_envs(root, meta)
     for env_name, _ in envs:
@@ -160,14 +205,14 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         if gt["rgb"].shape[:2] != (cam.height, cam.width):
             raise InputError(root / "images" / f"{cam.name}.exr", "size differs from transforms_test.json")
 
-    run_world = fitted.info["world"]
+    run_world = predictor.world
     views = [convert_world(cam, cam_world, run_world) for cam in cameras]
-    spp = int(spp or fitted.cfg.render.spp)
+    spp = int(spp or predictor.default_spp)
     bar = tqdm(total=len(views) * (1 + len(envs)), desc="eval", unit="view", disable=not progress,
                dynamic_ncols=True)
 
     # Fitted lighting: novel views and material maps.
-    renderer = Renderer(fitted)
+    renderer = predictor.renderer(None)
     preds = []
     for i, cam in enumerate(views):
         out = renderer.render(cam, spp=spp, aa=aa, seed=i)
@@ -215,7 +260,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
                                              np.concatenate([g["material"].ravel() for g in gts]),
                                              np.concatenate([g["mask"].ravel() for g in gts]))
         segmentation["mapping"] = {str(k): v for k, v in segmentation["mapping"].items()}
-        segmentation["num_materials_found"] = int(fitted.discrete.num_materials)
+        segmentation["num_materials_found"] = predictor.num_materials
         segmentation["num_materials_true"] = len(meta.get("materials", []))
     meanshift = None
     if meanshift_bandwidths and all("material" in g for g in gts):
@@ -226,7 +271,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
     relit: dict[str, dict] = {"albedo_scale": {}, "image_scale": {}}
     for env_name, env_path in envs:
         env, _ = read_image(env_path)
-        renderer = Renderer(fitted, envmap=env)
+        renderer = predictor.renderer(env)
         rows = {"albedo_scale": [], "image_scale": []}
         for i, (cam, view, gt) in enumerate(zip(cameras, views, gts)):
             ref, _ = _read_rgba(root / "relit" / env_name / f"{cam.name}.exr")
@@ -255,18 +300,13 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
             "mean": {"psnr": _mean(v["psnr"] for v in per_env.values()),
                      "ssim": _mean(v["ssim"] for v in per_env.values())} if per_env else None,
         }
-    fit_summary = {}
-    fit_json = Path(run_dir) / "fit.json"
-    if fit_json.is_file():
-        fit_summary = {k: v for k, v in json.loads(fit_json.read_text()).items()
-                       if k in ("iterations", "seconds", "iterations_per_s")}
     result = {
-        "run": str(Path(run_dir).resolve()),
+        "run": run_label,
         "dataset": str(root.resolve()),
         "scene": meta.get("name"),
         "n_views": len(cameras),
         "resolution": [cameras[0].width, cameras[0].height] if cameras else None,
-        "render": {"spp": spp, "aa": aa or fitted.cfg.render.aa},
+        "render": {"spp": spp, "aa": aa or predictor.default_aa},
         "mask": f"ground-truth alpha > {MASK_THRESHOLD}",
         "color_space": "images and basecolor: sRGB of clipped linear values; metallic, roughness: linear [0, 1]",
         "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},
@@ -281,13 +321,14 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         "discrete_branch": discrete,
         "segmentation": segmentation,
         "meanshift": meanshift,
-        "fit": fit_summary,
+        "fit": fit_summary or {},
         "per_view": per_view,
         "seconds": time.perf_counter() - t0,
     }
-    out_path = Path(output) if output is not None else Path(run_dir) / "metrics.json"
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(json_safe(result), indent=2))
+    if output is not None:
+        out_path = Path(output)
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(json.dumps(json_safe(result), indent=2))
     return result
 
 
