@@ -2,7 +2,6 @@
 
 import json
 
-import numpy as np
 import pytest
 
 from vq_mitsuba.config import load_config

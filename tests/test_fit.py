@@ -95,6 +95,25 @@ def test_resume_without_checkpoint_starts_the_fit(sphere_capture, tmp_path, caps
     assert "no checkpoint yet" in capsys.readouterr().out
 
 
+def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
+    """train.snapshot_s keeps the state at those fit seconds; load_run reads a snapshot as the run."""
+    from vq_mitsuba.render import load_run
+
+    run = tmp_path / "run"
+    cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.snapshot_s=1e-6,1e-5"])
+    fit(sphere_capture, run, cfg, progress=False)
+    snaps = sorted((run / "snapshots").glob("*.pt"))
+    assert len(snaps) == 1  # both times had passed after the first step: one copy, not two
+    state = torch.load(snaps[0], weights_only=False)
+    assert state["step"] == 1 and "optim" not in state
+    early, last = load_run(run, snaps[0]), load_run(run)
+    x = torch.zeros(3, 3)
+    assert not torch.allclose(early.model(x)["basecolor"], last.model(x)["basecolor"])  # three more steps
+    with pytest.raises(InputError, match="snapshot_s"):
+        fit(sphere_capture, tmp_path / "r2", load_config(None, ["train.snapshot_s=10,soon"]))
+    assert not (tmp_path / "r2").exists()
+
+
 def test_fit_recovers_uniform_sphere_material(tmp_path):
     """Known lighting, known geometry: basecolor within 0.05 and roughness within 0.1."""
     xml = write_sphere_capture(tmp_path / "cap", base_color=(0.7, 0.35, 0.2), roughness=0.3, size=32,

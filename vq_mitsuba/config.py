@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -80,6 +80,7 @@ class TrainConfig:
     pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     time_limit_s: float = 0.0  # stop early after this many seconds (0: no limit)
+    snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
 
 
 @dataclass

@@ -136,10 +136,10 @@ class RunPredictor:
     """What `evaluate_predictor` needs from a fitted run: its world convention, default spp, number
     of materials, and a renderer under its own lighting (envmap None) or another envmap."""
 
-    def __init__(self, run_dir: str | Path):
+    def __init__(self, run_dir: str | Path, checkpoint: str | Path | None = None):
         from .render import load_run
 
-        self.fitted = load_run(run_dir)
+        self.fitted = load_run(run_dir, checkpoint)
         self.run_dir = Path(run_dir)
         self.world = self.fitted.info["world"]
         self.default_spp = int(self.fitted.cfg.render.spp)
@@ -162,13 +162,14 @@ class RunPredictor:
 
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
              progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
-             meanshift_bandwidths=MEANSHIFT_BANDWIDTHS) -> dict:
+             meanshift_bandwidths=MEANSHIFT_BANDWIDTHS, checkpoint: str | Path | None = None) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
-    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 256)."""
+    (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 256).
+    `checkpoint`: score this state of the run (e.g. a snapshot) instead of its last checkpoint."""
     if scale_method not in M.SCALE_METHODS:  # before loading anything
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
     dataset_root(dataset_dir)
-    predictor = RunPredictor(run_dir)
+    predictor = RunPredictor(run_dir, checkpoint)
     return evaluate_predictor(predictor, dataset_dir, spp=spp, scale_method=scale_method, progress=progress,
                               output=Path(output) if output is not None else Path(run_dir) / "metrics.json",
                               aa=aa, meanshift_bandwidths=meanshift_bandwidths,

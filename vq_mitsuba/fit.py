@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from . import losses
-from .capture.cameras import BLENDER_ENV_TO_WORLD
 from .capture.dataset import Capture, load_capture
 from .capture.imageio import write_exr
 from .config import Config, save_config, to_dict
@@ -99,6 +98,17 @@ def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
     return torch.cat(pairs)
 
 
+def parse_snapshot_times(text: str) -> list[float]:
+    """`train.snapshot_s` ("30,60,120") as sorted seconds."""
+    try:
+        times = sorted(float(t) for t in str(text).replace(";", ",").split(",") if t.strip())
+    except ValueError:
+        raise InputError(None, f"train.snapshot_s expects comma-separated seconds, got '{text}'") from None
+    if any(t <= 0 for t in times):
+        raise InputError(None, f"train.snapshot_s expects positive seconds, got '{text}'")
+    return times
+
+
 def _atomic_save(obj, path: Path) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
@@ -137,6 +147,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
 
     run_dir = Path(run_dir)
     ckpt_path = run_dir / CHECKPOINT
+    snap_times = parse_snapshot_times(cfg.train.snapshot_s)
     if ckpt_path.exists() and not resume:
         raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
     if resume and not ckpt_path.exists():
@@ -226,6 +237,17 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             "history": history, "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
         }, ckpt_path)
 
+    def snapshot(elapsed: float) -> None:  # the state as it is now, for scoring later (no optimiser)
+        (run_dir / "snapshots").mkdir(exist_ok=True)
+        _atomic_save({
+            "model": model.state_dict(),
+            "discrete": discrete.state_dict() if discrete is not None else None,
+            "envmap": env_module.state_dict() if learn_env else None,
+            "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
+            "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
+        }, run_dir / "snapshots" / f"t{elapsed:07.1f}s_step{step:06d}.pt")
+
+    snap_times = [t for t in snap_times if t > elapsed_before]
     fixed_env = None if learn_env else torch.as_tensor(capture.envmap, device=device)
     start_step = step
     t0 = time.perf_counter()
@@ -305,6 +327,12 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         elapsed = elapsed_before + time.perf_counter() - t0
         if step % cfg.train.checkpoint_every == 0:
             checkpoint(elapsed)
+        if snap_times and elapsed >= snap_times[0]:
+            while snap_times and elapsed >= snap_times[0]:
+                snap_times.pop(0)
+            t_write = time.perf_counter()
+            snapshot(elapsed)
+            t0 += time.perf_counter() - t_write  # the fit's clock does not count the copy
         if cfg.train.time_limit_s > 0 and elapsed >= cfg.train.time_limit_s:
             print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {step}")
             break

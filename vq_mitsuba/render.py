@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -15,9 +16,12 @@ from .capture.dataset import load_cameras, load_mesh
 from .capture.imageio import read_image, write_exr, write_png
 from .config import Config, load_config
 from .errors import InputError
-from .fit import CHECKPOINT, Run, build_scene
+from .fit import Run, build_scene
 from .materials.fields import ContinuousMaterial
 from .materials.vq import DiscreteBranch
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
 _R = BLENDER_ENV_TO_WORLD[:3, :3]
@@ -48,19 +52,22 @@ class FittedRun:
     model: ContinuousMaterial
     discrete: DiscreteBranch | None  # None when the run has no (initialised) discrete branch
     envmap: np.ndarray
-    mesh: "trimesh.Trimesh"  # noqa: F821
+    mesh: trimesh.Trimesh
 
 
-def load_run(run_dir: str | Path) -> FittedRun:
+def load_run(run_dir: str | Path, checkpoint: str | Path | None = None) -> FittedRun:
+    """A fitted run from its checkpoint, or from another state file of it (`checkpoint`, e.g. a
+    snapshot written at `train.snapshot_s`)."""
     from .rendering import init_mitsuba, torch_device
 
     run = Run(run_dir)
     info = run.info()
-    if not run.checkpoint_path.is_file():
-        raise InputError(run.checkpoint_path, "checkpoint missing: the run did not finish its first checkpoint")
+    ckpt = Path(checkpoint) if checkpoint is not None else run.checkpoint_path
+    if not ckpt.is_file():
+        raise InputError(ckpt, "checkpoint missing: the run did not finish its first checkpoint")
     cfg = load_config(base=__import__("yaml").safe_load((run.dir / "config.yaml").read_text()))
     init_mitsuba()
-    state = torch.load(run.checkpoint_path, map_location=torch_device(), weights_only=False)
+    state = torch.load(ckpt, map_location=torch_device(), weights_only=False)
     mesh = load_mesh(run.dir / "mesh.ply")
     bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
     model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(torch_device())

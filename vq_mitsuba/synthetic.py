@@ -347,7 +347,7 @@ def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.rando
     n_mi = np.stack([np.array(si.sh_frame.n.x), np.array(si.sh_frame.n.y), np.array(si.sh_frame.n.z)], -1)
     prim = np.array(si.prim_index, dtype=np.int64)
     r = R_BLENDER_FROM_MITSUBA
-    p_bl, n_bl = p_mi @ r.T, n_mi.astype(np.float64) @ r.T
+    n_bl = n_mi.astype(np.float64) @ r.T
 
     mat_index = {m["name"]: k for k, m in enumerate(spec["materials"])}
     mat_id = np.zeros(n, dtype=np.int64)  # per sample, 0 = miss

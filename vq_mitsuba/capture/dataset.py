@@ -15,12 +15,16 @@ import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
 from .cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from .imageio import read_image
+
+if TYPE_CHECKING:
+    import trimesh
 
 IMAGE_EXTS = (".exr", ".png", ".jpg", ".jpeg")
 MESH_SHAPES = ("ply", "obj", "serialized", "cube")  # loaded by Mitsuba as triangle meshes
@@ -34,7 +38,7 @@ class Capture:
     images: np.ndarray  # (N, H, W, 3) float32 linear RGB
     alpha: np.ndarray  # (N, H, W) float32 in [0, 1]; all ones when images have no alpha
     has_alpha: bool
-    mesh: "trimesh.Trimesh | None"  # noqa: F821  known geometry in world space, or None
+    mesh: trimesh.Trimesh | None  # known geometry in world space, or None
     envmap: np.ndarray | None  # known lighting: (H, W, 3) float32 lat-long linear, or None
     envmap_to_world: np.ndarray  # (4, 4) float64
     world: str  # "mitsuba" or "blender"
