@@ -215,6 +215,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
 
     if resume:
         state = torch.load(ckpt_path, map_location=device, weights_only=False)
+        state["model"].setdefault("metallic_gate", torch.tensor(1.0))  # checkpoints from before the schedule
         model.load_state_dict(state["model"])
         if discrete is not None:
             discrete.load_state_dict(state["discrete"])
@@ -274,7 +275,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                     discrete.warm_start(model.decoder, z_warm)
                 discrete.initialised.fill_(True)
         idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
-        model.set_progress(step / max(total, 1), cfg.field.pe_anneal)
+        model.set_progress(step / max(total, 1), cfg.field.pe_anneal, cfg.field.metallic_delay)
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],

@@ -98,18 +98,26 @@ class ContinuousMaterial(nn.Module):
         half = 0.5 * (bbox_max - bbox_min).max() * 1.05
         self.register_buffer("center", center.float())
         self.register_buffer("half_extent", half.float().reshape(()))
+        self.register_buffer("metallic_gate", torch.tensor(1.0))  # metallic output scale (schedule)
         self.encoder = Encoder(cfg)
         self.decoder = BRDFDecoder(cfg)
 
-    def set_progress(self, fraction: float, anneal: float) -> None:
-        """Open the positional-encoding frequencies over the first `anneal` fraction of training."""
+    def set_progress(self, fraction: float, anneal: float, metallic_delay: float = 0.0) -> None:
+        """Open the positional-encoding frequencies over the first `anneal` fraction of training;
+        hold metallic at 0 for the first `metallic_delay` fraction, then fade it in linearly over
+        as long again (a dielectric explanation first: a glossy plastic otherwise often settles
+        as a rough coloured metal, a local minimum the Lambertian prior does not leave)."""
         pe = self.encoder.pe
         n = pe.freqs.shape[0]
         pe.progress.fill_(n if anneal <= 0 else min(n, n * fraction / anneal))
+        gate = 1.0 if metallic_delay <= 0 else min(max(fraction / metallic_delay - 1.0, 0.0), 1.0)
+        self.metallic_gate.fill_(gate)
 
     def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
         z = self.encoder((x_world - self.center) / self.half_extent)
         out = self.decoder(z)
+        if float(self.metallic_gate) != 1.0:
+            out["metallic"] = out["metallic"] * self.metallic_gate
         out["z"] = z
         return out
 

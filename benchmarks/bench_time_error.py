@@ -1,0 +1,273 @@
+#!/usr/bin/env python
+"""Benchmark of error against run time, on Cycles ground truth, with the per-texel baseline.
+
+    python benchmarks/bench_time_error.py [--data benchmarks/out/cycles] [--scenes demo texture balls]
+        [--methods ours texel ours_vq] [--budgets 30,60,120,240,480] [--eval-spp 64]
+        [--capture json|xml] [--out benchmarks/out/time_error] [--compare OLD.json]
+
+Datasets: DATA/NAME, written by `vq-mitsuba make-scene NAME --renderer cycles -o DATA/NAME` (this
+script renders a missing one that way, at --resolution). Each method fits the training views
+once, with a time limit of the largest budget, and keeps its state at every budget (fit seconds,
+excluding the copies); every kept state is then scored by `vq_mitsuba.evaluate` on the test views:
+novel view, basecolor (per-channel lstsq alignment), metallic, roughness, relighting under every
+held-aside envmap (albedo scale and per-image scale). Methods:
+
+- `ours`: `vq-mitsuba fit` (continuous branch; configs/NAME.yaml when present);
+- `ours_vq`: the same with the discrete branch (`vq.enabled=true`): its final state also gives
+  the segmentation and the MeanShift baseline on its continuous maps;
+- `texel`: per-texel principled textures on an xatlas UV map and an envmap, optimised with
+  Mitsuba's own differentiable path tracer (`vq_mitsuba.texel`).
+
+Writes OUT/time_error.json, OUT/time_error.md and OUT/time_error.png (error against seconds), and
+with --compare (or an older OUT/time_error.json) prints new / old ratios of matching points.
+Single runs; the fit clocks of methods in one invocation are comparable (same machine, same
+load), across invocations only roughly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from bench_scenes import _fmt, machine_info  # noqa: E402
+from vq_mitsuba.config import load_config  # noqa: E402
+from vq_mitsuba.evaluate import evaluate, evaluate_predictor, json_safe  # noqa: E402
+from vq_mitsuba.fit import fit  # noqa: E402
+
+METHODS = {
+    "ours": "vq-mitsuba fit, continuous branch",
+    "ours_vq": "vq-mitsuba fit with the discrete branch (vq.enabled=true)",
+    "texel": "per-texel principled textures (xatlas UVs) + envmap, Mitsuba prb + mi.ad.Adam",
+}
+
+FIGURES = [
+    ("seconds", "fit s", ".0f"), ("iterations", "iters", "d"),
+    ("novel_psnr", "view PSNR", ".2f"), ("basecolor_psnr", "albedo PSNR", ".2f"),
+    ("metallic_psnr", "metal PSNR", ".2f"), ("roughness_psnr", "rough PSNR", ".2f"),
+    ("relit_psnr", "relit PSNR (albedo scale)", ".2f"), ("relit_image_psnr", "relit PSNR (image scale)", ".2f"),
+    ("seg_micro_f1", "seg micro-F1", ".3f"), ("meanshift_best_f1", "MeanShift best micro-F1", ".3f"),
+]
+
+
+def ensure_cycles_dataset(name: str, data_dir: Path, resolution: int) -> Path:
+    if (data_dir / "scene.json").is_file():
+        meta = json.loads((data_dir / "scene.json").read_text())
+        if meta.get("renderer") != "cycles":
+            print(f"[{name}] note: {data_dir} was rendered by {meta.get('renderer', 'mitsuba')}, not Cycles")
+        return data_dir
+    print(f"[{name}] rendering the Cycles ground truth into {data_dir} ({resolution} px)")
+    subprocess.run([sys.executable, "-m", "vq_mitsuba.cli", "make-scene", name, "--renderer", "cycles",
+                    "--resolution", str(resolution), "-o", str(data_dir)], check=True)
+    return data_dir
+
+
+def figures(m: dict, seconds: float, iterations: int) -> dict:
+    rel = m["relighting"]
+    fig = {"seconds": seconds, "iterations": iterations,
+           "novel_psnr": m["novel_view"]["psnr"], "basecolor_psnr": m["basecolor"]["psnr"],
+           "metallic_psnr": m["metallic"]["psnr"], "roughness_psnr": m["roughness"]["psnr"],
+           "relit_psnr": rel["albedo_scale"]["mean"]["psnr"] if rel["albedo_scale"]["mean"] else None,
+           "relit_image_psnr": rel["image_scale"]["mean"]["psnr"] if rel["image_scale"]["mean"] else None}
+    seg = m.get("segmentation") or {}
+    fig["seg_micro_f1"], fig["seg_macro_f1"] = seg.get("micro_f1"), seg.get("macro_f1")
+    fig["materials_found"], fig["materials_true"] = seg.get("num_materials_found"), seg.get("num_materials_true")
+    ms = {k: v for k, v in (m.get("meanshift") or {}).items() if isinstance(v, dict)}
+    if ms:
+        best = max(ms, key=lambda k: ms[k]["micro_f1"])
+        fig["meanshift_best_f1"], fig["meanshift_best_bandwidth"] = ms[best]["micro_f1"], float(best)
+    return fig
+
+
+def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out: Path) -> list[dict]:
+    import torch
+
+    preset = REPO / "configs" / f"{name}.yaml"
+    overrides = [f"train.time_limit_s={max(budgets)}", "train.snapshot_s=" + ",".join(f"{b:g}" for b in budgets)]
+    if method == "ours_vq":
+        overrides.append("vq.enabled=true")
+    cfg = load_config(preset if preset.is_file() else None, overrides + list(args.set))
+    run_dir = out / "runs" / name / method
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    print(f"[{name}/{method}] fitting {capture} -> {run_dir} ({cfg.train.iterations} iterations planned, "
+          f"time limit {max(budgets):g} s)")
+    summary = fit(capture, run_dir, cfg, progress=not args.quiet)
+    states = []
+    for snap in sorted((run_dir / "snapshots").glob("*.pt")):
+        st = torch.load(snap, map_location="cpu", weights_only=False)
+        states.append((float(st["elapsed_s"]), int(st["step"]), snap))
+    final_s = float(summary["seconds"])
+    if not states or final_s > states[-1][0] + 1.0:  # the end of the fit, when it is not a snapshot already
+        states.append((final_s, int(summary["iterations"]), None))
+    rows = []
+    for i, (sec, step, snap) in enumerate(states):
+        last = i == len(states) - 1
+        print(f"[{name}/{method}] scoring the state at {sec:.0f} s ({step} iterations)")
+        m = evaluate(run_dir, data, spp=args.eval_spp, progress=not args.quiet, checkpoint=snap,
+                     meanshift_bandwidths=(0.2, 0.3, 0.5) if last and method == "ours_vq" else (),
+                     output=run_dir / f"metrics_{sec:07.1f}s.json")
+        rows.append({"scene": name, "method": method, "final": last, **figures(m, sec, step)})
+    return rows
+
+
+def run_texel(name: str, data: Path, budgets: list[float], args, out: Path) -> list[dict]:
+    from vq_mitsuba.texel import TexelConfig, TexelPredictor, fit_texel
+
+    run_dir = out / "runs" / name / "texel"
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    print(f"[{name}/texel] fitting {capture} -> {run_dir} (time limit {max(budgets):g} s)")
+    result = fit_texel(capture, run_dir, TexelConfig(), time_limit_s=max(budgets), snapshot_s=budgets,
+                       progress=not args.quiet)
+    rows = []
+    snaps = result["snapshots"]
+    for i, (sec, its, path) in enumerate(snaps):
+        print(f"[{name}/texel] scoring the state at {sec:.0f} s ({its} iterations)")
+        m = evaluate_predictor(TexelPredictor(path), data, spp=args.eval_spp, progress=not args.quiet,
+                               meanshift_bandwidths=(), run_label=str(path),
+                               output=run_dir / f"metrics_{sec:07.1f}s.json")
+        rows.append({"scene": name, "method": "texel", "final": i == len(snaps) - 1, **figures(m, sec, its)})
+    return rows
+
+
+def markdown(result: dict) -> str:
+    mach = result["machine"]
+    lines = [f"# Error against fit time on Cycles ground truth ({result['date']})", "",
+             f"Command: `{result['command']}`", "",
+             f"Machine: {mach['cpu']}, {mach['cores']} cores, GPU: {mach['gpu'] or 'none'}; "
+             f"Mitsuba {mach['mitsuba']} ({mach['mitsuba_variant']}), Dr.Jit {mach['drjit']}, torch {mach['torch']}; "
+             f"commit {mach['commit']}", "",
+             f"Evaluation: {result['eval_spp']} spp, basecolor aligned per channel (lstsq), metallic and roughness "
+             "unaligned, relighting mean over the held-aside envmaps. Methods: "
+             + "; ".join(f"`{k}`: {v}" for k, v in METHODS.items() if k in result["methods"]), "",
+             "| scene | method | " + " | ".join(label for _, label, _ in FIGURES) + " |",
+             "|---|---|" + "---:|" * len(FIGURES)]
+    for r in result["rows"]:
+        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(_fmt(r.get(k), f) for k, _, f in FIGURES) + " |")
+    lines += ["", "At equal fit time (the states kept at the same budget):", "",
+              "| scene | budget s | " + " | ".join(f"{m} albedo / relit" for m in result["methods"]) + " |",
+              "|---|---:|" + "---:|" * len(result["methods"])]
+    for scene in result["scenes"]:
+        for b in result["budgets"]:
+            cells = []
+            for meth in result["methods"]:
+                r = _at_budget(result["rows"], scene, meth, b)
+                cells.append(f"{_fmt(r.get('basecolor_psnr'))} / {_fmt(r.get('relit_psnr'))}" if r else "-")
+            lines.append(f"| {scene} | {b:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _at_budget(rows: list[dict], scene: str, method: str, budget: float) -> dict | None:
+    """The state kept at `budget` seconds (the first at or after it; a fit that ended earlier gives its end)."""
+    cands = sorted((r for r in rows if r["scene"] == scene and r["method"] == method), key=lambda r: r["seconds"])
+    for r in cands:
+        if r["seconds"] >= budget - 1e-6:
+            return r
+    return cands[-1] if cands and cands[-1]["final"] and cands[-1]["seconds"] < budget else None
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [("basecolor_psnr", "basecolor PSNR (dB)"), ("relit_psnr", "relighting PSNR (dB)"),
+            ("novel_psnr", "novel-view PSNR (dB)")]
+    scenes = result["scenes"]
+    fig, axes = plt.subplots(len(scenes), len(keys), figsize=(4.2 * len(keys), 3.2 * len(scenes)), squeeze=False)
+    for i, scene in enumerate(scenes):
+        for j, (key, label) in enumerate(keys):
+            ax = axes[i][j]
+            for meth in result["methods"]:
+                pts = sorted((r["seconds"], r[key]) for r in result["rows"]
+                             if r["scene"] == scene and r["method"] == meth and r.get(key) is not None)
+                if pts:
+                    ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=meth)
+            ax.set_xscale("log")
+            ax.set_xlabel("fit seconds")
+            ax.set_ylabel(label)
+            ax.set_title(scene)
+            ax.grid(True, alpha=0.3)
+            if i == 0 and j == 0:
+                ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def compare(new: dict, old: dict) -> str:
+    lines = [f"new / old (old: commit {old['machine'].get('commit')}, {old['date']})"]
+    for r in new["rows"]:
+        for b in old.get("budgets", []):
+            o = _at_budget(old["rows"], r["scene"], r["method"], b)
+            if o is None or abs(o["seconds"] - r["seconds"]) > 0.2 * b or _at_budget(new["rows"], r["scene"], r["method"], b) is not r:
+                continue
+            parts = []
+            for k in ("basecolor_psnr", "relit_psnr", "novel_psnr"):
+                if isinstance(r.get(k), (int, float)) and isinstance(o.get(k), (int, float)) and o[k]:
+                    parts.append(f"{k} {r[k] / o[k]:.3f}")
+            lines.append(f"  {r['scene']}/{r['method']} @ {b:g} s: " + ", ".join(parts))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles",
+                    help="folder of Cycles datasets DATA/NAME (rendered when missing)")
+    ap.add_argument("--scenes", nargs="+", default=["demo", "texture", "balls"])
+    ap.add_argument("--methods", nargs="+", default=["ours", "texel"], choices=list(METHODS))
+    ap.add_argument("--budgets", default="30,60,120,240,480", help="fit seconds at which states are scored")
+    ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scoring renders")
+    ap.add_argument("--resolution", type=int, default=64, help="image size of datasets rendered here")
+    ap.add_argument("--capture", choices=("json", "xml"), default="json",
+                    help="fit the NeRF-synthetic transforms_train.json (Blender world) or the scene.xml")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for the `ours` methods (repeatable)")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
+    ap.add_argument("--compare", type=Path, help="an earlier time_error.json (default: the one in OUT)")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    budgets = sorted(float(b) for b in args.budgets.split(",") if b.strip())
+    args.out.mkdir(parents=True, exist_ok=True)
+    json_path = args.out / "time_error.json"
+    old_path = args.compare or (json_path if json_path.is_file() else None)
+    old = json.loads(old_path.read_text()) if old_path and old_path.is_file() else None
+
+    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
+              "eval_spp": args.eval_spp, "capture": args.capture, "rows": []}
+    for name in args.scenes:
+        data = ensure_cycles_dataset(name, args.data / name, args.resolution)
+        for method in args.methods:
+            if method == "texel":
+                rows = run_texel(name, data, budgets, args, args.out)
+            else:
+                rows = run_ours(name, data, method, budgets, args, args.out)
+            result["rows"] += rows
+            # Written after every method: an interrupted benchmark keeps what it measured.
+            json_path.write_text(json.dumps(json_safe(result), indent=2))
+            (args.out / "time_error.md").write_text(markdown(result))
+            plot(result, args.out / "time_error.png")
+    print(markdown(result))
+    print(f"wrote {json_path}, {args.out / 'time_error.md'}, {args.out / 'time_error.png'}")
+    if old is not None:
+        print(compare(result, old))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
