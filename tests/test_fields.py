@@ -1,0 +1,34 @@
+"""The continuous material field's schedules: encoding annealing and the metallic delay."""
+
+import pytest
+import torch
+
+from vq_mitsuba.config import FieldConfig
+from vq_mitsuba.materials.fields import ContinuousMaterial
+
+
+@pytest.mark.parametrize("fraction,gate", [(0.0, 0.0), (0.1, 0.0), (0.15, 0.5), (0.2, 1.0), (0.9, 1.0)])
+def test_metallic_delay_holds_then_fades_in(fraction, gate):
+    torch.manual_seed(0)
+    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    x = torch.rand(32, 3) * 2 - 1
+    model.set_progress(fraction, anneal=0.5, metallic_delay=0.0)  # same encoding, no delay
+    free = model(x)
+    model.set_progress(fraction, anneal=0.5, metallic_delay=0.1)
+    out = model(x)
+    assert free["metallic"].abs().min() > 0
+    torch.testing.assert_close(out["metallic"], gate * free["metallic"])
+    # Basecolor and roughness are not touched by the schedule.
+    torch.testing.assert_close(out["roughness"], free["roughness"])
+    torch.testing.assert_close(out["basecolor"], free["basecolor"])
+    if gate > 0:  # the metallic network learns while it fades in
+        out["metallic"].sum().backward()
+        assert model.decoder.metallic.parameters().__next__().grad.abs().sum() > 0
+
+
+def test_metallic_gate_is_saved_with_the_model():
+    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    model.set_progress(0.05, anneal=0.5, metallic_delay=0.1)
+    other = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    other.load_state_dict(model.state_dict())
+    assert float(other.metallic_gate) == 0.0
