@@ -23,7 +23,7 @@ class FieldConfig:
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
     pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
-    metallic_delay: float = 0.0  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again
+    metallic_delay: float = 0.1  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again
 
 
 @dataclass
