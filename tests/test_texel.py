@@ -92,6 +92,27 @@ def test_texture_gradient_matches_finite_difference(sphere):
     assert analytic * numeric > 0 and 0.7 < analytic / numeric < 1.4
 
 
+def test_other_views_reuse_the_compiled_kernels(sphere):
+    """The one sensor is moved through opaque parameters: a new view compiles nothing new."""
+    import drjit as dr
+    import mitsuba as mi
+
+    ts = TexelScene(load_capture(sphere), TexelConfig(resolution=16, spp=4))
+    opt = mi.ad.Adam(lr=0.05, mask_updates=True)
+    for name, value in ts.initial_values().items():
+        opt[name] = value
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for step in range(5):
+            dr.backward(ts.loss(opt, [step], seed=step))
+            opt.step()
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+            if step >= 2:  # views 2, 3, 4 were never rendered before
+                assert jit and all(k.get("cache_hit") == 1 and not k.get("cache_disk") for k in jit), step
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
 def test_true_materials_reproduce_the_capture(sphere):
     """Conventions (sensor, envmap orientation, premultiplied alpha): the capture's own material
     in the texel scene matches the reference images far better than the initial grey, a wrong

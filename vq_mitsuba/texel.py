@@ -39,14 +39,14 @@ class TexelConfig:
     uv_padding: int = 2  # texels between charts in the xatlas packing (bilinear lookups stay in the chart)
     envmap_height: int = EnvmapConfig.height  # rows of the learned lat-long envmap (width is twice this)
     env_init_scale: float = 2.0  # initial radiance = this x mean foreground pixel value (as ours)
-    spp: int = 4  # samples per pixel of each training render
+    spp: int = 16  # samples per pixel of each training render (4 is noisier per step, and barely cheaper)
     max_depth: int = 3  # path length of the integrator (3: direct light plus one bounce)
     views_per_step: int = 1  # random whole training views rendered per Adam step
-    lr_texture: float = 0.03  # Adam learning rate of the texels (values in [0, 1])
+    lr_texture: float = 0.05  # Adam learning rate of the texels (values in [0, 1])
     lr_envmap: float = 0.03  # Adam learning rate of the envmap's log radiance
     lr_decay: float = 0.1  # learning rates decay exponentially to this fraction at the time limit
     gamma: float = 2.2  # the loss compares x^(1/gamma) (as losses.encode_gamma)
-    tv_weight: float = 0.0  # mean squared difference of neighbouring texels (all three textures)
+    tv_weight: float = 1.0  # mean squared difference of neighbouring texels (all three textures; 0: off)
     env_tv_weight: float = 1e-4  # mean squared difference of neighbouring log-radiance texels (as ours)
     init_basecolor: float = 0.5
     init_metallic: float = 0.1
