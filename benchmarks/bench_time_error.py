@@ -246,6 +246,9 @@ def main(argv=None) -> int:
     old_path = args.compare or (json_path if json_path.is_file() else None)
     old = json.loads(old_path.read_text()) if old_path and old_path.is_file() else None
 
+    from vq_mitsuba.rendering import init_mitsuba
+
+    init_mitsuba()  # the variant is part of the machine record
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
               "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
