@@ -238,6 +238,8 @@ def main(argv=None) -> int:
                     help="config override for the `ours` methods (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
     ap.add_argument("--compare", type=Path, help="an earlier time_error.json (default: the one in OUT)")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the rows of OUT/time_error.json for other scenes and methods (re-run or extend a part)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     budgets = sorted(float(b) for b in args.budgets.split(",") if b.strip())
@@ -253,6 +255,14 @@ def main(argv=None) -> int:
               "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
               "eval_spp": args.eval_spp, "capture": args.capture, "rows": []}
+    if args.append and old is not None:
+        if old.get("budgets") != budgets or old.get("eval_spp") != args.eval_spp:
+            raise SystemExit(f"--append: {old_path} has other budgets or eval spp")
+        rerun = {(s_, m_) for s_ in args.scenes for m_ in args.methods}
+        result["rows"] = [r for r in old["rows"] if (r["scene"], r["method"]) not in rerun]
+        result["scenes"] = list(dict.fromkeys(old["scenes"] + args.scenes))
+        result["methods"] = list(dict.fromkeys(old["methods"] + args.methods))
+        result["command"] += f" (appended to the results of `{old['command']}`)"
     for name in args.scenes:
         data = ensure_cycles_dataset(name, args.data / name, args.resolution)
         for method in args.methods:

@@ -114,6 +114,25 @@ def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
     assert not (tmp_path / "r2").exists()
 
 
+def test_time_limit_drives_the_schedules(sphere_capture, tmp_path):
+    """A fit stopped by the clock long before its iteration count has decayed its learning rate
+    and opened its metallic output: the schedules follow the time used."""
+    run = tmp_path / "run"
+    cfg = load_config(None, ["train.iterations=100000", "train.batch_rays=64", "train.time_limit_s=2",
+                             "train.lr=0.01", "train.lr_decay=0.1", "field.metallic_delay=0.2"])
+    summary = fit(sphere_capture, run, cfg, progress=False)
+    assert summary["iterations"] < 100000
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    lr_end = state["optim"]["param_groups"][0]["lr"]
+    assert 0.001 <= lr_end < 0.0013  # 0.01 x 0.1^f, f the progress of the last step (close to 1)
+    assert float(state["model"]["metallic_gate"]) == 1.0
+    # Without a time limit the schedule follows the iterations.
+    cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01", "train.lr_decay=0.1"])
+    fit(sphere_capture, tmp_path / "r2", cfg, progress=False)
+    lr_end = torch.load(tmp_path / "r2" / "checkpoint.pt", weights_only=False)["optim"]["param_groups"][0]["lr"]
+    assert lr_end == pytest.approx(0.01 * 0.1 ** 0.75)
+
+
 def test_fit_recovers_uniform_sphere_material(tmp_path):
     """Known lighting, known geometry: basecolor within 0.05 and roughness within 0.1."""
     xml = write_sphere_capture(tmp_path / "cap", base_color=(0.7, 0.35, 0.2), roughness=0.3, size=32,

@@ -80,7 +80,7 @@ class TrainConfig:
     alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
     pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
-    time_limit_s: float = 0.0  # stop early after this many seconds (0: no limit)
+    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
     snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
 
 

@@ -207,8 +207,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         groups.append({"params": env_module.parameters(), "lr": cfg.envmap.lr})
     optim = torch.optim.Adam(groups)
     total = cfg.train.iterations
-    gamma_lr = cfg.train.lr_decay ** (1.0 / max(total, 1))
-    sched = torch.optim.lr_scheduler.ExponentialLR(optim, gamma_lr)
+    base_lrs = [g["lr"] for g in optim.param_groups]  # decayed by training progress (below)
     gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
     history: list[dict] = []
     step, elapsed_before = 0, 0.0
@@ -222,7 +221,6 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         if learn_env:
             env_module.load_state_dict(state["envmap"])
         optim.load_state_dict(state["optim"])
-        sched.load_state_dict(state["sched"])
         gen.set_state(state["generator"])
         history, step, elapsed_before = state["history"], state["step"], state["elapsed_s"]
         if step >= total:
@@ -234,7 +232,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             "discrete": discrete.state_dict() if discrete is not None else None,
             "envmap": env_module.state_dict() if learn_env else None,
             "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
-            "optim": optim.state_dict(), "sched": sched.state_dict(), "generator": gen.get_state(),
+            "optim": optim.state_dict(), "generator": gen.get_state(),
             "history": history, "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
         }, ckpt_path)
 
@@ -256,7 +254,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
     B = min(cfg.train.batch_rays, len(pool))
     rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
-    warm_steps = int(cfg.vq.warmup_frac * total)
+    t_limit = cfg.train.time_limit_s
     pairs = neighbour_pairs(pool, capture.width, capture.height).to(device) if cfg.loss.w_sm > 0 else None
     groups_mc = 2 if cfg.loss.decorrelated else 1
 
@@ -266,7 +264,15 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         return losses.reconstruction_l2(samples.mean(1), target, cfg.loss.gamma)
 
     while step < total:
-        if discrete is not None and step >= warm_steps and not bool(discrete.initialised):
+        # Training progress in [0, 1] drives every schedule (learning rate, encoding frequencies,
+        # metallic delay, VQ warm-up): the share of iterations done or, under a time limit, of
+        # the time used if larger, so that a fit stopped by the clock has run its whole schedule.
+        frac = step / max(total, 1)
+        if t_limit > 0:
+            frac = min(max(frac, (elapsed_before + time.perf_counter() - t0) / t_limit), 1.0)
+        for g, lr in zip(optim.param_groups, base_lrs):
+            g["lr"] = lr * cfg.train.lr_decay ** frac
+        if discrete is not None and frac >= cfg.vq.warmup_frac and not bool(discrete.initialised):
             with torch.no_grad():  # codebook from k-means of the warmed-up latents
                 sub = torch.randint(0, len(pool), (min(20000, len(pool)),), generator=gen, device=device)
                 z_warm = model(pool.position[sub])["z"]
@@ -275,7 +281,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                     discrete.warm_start(model.decoder, z_warm)
                 discrete.initialised.fill_(True)
         idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
-        model.set_progress(step / max(total, 1), cfg.field.pe_anneal, cfg.field.metallic_delay)
+        model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay)
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
         samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
@@ -313,7 +319,6 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
-        sched.step()
         step += 1
         with torch.no_grad():
             mse = float(losses.srgb_mse(rgb.detach(), target))
