@@ -52,6 +52,24 @@ def test_uv_atlas_keeps_faces_and_stays_in_the_unit_square():
     assert (area > 0).all() and area.sum() < 1.0
 
 
+def test_voronoi_atlas_fallback_keeps_faces():
+    """The atlas used where xatlas crashes: same triangles in the same order (each corner its own
+    input vertex, possibly rotated within the triangle), UVs in the unit square, charts not flat."""
+    import trimesh
+
+    from vq_mitsuba.texel import _voronoi_atlas
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    vmap, faces, uvs = _voronoi_atlas(mesh.vertices, mesh.faces)
+    assert faces.shape == mesh.faces.shape
+    np.testing.assert_array_equal(np.sort(vmap[faces], 1), np.sort(mesh.faces, 1))
+    assert uvs.min() >= 0.0 and uvs.max() <= 1.0
+    t = uvs[faces]
+    area = 0.5 * np.abs((t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1])
+                        - (t[:, 2, 0] - t[:, 0, 0]) * (t[:, 1, 1] - t[:, 0, 1]))
+    assert np.mean(area > 1e-10) > 0.99 and area.sum() < 1.0
+
+
 def test_texture_gradient_matches_finite_difference(sphere):
     """Mitsuba's prb gradient with respect to the red texels of half the atlas against central
     differences (same random numbers for both sides)."""
