@@ -110,8 +110,9 @@ def _material(m: dict) -> bpy.types.Material:
     bsdf.inputs["Roughness"].default_value = float(m["roughness"])
     nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     if m.get("vertex_colors"):
-        attr = nt.nodes.new("ShaderNodeVertexColor")
-        attr.layer_name = "vertex_color"
+        attr = nt.nodes.new("ShaderNodeAttribute")  # the mesh's "vertex_color" attribute
+        attr.attribute_type = "GEOMETRY"
+        attr.attribute_name = "vertex_color"
         color_socket = attr.outputs["Color"]
         nt.links.new(color_socket, bsdf.inputs["Base Color"])
     else:
