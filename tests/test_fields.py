@@ -32,3 +32,12 @@ def test_metallic_gate_is_saved_with_the_model():
     other = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
     other.load_state_dict(model.state_dict())
     assert float(other.metallic_gate) == 0.0
+
+
+def test_models_saved_before_the_metallic_schedule_still_load():
+    old = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3)).state_dict()
+    del old["metallic_gate"]
+    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    model.metallic_gate.fill_(0.0)
+    model.load_state_dict(old)  # strict: the missing gate is filled in, not an error
+    assert float(model.metallic_gate) == 1.0

@@ -214,7 +214,6 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
 
     if resume:
         state = torch.load(ckpt_path, map_location=device, weights_only=False)
-        state["model"].setdefault("metallic_gate", torch.tensor(1.0))  # checkpoints from before the schedule
         model.load_state_dict(state["model"])
         if discrete is not None:
             discrete.load_state_dict(state["discrete"])
@@ -226,25 +225,22 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         if step >= total:
             print(f"{run_dir}: already fitted ({step} of {total} iterations); nothing to do")
 
-    def checkpoint(elapsed: float) -> None:
-        _atomic_save({
-            "model": model.state_dict(),
-            "discrete": discrete.state_dict() if discrete is not None else None,
-            "envmap": env_module.state_dict() if learn_env else None,
-            "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
-            "optim": optim.state_dict(), "generator": gen.get_state(),
-            "history": history, "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
-        }, ckpt_path)
-
-    def snapshot(elapsed: float) -> None:  # the state as it is now, for scoring later (no optimiser)
-        (run_dir / "snapshots").mkdir(exist_ok=True)
-        _atomic_save({
+    def fitted_state(elapsed: float) -> dict:  # what rendering and scoring need
+        return {
             "model": model.state_dict(),
             "discrete": discrete.state_dict() if discrete is not None else None,
             "envmap": env_module.state_dict() if learn_env else None,
             "envmap_fixed": None if learn_env else torch.as_tensor(capture.envmap),
             "step": step, "elapsed_s": elapsed, "config": to_dict(cfg),
-        }, run_dir / "snapshots" / f"t{elapsed:07.1f}s_step{step:06d}.pt")
+        }
+
+    def checkpoint(elapsed: float) -> None:  # plus what resuming needs
+        _atomic_save({**fitted_state(elapsed), "optim": optim.state_dict(), "generator": gen.get_state(),
+                      "history": history}, ckpt_path)
+
+    def snapshot(elapsed: float) -> None:  # the state as it is now, for scoring later (no optimiser)
+        (run_dir / "snapshots").mkdir(exist_ok=True)
+        _atomic_save(fitted_state(elapsed), run_dir / "snapshots" / f"t{elapsed:07.1f}s_step{step:06d}.pt")
 
     snap_times = [t for t in snap_times if t > elapsed_before]
     fixed_env = None if learn_env else torch.as_tensor(capture.envmap, device=device)

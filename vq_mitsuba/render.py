@@ -71,7 +71,6 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None) -> Fitte
     mesh = load_mesh(run.dir / "mesh.ply")
     bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
     model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(torch_device())
-    state["model"].setdefault("metallic_gate", torch.tensor(1.0))  # runs fitted before the metallic schedule
     model.load_state_dict(state["model"])
     model.eval()
     discrete = None

@@ -102,6 +102,11 @@ class ContinuousMaterial(nn.Module):
         self.encoder = Encoder(cfg)
         self.decoder = BRDFDecoder(cfg)
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # Runs saved before the metallic schedule existed have no gate: theirs is 1.
+        state_dict.setdefault(prefix + "metallic_gate", torch.tensor(1.0))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def set_progress(self, fraction: float, anneal: float, metallic_delay: float = 0.0) -> None:
         """Open the positional-encoding frequencies over the first `anneal` fraction of training;
         hold metallic at 0 for the first `metallic_delay` fraction, then fade it in linearly over
