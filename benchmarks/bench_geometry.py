@@ -11,6 +11,14 @@ training a mesh is extracted (128^3, outside the timed training) and scored; the
 scored against the dataset's mesh.ply: Chamfer distance as a fraction of the bounding-box
 diagonal, normal consistency, F-scores, and NeuS novel-view PSNR (sRGB, black background) on
 the first test views. Results: JSON + markdown in benchmarks/results/geometry_<commit>.{json,md}.
+
+With --materials, the material stage then runs twice on the same training views with the same
+config and seed: once on the NeuS mesh (the pipeline from images alone) and once on the dataset's
+true mesh. Both runs are scored by `vq_mitsuba.evaluate` on the test views, and the table gives
+their basecolor PSNR and its difference (target: within 1.5 dB). --seeds repeats the pair with
+other seeds; --reuse takes an existing NeuS mesh in the output folder instead of training again.
+
+    .venv/bin/python benchmarks/bench_geometry.py --scenes demo --reuse --materials --seeds 0 1
 """
 
 from __future__ import annotations
@@ -110,6 +118,54 @@ def commit() -> str:
         return "unknown"
 
 
+def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
+    """The material stage on the NeuS mesh and on the true mesh, same config and seed; scored."""
+    import shutil
+
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.evaluate import evaluate
+    from vq_mitsuba.fit import fit
+
+    preset = ROOT / "configs" / f"{name}.yaml"
+    rows = []
+    for seed in args.seeds:
+        row = {"seed": seed}
+        for geometry, mesh in (("neus", neus_mesh), ("true", data / "mesh.ply")):
+            cfg = load_config(preset if preset.is_file() else None,
+                              [f"train.time_limit_s={args.material_time_limit}", f"train.seed={seed}", *args.material_set])
+            if args.material_iterations is not None:
+                cfg.train.iterations = min(cfg.train.iterations, args.material_iterations)
+            run_dir = ROOT / args.out / name / f"materials_{geometry}_seed{seed}"
+            if run_dir.exists():
+                shutil.rmtree(run_dir)
+            print(f"[{name}] materials on the {geometry} mesh (seed {seed}) -> {run_dir}", flush=True)
+            summary = fit(data / "transforms_train.json", run_dir, cfg, mesh_path=mesh, progress=not args.quiet)
+            m = evaluate(run_dir, data, spp=args.eval_spp, progress=not args.quiet, meanshift_bandwidths=())
+            row[geometry] = {
+                "run": str(run_dir), "fit_s": summary["seconds"], "iterations": summary["iterations"],
+                "basecolor_psnr": m["basecolor"]["psnr"], "novel_psnr": m["novel_view"]["psnr"],
+                "relit_albedo_scale_psnr": m["relighting"]["albedo_scale"]["mean"]["psnr"],
+            }
+            print(f"[{name}] {geometry} mesh, seed {seed}: basecolor {row[geometry]['basecolor_psnr']:.2f} dB, "
+                  f"view {row[geometry]['novel_psnr']:.2f} dB", flush=True)
+        row["basecolor_gap_db"] = row["true"]["basecolor_psnr"] - row["neus"]["basecolor_psnr"]
+        rows.append(row)
+    return rows
+
+
+def reused_scene(name: str, args) -> dict:
+    """The result of an earlier NeuS run in the output folder (its bench.json and mesh)."""
+    run_dir = ROOT / args.out / name
+    bench = run_dir / "bench.json"
+    if not (bench.is_file() and (run_dir / "mesh.ply").is_file()):
+        raise SystemExit(f"--reuse: {run_dir} holds no finished NeuS run (bench.json and mesh.ply); run without --reuse")
+    result = json.loads(bench.read_text())
+    result["reused"] = True
+    print(f"[{name}] reusing the NeuS mesh {run_dir / 'mesh.ply'} (Chamfer "
+          f"{100 * result['final']['chamfer_rel']:.3f}%)", flush=True)
+    return result
+
+
 def run_scene(name: str, args, overrides: list[str]) -> dict:
     from vq_mitsuba.capture.dataset import load_capture, load_mesh
     from vq_mitsuba.geometry.mesh import mesh_metrics
@@ -117,6 +173,12 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     from vq_mitsuba.geometry.pipeline import load_neus_config
 
     data = find_dataset(name, args.resolution, args.n_train, not args.quiet)
+    if args.reuse:
+        result = reused_scene(name, args)
+        data = Path(result["dataset"])
+        if args.materials:
+            result["materials"] = material_runs(name, data, ROOT / args.out / name / "mesh.ply", args)
+        return result
     run_dir = ROOT / args.out / name
     for stale in ("neus.pt", "mesh.ply", "geometry.json"):
         (run_dir / stale).unlink(missing_ok=True)
@@ -153,6 +215,8 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
         "load_average": {"start": load_before, "end": os.getloadavg()},
     }
     (run_dir / "bench.json").write_text(json.dumps(result, indent=2))
+    if args.materials:
+        result["materials"] = material_runs(name, data, run_dir / "mesh.ply", args)
     print(f"[{name}] final: Chamfer {100 * final['chamfer_rel']:.3f}% of the diagonal, NC "
           f"{final['normal_consistency']:.4f}, PSNR {views.get('psnr', float('nan')):.2f} dB, "
           f"{result['seconds']['pipeline']:.0f} s in all", flush=True)
@@ -172,7 +236,7 @@ def write_markdown(report: dict, path: Path) -> None:
     for r in report["scenes"]:
         f, v = r["final"], r["novel_views"]
         la = r["load_average"]
-        lines.append(f"| {r['scene']} | {r['iterations']} | {r['seconds']['train']:.0f} | {r['seconds']['pipeline']:.0f} | "
+        lines.append(f"| {r['scene']}{' (earlier run)' if r.get('reused') else ''} | {r['iterations']} | {r['seconds']['train']:.0f} | {r['seconds']['pipeline']:.0f} | "
                      f"{100 * f['chamfer_rel']:.3f} | {f['normal_consistency']:.4f} | {f['f_score@0.01']:.3f} | "
                      f"{v.get('psnr', float('nan')):.2f} | {v.get('psnr_foreground', float('nan')):.2f} | "
                      f"{la['start'][0]:.1f} / {la['end'][0]:.1f} |")
@@ -182,6 +246,19 @@ def write_markdown(report: dict, path: Path) -> None:
         lines.append(f"**{r['scene']}**: " + ", ".join(
             f"{c['train_seconds']:.0f} s: {100 * c['chamfer_rel']:.3f}%" for c in r["curve"])
             + f"; final ({r['seconds']['train']:.0f} s): {100 * r['final']['chamfer_rel']:.3f}%")
+        lines.append("")
+    runs = [(r["scene"], row) for r in report["scenes"] for row in r.get("materials", [])]
+    if runs:
+        lines += ["Material stage on the NeuS mesh (images alone) against the true mesh, same config and seed; "
+                  "basecolor PSNR in sRGB after per-channel alignment (target: NeuS within 1.5 dB of true):", "",
+                  "| scene | seed | iters (NeuS / true) | basecolor NeuS | basecolor true | gap (dB) | view NeuS | view true "
+                  "| relit NeuS | relit true |",
+                  "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for scene, row in runs:
+            n, t = row["neus"], row["true"]
+            lines.append(f"| {scene} | {row['seed']} | {n['iterations']} / {t['iterations']} | {n['basecolor_psnr']:.2f} | "
+                         f"{t['basecolor_psnr']:.2f} | {row['basecolor_gap_db']:.2f} | {n['novel_psnr']:.2f} | "
+                         f"{t['novel_psnr']:.2f} | {n['relit_albedo_scale_psnr']:.2f} | {t['relit_albedo_scale_psnr']:.2f} |")
         lines.append("")
     path.write_text("\n".join(lines) + "\n")
 
@@ -198,6 +275,15 @@ def main() -> int:
     p.add_argument("--results", default="benchmarks/results")
     p.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--reuse", action="store_true", help="take the NeuS mesh already in OUT/NAME instead of training")
+    p.add_argument("--materials", action="store_true",
+                   help="fit and score the material stage on the NeuS mesh and on the true mesh")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="material-stage seeds (one pair of runs each)")
+    p.add_argument("--material-time-limit", type=float, default=600.0, help="material fit seconds per run")
+    p.add_argument("--material-iterations", type=int, default=None, help="cap on material fit iterations")
+    p.add_argument("--material-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="material config override for both runs (repeatable)")
+    p.add_argument("--eval-spp", type=int, default=None, help="evaluation render spp (default: the run's)")
     args = p.parse_args()
 
     import torch
