@@ -33,6 +33,7 @@ def test_eval_writes_every_block(tiny_dataset, tmp_path, capsys):
     seg = m["segmentation"]
     assert 0.0 <= seg["micro_f1"] <= 1.0 and seg["num_materials_true"] == 2 and 1 <= seg["num_materials_found"] <= 8
     assert set(k for k in m["meanshift"] if k != "features") == {"0.3", "0.5"}
+    assert [row["id"] for row in m["per_material"]] == [1, 2] and "per material" in text
     for v in (m["meanshift"]["0.3"], m["meanshift"]["0.5"]):
         assert 0.0 <= v["micro_f1"] <= 1.0 and v["num_materials_found"] >= 1
 
@@ -41,3 +42,28 @@ def test_eval_rejects_bad_bandwidths(tiny_dataset, capsys):
     with pytest.raises(SystemExit):
         main(["eval", "nowhere", "--gt", str(tiny_dataset), "--meanshift", "0.3,abc"])
     assert "comma-separated" in capsys.readouterr().err
+
+
+def test_per_material_scores_name_the_wrong_material():
+    """Hand-made maps: material 2's metallic is fitted as 1 instead of 0, material 1 is exact."""
+    import numpy as np
+
+    from vq_mitsuba.evaluate import per_material_scores
+
+    ids = np.array([[1, 1, 2], [2, 0, 2]])
+    mask = ids > 0
+    gt = {"mask": mask, "material": ids, "rgb": np.full((2, 3, 3), 0.25), "basecolor": np.full((2, 3, 3), 0.5),
+          "metallic": np.zeros((2, 3)), "roughness": np.where(ids == 1, 0.8, 0.2)}
+    pred = {k: np.array(v, dtype=float) for k, v in gt.items() if k not in ("mask", "material")}
+    pred["basecolor"] = pred["basecolor"] / 2  # alignment scale 2 undoes this
+    pred["metallic"] = np.where(ids == 2, 1.0, 0.0)[..., None]
+    pred["roughness"] = pred["roughness"][..., None]
+    gt["metallic"], gt["roughness"] = gt["metallic"][..., None], gt["roughness"][..., None]
+    meta = {"materials": [{"id": 1, "name": "red"}, {"id": 2, "name": "plastic"}]}
+    rows = per_material_scores([pred], [gt], np.full(3, 2.0), meta)
+    assert [(r["id"], r["name"], r["pixels"]) for r in rows] == [(1, "red", 2), (2, "plastic", 3)]
+    assert rows[0]["metallic_mae"] == 0.0 and rows[1]["metallic_mae"] == 1.0
+    assert rows[1]["metallic"] == 1.0 and rows[1]["metallic_true"] == 0.0
+    assert rows[0]["roughness"] == pytest.approx(0.8) and rows[1]["roughness_true"] == pytest.approx(0.2)
+    assert rows[0]["basecolor"] == pytest.approx([0.5] * 3) and math.isinf(rows[0]["novel_view_psnr"])
+    assert per_material_scores([pred], [{k: v for k, v in gt.items() if k != "material"}], np.ones(3), meta) is None
