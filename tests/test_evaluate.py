@@ -67,3 +67,8 @@ def test_per_material_scores_name_the_wrong_material():
     assert rows[0]["roughness"] == pytest.approx(0.8) and rows[1]["roughness_true"] == pytest.approx(0.2)
     assert rows[0]["basecolor"] == pytest.approx([0.5] * 3) and math.isinf(rows[0]["novel_view_psnr"])
     assert per_material_scores([pred], [{k: v for k, v in gt.items() if k != "material"}], np.ones(3), meta) is None
+    # A view without material 2 (and 2-D scalar maps) adds no pixels to it.
+    gt1 = dict(gt, material=np.where(ids == 2, 1, ids), metallic=gt["metallic"][..., 0])
+    pred1 = dict(pred, metallic=pred["metallic"][..., 0])
+    rows = per_material_scores([pred, pred1], [gt, gt1], np.full(3, 2.0), meta)
+    assert [r["pixels"] for r in rows] == [2 + 5, 3]

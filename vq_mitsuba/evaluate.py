@@ -347,7 +347,8 @@ def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarra
     rows = []
     for k in sorted(int(v) for v in np.unique(ids) if v > 0):
         sel = [(g["material"] == k) & g["mask"] for g in gts]
-        pick = lambda maps, key: np.concatenate([m[key][s].reshape(int(s.sum()), -1) for m, s in zip(maps, sel)])
+        def pick(maps, key):  # (pixels, channels) of this material in every view (some views have none)
+            return np.concatenate([m[key][s] if m[key].ndim == 3 else m[key][s][:, None] for m, s in zip(maps, sel)])
         bc_p, bc_g = pick(preds, "basecolor") * bc_scales, pick(gts, "basecolor")[:, :3]
         me_p, me_g = pick(preds, "metallic")[:, 0], pick(gts, "metallic")[:, 0]
         ro_p, ro_g = pick(preds, "roughness")[:, 0], pick(gts, "roughness")[:, 0]
