@@ -27,9 +27,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from bench_scenes import _fmt, ensure_dataset, machine_info  # noqa: E402
+from bench_scenes import _fmt, ensure_dataset, machine_info, scene_config  # noqa: E402
 from vq_mitsuba import synthetic  # noqa: E402
-from vq_mitsuba.config import load_config  # noqa: E402
 from vq_mitsuba.evaluate import evaluate, format_table, json_safe  # noqa: E402
 from vq_mitsuba.fit import fit  # noqa: E402
 
@@ -70,9 +69,7 @@ def figures(m: dict, summary: dict) -> dict:
 
 def run_one(scene: str, variant: str, data: Path, args, out: Path) -> dict:
     overrides, _ = VARIANTS[variant]
-    preset = REPO / "configs" / f"{scene}.yaml"
-    sets = [f"train.time_limit_s={args.time_limit}", *overrides, *args.set]
-    cfg = load_config(preset if preset.is_file() else None, sets)
+    cfg, _ = scene_config(scene, [f"train.time_limit_s={args.time_limit}", *overrides, *args.set])
     if args.iterations is not None:
         cfg.train.iterations = args.iterations
     run_dir = out / "runs_discrete" / scene / variant

@@ -122,17 +122,16 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
     """The material stage on the NeuS mesh and on the true mesh, same config and seed; scored."""
     import shutil
 
-    from vq_mitsuba.config import load_config
+    from bench_scenes import scene_config
     from vq_mitsuba.evaluate import evaluate
     from vq_mitsuba.fit import fit
 
-    preset = ROOT / "configs" / f"{name}.yaml"
     rows = []
     for seed in args.seeds:
         row = {"seed": seed}
         for geometry, mesh in (("neus", neus_mesh), ("true", data / "mesh.ply")):
-            cfg = load_config(preset if preset.is_file() else None,
-                              [f"train.time_limit_s={args.material_time_limit}", f"train.seed={seed}", *args.material_set])
+            cfg, _ = scene_config(name, [f"train.time_limit_s={args.material_time_limit}", f"train.seed={seed}",
+                                         *args.material_set])
             if args.material_iterations is not None:
                 cfg.train.iterations = min(cfg.train.iterations, args.material_iterations)
             run_dir = ROOT / args.out / name / f"materials_{geometry}_seed{seed}"
@@ -172,13 +171,12 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     from vq_mitsuba.geometry.neus import reconstruct
     from vq_mitsuba.geometry.pipeline import load_neus_config
 
-    data = find_dataset(name, args.resolution, args.n_train, not args.quiet)
-    if args.reuse:
+    if args.reuse:  # the earlier run names its dataset
         result = reused_scene(name, args)
-        data = Path(result["dataset"])
         if args.materials:
-            result["materials"] = material_runs(name, data, ROOT / args.out / name / "mesh.ply", args)
+            result["materials"] = material_runs(name, Path(result["dataset"]), ROOT / args.out / name / "mesh.ply", args)
         return result
+    data = find_dataset(name, args.resolution, args.n_train, not args.quiet)
     run_dir = ROOT / args.out / name
     for stale in ("neus.pt", "mesh.ply", "geometry.json"):
         (run_dir / stale).unlink(missing_ok=True)

@@ -78,6 +78,14 @@ def machine_info() -> dict:
     }
 
 
+def scene_config(name: str, overrides: list[str]):
+    """A bundled scene's fit config: configs/NAME.yaml when there is one (else the defaults), then
+    the overrides. Returns (config, the preset's path or None)."""
+    preset = REPO / "configs" / f"{name}.yaml"
+    preset = preset if preset.is_file() else None
+    return load_config(preset, overrides), preset
+
+
 def ensure_dataset(name: str, out: Path, resolution: int, progress: bool) -> Path:
     meta = out / "scene.json"
     if meta.is_file() and json.loads(meta.read_text()).get("resolution") == [resolution, resolution]:
@@ -109,15 +117,14 @@ def headline(m: dict, fit_summary: dict) -> dict:
 
 def run_scene(name: str, args, out: Path) -> dict:
     data = ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet)
-    preset = REPO / "configs" / f"{name}.yaml"
-    cfg = load_config(preset if preset.is_file() else None, [f"train.time_limit_s={args.time_limit}", *args.set])
+    cfg, preset = scene_config(name, [f"train.time_limit_s={args.time_limit}", *args.set])
     if args.iterations is not None:
         cfg.train.iterations = min(cfg.train.iterations, args.iterations)
     run_dir = out / "runs" / name
     if run_dir.exists():
         shutil.rmtree(run_dir)
     print(f"[{name}] fitting {data / 'scene.xml'} -> {run_dir} (config: "
-          f"{preset.relative_to(REPO) if preset.is_file() else 'defaults'}, {cfg.train.iterations} iterations, "
+          f"{preset.relative_to(REPO) if preset else 'defaults'}, {cfg.train.iterations} iterations, "
           f"time limit {args.time_limit:g} s)")
     summary = fit(data / "scene.xml", run_dir, cfg, progress=not args.quiet)
     print(f"[{name}] evaluating on the test views")
@@ -125,7 +132,7 @@ def run_scene(name: str, args, out: Path) -> dict:
     print(format_table(m))
     return {
         "scene": name, "resolution": args.resolution, "dataset": str(data), "run": str(run_dir),
-        "config": str(preset.relative_to(REPO)) if preset.is_file() else "defaults",
+        "config": str(preset.relative_to(REPO)) if preset else "defaults",
         "time_limit_s": args.time_limit, "iterations_planned": cfg.train.iterations,
         "n_test_views": m["n_views"], "eval_spp": m["render"]["spp"], "eval_seconds": m["seconds"],
         "alignment": m["alignment"],

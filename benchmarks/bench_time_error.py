@@ -38,8 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from bench_scenes import _fmt, machine_info  # noqa: E402
-from vq_mitsuba.config import load_config  # noqa: E402
+from bench_scenes import _fmt, machine_info, scene_config  # noqa: E402
 from vq_mitsuba.evaluate import evaluate, evaluate_predictor, json_safe  # noqa: E402
 from vq_mitsuba.fit import fit  # noqa: E402
 
@@ -90,11 +89,10 @@ def figures(m: dict, seconds: float, iterations: int) -> dict:
 def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out: Path) -> list[dict]:
     import torch
 
-    preset = REPO / "configs" / f"{name}.yaml"
     overrides = [f"train.time_limit_s={max(budgets)}", "train.snapshot_s=" + ",".join(f"{b:g}" for b in budgets)]
     if method == "ours_vq":
         overrides.append("vq.enabled=true")
-    cfg = load_config(preset if preset.is_file() else None, overrides + list(args.set))
+    cfg, _ = scene_config(name, overrides + list(args.set))
     run_dir = out / "runs" / name / method
     if run_dir.exists():
         shutil.rmtree(run_dir)
