@@ -255,6 +255,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     groups_mc = 2 if cfg.loss.decorrelated else 1
 
     def rec_loss(samples, target):
+        if cfg.loss.decorrelated and cfg.loss.linearised:
+            return losses.reconstruction_l2_linearised(samples, target, cfg.loss.gamma)
         if cfg.loss.decorrelated:
             return losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
         return losses.reconstruction_l2(samples.mean(1), target, cfg.loss.gamma)
@@ -286,7 +288,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         l_rec = rec_loss(samples, target)
-        l_lam = losses.lambertian_prior(out["metallic"], out["roughness"])
+        l_lam = losses.lambertian_prior(out["metallic"], out["roughness"], cfg.loss.lam_metallic,
+                                        cfg.loss.lam_roughness_power)
         discrete_on = discrete is not None and bool(discrete.initialised)
         w_rec_c = 0.0 if discrete_on and cfg.vq.single_branch else cfg.loss.w_rec_c
         loss = w_rec_c * l_rec + cfg.loss.w_lam * l_lam
@@ -302,7 +305,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
-                + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"])
+                + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"], cfg.loss.lam_metallic,
+                                                           cfg.loss.lam_roughness_power)
         if pairs is not None and len(pairs) > 0:
             pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
             oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])

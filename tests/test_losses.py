@@ -1,0 +1,89 @@
+"""Loss functions against hand-computed values and their defining properties (vq_mitsuba.losses)."""
+
+import math
+
+import torch
+
+from vq_mitsuba import losses
+
+
+def test_lambertian_prior_value_and_gradients_with_metallic_weight():
+    m = torch.tensor([0.2, 0.6, 1.0], requires_grad=True)
+    r = torch.tensor([0.1, 0.5, 0.9], requires_grad=True)
+    loss = losses.lambertian_prior(m, r, metallic_weight=10.0)
+    assert math.isclose(float(loss.detach()), 10.0 * 0.6 + (1.0 - 0.5), rel_tol=1e-6)
+    loss.backward()
+    assert torch.allclose(m.grad, torch.full((3,), 10.0 / 3))  # pulls metallic down, 10x harder
+    assert torch.allclose(r.grad, torch.full((3,), -1.0 / 3))  # pulls roughness up
+    # The paper's form is the default: both terms weighed equally.
+    assert math.isclose(float(losses.lambertian_prior(m, r).detach()), 0.6 + 0.5, rel_tol=1e-6)
+
+
+def test_decorrelated_l2_has_no_variance_bias():
+    """E[plain L2 of a noisy estimate] = bias^2 + variance; the decorrelated form keeps bias^2 only,
+    so a noisy but unbiased estimator is not penalised against a noise-free one."""
+    g = torch.Generator().manual_seed(0)
+    target = torch.full((20000, 3), 0.25)
+    # Unbiased in the encoded space is what the loss compares; build samples around the target's code.
+    noisy = target[:, None, :] * torch.exp(0.5 * torch.randn(20000, 8, 3, generator=g) - 0.125)  # mean = target
+    plain = losses.reconstruction_l2(noisy.mean(1), target, gamma=1.0)
+    decor = losses.reconstruction_l2_decorrelated(noisy, target, gamma=1.0)
+    assert float(plain) > 20 * abs(float(decor))
+    assert abs(float(decor)) < 2e-4
+    # A biased estimate keeps its squared bias.
+    shifted = noisy + 0.05
+    assert math.isclose(float(losses.reconstruction_l2_decorrelated(shifted, target, gamma=1.0)), 0.05**2, rel_tol=0.2)
+
+
+def test_chromaticity_loss_ignores_intensity_but_not_hue():
+    c = torch.tensor([[0.6, 0.3, 0.1], [0.2, 0.2, 0.2]])
+    assert float(losses.chromaticity_loss(3.0 * c, c)) < 1e-6
+    assert float(losses.chromaticity_loss(c.flip(-1), c)) > 1e-2
+
+
+def test_colour_aware_smoothness_switches_off_across_colour_edges():
+    a = {"basecolor": torch.tensor([[0.2, 0.4, 0.6]]), "metallic": torch.tensor([0.0]), "roughness": torch.tensor([0.5])}
+    b = {"basecolor": torch.tensor([[0.4, 0.4, 0.6]]), "metallic": torch.tensor([1.0]), "roughness": torch.tensor([0.5])}
+    same = torch.tensor([[0.3, 0.3, 0.3]])
+    expected = (0.2 / 3) + 0.1 * 1.0  # basecolor mean |diff| + beta * |metallic diff|
+    got = losses.colour_aware_smoothness(a, b, same, same, alpha=60.0, beta=0.1)
+    assert math.isclose(float(got), expected, rel_tol=1e-5)
+    edge = losses.colour_aware_smoothness(a, b, same, same + 0.1, alpha=60.0, beta=0.1)
+    assert math.isclose(float(edge), expected * math.exp(-6.0), rel_tol=1e-4)
+
+
+def test_lambertian_prior_roughness_weighting_moves_metallic_only():
+    """With roughness_power p the metallic pull at a point is metallic_weight * r^p / N and the
+    roughness gradient is the paper's -1/N alone (the weight is held constant)."""
+    m = torch.tensor([1.0, 1.0, 0.5], requires_grad=True)
+    r = torch.tensor([0.1, 0.5, 1.0], requires_grad=True)
+    loss = losses.lambertian_prior(m, r, metallic_weight=10.0, roughness_power=2.0)
+    expected = 10.0 * (0.01 + 0.25 + 0.5) / 3 + (0.9 + 0.5 + 0.0) / 3
+    assert math.isclose(float(loss.detach()), expected, rel_tol=1e-6)
+    loss.backward()
+    assert torch.allclose(m.grad, 10.0 * r.detach() ** 2 / 3)
+    assert torch.allclose(r.grad, torch.full((3,), -1.0 / 3))
+    # A smooth metal is hardly pulled; a rough one as hard as the unweighted term.
+    assert m.grad[0] < 0.011 * m.grad[2]
+
+
+def test_linearised_l2_is_unbiased_where_the_encoded_one_is_not():
+    """Encoding half-estimates with a concave gamma biases a noisy but unbiased estimator (Jensen);
+    the linearised loss has expectation g'(t)^2 (E[X] - t)^2, zero here."""
+    g = torch.Generator().manual_seed(1)
+    target = torch.full((200000, 3), 0.2)
+    noisy = target[:, None, :] * torch.exp(1.0 * torch.randn(200000, 8, 3, generator=g) - 0.5)  # mean = target
+    encoded = losses.reconstruction_l2_decorrelated(noisy, target, gamma=2.2)
+    linear = losses.reconstruction_l2_linearised(noisy, target, gamma=2.2)
+    noise = losses.reconstruction_l2(noisy.mean(1), target, gamma=2.2)  # plain L2: bias^2 + variance
+    assert float(encoded) > 0.02 * float(noise)  # the concave encoding leaves a bias
+    assert abs(float(linear)) < 0.2 * float(encoded)  # about 3.5 standard errors
+
+
+def test_linearised_l2_matches_the_gamma_l2_for_small_errors():
+    t = torch.tensor([[0.05, 0.3, 2.0]])
+    x = t * 1.02
+    samples = x[:, None, :].expand(1, 4, 3)  # noise-free: both halves equal
+    lin = losses.reconstruction_l2_linearised(samples, t, gamma=2.2)
+    ref = losses.reconstruction_l2(x, t, gamma=2.2)
+    assert math.isclose(float(lin), float(ref), rel_tol=0.05)
