@@ -41,7 +41,6 @@ class LossConfig:
     lam_metallic: float = 1.0  # weight of L_lam's metallic term relative to its roughness term
     lam_roughness_power: float = 0.0  # L_lam's metallic term of a point is weighted by its roughness^p (0: the paper's unweighted term)
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
-    linearised: bool = False  # decorrelated L_rec on the gamma encoding linearised at the target: no Jensen bias at low spp
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
     w_vq: float = 1.0  # w4: VQ (commitment) loss

@@ -255,8 +255,6 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     groups_mc = 2 if cfg.loss.decorrelated else 1
 
     def rec_loss(samples, target):
-        if cfg.loss.decorrelated and cfg.loss.linearised:
-            return losses.reconstruction_l2_linearised(samples, target, cfg.loss.gamma)
         if cfg.loss.decorrelated:
             return losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
         return losses.reconstruction_l2(samples.mean(1), target, cfg.loss.gamma)

@@ -30,23 +30,6 @@ def reconstruction_l2_decorrelated(samples: torch.Tensor, rgb_target: torch.Tens
     return torch.mean(a * b)
 
 
-def reconstruction_l2_linearised(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: float) -> torch.Tensor:
-    """L_rec from Monte Carlo samples (N, S, 3), exactly unbiased at any sample count.
-
-    The gamma-space error g(X) - g(t) is replaced by its first-order expansion g'(t) (X - t) at the
-    target, so the loss is a weighted linear L2 (the weights are those of the gamma encoding near
-    the optimum). Two independent half-estimates A and B then give
-    E[g'(t)^2 (A - t)(B - t)] = g'(t)^2 (E[X] - t)^2 with no variance term and, unlike encoding the
-    half-estimates, no Jensen bias of the concave encoding against noisy (glossy) materials.
-    """
-    half = samples.shape[1] // 2
-    eps = 1e-3
-    w = (1.0 / gamma) * (rgb_target.clamp_min(0.0) + eps) ** (1.0 / gamma - 1.0)
-    a = samples[:, :half].mean(1) - rgb_target
-    b = samples[:, half:].mean(1) - rgb_target
-    return torch.mean(w * w * a * b)
-
-
 def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,
                      roughness_power: float = 0.0) -> torch.Tensor:
     """L_lam: pulls materials towards Lambertian (metallic 0, roughness 1) unless the images object.
