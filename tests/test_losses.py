@@ -51,18 +51,3 @@ def test_colour_aware_smoothness_switches_off_across_colour_edges():
     edge = losses.colour_aware_smoothness(a, b, same, same + 0.1, alpha=60.0, beta=0.1)
     assert math.isclose(float(edge), expected * math.exp(-6.0), rel_tol=1e-4)
 
-
-def test_lambertian_prior_roughness_weighting_moves_metallic_only():
-    """With roughness_power p the metallic pull at a point is metallic_weight * r^p / N and the
-    roughness gradient is the paper's -1/N alone (the weight is held constant)."""
-    m = torch.tensor([1.0, 1.0, 0.5], requires_grad=True)
-    r = torch.tensor([0.1, 0.5, 1.0], requires_grad=True)
-    loss = losses.lambertian_prior(m, r, metallic_weight=10.0, roughness_power=2.0)
-    expected = 10.0 * (0.01 + 0.25 + 0.5) / 3 + (0.9 + 0.5 + 0.0) / 3
-    assert math.isclose(float(loss.detach()), expected, rel_tol=1e-6)
-    loss.backward()
-    assert torch.allclose(m.grad, 10.0 * r.detach() ** 2 / 3)
-    assert torch.allclose(r.grad, torch.full((3,), -1.0 / 3))
-    # A smooth metal is hardly pulled; a rough one as hard as the unweighted term.
-    assert m.grad[0] < 0.011 * m.grad[2]
-

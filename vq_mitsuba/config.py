@@ -38,8 +38,7 @@ class EnvmapConfig:
 class LossConfig:
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
-    lam_metallic: float = 1.0  # weight of L_lam's metallic term relative to its roughness term
-    lam_roughness_power: float = 0.0  # L_lam's metallic term of a point is weighted by its roughness^p (0: the paper's unweighted term)
+    lam_metallic: float = 1.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1)
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor

@@ -30,17 +30,12 @@ def reconstruction_l2_decorrelated(samples: torch.Tensor, rgb_target: torch.Tens
     return torch.mean(a * b)
 
 
-def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,
-                     roughness_power: float = 0.0) -> torch.Tensor:
+def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0) -> torch.Tensor:
     """L_lam: pulls materials towards Lambertian (metallic 0, roughness 1) unless the images object.
 
     `metallic_weight` scales the metallic term against the roughness one (the paper weighs them
-    equally). With `roughness_power` p > 0 the metallic term of each point is weighted by its
-    roughness^p (held constant: the weight moves metallic only): a rough metal and a rough
-    dielectric of suitable colours render almost alike, so the prior decides there, while at low
-    roughness the images tell them apart and the pull fades."""
-    w = roughness.detach() ** roughness_power if roughness_power > 0 else 1.0
-    return metallic_weight * torch.mean(w * metallic) + torch.mean(1.0 - roughness)
+    equally)."""
+    return metallic_weight * torch.mean(metallic) + torch.mean(1.0 - roughness)
 
 
 def srgb_mse(rgb_pred: torch.Tensor, rgb_target: torch.Tensor) -> torch.Tensor:

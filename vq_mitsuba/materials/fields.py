@@ -77,11 +77,13 @@ class BRDFDecoder(nn.Module):
         self.metallic = mk(1)
         self.roughness = mk(1)
 
-    def forward(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, z: torch.Tensor, metallic: bool = True) -> dict[str, torch.Tensor]:
+        """`metallic` False: metallic is 0 and its MLP is not evaluated (its parameters get no
+        gradient, not a zero one, so Adam leaves their state alone)."""
         r0 = self.roughness_min
         return {
             "basecolor": torch.sigmoid(self.basecolor(z)),
-            "metallic": torch.sigmoid(self.metallic(z))[..., 0],
+            "metallic": torch.sigmoid(self.metallic(z))[..., 0] if metallic else z.new_zeros(z.shape[:-1]),
             "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
         }
 
@@ -120,7 +122,11 @@ class ContinuousMaterial(nn.Module):
 
     def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
         z = self.encoder((x_world - self.center) / self.half_extent)
-        out = self.decoder(z)
+        # While the gate is shut the metallic MLP is left out of the graph: a gradient of exactly
+        # zero would still advance its Adam state (moments decaying to 0 while the step count and
+        # bias correction move on), and the first real gradients after the delay would then take
+        # steps of many learning rates, driving metallic to 1 on every object at once.
+        out = self.decoder(z, metallic=float(self.metallic_gate) > 0.0)
         if float(self.metallic_gate) != 1.0:
             out["metallic"] = out["metallic"] * self.metallic_gate
         out["z"] = z
