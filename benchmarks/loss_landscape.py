@@ -59,7 +59,7 @@ def main() -> int:
     xml = xml.replace("</scene>", f'<emitter type="envmap"><string name="filename" value="{meta["envmap"]["train"]}"/>'
                       f'</emitter><integrator type="path"><integer name="max_depth" value="{meta["max_depth"]}"/>'
                       "</integrator></scene>")
-    mi.Thread.thread().file_resolver().prepend(str(data))
+    mi.file_resolver().prepend(str(data))
     scene = mi.load_string(xml)
     params = mi.traverse(scene)
     key = f"mat_{args.material}"
