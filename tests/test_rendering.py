@@ -246,3 +246,31 @@ def test_stratified_samples_cover_each_stratum_once_per_group():
     for k in range(4):
         off = pixel_jitter(100, k, 4, rng)
         assert ((off[:, 0] >= 0.5) == bool(k % 2)).all() and ((off[:, 1] >= 0.5) == bool(k // 2)).all()
+
+
+def test_opening_the_metallic_gate_compiles_no_kernel():
+    """Shading the field's output with the metallic gate shut (metallic a zero leaf) and then open
+    (the metallic network back in the graph) reuses the same Mitsuba kernels."""
+    from vq_mitsuba.config import FieldConfig
+    from vq_mitsuba.materials.fields import ContinuousMaterial
+
+    torch.manual_seed(0)
+    scene = _scene(_env())
+    p, n, wi = _points(512)
+    env = torch.tensor(_env(), requires_grad=True)
+    model = ContinuousMaterial(FieldConfig(), p.min(0).values, p.max(0).values)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for step in range(6):
+            model.set_progress(0.05 if step < 3 else 0.5, anneal=0.5, metallic_delay=0.1)
+            idx = torch.randint(0, 512, (128,))
+            out = model(p[idx])
+            rgb = scene.shade(p[idx], n[idx], wi[idx], out["basecolor"], out["metallic"], out["roughness"], env, spp=4)
+            rgb.sum().backward()
+            history = dr.kernel_history()
+            if step >= 2:
+                misses = [k for k in history if k.get("cache_hit") == 0]
+                assert not misses, f"{len(misses)} kernels compiled at step {step} (gate {float(model.metallic_gate)})"
+        assert model.decoder.metallic.layers[0].weight.grad is not None  # the open gate trains it
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)

@@ -77,13 +77,19 @@ class BRDFDecoder(nn.Module):
         self.metallic = mk(1)
         self.roughness = mk(1)
 
+    @staticmethod
+    def _zeros(z: torch.Tensor) -> torch.Tensor:
+        # A leaf that still takes a gradient while training: the Mitsuba kernels see the same
+        # differentiable inputs with the gate shut or open, so opening it compiles nothing new.
+        return z.new_zeros(z.shape[:-1]).requires_grad_(torch.is_grad_enabled() and z.requires_grad)
+
     def forward(self, z: torch.Tensor, metallic: bool = True) -> dict[str, torch.Tensor]:
         """`metallic` False: metallic is 0 and its MLP is not evaluated (its parameters get no
         gradient, not a zero one, so Adam leaves their state alone)."""
         r0 = self.roughness_min
         return {
             "basecolor": torch.sigmoid(self.basecolor(z)),
-            "metallic": torch.sigmoid(self.metallic(z))[..., 0] if metallic else z.new_zeros(z.shape[:-1]),
+            "metallic": torch.sigmoid(self.metallic(z))[..., 0] if metallic else self._zeros(z),
             "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
         }
 
