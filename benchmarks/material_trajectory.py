@@ -14,6 +14,7 @@ would give with the gate open) and the mean roughness, and the brightest envmap 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -34,18 +35,13 @@ def main() -> int:
 
     import torch
     import trimesh
-    import yaml
 
-    from vq_mitsuba.config import load_config
     from vq_mitsuba.errors import InputError
-    from vq_mitsuba.materials.fields import ContinuousMaterial
+    from vq_mitsuba.render import load_run
 
     snaps = sorted((args.run / "snapshots").glob("*.pt"))
     if not snaps:
         raise InputError(args.run / "snapshots", "no snapshots: fit with --set train.snapshot_s=...")
-    cfg = load_config(base=yaml.safe_load((args.run / "config.yaml").read_text()))
-    bounds = np.asarray(trimesh.load(args.run / "mesh.ply", process=False).bounds)
-    bbox = torch.tensor(bounds, dtype=torch.float32)
     points: dict[str, list] = {}
     for shape in ET.parse(args.dataset / "scene.xml").getroot().findall("shape"):
         fn, ref = shape.find("string"), shape.find("ref")
@@ -59,20 +55,18 @@ def main() -> int:
     print("| s | step | gate | " + " | ".join(f"{n} m / r" for n in names) + " | env max |")
     print("|---:|---:|---:|" + "---:|" * len(names) + "---:|")
     for path in snaps[:: max(args.every, 1)]:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        model = ContinuousMaterial(cfg.field, bbox[0], bbox[1])
-        model.load_state_dict(state["model"])
-        model.eval()
+        fitted = load_run(args.run, path)
+        model = fitted.model
+        seconds, step = re.fullmatch(r"t([\d.]+)s_step(\d+)\.pt", path.name).groups()  # fit.py's snapshot names
         gate = float(model.metallic_gate)
         model.metallic_gate.fill_(1.0)
         cells = []
         with torch.no_grad():
             for n in names:
-                o = model(pts[n])
+                o = model(pts[n].to(model.center.device))
                 cells.append(f"{float(o['metallic'].mean()):.2f} / {float(o['roughness'].mean()):.2f}")
-        env = state.get("envmap")
-        env_max = max(float(v.exp().max()) for v in env.values()) if env else float("nan")
-        print(f"| {state['elapsed_s']:.0f} | {state['step']} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
+        env_max = float(fitted.envmap.max())
+        print(f"| {float(seconds):.0f} | {int(step)} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
     return 0
 
 

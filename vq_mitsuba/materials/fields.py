@@ -79,8 +79,8 @@ class BRDFDecoder(nn.Module):
 
     @staticmethod
     def _zeros(z: torch.Tensor) -> torch.Tensor:
-        # A leaf that still takes a gradient while training: the Mitsuba kernels see the same
-        # differentiable inputs with the gate shut or open, so opening it compiles nothing new.
+        # A leaf that still takes a gradient while training, so the Mitsuba kernels get the same
+        # differentiable inputs with the gate shut or open.
         return z.new_zeros(z.shape[:-1]).requires_grad_(torch.is_grad_enabled() and z.requires_grad)
 
     def forward(self, z: torch.Tensor, metallic: bool = True) -> dict[str, torch.Tensor]:
@@ -129,11 +129,12 @@ class ContinuousMaterial(nn.Module):
     def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
         z = self.encoder((x_world - self.center) / self.half_extent)
         # While the gate is shut the metallic MLP is left out of the graph: a gradient of exactly
-        # zero would still advance its Adam state (moments decaying to 0 while the step count and
-        # bias correction move on), and the first real gradients after the delay would then take
-        # steps of many learning rates, driving metallic to 1 on every object at once.
-        out = self.decoder(z, metallic=float(self.metallic_gate) > 0.0)
-        if float(self.metallic_gate) != 1.0:
+        # zero would still advance its Adam state (step count and bias correction moving on with
+        # the moments at 0), and its first real steps after the delay would be a few times the
+        # learning rate instead of about one.
+        gate = float(self.metallic_gate)
+        out = self.decoder(z, metallic=gate > 0.0)
+        if gate != 1.0:
             out["metallic"] = out["metallic"] * self.metallic_gate
         out["z"] = z
         return out
