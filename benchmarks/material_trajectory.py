@@ -54,10 +54,15 @@ def main() -> int:
     pts = {n: torch.tensor(np.concatenate(p), dtype=torch.float32) for n, p in points.items()}
     print("| s | step | gate | " + " | ".join(f"{n} m / r" for n in names) + " | env max |")
     print("|---:|---:|---:|" + "---:|" * len(names) + "---:|")
-    for path in snaps[:: max(args.every, 1)]:
+    rows = [(p, *re.fullmatch(r"t([\d.]+)s_step(\d+)\.pt", p.name).groups())  # fit.py's snapshot names
+            for p in snaps[:: max(args.every, 1)]]
+    final = args.run / "checkpoint.pt"
+    if final.is_file():  # the finished (or latest) state, as the last row
+        st = torch.load(final, map_location="cpu", weights_only=False)
+        rows.append((final, "end", st.get("step", -1)))
+    for path, seconds, step in rows:
         fitted = load_run(args.run, path)
         model = fitted.model
-        seconds, step = re.fullmatch(r"t([\d.]+)s_step(\d+)\.pt", path.name).groups()  # fit.py's snapshot names
         gate = float(model.metallic_gate)
         model.metallic_gate.fill_(1.0)
         cells = []
@@ -66,7 +71,7 @@ def main() -> int:
                 o = model(pts[n].to(model.center.device))
                 cells.append(f"{float(o['metallic'].mean()):.2f} / {float(o['roughness'].mean()):.2f}")
         env_max = float(fitted.envmap.max())
-        print(f"| {float(seconds):.0f} | {int(step)} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
+        print(f"| {seconds if seconds == 'end' else f'{float(seconds):.0f}'} | {int(step)} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
     return 0
 
 

@@ -67,3 +67,30 @@ def test_shut_metallic_gate_leaves_the_adam_state_of_the_metallic_network_alone(
     optim.step()
     steps = [float((p.detach() - b).abs().max()) for p, b in zip(model.decoder.metallic.parameters(), before)]
     assert 0 < max(steps) <= 1e-2 * 1.001
+
+
+@pytest.mark.parametrize("init", [0.02, 0.05, 0.2])
+def test_metallic_init_sets_the_initial_metallic_output(init):
+    torch.manual_seed(0)
+    model = ContinuousMaterial(FieldConfig(metallic_init=init), -torch.ones(3), torch.ones(3))
+    with torch.no_grad():
+        m = model(torch.rand(4096, 3) * 2 - 1)["metallic"]
+    # The bias sets the logit; the random weights spread it a little around that.
+    assert abs(float(m.median()) - init) < 0.5 * init
+    assert float(m.max()) < min(4 * init, 0.9)
+
+
+def test_metallic_init_zero_keeps_the_default_initialisation():
+    torch.manual_seed(0)
+    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    with torch.no_grad():
+        m = model(torch.rand(4096, 3) * 2 - 1)["metallic"]
+    assert 0.3 < float(m.median()) < 0.7
+
+
+def test_metallic_init_outside_the_unit_interval_is_rejected():
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.errors import InputError
+
+    with pytest.raises(InputError, match="metallic_init"):
+        load_config(overrides=["field.metallic_init=1.0"])

@@ -51,3 +51,28 @@ def test_colour_aware_smoothness_switches_off_across_colour_edges():
     edge = losses.colour_aware_smoothness(a, b, same, same + 0.1, alpha=60.0, beta=0.1)
     assert math.isclose(float(edge), expected * math.exp(-6.0), rel_tol=1e-4)
 
+
+
+def test_metallic_barrier_is_minus_log_one_minus_metallic_and_keeps_pulling_at_saturation():
+    logit = torch.tensor([-5.0, 0.0, 2.0, 12.0], requires_grad=True)
+    m = torch.sigmoid(logit)
+    rough = torch.full((4,), 0.5)
+    barrier = losses.lambertian_prior(m, rough, 2.0, metallic_logit=logit)
+    expected = 2.0 * torch.mean(-torch.log(torch.sigmoid(-logit.detach().double()))).float() + 0.5  # 1 - m = sigmoid(-logit)
+    assert torch.allclose(barrier, expected, rtol=1e-4)
+    (g_barrier,) = torch.autograd.grad(barrier, logit)
+    (g_linear,) = torch.autograd.grad(losses.lambertian_prior(torch.sigmoid(logit), rough, 2.0), logit)
+    # d/dlogit of weight * softplus / n is weight * metallic / n: the full weight at saturation,
+    # where the linear term's sigmoid slope has all but vanished.
+    assert torch.allclose(g_barrier, 2.0 * m.detach() / 4, rtol=1e-5)
+    assert float(g_barrier[3]) > 0.49 and float(g_linear[3]) < 1e-5
+    # Near metallic 0 the two agree to first order.
+    assert abs(float(g_barrier[0]) - float(g_linear[0])) < 0.05 * float(g_linear[0])
+
+
+def test_metallic_barrier_follows_the_gate():
+    logit = torch.tensor([1.0, 2.0])
+    rough = torch.ones(2)
+    full = losses.lambertian_prior(torch.sigmoid(logit), rough, 1.0, metallic_logit=logit)
+    half = losses.lambertian_prior(0.5 * torch.sigmoid(logit), rough, 1.0, metallic_logit=logit, gate=0.5)
+    assert torch.allclose(half, 0.5 * full)

@@ -24,6 +24,7 @@ class FieldConfig:
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
     pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
     metallic_delay: float = 0.1  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again
+    metallic_init: float = 0.0  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
 
 
 @dataclass
@@ -39,6 +40,7 @@ class LossConfig:
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
     lam_metallic: float = 1.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1)
+    metallic_barrier: bool = False  # L_lam's metallic term as -log(1 - metallic) instead of metallic (the paper): it still pulls where metallic saturates at 1
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
@@ -173,6 +175,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             cur = cur.setdefault(p, {})
         cur[parts[-1]] = yaml.safe_load(value)
         _apply(cfg, nested, "--set")
+    if not 0.0 <= cfg.field.metallic_init < 1.0:
+        raise InputError(path, f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
     return cfg
 
 

@@ -286,7 +286,10 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         l_rec = rec_loss(samples, target)
-        l_lam = losses.lambertian_prior(out["metallic"], out["roughness"], cfg.loss.lam_metallic)
+        gate = float(model.metallic_gate)
+        barrier = cfg.loss.metallic_barrier
+        l_lam = losses.lambertian_prior(out["metallic"], out["roughness"], cfg.loss.lam_metallic,
+                                        out.get("metallic_logit") if barrier else None, gate)
         discrete_on = discrete is not None and bool(discrete.initialised)
         w_rec_c = 0.0 if discrete_on and cfg.vq.single_branch else cfg.loss.w_rec_c
         loss = w_rec_c * l_rec + cfg.loss.w_lam * l_lam
@@ -302,7 +305,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
-                + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"], cfg.loss.lam_metallic)
+                + cfg.loss.w_lam * losses.lambertian_prior(od["metallic"], od["roughness"], cfg.loss.lam_metallic,
+                                                           od.get("metallic_logit") if barrier else None)
         if pairs is not None and len(pairs) > 0:
             pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
             oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])

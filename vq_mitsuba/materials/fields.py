@@ -76,6 +76,11 @@ class BRDFDecoder(nn.Module):
         self.basecolor = mk(3)
         self.metallic = mk(1)
         self.roughness = mk(1)
+        if cfg.metallic_init > 0.0:
+            # Metallic starts near the Lambertian prior's side and the images must raise it: with
+            # PyTorch's initialisation every object reads about 0.5-0.9 once the gate fades in.
+            with torch.no_grad():
+                self.metallic.layers[-1].bias.fill_(math.log(cfg.metallic_init / (1.0 - cfg.metallic_init)))
 
     @staticmethod
     def _zeros(z: torch.Tensor) -> torch.Tensor:
@@ -87,11 +92,16 @@ class BRDFDecoder(nn.Module):
         """`metallic` False: metallic is 0 and its MLP is not evaluated (its parameters get no
         gradient, not a zero one, so Adam leaves their state alone)."""
         r0 = self.roughness_min
-        return {
+        out = {
             "basecolor": torch.sigmoid(self.basecolor(z)),
-            "metallic": torch.sigmoid(self.metallic(z))[..., 0] if metallic else self._zeros(z),
             "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
         }
+        if metallic:
+            out["metallic_logit"] = self.metallic(z)[..., 0]
+            out["metallic"] = torch.sigmoid(out["metallic_logit"])
+        else:
+            out["metallic"] = self._zeros(z)
+        return out
 
 
 class ContinuousMaterial(nn.Module):
