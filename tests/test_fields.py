@@ -82,7 +82,7 @@ def test_metallic_init_sets_the_initial_metallic_output(init):
 
 def test_metallic_init_zero_keeps_the_default_initialisation():
     torch.manual_seed(0)
-    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
+    model = ContinuousMaterial(FieldConfig(metallic_init=0.0), -torch.ones(3), torch.ones(3))
     with torch.no_grad():
         m = model(torch.rand(4096, 3) * 2 - 1)["metallic"]
     assert 0.3 < float(m.median()) < 0.7

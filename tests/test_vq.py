@@ -92,7 +92,7 @@ def test_warm_started_discrete_decoder_matches_the_continuous_one_at_the_codewor
     from vq_mitsuba.materials.vq import DiscreteBranch
 
     torch.manual_seed(1)
-    cfg = SimpleNamespace(latent=6, decoder_hidden=16, roughness_min=0.02)
+    cfg = SimpleNamespace(latent=6, decoder_hidden=16, roughness_min=0.02, metallic_init=0.05)
     cont = BRDFDecoder(cfg)
     branch = DiscreteBranch(cfg, num_codes=3, decay=0.99, commitment=0.1)
     latents = 2.5 * F.normalize(torch.randn(300, 6), dim=-1)  # typical length 2.5
