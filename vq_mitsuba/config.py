@@ -22,7 +22,7 @@ class FieldConfig:
     latent: int = 16  # dimension of the latent z
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
-    pe_anneal: float = 0.1  # fraction of training over which encoding frequencies open (0: all at once)
+    pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
     metallic_delay: float = 0.0  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again (0: no delay)
     metallic_init: float = 0.05  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
 
@@ -39,7 +39,7 @@ class EnvmapConfig:
 class LossConfig:
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
-    lam_metallic: float = 3.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1)
+    lam_metallic: float = 1.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1)
     metallic_barrier: bool = False  # L_lam's metallic term as -log(1 - metallic) instead of metallic (the paper): it still pulls where metallic saturates at 1
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
