@@ -54,13 +54,12 @@ def main() -> int:
     pts = {n: torch.tensor(np.concatenate(p), dtype=torch.float32) for n, p in points.items()}
     print("| s | step | gate | " + " | ".join(f"{n} m / r" for n in names) + " | env max |")
     print("|---:|---:|---:|" + "---:|" * len(names) + "---:|")
-    rows = [(p, *re.fullmatch(r"t([\d.]+)s_step(\d+)\.pt", p.name).groups())  # fit.py's snapshot names
-            for p in snaps[:: max(args.every, 1)]]
+    name = re.compile(r"t([\d.]+)s_step\d+\.pt")  # fit.py's snapshot names
+    rows = [(p, "%.0f" % float(name.fullmatch(p.name).group(1))) for p in snaps[:: max(args.every, 1)]]
     final = args.run / "checkpoint.pt"
     if final.is_file():  # the finished (or latest) state, as the last row
-        st = torch.load(final, map_location="cpu", weights_only=False)
-        rows.append((final, "end", st.get("step", -1)))
-    for path, seconds, step in rows:
+        rows.append((final, "end"))
+    for path, seconds in rows:
         fitted = load_run(args.run, path)
         model = fitted.model
         gate = float(model.metallic_gate)
@@ -71,7 +70,7 @@ def main() -> int:
                 o = model(pts[n].to(model.center.device))
                 cells.append(f"{float(o['metallic'].mean()):.2f} / {float(o['roughness'].mean()):.2f}")
         env_max = float(fitted.envmap.max())
-        print(f"| {seconds if seconds == 'end' else f'{float(seconds):.0f}'} | {int(step)} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
+        print(f"| {seconds} | {fitted.step} | {gate:.2f} | " + " | ".join(cells) + f" | {env_max:.1f} |")
     return 0
 
 

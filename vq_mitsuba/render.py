@@ -53,6 +53,7 @@ class FittedRun:
     discrete: DiscreteBranch | None  # None when the run has no (initialised) discrete branch
     envmap: np.ndarray
     mesh: trimesh.Trimesh
+    step: int  # training steps behind the loaded state (-1 when the state file does not say)
 
 
 def load_run(run_dir: str | Path, checkpoint: str | Path | None = None) -> FittedRun:
@@ -84,7 +85,7 @@ def load_run(run_dir: str | Path, checkpoint: str | Path | None = None) -> Fitte
         envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
     else:
         envmap = state["envmap_fixed"].cpu().numpy()
-    return FittedRun(run, cfg, info, model, discrete, envmap, mesh)
+    return FittedRun(run, cfg, info, model, discrete, envmap, mesh, int(state.get("step", -1)))
 
 
 class Renderer:
