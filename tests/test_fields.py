@@ -88,9 +88,21 @@ def test_metallic_init_zero_keeps_the_default_initialisation():
     assert 0.3 < float(m.median()) < 0.7
 
 
-def test_metallic_init_outside_the_unit_interval_is_rejected():
+def test_metallic_init_outside_the_unit_interval_is_rejected(tmp_path):
     from vq_mitsuba.config import load_config
     from vq_mitsuba.errors import InputError
 
-    with pytest.raises(InputError, match="metallic_init"):
+    with pytest.raises(InputError, match="metallic_init") as err:
         load_config(overrides=["field.metallic_init=1.0"])
+    assert str(err.value.path) == "--set"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("field:\n  metallic_init: -0.1\n")
+    with pytest.raises(InputError, match="metallic_init") as err:
+        load_config(bad)
+    assert err.value.path == bad
+    # a valid file followed by a bad override names the override, not the file
+    good = tmp_path / "good.yaml"
+    good.write_text("field:\n  metallic_init: 0.1\n")
+    with pytest.raises(InputError) as err:
+        load_config(good, overrides=["field.metallic_init=2"])
+    assert str(err.value.path) == "--set"

@@ -155,15 +155,23 @@ def read_config_file(path: str | Path) -> dict:
     return data
 
 
+def _check_ranges(cfg: Config, source) -> None:
+    """Values that parse but make no sense; `source` is the layer that set them (file or --set)."""
+    if not 0.0 <= cfg.field.metallic_init < 1.0:
+        raise InputError(source, f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:
     """Defaults <- `base` (e.g. a run's saved config) <- YAML file <- `key=value` overrides."""
     cfg = Config()
     if base:
         _apply(cfg, base, "config.yaml")
+        _check_ranges(cfg, "config.yaml")
     if path is not None:
         data = read_config_file(path)
         data.pop("neus", None)  # the geometry stage's section (vq_mitsuba.geometry.config)
         _apply(cfg, data, path)
+        _check_ranges(cfg, path)
     for item in overrides or []:
         if "=" not in item:
             raise InputError(None, f"--set expects key=value, got '{item}'")
@@ -175,8 +183,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             cur = cur.setdefault(p, {})
         cur[parts[-1]] = yaml.safe_load(value)
         _apply(cfg, nested, "--set")
-    if not 0.0 <= cfg.field.metallic_init < 1.0:
-        raise InputError(path, f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
+        _check_ranges(cfg, "--set")
     return cfg
 
 
