@@ -274,3 +274,20 @@ def test_opening_the_metallic_gate_compiles_no_kernel():
         assert model.decoder.metallic.layers[0].weight.grad is not None  # the open gate trains it
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def test_mesh_without_normals_gets_smooth_vertex_normals():
+    """A mesh given without normals shades with interpolated vertex normals, not facets."""
+    coarse = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    scene = ShadingScene(coarse.vertices, coarse.faces, _env(), np.eye(4))
+    rng = np.random.default_rng(0)
+    o = np.zeros((200, 3), dtype=np.float32)
+    o[:, :2] = rng.uniform(-0.3, 0.3, (200, 2))
+    o[:, 2] = -2.0
+    d = np.tile(np.array([[0.0, 0.0, 1.0]], dtype=np.float32), (200, 1))
+    hits = scene.trace(o, d)
+    assert bool(hits.valid.all())
+    # On a sphere the interpolated vertex normal points along the hit position; a facet's does not.
+    radial = torch.nn.functional.normalize(hits.position, dim=-1)
+    angle = torch.rad2deg(torch.arccos((radial * hits.normal).sum(-1).clamp(-1, 1)))
+    assert float(angle.max()) < 0.5

@@ -137,7 +137,8 @@ def mesh_to_mitsuba(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray
     """A Mitsuba triangle mesh from arrays (world space), with smooth vertex normals."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float32)
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
-    mesh = mi.Mesh("geometry", len(vertices), len(faces), has_vertex_normals=normals is not None)
+    # Mitsuba cannot add normals to a mesh built without them, so the buffer always exists.
+    mesh = mi.Mesh("geometry", len(vertices), len(faces), has_vertex_normals=True)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(vertices.ravel())
     params["faces"] = mi.UInt32(faces.ravel())
