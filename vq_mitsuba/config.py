@@ -24,7 +24,7 @@ class FieldConfig:
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
     pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
     metallic_delay: float = 0.0  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again (0: no delay)
-    metallic_init: float = 0.05  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
+    metallic_init: float = 0.02  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
 
 
 @dataclass
