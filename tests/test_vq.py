@@ -118,3 +118,21 @@ def test_reorder_permutes_codewords_and_their_statistics():
     assert vq.ema_count.tolist() == [2.0, 3.0, 1.0]
     assert vq.nearest(z).item() == 0  # the same codeword, now first
     torch.testing.assert_close(vq.ema_sum, vq.codebook)
+
+
+def test_duplicate_codewords_rank_behind_the_distinct_ones():
+    from vq_mitsuba.materials.vq import duplicates_last
+
+    brdf = {
+        "basecolor": torch.tensor([[0.8, 0.1, 0.1], [0.2, 0.2, 0.8], [0.79, 0.11, 0.1], [0.8, 0.1, 0.1], [0.5, 0.5, 0.5]]),
+        "metallic": torch.tensor([0.0, 0.0, 0.01, 1.0, 0.0]),
+        "roughness": torch.tensor([0.5, 0.5, 0.52, 0.5, 0.5]),
+    }
+    # 2 repeats 0's material; 3 has 0's colour but is a metal (distinct); 4 is unused.
+    order, n = duplicates_last(brdf, [0, 2, 1, 3, 4], n_used=4, tol=0.1)
+    assert order == [0, 1, 3, 2, 4] and n == 3
+    # the first of two duplicates keeps its place, whichever index it has
+    order, n = duplicates_last(brdf, [2, 0, 1, 3, 4], n_used=4, tol=0.1)
+    assert order == [2, 1, 3, 0, 4] and n == 3
+    # tol 0 switches merging off
+    assert duplicates_last(brdf, [0, 2, 1, 3, 4], n_used=4, tol=0.0) == ([0, 2, 1, 3, 4], 4)

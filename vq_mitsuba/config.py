@@ -64,6 +64,7 @@ class VQConfig:
     rank_eps: float = 0.002  # epsilon of the err_k flattening rule
     rank_pixels: int = 4096  # training pixels used to measure err_k
     min_share: float = 0.005  # codewords picked by fewer pixels than this share are not ranked as materials
+    merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = True  # straight-through gradient also for latents dropout forced onto another codeword

@@ -24,7 +24,8 @@ from .capture.imageio import write_exr
 from .config import Config, save_config, to_dict
 from .errors import InputError
 from .materials.fields import ContinuousMaterial, EnvironmentMap
-from .materials.vq import DiscreteBranch, choose_num_materials, dropout_rates, kmeans_codebook, sample_drop_mask
+from .materials.vq import (DiscreteBranch, choose_num_materials, dropout_rates, duplicates_last, kmeans_codebook,
+                           sample_drop_mask)
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -379,6 +380,9 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
     share = torch.bincount(discrete(z)["index"], minlength=K).float() / max(n, 1)
     used = share >= cfg.vq.min_share
     order = torch.cat([torch.nonzero(used)[:, 0], torch.nonzero(~used)[:, 0]])
+    # Codewords that decode to the same material as a higher-ranked one go behind the distinct ones.
+    ranked, n_distinct = duplicates_last(discrete.codeword_brdfs(), order.tolist(), int(used.sum()), cfg.vq.merge_tol)
+    order = torch.as_tensor(ranked, device=order.device)
     discrete.vq.reorder(order)
     for k in range(1, K + 1):
         od = discrete(z, n_codes=k)
@@ -389,7 +393,7 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
         if k == K:
             usage = torch.bincount(od["index"], minlength=K).float() / n
     M = choose_num_materials(errs, cfg.vq.rank_eps) if cfg.vq.ranking else K
-    M = max(1, min(M, int(used.sum()))) if cfg.vq.ranking else M
+    M = max(1, min(M, n_distinct)) if cfg.vq.ranking else M
     discrete.num_materials.fill_(M)
     discrete.train(was_training)
     brdf = discrete.codeword_brdfs()
@@ -400,6 +404,7 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
                   "pixel_fraction_all_codewords": float(usage[k])} for k in range(K)]
     info = {"num_materials": M, "num_codewords": K, "epsilon": cfg.vq.rank_eps, "ranking": cfg.vq.ranking,
             "min_share": cfg.vq.min_share, "codewords_used": int(used.sum()),
+            "merge_tol": cfg.vq.merge_tol, "codewords_distinct": n_distinct,
             "training_order": order.tolist(),
             "err_k": errs, "materials": materials[:M], "dropped_codewords": materials[M:],
             "note": "materials are ranked codewords (id k = k-th); basecolor in linear RGB; err_k is the "

@@ -118,6 +118,26 @@ def sample_drop_mask(n: int, rates: torch.Tensor, generator: torch.Generator | N
     return u < rates[None]
 
 
+def duplicates_last(brdf: dict[str, torch.Tensor], order: list[int], n_used: int,
+                    tol: float) -> tuple[list[int], int]:
+    """(new order, number of distinct used codewords): `order` (codeword indices, the first `n_used`
+    of them picked by pixels) with every used
+    codeword whose BRDF is within `tol` of an earlier kept one moved behind the kept ones (before the
+    unused). Distance: the largest absolute difference of gamma-2.2 basecolor, metallic and
+    roughness, so two codewords that decode to the same material count once in err_k."""
+    if tol <= 0:
+        return list(order), n_used
+    feats = torch.cat([brdf["basecolor"].clamp(min=0) ** (1 / 2.2), brdf["metallic"].reshape(-1, 1),
+                       brdf["roughness"].reshape(-1, 1)], -1)
+    kept, dup = [], []
+    for i in order[:n_used]:
+        if any(float((feats[i] - feats[j]).abs().max()) < tol for j in kept):
+            dup.append(i)
+        else:
+            kept.append(i)
+    return kept + dup + list(order[n_used:]), len(kept)
+
+
 def choose_num_materials(err: list[float] | torch.Tensor, eps: float = 0.002) -> int:
     """The smallest k whose error err_k (prefix of k codewords, k = 1..K) is within `eps` of
     every longer prefix: err_k - err_j <= eps for all j > k."""
