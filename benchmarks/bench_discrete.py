@@ -36,8 +36,8 @@ from vq_mitsuba.fit import fit  # noqa: E402
 VARIANTS = {
     "continuous": (["vq.enabled=false"], "continuous branch alone"),
     "vq": (["vq.enabled=true"], "full method: joint training, dropout ranking, L_chr"),
-    "vq_own_gradient": (["vq.enabled=true", "vq.forced_gradient=false"],
-                        "no straight-through gradient for dropout-forced assignments"),
+    "vq_forced_gradient": (["vq.enabled=true", "vq.forced_gradient=true"],
+                           "straight-through gradient also for dropout-forced assignments (the earlier default)"),
     "no_ranking": (["vq.enabled=true", "vq.ranking=false"], "ablation: M = M0, no dropout ranking"),
     "no_chr": (["vq.enabled=true", "loss.w_chr=0"], "ablation: no chromaticity loss"),
     "sm_paper": (["vq.enabled=true", "loss.w_sm=0.05"], "with L_sm at the paper's weight 0.05 (default 0)"),

@@ -67,7 +67,7 @@ class VQConfig:
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
-    forced_gradient: bool = True  # straight-through gradient also for latents dropout forced onto another codeword
+    forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)
     single_branch: bool = False  # after warm-up, train the discrete branch alone (no L_rec,c, no L_chr): an ablation
 
 
