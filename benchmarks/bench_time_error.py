@@ -105,11 +105,11 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
         st = torch.load(snap, map_location="cpu", weights_only=False)
         states.append((float(st["elapsed_s"]), int(st["step"]), snap))
     final_s = float(summary["seconds"])
-    if states and final_s <= states[-1][0] + 1.0 and int(summary["iterations"]) == states[-1][1]:
+    if states and states[-1][1] == int(summary["iterations"]):
         # The fit ended at the last budget: score its final checkpoint instead of that snapshot, since
         # only the checkpoint has the end-of-fit steps (the discrete branch's ranking and its M).
-        states[-1] = (final_s, int(summary["iterations"]), None)
-    elif not states or final_s > states[-1][0] + 1.0:  # the end of the fit, when it is not a snapshot already
+        states.pop()
+    if not states or final_s > states[-1][0] + 1.0:  # the end of the fit, when it is not a snapshot already
         states.append((final_s, int(summary["iterations"]), None))
     rows = []
     for i, (sec, step, snap) in enumerate(states):

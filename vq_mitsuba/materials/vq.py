@@ -121,10 +121,10 @@ def sample_drop_mask(n: int, rates: torch.Tensor, generator: torch.Generator | N
 def duplicates_last(brdf: dict[str, torch.Tensor], order: list[int], n_used: int,
                     tol: float) -> tuple[list[int], int]:
     """(new order, number of distinct used codewords): `order` (codeword indices, the first `n_used`
-    of them picked by pixels) with every used
-    codeword whose BRDF is within `tol` of an earlier kept one moved behind the kept ones (before the
-    unused). Distance: the largest absolute difference of gamma-2.2 basecolor, metallic and
-    roughness, so two codewords that decode to the same material count once in err_k."""
+    of them picked by pixels) with every used codeword whose BRDF is within `tol` of an earlier kept
+    one moved behind the kept ones (before the unused). Distance: the largest absolute difference of
+    gamma-2.2 basecolor, metallic and roughness, so two codewords that decode to the same material
+    count once in err_k."""
     if tol <= 0:
         return list(order), n_used
     feats = torch.cat([brdf["basecolor"].clamp(min=0) ** (1 / 2.2), brdf["metallic"].reshape(-1, 1),
