@@ -106,3 +106,14 @@ def test_metallic_init_outside_the_unit_interval_is_rejected(tmp_path):
     with pytest.raises(InputError) as err:
         load_config(good, overrides=["field.metallic_init=2"])
     assert str(err.value.path) == "--set"
+
+
+def test_lam_decay_outside_its_range_is_rejected():
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.errors import InputError
+
+    for bad in ("0", "1.5", "-0.1"):
+        with pytest.raises(InputError, match="lam_decay") as err:
+            load_config(overrides=[f"loss.lam_decay={bad}"])
+        assert str(err.value.path) == "--set"
+    assert load_config(overrides=["loss.lam_decay=0.1"]).loss.lam_decay == 0.1
