@@ -149,3 +149,36 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
     np.testing.assert_allclose(base, [0.7, 0.35, 0.2], atol=0.05)
     assert abs(out["roughness"].mean().item() - 0.3) < 0.1
     assert out["metallic"].mean().item() < 0.1
+
+
+def test_footprint_table_groups_each_pixels_hits():
+    from vq_mitsuba.fit import PixelPool, footprint_table
+
+    # view 0: pixel 1 with hits 0 and 1, pixel 3 with hit 0 only; view 1: pixel 2 with both
+    view = torch.tensor([0, 0, 1, 0, 1])
+    pixel = torch.tensor([1, 3, 2, 1, 2])
+    copy = torch.tensor([0, 0, 0, 1, 1])
+    z = torch.zeros(5, 3)
+    pool = PixelPool(z, z, z, z, view, pixel, copy)
+    first, table = footprint_table(pool, 2, 2, 2)
+    assert first.tolist() == [0, 1, 2]
+    assert table.tolist() == [[0, 3], [1, 1], [2, 4]]  # the missing hit falls back to the first
+
+
+def test_footprint_needs_sample_sets_divisible_by_the_hits():
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.errors import InputError
+
+    with pytest.raises(InputError, match="pixel_jitter"):
+        load_config(overrides=["train.footprint=true", "train.spp=4", "train.pixel_jitter=4"])
+    cfg = load_config(overrides=["train.footprint=true", "train.spp=8", "train.pixel_jitter=4"])
+    assert cfg.train.footprint
+
+
+def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path):
+    run = tmp_path / "run"
+    assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.footprint=true",
+                 "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0.2", "--set", "train.iterations=5",
+                 "--set", "train.batch_rays=128", "--set", "train.log_every=1"]) == 0
+    history = torch.load(run / "checkpoint.pt", weights_only=False)["history"]
+    assert len(history) == 5 and all(np.isfinite(h["loss"]) for h in history)

@@ -291,3 +291,23 @@ def test_mesh_without_normals_gets_smooth_vertex_normals():
     radial = torch.nn.functional.normalize(hits.position, dim=-1)
     angle = torch.rad2deg(torch.arccos((radial * hits.normal).sum(-1).clamp(-1, 1)))
     assert float(angle.max()) < 0.5
+
+
+def test_hits_per_pixel_spread_each_sample_set_over_the_pixel():
+    """(N, K, 3) hits: K identical hits shade exactly as one; K different hits give the mean of
+    shading each hit alone (statistically), with every sample set covering all K hits."""
+    env = _env()
+    scene = _scene(env)
+    p, nrm, wi = _points(64)
+    base, metal, rough = torch.rand(64, 3), torch.rand(64), 0.2 + 0.6 * torch.rand(64)
+    shade = lambda pp, nn, ww, spp, seed: scene.shade(pp, nn, ww, base, metal, rough, torch.tensor(env), spp,
+                                                     generator=torch.Generator().manual_seed(seed), groups=2)
+    stack = lambda t: t[:, None].expand(-1, 4, -1)
+    np.testing.assert_allclose(shade(stack(p), stack(nrm), stack(wi), 8, 5).numpy(),
+                               shade(p, nrm, wi, 8, 5).numpy(), rtol=1e-6)
+    p2, n2, w2 = _points(64, seed=2)  # other hits: alternate the pixel's hits between two surfaces
+    hp, hn, hw = (torch.stack([a, b, a, b], 1) for a, b in ((p, p2), (nrm, n2), (wi, w2)))
+    spread = shade(hp, hn, hw, 512, 6)
+    alone = 0.5 * (shade(p, nrm, wi, 512, 7) + shade(p2, n2, w2, 512, 8))
+    assert float((spread - alone).abs().mean()) < 0.03 * float(alone.abs().mean())
+    assert float((spread - shade(p, nrm, wi, 512, 9)).abs().mean()) > 0.1 * float(alone.abs().mean())

@@ -84,6 +84,7 @@ class TrainConfig:
     log_every: int = 50  # steps between loss-curve entries
     alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
     pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
+    footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (material from the first): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
     snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
@@ -161,6 +162,11 @@ def _check_ranges(cfg: Config, source) -> None:
     """Values that parse but make no sense; `source` is the layer that set them (file or --set)."""
     if not 0.0 <= cfg.field.metallic_init < 1.0:
         raise InputError(source, f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
+    per_set = cfg.train.spp // (2 if cfg.loss.decorrelated else 1)
+    if cfg.train.footprint and cfg.train.pixel_jitter > 1 and per_set % cfg.train.pixel_jitter != 0:
+        raise InputError(source, f"train.footprint spreads each sample set ({per_set} samples: train.spp"
+                         f"{' / 2, loss.decorrelated' if cfg.loss.decorrelated else ''}) over train.pixel_jitter = "
+                         f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
     if not 0.0 < cfg.loss.lam_decay <= 1.0:
         raise InputError(source, f"loss.lam_decay must be in (0, 1] (1: a constant Lambertian prior), got {cfg.loss.lam_decay}")
 

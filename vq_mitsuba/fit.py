@@ -82,6 +82,21 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
     return pool, stats
 
 
+def footprint_table(pool: PixelPool, width: int, height: int, jitter: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pool indices of each training pixel's first hit (R,) and of all its jittered hits (R, K),
+    K = max(jitter, 1); a jittered hit that missed the mesh is replaced by the first one."""
+    k_all = max(jitter, 1)
+    first = torch.nonzero(pool.copy == 0)[:, 0]
+    n_keys = int(pool.view.max()) + 1 if len(pool) else 0
+    row = torch.full((n_keys * width * height,), -1, dtype=torch.int64)
+    row[pool.view[first] * (width * height) + pool.pixel[first]] = torch.arange(len(first))
+    table = first[:, None].repeat(1, k_all)
+    r = row[pool.view * (width * height) + pool.pixel]
+    ok = r >= 0  # hits of pixels whose first hit exists
+    table[r[ok], pool.copy[ok]] = torch.nonzero(ok)[:, 0]
+    return first, table
+
+
 def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
     """(Q, 2) pool indices of horizontally or vertically adjacent training pixels (first hits)."""
     first = torch.nonzero(pool.copy == 0)[:, 0]
@@ -254,6 +269,9 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     t_limit = cfg.train.time_limit_s
     pairs = neighbour_pairs(pool, capture.width, capture.height).to(device) if cfg.loss.w_sm > 0 else None
     groups_mc = 2 if cfg.loss.decorrelated else 1
+    if cfg.train.footprint:  # a pixel's samples spread over its jittered hits: the loss sees pixel averages
+        first_hits, hit_table = (t.to(device) for t in footprint_table(pool, capture.width, capture.height,
+                                                                      cfg.train.pixel_jitter))
 
     def rec_loss(samples, target):
         if cfg.loss.decorrelated:
@@ -282,11 +300,16 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                 if cfg.vq.warm_start_decoder:
                     discrete.warm_start(model.decoder, z_warm)
                 discrete.initialised.fill_(True)
-        idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
+        if cfg.train.footprint:
+            rows = torch.randint(0, len(first_hits), (B,), generator=gen, device=device)
+            idx, hit_idx = first_hits[rows], hit_table[rows]  # (B,), (B, K)
+        else:
+            idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
+            hit_idx = idx
         model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay)
         out = model(pool.position[idx])
         env = env_module() if learn_env else fixed_env
-        samples = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], out["basecolor"],
+        samples = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], out["basecolor"],
                               out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False,
                               material_fn=model if cfg.train.bounces > 0 else None, groups=groups_mc)
         rgb = samples.mean(1)
@@ -301,7 +324,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             drop = sample_drop_mask(B, rates, gen) if cfg.vq.ranking else None
             od = discrete(z, drop, forced_gradient=cfg.vq.forced_gradient)
             # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).
-            samples_d = scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], od["basecolor"],
+            samples_d = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], od["basecolor"],
                                     od["metallic"], od["roughness"], env, cfg.train.spp, generator=gen,
                                     reduce=False, material_fn=model if cfg.train.bounces > 0 else None,
                                     groups=groups_mc)
