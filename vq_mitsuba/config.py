@@ -40,7 +40,7 @@ class LossConfig:
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
     lam_metallic: float = 2.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1; 2 keeps balls' glossy plastic dielectric, 3 lowers demo's partly metallic torus)
-    lam_decay: float = 1.0  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then stops biasing converged materials towards rough
+    lam_decay: float = 0.1  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then biases converged materials less towards rough
     metallic_barrier: bool = False  # L_lam's metallic term as -log(1 - metallic) instead of metallic (the paper): it still pulls where metallic saturates at 1
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
