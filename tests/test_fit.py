@@ -182,3 +182,45 @@ def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path):
                  "--set", "train.batch_rays=128", "--set", "train.log_every=1"]) == 0
     history = torch.load(run / "checkpoint.pt", weights_only=False)["history"]
     assert len(history) == 5 and all(np.isfinite(h["loss"]) for h in history)
+
+
+def _nan_on_calls(monkeypatch, calls):
+    """Make the reconstruction loss NaN on the given (1-based) calls."""
+    from vq_mitsuba import losses
+
+    real, count = losses.reconstruction_l2_decorrelated, [0]
+
+    def patched(*args, **kwargs):
+        count[0] += 1
+        out = real(*args, **kwargs)
+        return out * float("nan") if count[0] in calls else out
+
+    monkeypatch.setattr(losses, "reconstruction_l2_decorrelated", patched)
+
+
+def test_a_non_finite_step_is_skipped(sphere_capture, tmp_path, monkeypatch):
+    _nan_on_calls(monkeypatch, {3})
+    run = tmp_path / "run"
+    assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=6",
+                 "--set", "train.batch_rays=128", "--set", "train.log_every=1"]) == 0
+    assert json.loads((run / "fit.json").read_text())["nonfinite_steps_skipped"] == 1
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 6 and len(state["history"]) == 5  # the skipped step logs nothing
+    assert all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_non_finite_steps_in_a_row_stop_the_fit_keeping_the_last_finite_state(sphere_capture, tmp_path,
+                                                                              monkeypatch, capsys):
+    from vq_mitsuba.fit import MAX_NONFINITE_RUN
+
+    _nan_on_calls(monkeypatch, set(range(3, 100)))
+    run = tmp_path / "run"
+    assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=40",
+                 "--set", "train.batch_rays=128"]) == 2
+    err = capsys.readouterr().err
+    assert str(run) in err and "non-finite" in err
+    last = 2 + MAX_NONFINITE_RUN  # steps 1 and 2 update, then MAX_NONFINITE_RUN are skipped
+    assert f"steps 3 to {last}" in err and "parameters of step 2" in err
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["step"] == last
+    assert all(torch.isfinite(v).all() for v in state["model"].values())

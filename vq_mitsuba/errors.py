@@ -12,3 +12,8 @@ class InputError(Exception):
         self.path = None if path is None else Path(path)
         self.message = message
         super().__init__(f"{self.path}: {message}" if self.path is not None else message)
+
+
+class NumericalError(InputError):
+    """A fit that cannot go on (losses or gradients not finite step after step); `path` is the
+    run directory, whose checkpoint holds the last finite state."""

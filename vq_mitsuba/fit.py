@@ -22,12 +22,13 @@ from . import losses
 from .capture.dataset import Capture, load_capture
 from .capture.imageio import write_exr
 from .config import Config, save_config, to_dict
-from .errors import InputError
+from .errors import InputError, NumericalError
 from .materials.fields import ContinuousMaterial, EnvironmentMap
 from .materials.vq import (DiscreteBranch, choose_num_materials, dropout_rates, duplicates_last, kmeans_codebook,
                            sample_drop_mask)
 
 CHECKPOINT = "checkpoint.pt"
+MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
 
 
 @dataclass
@@ -264,6 +265,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     t0 = time.perf_counter()
     bar = tqdm(total=total, initial=step, desc="fit", disable=not progress, dynamic_ncols=True)
     loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
+    nonfinite_steps, nonfinite_run = 0, 0
     B = min(cfg.train.batch_rays, len(pool))
     rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
     t_limit = cfg.train.time_limit_s
@@ -343,8 +345,27 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.envmap.tv_weight * env_module.smoothness()
         optim.zero_grad(set_to_none=True)
         loss.backward()
-        optim.step()
+        # A step whose loss or gradients are not finite (a rare Monte Carlo sample can overflow)
+        # is dropped rather than written into every parameter; many in a row stop the fit.
+        grads = [p.grad for g in optim.param_groups for p in g["params"] if p.grad is not None]
+        finite = bool(torch.isfinite(loss)) and bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
         step += 1
+        if not finite:
+            nonfinite_steps += 1
+            nonfinite_run += 1
+            if nonfinite_steps == 1:
+                print(f"warning: step {step}: loss or gradients not finite; the step is skipped")
+            if nonfinite_run >= MAX_NONFINITE_RUN:
+                bar.close()
+                checkpoint(elapsed_before + time.perf_counter() - t0)
+                raise NumericalError(run_dir, f"steps {step - nonfinite_run + 1} to {step} all gave a non-finite "
+                                     f"loss or gradient; the checkpoint (step {step}) keeps the parameters of "
+                                     f"step {step - nonfinite_run}, the last finite one; try a lower train.lr, "
+                                     "or --resume with another train.seed")
+            bar.update(1)
+            continue
+        nonfinite_run = 0
+        optim.step()
         with torch.no_grad():
             mse = float(losses.srgb_mse(rgb.detach(), target))
         loss_acc, mse_acc, n_acc = loss_acc + float(loss.detach()), mse_acc + mse, n_acc + 1
@@ -381,7 +402,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     summary = {"iterations": step, "seconds": elapsed,
                "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
                "final_psnr_train_batch": history[-1]["psnr"] if history else None,
-               "training_pixels": len(pool), "steps_this_call": step - start_step}
+               "training_pixels": len(pool), "steps_this_call": step - start_step,
+               "nonfinite_steps_skipped": nonfinite_steps}
     _write_json(run_dir / "fit.json", summary)
     return summary
 

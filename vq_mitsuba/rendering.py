@@ -298,7 +298,9 @@ class ShadingScene:
             ds, em_weight = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), True)
             wo = si.to_local(ds.d)
             f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo)
-            w_em = dr.detach(dr.select(ds.pdf > 0, dr.square(ds.pdf) / (dr.square(ds.pdf) + dr.square(pdf_bsdf)), 0.0))
+            # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
+            # pdf cannot overflow a square into inf / inf.
+            w_em = dr.detach(dr.select(ds.pdf > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / ds.pdf)), 0.0))
             radiance = f_em * em_weight * w_em
 
             # BSDF sampling; the sampled direction is detached, its value differentiated.
@@ -309,7 +311,7 @@ class ShadingScene:
                 miss = ~si_next.is_valid() & (bs.pdf > 0)
                 ds_next = mi.DirectionSample3f(scene, si_next, si)
                 pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
-                w_bs = dr.select(miss, dr.square(bs.pdf) / (dr.square(bs.pdf) + dr.square(pdf_em)), 0.0)
+                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
                 inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
                 hit_obj = si_next.is_valid() & (bs.pdf > 0)
             f_bs = bsdf.eval(ctx, si, bs.wo)
