@@ -136,3 +136,26 @@ def test_duplicate_codewords_rank_behind_the_distinct_ones():
     assert order == [2, 1, 3, 0, 4] and n == 3
     # tol 0 switches merging off
     assert duplicates_last(brdf, [0, 2, 1, 3, 4], n_used=4, tol=0.0) == ([0, 2, 1, 3, 4], 4)
+
+
+def test_a_codeword_that_adds_nothing_moves_behind_and_err_k_is_measured_again():
+    from vq_mitsuba.materials.vq import redundant_last
+
+    # Codewords 0 and 1 both decode to material A (half the pixels), 2 to B, 3 to C, 4 is unused.
+    covers = {0: "A", 1: "A", 2: "B", 3: "C", 4: None}
+    share = {"A": 0.5, "B": 0.3, "C": 0.2}
+    calls = []
+
+    def measure(order):  # err_k: 0.1 per unit share of pixels whose material no codeword in the prefix covers
+        calls.append(list(order))
+        return [0.01 + 0.1 * sum(v for m, v in share.items() if m not in {covers[i] for i in order[:k]})
+                for k in range(1, len(order) + 1)]
+
+    assert choose_num_materials(measure([0, 1, 2, 3, 4]), 0.002) == 4  # the copy of A counts as a material
+    calls.clear()
+    order, errs, moved = redundant_last(measure, [0, 1, 2, 3, 4], 0.002)
+    assert order == [0, 2, 3, 4, 1] and moved == [1] and len(calls) == 2
+    assert errs == measure(order) and choose_num_materials(errs, 0.002) == 3
+    calls.clear()
+    assert redundant_last(measure, [0, 2, 3, 1, 4], 0.002)[0] == [0, 2, 3, 1, 4]  # nothing to move
+    assert len(calls) == 1

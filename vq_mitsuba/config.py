@@ -66,6 +66,7 @@ class VQConfig:
     rank_pixels: int = 4096  # training pixels used to measure err_k
     min_share: float = 0.005  # codewords picked by fewer pixels than this share are not ranked as materials
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
+    redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)

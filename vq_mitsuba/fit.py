@@ -25,7 +25,7 @@ from .config import Config, save_config, to_dict
 from .errors import InputError, NumericalError
 from .materials.fields import ContinuousMaterial, EnvironmentMap
 from .materials.vq import (DiscreteBranch, choose_num_materials, dropout_rates, duplicates_last, kmeans_codebook,
-                           sample_drop_mask)
+                           redundant_last, sample_drop_mask)
 
 CHECKPOINT = "checkpoint.pt"
 MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
@@ -428,16 +428,29 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
     order = torch.cat([torch.nonzero(used)[:, 0], torch.nonzero(~used)[:, 0]])
     # Codewords that decode to the same material as a higher-ranked one go behind the distinct ones.
     ranked, n_distinct = duplicates_last(discrete.codeword_brdfs(), order.tolist(), int(used.sum()), cfg.vq.merge_tol)
+    current = list(range(K))  # training index of the codeword now at each position
+
+    def measure(rank: list[int]) -> list[float]:  # err_k of the prefixes of `rank` (training indices)
+        nonlocal usage, current
+        discrete.vq.reorder(torch.as_tensor([current.index(i) for i in rank], device=z.device))
+        current = list(rank)
+        errs_k = []
+        for k in range(1, K + 1):
+            od = discrete(z, n_codes=k)
+            g = torch.Generator(device=pool.position.device).manual_seed(cfg.train.seed + 2)  # same samples for every k
+            rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od["basecolor"], od["metallic"],
+                              od["roughness"], env, 16, generator=g, groups=1)
+            errs_k.append(float(losses.reconstruction_l2(rgb, pool.rgb[sel], cfg.loss.gamma)))
+            if k == K:
+                usage = torch.bincount(od["index"], minlength=K).float() / n
+        return errs_k
+
+    redundant = []
+    if cfg.vq.ranking and cfg.vq.redundant_last:
+        ranked, errs, redundant = redundant_last(measure, ranked, cfg.vq.rank_eps)
+    else:
+        errs = measure(ranked)
     order = torch.as_tensor(ranked, device=order.device)
-    discrete.vq.reorder(order)
-    for k in range(1, K + 1):
-        od = discrete(z, n_codes=k)
-        g = torch.Generator(device=pool.position.device).manual_seed(cfg.train.seed + 2)  # same samples for every k
-        rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od["basecolor"], od["metallic"],
-                          od["roughness"], env, 16, generator=g, groups=1)
-        errs.append(float(losses.reconstruction_l2(rgb, pool.rgb[sel], cfg.loss.gamma)))
-        if k == K:
-            usage = torch.bincount(od["index"], minlength=K).float() / n
     M = choose_num_materials(errs, cfg.vq.rank_eps) if cfg.vq.ranking else K
     M = max(1, min(M, n_distinct)) if cfg.vq.ranking else M
     discrete.num_materials.fill_(M)
@@ -451,7 +464,7 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
     info = {"num_materials": M, "num_codewords": K, "epsilon": cfg.vq.rank_eps, "ranking": cfg.vq.ranking,
             "min_share": cfg.vq.min_share, "codewords_used": int(used.sum()),
             "merge_tol": cfg.vq.merge_tol, "codewords_distinct": n_distinct,
-            "training_order": order.tolist(),
+            "training_order": order.tolist(), "redundant_codewords": redundant,
             "err_k": errs, "materials": materials[:M], "dropped_codewords": materials[M:],
             "note": "materials are ranked codewords (id k = k-th); basecolor in linear RGB; err_k is the "
                     "discrete branch's gamma-space L2 on training pixels using the first k codewords"}

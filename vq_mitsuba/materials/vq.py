@@ -150,6 +150,28 @@ def choose_num_materials(err: list[float] | torch.Tensor, eps: float = 0.002) ->
     return len(err)
 
 
+def redundant_last(measure, order: list[int], eps: float) -> tuple[list[int], list[float], list[int]]:
+    """Rank again until every codeword inside the chosen prefix pays for itself.
+
+    `measure(order)` gives err_k for the prefixes of `order`. While some codeword at position
+    j >= 1 inside the prefix that `choose_num_materials` picks lowers the error by less than `eps`
+    when added (err_{j-1} - err_j < eps), it moves to the end and err_k is measured again: a
+    near-copy of an earlier material that dropout happened to rank early no longer counts as one.
+    Returns (order, err_k of that order, the codewords moved, in the order they moved)."""
+    order, moved = list(order), []
+    errs = list(measure(order))
+    for _ in range(len(order)):
+        m = choose_num_materials(errs, eps)
+        weak = [j for j in range(1, m) if errs[j - 1] - errs[j] < eps]
+        if not weak:
+            break
+        j = weak[0]
+        moved.append(order[j])
+        order = order[:j] + order[j + 1:] + [order[j]]
+        errs = list(measure(order))
+    return order, errs, moved
+
+
 class DiscreteBranch(nn.Module):
     """z -> nearest codeword (VQ) -> f_d^d: per-material basecolor, metallic, roughness."""
 
