@@ -48,7 +48,8 @@ def main(argv=None) -> int:
     scene = mi.load_file(str(root / "scene_test.xml"))
     shapes = {s.id(): s for s in scene.shapes()}
     sensors = scene.sensors()[:args.views]
-    envs = sorted(p.name for p in (root / "relit").glob("*") if p.is_dir()) if args.envs == ["all"] else args.envs
+    masks = [read_exr(root / "images" / f"{s.id()}.exr")[..., 3] > 0.5 for s in sensors]
+    envs = sorted(d.name for d in (root / "relit").glob("*") if d.is_dir()) if args.envs == ["all"] else args.envs
     for name in envs:
         if not (root / "envmaps" / f"{name}.exr").is_file() or not (root / "relit" / name).is_dir():
             p.error(f"{root}: no envmaps/{name}.exr with relit/{name}/ views")
@@ -60,20 +61,19 @@ def main(argv=None) -> int:
              "envmap": envmaps.to_mitsuba_dict(env, blender_world=False), **shapes}
         truth = mi.load_dict(d)
         values = []
-        for i, sensor in enumerate(sensors):
+        ref_dir = root / "images" if name == "train" else root / "relit" / name
+        for i, (sensor, mask) in enumerate(zip(sensors, masks)):
             img = np.array(mi.render(truth, sensor=sensor, spp=args.spp, seed=7919 + i))
-            ref_dir = root / "images" if name == "train" else root / "relit" / name
             gt = read_exr(ref_dir / f"{sensor.id()}.exr")
-            mask = read_exr(root / "images" / f"{sensor.id()}.exr")[..., 3] > 0.5
             values.append(M.psnr(M.srgb(img[..., :3]), M.srgb(gt[..., :3]), mask))
             if name == "train":
                 print(f"{sensor.id()}: {values[-1]:.2f} dB")
         summary[name] = values
         print(f"{'view (train envmap)' if name == 'train' else 'relit ' + name}: median {np.median(values):.2f}, "
               f"mean {np.mean(values):.2f} dB over {len(values)} views")
+    relit_mean = float(np.mean([np.mean(summary[n]) for n in envs])) if envs else None
     if envs:
-        print(f"relit, mean over {len(envs)} envmaps of the per-view means (as `eval`): "
-              f"{np.mean([np.mean(summary[n]) for n in envs]):.2f} dB")
+        print(f"relit, mean over {len(envs)} envmaps of the per-view means (as `eval`): {relit_mean:.2f} dB")
     if args.json:
         args.json.write_text(json.dumps({
             "command": "python benchmarks/noise_ceiling.py " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
             "spp": args.spp, "views": [s.id() for s in sensors],
             "psnr": {n: {"per_view": v, "mean": float(np.mean(v)), "median": float(np.median(v))}
                      for n, v in summary.items()},
-            "relit_mean": float(np.mean([np.mean(summary[n]) for n in envs])) if envs else None,
+            "relit_mean": relit_mean,
             "versions": {"mitsuba": mi.__version__, "variant": mi.variant()},
         }, indent=1))
     print(f"(re-render at {args.spp} spp against the dataset's {meta.get('spp')} spp images "

@@ -83,28 +83,33 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
     return pool, stats
 
 
-def footprint_table(pool: PixelPool, width: int, height: int, jitter: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pool indices of each training pixel's first hit (R,) and of all its jittered hits (R, K),
-    K = max(jitter, 1); a jittered hit that missed the mesh is replaced by the first one."""
-    k_all = max(jitter, 1)
-    first = torch.nonzero(pool.copy == 0)[:, 0]
-    n_keys = int(pool.view.max()) + 1 if len(pool) else 0
-    row = torch.full((n_keys * width * height,), -1, dtype=torch.int64)
-    row[pool.view[first] * (width * height) + pool.pixel[first]] = torch.arange(len(first))
-    table = first[:, None].repeat(1, k_all)
-    r = row[pool.view * (width * height) + pool.pixel]
-    ok = r >= 0  # hits of pixels whose first hit exists
-    table[r[ok], pool.copy[ok]] = torch.nonzero(ok)[:, 0]
-    return first, table
-
-
-def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
-    """(Q, 2) pool indices of horizontally or vertically adjacent training pixels (first hits)."""
+def _first_hits(pool: PixelPool, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(pool indices of the pixels' first hits, their pixel keys view * W * H + pixel, and a lookup
+    from any pixel key to its first hit's pool index, -1 where the pixel has none)."""
     first = torch.nonzero(pool.copy == 0)[:, 0]
     key = pool.view[first] * (width * height) + pool.pixel[first]
     n_keys = int(pool.view.max()) + 1 if len(pool) else 0
     lookup = torch.full((n_keys * width * height,), -1, dtype=torch.int64)
     lookup[key] = first
+    return first, key, lookup
+
+
+def footprint_table(pool: PixelPool, width: int, height: int, jitter: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pool indices of each training pixel's first hit (R,) and of all its jittered hits (R, K),
+    K = max(jitter, 1); a jittered hit that missed the mesh is replaced by the first one."""
+    first, _, lookup = _first_hits(pool, width, height)
+    row_of = torch.full((len(pool),), -1, dtype=torch.int64)
+    row_of[first] = torch.arange(len(first))
+    fi = lookup[pool.view * (width * height) + pool.pixel]  # each hit's pixel's first hit
+    ok = fi >= 0
+    table = first[:, None].repeat(1, max(jitter, 1))
+    table[row_of[fi[ok]], pool.copy[ok]] = torch.nonzero(ok)[:, 0]
+    return first, table
+
+
+def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
+    """(Q, 2) pool indices of horizontally or vertically adjacent training pixels (first hits)."""
+    first, key, lookup = _first_hits(pool, width, height)
     x = pool.pixel[first] % width
     y = pool.pixel[first] // width
     pairs = []
