@@ -193,8 +193,11 @@ def test_xml_capture_loads(tmp_path):
     box = cap.mesh.vertices[:8] if cap.mesh.vertices[:8, 0].min() > 1 else cap.mesh.vertices[-8:]
     np.testing.assert_allclose(box.min(0), [1.5, -0.5, -0.5], atol=1e-6)
     np.testing.assert_allclose(box.max(0), [2.5, 0.5, 0.5], atol=1e-6)
-    sphere = cap.mesh.vertices[np.abs(cap.mesh.vertices[:, 0]) < 0.6]
+    on_sphere = np.abs(cap.mesh.vertices[:, 0]) < 0.6
+    sphere = cap.mesh.vertices[on_sphere]
     np.testing.assert_allclose(np.linalg.norm(sphere - [0, 1, 0], axis=1), 0.5, atol=1e-5)
+    # Shading normals: the sphere's true normals, not ones averaged from its facets.
+    np.testing.assert_allclose(cap.mesh.vertex_normals[on_sphere], (sphere - [0, 1, 0]) / 0.5, atol=1e-5)
     # Known lighting.
     np.testing.assert_array_equal(cap.envmap, env)
     rot = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
@@ -229,6 +232,13 @@ def test_json_capture_loads(tmp_path):
     trimesh.creation.icosphere(subdivisions=1).export(other)
     cap = load_capture(path, mesh=other)  # the argument wins over mesh.ply
     assert len(cap.mesh.vertices) == 42 and len(cap.mesh.faces) == 80
+    # A PLY's own vertex normals are the shading normals (not recomputed from the faces).
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    tilted = ico.vertex_normals + [0.3, 0.0, 0.0]
+    tilted /= np.linalg.norm(tilted, axis=1, keepdims=True)
+    trimesh.Trimesh(ico.vertices, ico.faces, vertex_normals=tilted, process=False).export(tmp_path / "n.ply")
+    cap = load_capture(path, mesh=tmp_path / "n.ply")
+    np.testing.assert_allclose(cap.mesh.vertex_normals, tilted, atol=1e-6)
 
 
 def test_json_capture_without_alpha(tmp_path):

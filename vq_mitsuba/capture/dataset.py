@@ -97,18 +97,20 @@ def resolve_capture_path(path: str | Path) -> Path:
 
 
 def load_mesh(path: str | Path):
-    """A PLY/OBJ mesh as a trimesh.Trimesh (vertices kept as stored), validated."""
+    """A PLY/OBJ mesh as a trimesh.Trimesh (vertices kept as stored, and the file's vertex normals
+    when it has them: they are the shading normals), validated."""
     import trimesh
 
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "mesh file not found")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        # Not force="mesh": that path drops the normals stored in the file.
+        loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many kinds on bad files
         raise InputError(path, f"cannot read mesh file ({type(exc).__name__}: {exc})") from exc
-    if isinstance(loaded, trimesh.Scene):  # force='mesh' returns an empty scene for empty files
-        geoms = list(loaded.geometry.values())
+    if isinstance(loaded, trimesh.Scene):  # several objects, or an empty file
+        geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
         loaded = trimesh.util.concatenate(geoms) if geoms else trimesh.Trimesh()
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise InputError(path, "mesh file is empty (no triangles)")
@@ -369,7 +371,7 @@ def _scene_mesh(xml: Path, scene):
     import trimesh
 
     mi = _ensure_variant()
-    vertices, faces, offset = [], [], 0
+    vertices, faces, normals, offset = [], [], [], 0
     for shape in scene.shapes():
         kind = shape.class_name()
         if isinstance(shape, mi.Mesh):
@@ -377,11 +379,17 @@ def _scene_mesh(xml: Path, scene):
             f = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
             if len(f) == 0:
                 raise InputError(xml, f"shape '{shape.id() or kind}' has no triangles")
+            if shape.has_vertex_normals():  # the shading normals the scene renders with
+                n = np.array(shape.vertex_normals_buffer(), dtype=np.float64).reshape(-1, 3)
+            else:
+                n = np.asarray(trimesh.Trimesh(v, f, process=False).vertex_normals)
         elif kind == "Sphere":
             ico = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=1.0)
             m = _matrix(mi.traverse(shape)["to_world"])
             v = np.asarray(ico.vertices, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
             f = np.asarray(ico.faces, dtype=np.int64)
+            n = np.asarray(ico.vertices, dtype=np.float64) @ np.linalg.inv(m[:3, :3])  # the sphere's true normals
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
         else:
             raise InputError(xml, f"shape '{shape.id() or kind}' ({kind}) is not supported as known "
                                   "geometry (use ply/obj/serialized meshes or spheres)")
@@ -389,10 +397,12 @@ def _scene_mesh(xml: Path, scene):
             raise InputError(xml, f"shape '{shape.id() or kind}' has non-finite vertex positions")
         vertices.append(v)
         faces.append(f + offset)
+        normals.append(n)
         offset += len(v)
     if not vertices:
         return None
-    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=False)
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), vertex_normals=np.concatenate(normals),
+                           process=False)
 
 
 # --------------------------------------------------------------------------------------------
