@@ -228,14 +228,16 @@ def write_markdown(report: dict, path: Path) -> None:
              f"torch threads {report['threads']}. Versions: "
              + ", ".join(f"{k} {v}" for k, v in report["versions"].items()) + ".", "",
              "Targets: whole geometry stage <= 15 min on 2 cores, Chamfer <= 1% of the bounding-box diagonal.", "",
-             "| scene | iterations | train s | total s | Chamfer (% diag) | normal consistency | F@1% | "
-             "novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| scene | iterations | train s | total s | Chamfer (% diag) | normal consistency | "
+             "shading normal deg (median / p90) | F@1% | novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["scenes"]:
         f, v = r["final"], r["novel_views"]
         la = r["load_average"]
         lines.append(f"| {r['scene']}{' (earlier run)' if r.get('reused') else ''} | {r['iterations']} | {r['seconds']['train']:.0f} | {r['seconds']['pipeline']:.0f} | "
-                     f"{100 * f['chamfer_rel']:.3f} | {f['normal_consistency']:.4f} | {f['f_score@0.01']:.3f} | "
+                     f"{100 * f['chamfer_rel']:.3f} | {f['normal_consistency']:.4f} | "
+                     f"{f.get('shading_normal_deg_median', float('nan')):.2f} / "
+                     f"{f.get('shading_normal_deg_p90', float('nan')):.2f} | {f['f_score@0.01']:.3f} | "
                      f"{v.get('psnr', float('nan')):.2f} | {v.get('psnr_foreground', float('nan')):.2f} | "
                      f"{la['start'][0]:.1f} / {la['end'][0]:.1f} |")
     lines += ["", "Time against Chamfer (training seconds; meshes at 128^3 for the checkpoints, "

@@ -14,7 +14,7 @@ from vq_mitsuba.capture.cameras import Camera, look_at
 from vq_mitsuba.capture.dataset import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.config import NeuSConfig, apply_overrides
-from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics
+from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.geometry.neus import DenseGrid, NeuS, camera_rays, reconstruct, train
 
 RADIUS = 0.5
@@ -121,6 +121,33 @@ def test_clean_mesh_removes_small_floating_piece_but_keeps_other_objects():
     assert len(decimated.faces) <= 300 and decimated.volume > 0
 
 
+def test_normal_smoothing_removes_bumps_keeps_positions_and_survives_ply(tmp_path):
+    from vq_mitsuba.capture.dataset import load_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    v = sphere.vertices.copy()
+    d = v / np.linalg.norm(v, axis=1, keepdims=True)
+    # Ripples a few edges wide, 0.2 % of the radius high: the normals tilt by a degree or more.
+    bumpy = v + 0.001 * np.sin(60 * v[:, :1]) * np.cos(60 * v[:, 1:2]) * d
+    mesh = trimesh.Trimesh(bumpy, sphere.faces, process=False)
+
+    def err_deg(normals):
+        return np.degrees(np.arccos(np.clip(np.sum(normals * d, axis=1), -1, 1)))
+
+    before = err_deg(mesh.vertex_normals)
+    smoothed = smooth_vertex_normals(mesh, 20)
+    after = err_deg(smoothed.vertex_normals)
+    assert np.median(before) > 1.0
+    assert np.median(after) < np.median(before) / 3
+    assert np.array_equal(smoothed.vertices, mesh.vertices) and np.array_equal(smoothed.faces, mesh.faces)
+    assert np.allclose(np.linalg.norm(smoothed.vertex_normals, axis=1), 1.0, atol=1e-6)
+    assert np.allclose(smooth_vertex_normals(mesh, 0).vertex_normals, mesh.vertex_normals)
+    # The material stage reads mesh.ply with load_mesh: the smoothed normals must come back.
+    smoothed.export(tmp_path / "mesh.ply")
+    back = load_mesh(tmp_path / "mesh.ply")
+    assert np.allclose(back.vertex_normals, smoothed.vertex_normals, atol=1e-6)
+
+
 def test_mesh_metrics_measure_distance_and_normals():
     a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
     same = mesh_metrics(a, a, n_points=20000)
@@ -132,6 +159,16 @@ def test_mesh_metrics_measure_distance_and_normals():
     assert abs(off["chamfer_rel"] - 0.05 / diag) < 0.01 / diag
     box = trimesh.creation.box((1, 1, 1))
     assert mesh_metrics(box, a, n_points=20000)["normal_consistency"] < same["normal_consistency"] - 0.05
+    # Shading normals: small on the same mesh; a tilt of the stored vertex normals by 10 degrees
+    # shows in them (and not in the face-normal consistency).
+    assert same["shading_normal_deg_median"] < 1.0
+    axis = np.cross(a.vertex_normals, [0.0, 0.0, 1.0])
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-9)
+    t = np.radians(10.0)
+    tilted = a.vertex_normals * np.cos(t) + np.cross(axis, a.vertex_normals) * np.sin(t)
+    shaded = mesh_metrics(trimesh.Trimesh(a.vertices, a.faces, vertex_normals=tilted, process=False), a, n_points=20000)
+    assert 8.0 < shaded["shading_normal_deg_median"] < 11.0
+    assert shaded["normal_consistency"] == pytest.approx(same["normal_consistency"], abs=1e-6)
 
 
 def test_neus_moves_a_wrong_sphere_to_the_true_surface():
@@ -182,6 +219,8 @@ def test_config_overrides_are_checked():
         apply_overrides(NeuSConfig(), ["neus.nope=1"])
     with pytest.raises(InputError, match="bad value"):
         apply_overrides(NeuSConfig(), ["neus.iterations=many"])
+    with pytest.raises(InputError, match="normal_smoothing"):
+        apply_overrides(NeuSConfig(), ["neus.normal_smoothing=-1"])
 
 
 def _write_json_capture(folder: Path, with_alpha: bool, n_frames: int = 2) -> Path:

@@ -69,7 +69,8 @@ def _cmd_geometry(args) -> int:
     if "metrics" in info:
         m = info["metrics"]
         print(f"against {args.gt_mesh}: Chamfer {100 * m['chamfer_rel']:.3f}% of the bounding-box diagonal, "
-              f"normal consistency {m['normal_consistency']:.4f}")
+              f"normal consistency {m['normal_consistency']:.4f}, shading normals off by "
+              f"{m['shading_normal_deg_median']:.2f} degrees (median)")
     return 0
 
 

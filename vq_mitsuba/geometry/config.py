@@ -41,6 +41,7 @@ class NeuSConfig:
     min_component: float = 0.05  # drop connected pieces with fewer faces than this fraction of the largest
     keep_largest: bool = False  # keep only the largest connected component
     smooth_iterations: int = 0  # Taubin smoothing steps after marching cubes (0: none)
+    normal_smoothing: int = 20  # vertex-normal averaging steps over edge neighbours, positions kept (0: none)
     max_faces: int = 200000  # quadric decimation to this many faces (0: no decimation)
     checkpoint_every: int = 500  # steps between NeuS checkpoints (RUN_DIR/neus.pt)
     threads: int = 1  # torch CPU threads (0: leave torch's default); 1 is fastest on a busy shared CPU
@@ -112,5 +113,8 @@ def validate(cfg: NeuSConfig) -> None:
                 "hull_resolution", "march_steps", "mesh_resolution"):
         if getattr(cfg, key) < 1:
             raise InputError(None, f"neus.{key} must be positive")
+    for key in ("smooth_iterations", "normal_smoothing", "max_faces"):
+        if getattr(cfg, key) < 0:
+            raise InputError(None, f"neus.{key} must be >= 0")
     if cfg.base_res < 2 or cfg.max_res < cfg.base_res:
         raise InputError(None, "neus.base_res must be >= 2 and neus.max_res >= neus.base_res")

@@ -70,11 +70,39 @@ def clean_mesh(mesh, min_component: float = 0.05, keep_largest: bool = False, sm
     return out
 
 
+def smooth_vertex_normals(mesh, iterations: int):
+    """The mesh with the same vertices and faces and smoothed vertex normals: each step replaces a
+    vertex's normal by the renormalised mean of its own and its edge neighbours' normals, so n steps
+    average over about sqrt(n) edges. The positions do not move (unlike Taubin smoothing), so the
+    silhouette and the surface points stay where NeuS put them; only the shading normals lose the
+    bumps of the SDF grid. The normals are stored in the mesh and written to PLY."""
+    import scipy.sparse as sp
+    import trimesh
+
+    normals = np.asarray(mesh.vertex_normals, dtype=np.float64).copy()
+    if iterations > 0 and len(mesh.faces):
+        n_v = len(mesh.vertices)
+        e = np.asarray(mesh.edges_unique)
+        adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                            shape=(n_v, n_v)).tocsr() + sp.identity(n_v, format="csr")
+        for _ in range(int(iterations)):
+            nxt = adj @ normals
+            length = np.linalg.norm(nxt, axis=1, keepdims=True)
+            normals = np.where(length > 1e-12, nxt / np.maximum(length, 1e-12), normals)
+    return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), vertex_normals=normals, process=False)
+
+
 def _sample(mesh, n: int, seed: int):
+    """n surface points: positions, face normals, and shading normals (the vertex normals
+    interpolated barycentrically, as the renderer shades)."""
     import trimesh
 
     pts, face_idx = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return np.asarray(pts), np.asarray(mesh.face_normals)[face_idx]
+    pts = np.asarray(pts)
+    bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.triangles)[face_idx], pts)
+    shading = np.einsum("nk,nkd->nd", bary, np.asarray(mesh.vertex_normals)[np.asarray(mesh.faces)[face_idx]])
+    shading /= np.maximum(np.linalg.norm(shading, axis=1, keepdims=True), 1e-12)
+    return pts, np.asarray(mesh.face_normals)[face_idx], shading
 
 
 def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0) -> dict:
@@ -83,22 +111,28 @@ def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0) -> dict:
     chamfer: mean of the two mean nearest-neighbour distances (pred->gt, gt->pred);
     chamfer_rel: the same as a fraction of the ground truth's bounding-box diagonal;
     normal_consistency: mean |cos| between each sample's normal and its nearest neighbour's,
-    averaged over both directions (1 = identical orientation); f_score at 0.5% / 1% of the diagonal.
+    averaged over both directions (1 = identical orientation); f_score at 0.5% / 1% of the diagonal;
+    shading_normal_deg_median / _p90: angle between the shading normals (interpolated vertex
+    normals, what the material stage shades with) of each predicted sample and its nearest
+    ground-truth sample.
     """
     from scipy.spatial import cKDTree
 
-    pa, na = _sample(pred, n_points, seed)
-    pb, nb = _sample(gt, n_points, seed + 1)
+    pa, na, sa = _sample(pred, n_points, seed)
+    pb, nb, sb = _sample(gt, n_points, seed + 1)
     da, ia = cKDTree(pb).query(pa, workers=-1)  # pred -> gt
     db, ib = cKDTree(pa).query(pb, workers=-1)  # gt -> pred
     diag = float(np.linalg.norm(np.ptp(np.asarray(gt.vertices), axis=0)))
     nc = 0.5 * (np.abs(np.sum(na * nb[ia], -1)).mean() + np.abs(np.sum(nb * na[ib], -1)).mean())
+    shading_deg = np.degrees(np.arccos(np.clip(np.sum(sa * sb[ia], -1), -1.0, 1.0)))
     out = {
         "chamfer": float(0.5 * (da.mean() + db.mean())),
         "chamfer_rel": float(0.5 * (da.mean() + db.mean()) / diag),
         "accuracy_rel": float(da.mean() / diag),  # pred -> gt
         "completeness_rel": float(db.mean() / diag),  # gt -> pred
         "normal_consistency": float(nc),
+        "shading_normal_deg_median": float(np.median(shading_deg)),
+        "shading_normal_deg_p90": float(np.percentile(shading_deg, 90)),
         "bbox_diagonal": diag,
     }
     for frac in (0.005, 0.01):

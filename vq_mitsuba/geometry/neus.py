@@ -507,7 +507,7 @@ class NeuS:
         return vol.numpy()
 
     def extract_mesh(self, res: int | None = None, clean: bool = True):
-        from .mesh import clean_mesh, marching_cubes
+        from .mesh import clean_mesh, marching_cubes, smooth_vertex_normals
 
         res = res or self.cfg.mesh_resolution
         vol = self.sdf_volume(res)
@@ -519,6 +519,8 @@ class NeuS:
         if clean:
             c = self.cfg
             mesh = clean_mesh(mesh, c.min_component, c.keep_largest, c.smooth_iterations, c.max_faces)
+            if c.normal_smoothing > 0:
+                mesh = smooth_vertex_normals(mesh, c.normal_smoothing)
         return mesh
 
 
