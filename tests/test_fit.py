@@ -224,3 +224,31 @@ def test_non_finite_steps_in_a_row_stop_the_fit_keeping_the_last_finite_state(sp
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     assert state["step"] == last
     assert all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
+    """Separate training with light_from_continuous: nothing but the discrete branch learns (the
+    continuous loss and priors are off), so the continuous field and the envmap stay as they were
+    after one step; with the discrete loss allowed to train the light, the envmap moves."""
+    base = ["--quiet", "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0", "--set", "vq.joint=false",
+            "--set", "loss.w_rec_c=0", "--set", "loss.w_chr=0", "--set", "loss.w_lam=0",
+            "--set", "envmap.tv_weight=0", "--set", "train.bounces=1", "--set", "train.batch_rays=128"]
+
+    capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=16, known_envmap=False)
+
+    def state(name, iterations, frozen):
+        run = tmp_path / name
+        assert main(["fit", str(capture), "-o", str(run), *base, "--set", f"train.iterations={iterations}",
+                     "--set", f"vq.light_from_continuous={str(frozen).lower()}"]) == 0
+        return torch.load(run / "checkpoint.pt", weights_only=False)
+
+    def weights(sd):
+        return {k: v for k, v in sd.items() if k.endswith(("weight", "bias"))}
+
+    one, three = state("one", 1, True), state("three", 3, True)
+    assert weights(one["model"]) and all(torch.equal(v, weights(three["model"])[k])
+                                         for k, v in weights(one["model"]).items())
+    assert all(torch.equal(v, three["envmap"][k]) for k, v in one["envmap"].items())
+    assert not all(torch.equal(v, three["discrete"][k]) for k, v in weights(one["discrete"]).items())
+    shared = state("shared", 3, False)
+    assert not all(torch.equal(v, shared["envmap"][k]) for k, v in one["envmap"].items())

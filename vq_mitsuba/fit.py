@@ -47,6 +47,14 @@ class PixelPool:
         return self.position.shape[0]
 
 
+def _without_gradients(model):
+    """model as a material function whose outputs carry no gradient back into it."""
+    def material(points):
+        with torch.no_grad():
+            return model(points)
+    return material
+
+
 def build_scene(mesh, env_init: np.ndarray, env_to_world: np.ndarray):
     from .rendering import ShadingScene
 
@@ -331,10 +339,17 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             drop = sample_drop_mask(B, rates, gen) if cfg.vq.ranking else None
             od = discrete(z, drop, forced_gradient=cfg.vq.forced_gradient)
             # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).
+            # With light_from_continuous the discrete loss leaves the light (envmap, bounce) to the
+            # continuous branch: a few materials cannot explain a texture, and their 5x-weighted
+            # residual would otherwise bend the shared light (and through it the continuous field).
+            frozen = cfg.vq.light_from_continuous
+            env_d = env.detach() if frozen else env
+            bounce_fn = None
+            if cfg.train.bounces > 0:
+                bounce_fn = _without_gradients(model) if frozen else model
             samples_d = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], od["basecolor"],
-                                    od["metallic"], od["roughness"], env, cfg.train.spp, generator=gen,
-                                    reduce=False, material_fn=model if cfg.train.bounces > 0 else None,
-                                    groups=groups_mc)
+                                    od["metallic"], od["roughness"], env_d, cfg.train.spp, generator=gen,
+                                    reduce=False, material_fn=bounce_fn, groups=groups_mc)
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
