@@ -112,8 +112,10 @@ def test_lam_decay_outside_its_range_is_rejected():
     from vq_mitsuba.config import load_config
     from vq_mitsuba.errors import InputError
 
-    for bad in ("0", "1.5", "-0.1"):
-        with pytest.raises(InputError, match="lam_decay") as err:
-            load_config(overrides=[f"loss.lam_decay={bad}"])
-        assert str(err.value.path) == "--set"
+    for key in ("loss.lam_decay", "vq.lam_decay"):
+        for bad in ("0", "1.5", "-0.1"):
+            with pytest.raises(InputError, match=key.replace(".", r"\.")) as err:
+                load_config(overrides=[f"{key}={bad}"])
+            assert str(err.value.path) == "--set"
     assert load_config(overrides=["loss.lam_decay=0.1"]).loss.lam_decay == 0.1
+    assert load_config(overrides=["vq.lam_decay=0.5"]).vq.lam_decay == 0.5

@@ -68,6 +68,7 @@ class VQConfig:
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
+    lam_decay: float = 1.0  # the Lambertian prior's decay on the discrete branch (1: constant weight loss.w_lam; loss.lam_decay is the continuous branch's)
     light_from_continuous: bool = True  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)
@@ -169,8 +170,9 @@ def _check_ranges(cfg: Config, source) -> None:
         raise InputError(source, f"train.footprint spreads each sample set ({per_set} samples: train.spp"
                          f"{' / 2, loss.decorrelated' if cfg.loss.decorrelated else ''}) over train.pixel_jitter = "
                          f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
-    if not 0.0 < cfg.loss.lam_decay <= 1.0:
-        raise InputError(source, f"loss.lam_decay must be in (0, 1] (1: a constant Lambertian prior), got {cfg.loss.lam_decay}")
+    for key, value in (("loss.lam_decay", cfg.loss.lam_decay), ("vq.lam_decay", cfg.vq.lam_decay)):
+        if not 0.0 < value <= 1.0:
+            raise InputError(source, f"{key} must be in (0, 1] (1: a constant Lambertian prior), got {value}")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:

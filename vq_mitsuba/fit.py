@@ -353,7 +353,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
-                + w_lam * lambertian(od)
+                + cfg.loss.w_lam * cfg.vq.lam_decay ** frac * lambertian(od)
         if pairs is not None and len(pairs) > 0:
             pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
             oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])
