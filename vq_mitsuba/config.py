@@ -68,7 +68,7 @@ class VQConfig:
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
-    lam_decay: float = 1.0  # the Lambertian prior's decay on the discrete branch (1: constant weight loss.w_lam; loss.lam_decay is the continuous branch's)
+    lam_decay: float = 0.1  # the Lambertian prior's decay on the discrete branch, like loss.lam_decay on the continuous one (1: constant)
     light_from_continuous: bool = True  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)
