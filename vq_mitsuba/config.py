@@ -69,7 +69,7 @@ class VQConfig:
     redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
     lam_decay: float = 0.1  # the Lambertian prior's decay on the discrete branch, like loss.lam_decay on the continuous one (1: constant)
-    light_from_continuous: bool = True  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too)
+    light_from_continuous: bool = False  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
     forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)
     single_branch: bool = False  # after warm-up, train the discrete branch alone (no L_rec,c, no L_chr): an ablation
