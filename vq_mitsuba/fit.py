@@ -306,7 +306,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             frac = min(max(frac, (elapsed_before + time.perf_counter() - t0) / t_limit), 1.0)
         for g, lr in zip(optim.param_groups, base_lrs):
             g["lr"] = lr * cfg.train.lr_decay ** frac
-        w_lam = cfg.loss.w_lam * cfg.loss.lam_decay ** frac
+        w_lam = cfg.loss.w_lam * cfg.loss.lam_decay ** frac  # continuous branch's prior
+        w_lam_d = cfg.loss.w_lam * cfg.vq.lam_decay ** frac  # discrete branch's prior
         if discrete is not None and frac >= cfg.vq.warmup_frac and not bool(discrete.initialised):
             with torch.no_grad():  # codebook from k-means of the warmed-up latents
                 sub = torch.randint(0, len(pool), (min(20000, len(pool)),), generator=gen, device=device)
@@ -353,7 +354,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
-                + cfg.loss.w_lam * cfg.vq.lam_decay ** frac * lambertian(od)
+                + w_lam_d * lambertian(od)
         if pairs is not None and len(pairs) > 0:
             pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
             oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])
