@@ -175,9 +175,11 @@ def test_footprint_needs_sample_sets_divisible_by_the_hits():
     assert cfg.train.footprint
 
 
-def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path):
+@pytest.mark.parametrize("per_hit", [True, False])
+def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path, per_hit):
     run = tmp_path / "run"
     assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.footprint=true",
+                 "--set", f"train.footprint_per_hit={str(per_hit).lower()}",
                  "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0.2", "--set", "train.iterations=5",
                  "--set", "train.batch_rays=128", "--set", "train.log_every=1"]) == 0
     history = torch.load(run / "checkpoint.pt", weights_only=False)["history"]

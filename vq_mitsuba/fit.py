@@ -288,6 +288,14 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         first_hits, hit_table = (t.to(device) for t in footprint_table(pool, capture.width, capture.height,
                                                                       cfg.train.pixel_jitter))
 
+    per_hit = cfg.train.footprint and cfg.train.footprint_per_hit
+
+    def shading_material(o):  # (basecolor, metallic, roughness) per pixel, or (B, K, ...) per hit
+        if not per_hit:
+            return o["basecolor"], o["metallic"], o["roughness"]
+        k = hit_table.shape[1]
+        return o["basecolor"].view(-1, k, 3), o["metallic"].view(-1, k), o["roughness"].view(-1, k)
+
     def rec_loss(samples, target):
         if cfg.loss.decorrelated:
             return losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
@@ -323,10 +331,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
             hit_idx = idx
         model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay)
-        out = model(pool.position[idx])
+        # The material at each hit of the footprint, or at the pixel's first hit for all of them.
+        out = model(pool.position[hit_idx.reshape(-1) if per_hit else idx])
         env = env_module() if learn_env else fixed_env
-        samples = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], out["basecolor"],
-                              out["metallic"], out["roughness"], env, cfg.train.spp, generator=gen, reduce=False,
+        samples = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], *shading_material(out),
+                              env, cfg.train.spp, generator=gen, reduce=False,
                               material_fn=model if cfg.train.bounces > 0 else None, groups=groups_mc)
         rgb = samples.mean(1)
         target = pool.rgb[idx]
@@ -337,7 +346,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         loss = w_rec_c * l_rec + w_lam * l_lam
         if discrete_on:
             z = out["z"] if cfg.vq.joint else out["z"].detach()
-            drop = sample_drop_mask(B, rates, gen) if cfg.vq.ranking else None
+            drop = sample_drop_mask(z.shape[0], rates, gen) if cfg.vq.ranking else None
             od = discrete(z, drop, forced_gradient=cfg.vq.forced_gradient)
             # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).
             # With light_from_continuous the discrete loss leaves the light (envmap, bounce) to the
@@ -348,8 +357,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             bounce_fn = None
             if cfg.train.bounces > 0:
                 bounce_fn = _without_gradients(model) if frozen else model
-            samples_d = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], od["basecolor"],
-                                    od["metallic"], od["roughness"], env_d, cfg.train.spp, generator=gen,
+            samples_d = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx],
+                                    *shading_material(od), env_d, cfg.train.spp, generator=gen,
                                     reduce=False, material_fn=bounce_fn, groups=groups_mc)
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
