@@ -87,7 +87,7 @@ class TrainConfig:
     log_every: int = 50  # steps between loss-curve entries
     alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
     pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
-    footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (material from the first): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
+    footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (materials: train.footprint_per_hit): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
     footprint_per_hit: bool = True  # with train.footprint, the material field is evaluated at every jittered hit of the pixel (false: the first hit's material for all of them, as before); a texture edge inside a pixel is then fitted as such
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
