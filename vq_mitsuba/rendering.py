@@ -345,19 +345,14 @@ class ShadingScene:
         """
         n = hits_position.shape[0]
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()
-        per_hit = False
+        spread = rep
         if hits_position.dim() == 3:  # (N, K, 3): K hits per point, sample s of each group at hit s % K
             k = torch.arange(spp, device=hits_position.device) % max(spp // max(groups, 1), 1) \
                 % hits_position.shape[1]
-            per_sample = lambda t: t[:, k].reshape(n * spp, *t.shape[2:]).contiguous()
-            p, nrm, wi = per_sample(hits_position), per_sample(hits_normal), per_sample(hits_wi)
-            per_hit = basecolor.dim() == 3
-        else:
-            p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
-        if per_hit:
-            bc, m, r = per_sample(basecolor), per_sample(metallic), per_sample(roughness)
-        else:
-            bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
+            spread = lambda t: t[:, k].reshape(n * spp, *t.shape[2:]).contiguous()
+        p, nrm, wi = spread(hits_position), spread(hits_normal), spread(hits_wi)
+        material = spread if basecolor.dim() == 3 else rep  # one material per hit, or per point
+        bc, m, r = material(basecolor), material(metallic), material(roughness)
         u = stratified_samples(n, spp, groups, generator, p.device)
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
