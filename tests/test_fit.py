@@ -124,7 +124,10 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path):
     assert summary["iterations"] < 100000
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     lr_end = state["optim"]["param_groups"][0]["lr"]
-    assert 0.001 <= lr_end < 0.0013  # 0.01 x 0.1^f, f the progress of the last step (close to 1)
+    # 0.01 x 0.1^f, f the progress of the last step: close to 1 on an idle machine, at least 0.5
+    # when a loaded machine makes each of the few steps a sizeable part of the 2 s (the iterations
+    # alone would give f < 0.001 and a rate of about 0.01).
+    assert 0.001 <= lr_end < 0.01 * 0.1**0.5
     assert float(state["model"]["metallic_gate"]) == 1.0
     # Without a time limit the schedule follows the iterations.
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01", "train.lr_decay=0.1"])
