@@ -41,7 +41,7 @@ class LossConfig:
     w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
     lam_metallic: float = 2.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1; 2 keeps balls' glossy plastic dielectric, 3 lowers demo's partly metallic torus)
     lam_decay: float = 0.1  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then biases converged materials less towards rough
-    metallic_barrier: bool = True  # L_lam's metallic term as -log(1 - metallic) (false: metallic, the paper's): its pull on the metallic logit does not vanish where metallic saturates at 1, so a glossy dielectric that the coarse early encoding made a saturated rough metal comes back
+    metallic_barrier: bool = True  # L_lam's metallic term as -log(1 - metallic) (false: metallic, the paper's): its pull on the metallic logit does not vanish where metallic saturates at 1, so a glossy dielectric does not saturate as a rough metal while the encoding is still coarse (balls' green plastic)
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
