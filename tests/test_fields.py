@@ -119,3 +119,14 @@ def test_lam_decay_outside_its_range_is_rejected():
             assert str(err.value.path) == "--set"
     assert load_config(overrides=["loss.lam_decay=0.1"]).loss.lam_decay == 0.1
     assert load_config(overrides=["vq.lam_decay=0.5"]).vq.lam_decay == 0.5
+
+
+def test_metallic_barrier_until_outside_its_range_is_rejected():
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.errors import InputError
+
+    for bad in ("0", "1.5", "-0.1"):
+        with pytest.raises(InputError, match=r"loss\.metallic_barrier_until") as err:
+            load_config(overrides=[f"loss.metallic_barrier_until={bad}"])
+        assert str(err.value.path) == "--set"
+    assert load_config(overrides=["loss.metallic_barrier_until=0.3"]).loss.metallic_barrier_until == 0.3

@@ -194,6 +194,25 @@ def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path, per_hit):
     assert len(history) == 5 and all(np.isfinite(h["loss"]) for h in history)
 
 
+def test_metallic_barrier_stops_at_its_progress(sphere_capture, tmp_path, monkeypatch):
+    """loss.metallic_barrier_until = 0.5 over 4 steps (progress 0, 0.25, 0.5, 0.75): the prior gets
+    the metallic logit (the barrier) on the first two steps and the linear term after."""
+    from vq_mitsuba import losses
+
+    real, seen = losses.lambertian_prior, []
+
+    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None, gate=1.0):
+        seen.append(metallic_logit is not None)
+        return real(metallic, roughness, metallic_weight, metallic_logit, gate)
+
+    monkeypatch.setattr(losses, "lambertian_prior", spy)
+    run = tmp_path / "run"
+    assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=4",
+                 "--set", "train.batch_rays=64", "--set", "field.metallic_delay=0",
+                 "--set", "loss.metallic_barrier_until=0.5"]) == 0
+    assert seen == [True, True, False, False]
+
+
 def _nan_on_calls(monkeypatch, calls):
     """Make the reconstruction loss NaN on the given (1-based) calls."""
     from vq_mitsuba import losses

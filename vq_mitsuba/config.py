@@ -42,6 +42,7 @@ class LossConfig:
     lam_metallic: float = 2.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1; 2 keeps balls' glossy plastic dielectric, 3 lowers demo's partly metallic torus)
     lam_decay: float = 0.1  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then biases converged materials less towards rough
     metallic_barrier: bool = True  # L_lam's metallic term as -log(1 - metallic) (false: metallic, the paper's): its pull on the metallic logit does not vanish where metallic saturates at 1, so a glossy dielectric does not saturate as a rough metal while the encoding is still coarse (balls' green plastic)
+    metallic_barrier_until: float = 1.0  # training progress in (0, 1] up to which loss.metallic_barrier applies; after it the metallic term is linear again, so true metals are no longer pulled down by the full weight (1: the whole fit)
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
@@ -171,6 +172,9 @@ def _check_ranges(cfg: Config, source) -> None:
         raise InputError(source, f"train.footprint spreads each sample set ({per_set} samples: train.spp"
                          f"{' / 2, loss.decorrelated' if cfg.loss.decorrelated else ''}) over train.pixel_jitter = "
                          f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
+    if not 0.0 < cfg.loss.metallic_barrier_until <= 1.0:
+        raise InputError(source, f"loss.metallic_barrier_until must be in (0, 1] (1: the whole fit), got "
+                         f"{cfg.loss.metallic_barrier_until}")
     for key, value in (("loss.lam_decay", cfg.loss.lam_decay), ("vq.lam_decay", cfg.vq.lam_decay)):
         if not 0.0 < value <= 1.0:
             raise InputError(source, f"{key} must be in (0, 1] (1: a constant Lambertian prior), got {value}")

@@ -301,8 +301,9 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             return losses.reconstruction_l2_decorrelated(samples, target, cfg.loss.gamma)
         return losses.reconstruction_l2(samples.mean(1), target, cfg.loss.gamma)
 
-    def lambertian(out, gate=1.0):  # L_lam of a branch's output (gate: the metallic gate it was made with)
-        logit = out.get("metallic_logit") if cfg.loss.metallic_barrier else None
+    def lambertian(out, frac, gate=1.0):  # L_lam of a branch's output at training progress frac (gate: the metallic gate it was made with)
+        barrier = cfg.loss.metallic_barrier and frac < cfg.loss.metallic_barrier_until
+        logit = out.get("metallic_logit") if barrier else None
         return losses.lambertian_prior(out["metallic"], out["roughness"], cfg.loss.lam_metallic, logit, gate)
 
     while step < total:
@@ -340,7 +341,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         l_rec = rec_loss(samples, target)
-        l_lam = lambertian(out, float(model.metallic_gate))
+        l_lam = lambertian(out, frac, float(model.metallic_gate))
         discrete_on = discrete is not None and bool(discrete.initialised)
         w_rec_c = 0.0 if discrete_on and cfg.vq.single_branch else cfg.loss.w_rec_c
         loss = w_rec_c * l_rec + w_lam * l_lam
@@ -363,7 +364,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             loss = loss + cfg.loss.w_rec_d * rec_loss(samples_d, target) \
                 + (0.0 if cfg.vq.single_branch else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"], out["basecolor"]) \
                 + cfg.loss.w_vq * od["vq_loss"] \
-                + w_lam_d * lambertian(od)
+                + w_lam_d * lambertian(od, frac)
         if pairs is not None and len(pairs) > 0:
             pick = pairs[torch.randint(0, len(pairs), (max(B // 4, 1),), generator=gen, device=device)]
             oa, ob = model(pool.position[pick[:, 0]]), model(pool.position[pick[:, 1]])
