@@ -159,3 +159,17 @@ def test_a_codeword_that_adds_nothing_moves_behind_and_err_k_is_measured_again()
     calls.clear()
     assert redundant_last(measure, [0, 2, 3, 1, 4], 0.002)[0] == [0, 2, 3, 1, 4]  # nothing to move
     assert len(calls) == 1
+
+
+def test_redundant_ranking_moves_each_codeword_at_most_once():
+    from vq_mitsuba.materials.vq import redundant_last
+
+    # Codewords 1 and 3 share a material: the error falls (by 0.05) only once both are in the
+    # prefix, and every codeword added otherwise raises it by 0.001. Moving 1, 2, then 3 to the
+    # end gives back the starting order; without the once-only rule the moves would go round.
+    def measure(order):
+        return [0.1 + 0.001 * k - 0.05 * float({1, 3} <= set(order[:k])) for k in range(1, len(order) + 1)]
+
+    order, errs, moved = redundant_last(measure, [0, 1, 2, 3], 0.002)
+    assert moved == [1, 2, 3] and order == [0, 1, 2, 3]
+    assert errs == measure(order) and choose_num_materials(errs, 0.002) == 4

@@ -157,12 +157,15 @@ def redundant_last(measure, order: list[int], eps: float) -> tuple[list[int], li
     j >= 1 inside the prefix that `choose_num_materials` picks lowers the error by less than `eps`
     when added (err_{j-1} - err_j < eps), it moves to the end and err_k is measured again: a
     near-copy of an earlier material that dropout happened to rank early no longer counts as one.
-    Returns (order, err_k of that order, the codewords moved, in the order they moved)."""
+    Each codeword moves at most once. Returns (order, err_k of that order, the codewords moved, in
+    the order they moved)."""
     order, moved = list(order), []
     errs = list(measure(order))
     for _ in range(len(order)):
         m = choose_num_materials(errs, eps)
-        weak = [j for j in range(1, m) if errs[j - 1] - errs[j] < eps]
+        # A codeword moves once: one that pays for itself only next to another (two codewords
+        # sharing a material) would otherwise go round the end of the order for ever.
+        weak = [j for j in range(1, m) if errs[j - 1] - errs[j] < eps and order[j] not in moved]
         if not weak:
             break
         j = weak[0]
