@@ -42,7 +42,7 @@ class LossConfig:
     lam_metallic: float = 2.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1; 2 keeps balls' glossy plastic dielectric, 3 lowers demo's partly metallic torus)
     lam_decay: float = 0.1  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then biases converged materials less towards rough
     metallic_barrier: bool = True  # L_lam's metallic term as -log(1 - metallic) (false: metallic, the paper's): its pull on the metallic logit does not vanish where metallic saturates at 1, so a glossy dielectric does not saturate as a rough metal while the encoding is still coarse (balls' green plastic)
-    metallic_barrier_until: float = 1.0  # training progress in (0, 1] up to which loss.metallic_barrier applies; after it the metallic term is linear again, so true metals are no longer pulled down by the full weight (1: the whole fit)
+    metallic_barrier_until: float = 0.3  # training progress in (0, 1] up to which loss.metallic_barrier applies, after it the paper's linear term: the barrier holds while the encoding is coarse (where balls' green plastic saturated as a metal) and then stops pulling true metals down (balls: metals 0.94-0.98 instead of 0.90-0.93); 1: the whole fit
     decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
     w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
