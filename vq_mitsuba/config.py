@@ -172,12 +172,11 @@ def _check_ranges(cfg: Config, source) -> None:
         raise InputError(source, f"train.footprint spreads each sample set ({per_set} samples: train.spp"
                          f"{' / 2, loss.decorrelated' if cfg.loss.decorrelated else ''}) over train.pixel_jitter = "
                          f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
-    if not 0.0 < cfg.loss.metallic_barrier_until <= 1.0:
-        raise InputError(source, f"loss.metallic_barrier_until must be in (0, 1] (1: the whole fit), got "
-                         f"{cfg.loss.metallic_barrier_until}")
-    for key, value in (("loss.lam_decay", cfg.loss.lam_decay), ("vq.lam_decay", cfg.vq.lam_decay)):
+    for key, value, one in (("loss.lam_decay", cfg.loss.lam_decay, "a constant Lambertian prior"),
+                            ("vq.lam_decay", cfg.vq.lam_decay, "a constant Lambertian prior"),
+                            ("loss.metallic_barrier_until", cfg.loss.metallic_barrier_until, "the whole fit")):
         if not 0.0 < value <= 1.0:
-            raise InputError(source, f"{key} must be in (0, 1] (1: a constant Lambertian prior), got {value}")
+            raise InputError(source, f"{key} must be in (0, 1] (1: {one}), got {value}")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:
