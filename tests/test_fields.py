@@ -108,11 +108,11 @@ def test_metallic_init_outside_the_unit_interval_is_rejected(tmp_path):
     assert str(err.value.path) == "--set"
 
 
-def test_lam_decay_and_barrier_end_outside_their_range_are_rejected():
+def test_decays_barrier_end_and_joint_scale_outside_their_range_are_rejected():
     from vq_mitsuba.config import load_config
     from vq_mitsuba.errors import InputError
 
-    for key in ("loss.lam_decay", "vq.lam_decay", "loss.metallic_barrier_until"):
+    for key in ("loss.lam_decay", "vq.lam_decay", "loss.metallic_barrier_until", "vq.joint_scale"):
         for bad in ("0", "1.5", "-0.1"):
             with pytest.raises(InputError, match=key.replace(".", r"\.")) as err:
                 load_config(overrides=[f"{key}={bad}"])

@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from vq_mitsuba.materials.vq import (VectorQuantizerEMA, choose_num_materials, dropout_rates,
-                                     sample_drop_mask)
+                                     sample_drop_mask, scale_gradient)
 
 
 def test_straight_through_gradient_reaches_the_encoder():
@@ -20,6 +20,27 @@ def test_straight_through_gradient_reaches_the_encoder():
     vq.eval()
     z_q2, idx2, _ = vq(encoder(x))
     torch.testing.assert_close(z_q2, vq.codebook[idx2])
+
+
+def test_joint_scale_scales_the_discrete_gradient_reaching_the_encoder():
+    torch.manual_seed(0)
+    encoder = torch.nn.Linear(3, 4)
+    vq = VectorQuantizerEMA(5, 4)
+    vq.eval()  # the codebook stays put between the two passes
+    x, w = torch.randn(16, 3), torch.randn(16, 4)
+
+    def encoder_grad(scale):
+        encoder.zero_grad()
+        z = encoder(x)
+        z_s = scale_gradient(z, scale)
+        torch.testing.assert_close(z_s, z)  # the forward value does not change
+        z_q, _, loss = vq(z_s)
+        ((z_q * w).sum() + loss).backward()
+        return encoder.weight.grad.clone()
+
+    full = encoder_grad(1.0)
+    assert full.abs().sum() > 0
+    torch.testing.assert_close(encoder_grad(0.2), 0.2 * full)
 
 
 def test_ema_update_matches_hand_computation():

@@ -69,6 +69,7 @@ class VQConfig:
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
+    joint_scale: float = 1.0  # with vq.joint, the share in (0, 1] of the discrete branch's gradients (straight-through and commitment) that reaches the shared encoder; 1: the paper's joint training
     lam_decay: float = 0.1  # the Lambertian prior's decay on the discrete branch, like loss.lam_decay on the continuous one (1: constant)
     light_from_continuous: bool = False  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
@@ -174,6 +175,7 @@ def _check_ranges(cfg: Config, source) -> None:
                          f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
     for key, value, one in (("loss.lam_decay", cfg.loss.lam_decay, "a constant Lambertian prior"),
                             ("vq.lam_decay", cfg.vq.lam_decay, "a constant Lambertian prior"),
+                            ("vq.joint_scale", cfg.vq.joint_scale, "the full joint gradient"),
                             ("loss.metallic_barrier_until", cfg.loss.metallic_barrier_until, "the whole fit")):
         if not 0.0 < value <= 1.0:
             raise InputError(source, f"{key} must be in (0, 1] (1: {one}), got {value}")

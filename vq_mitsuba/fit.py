@@ -25,7 +25,7 @@ from .config import Config, save_config, to_dict
 from .errors import InputError, NumericalError
 from .materials.fields import ContinuousMaterial, EnvironmentMap
 from .materials.vq import (DiscreteBranch, choose_num_materials, dropout_rates, duplicates_last, kmeans_codebook,
-                           redundant_last, sample_drop_mask)
+                           redundant_last, sample_drop_mask, scale_gradient)
 
 CHECKPOINT = "checkpoint.pt"
 MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
@@ -346,7 +346,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         w_rec_c = 0.0 if discrete_on and cfg.vq.single_branch else cfg.loss.w_rec_c
         loss = w_rec_c * l_rec + w_lam * l_lam
         if discrete_on:
-            z = out["z"] if cfg.vq.joint else out["z"].detach()
+            z = scale_gradient(out["z"], cfg.vq.joint_scale) if cfg.vq.joint else out["z"].detach()
             drop = sample_drop_mask(z.shape[0], rates, gen) if cfg.vq.ranking else None
             od = discrete(z, drop, forced_gradient=cfg.vq.forced_gradient)
             # The bounce is lit by the continuous field (cheaper; the codebook sees primary hits only).

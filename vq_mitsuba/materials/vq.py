@@ -101,6 +101,13 @@ class VectorQuantizerEMA(nn.Module):
             self.unused_steps[dead] = 0
 
 
+def scale_gradient(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """x unchanged in the forward pass; the gradient flowing back through it is multiplied by scale."""
+    if scale == 1.0:
+        return x
+    return x * scale + x.detach() * (1.0 - scale)
+
+
 def dropout_rates(num_codes: int, max_rate: float = 0.7, protected: int = 1) -> torch.Tensor:
     """Codeword k is dropped with a rate rising linearly from 0 to `max_rate` over the codebook;
     the first `protected` codewords are never dropped. Dropping later codewords more often makes
