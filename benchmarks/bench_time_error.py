@@ -62,6 +62,11 @@ def ensure_cycles_dataset(name: str, data_dir: Path, resolution: int) -> Path:
         meta = json.loads((data_dir / "scene.json").read_text())
         if meta.get("renderer") != "cycles":
             print(f"[{name}] note: {data_dir} was rendered by {meta.get('renderer', 'mitsuba')}, not Cycles")
+        size = meta.get("resolution")
+        if size is not None and list(size) != [resolution, resolution]:
+            raise SystemExit(f"{data_dir / 'scene.json'}: the dataset is {size[0]} x {size[1]} px, not the "
+                             f"--resolution {resolution} asked for; pass --resolution {size[0]}, or another --data "
+                             f"folder to render it at {resolution} px")
         return data_dir
     print(f"[{name}] rendering the Cycles ground truth into {data_dir} ({resolution} px)")
     subprocess.run([sys.executable, "-m", "vq_mitsuba.cli", "make-scene", name, "--renderer", "cycles",
@@ -233,7 +238,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", nargs="+", default=["ours", "texel"], choices=list(METHODS))
     ap.add_argument("--budgets", default="30,60,120,240,480", help="fit seconds at which states are scored")
     ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scoring renders")
-    ap.add_argument("--resolution", type=int, default=64, help="image size of datasets rendered here")
+    ap.add_argument("--resolution", type=int, default=64, help="image size of the datasets (rendered here when missing; an existing one of another size is an error)")
     ap.add_argument("--capture", choices=("json", "xml"), default="json",
                     help="fit the NeRF-synthetic transforms_train.json (Blender world) or the scene.xml")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
