@@ -28,6 +28,7 @@ import mitsuba as mi
 from .capture.cameras import Camera
 
 _VARIANT_READY = False
+LANE_INPUTS = 8  # differentiable inputs per shading lane: basecolor (3), metallic, roughness, bounce radiance (3)
 
 
 def init_mitsuba(variant: str | None = None) -> str:
@@ -284,11 +285,20 @@ class ShadingScene:
                 out = (dr.select(hit, 1.0, 0.0), si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z,
                        -ray.d.x, -ray.d.y, -ray.d.z)
                 out = tuple(dr.select(hit, o, 0.0) for o in out)
+                dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
             tb.values = tm.values = tr.values = None
             return out
 
         @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, env, u, li):
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, u):
+            # `lanes` holds the differentiable per-lane inputs interleaved (basecolor r, g, b,
+            # metallic, roughness, bounce radiance r, g, b): one gradient array, so the backward
+            # pass is one kernel instead of one per input, each tracing the shading again.
+            # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
+            # the default mode's per-thread copies bake the array size in: a compile per size.
+            idx = dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
+            br, bg, bb, metal, rough, *li = (dr.gather(mi.Float, f(lanes), idx + c, mode=dr.ReduceMode.Permute)
+                                             for c in range(LANE_INPUTS))
             params[key] = env
             params.update()
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
@@ -318,8 +328,9 @@ class ShadingScene:
             le = emitter.eval(si_next, miss)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
-            li_obj = mi.Color3f(f(li[0]), f(li[1]), f(li[2]))
+            li_obj = mi.Color3f(*li)
             radiance += f_bs * dr.select(hit_obj, li_obj, le * w_bs) * inv_pdf
+            dr.eval(radiance)  # one kernel for the three channels, not one each
             tb.values = tm.values = tr.values = None
             return radiance.x, radiance.y, radiance.z
 
@@ -368,7 +379,7 @@ class ShadingScene:
                 mat2 = material_fn(p2)
                 li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
                                                      mat2["roughness"], env_linear, 1, generator))
-        rgb = self._shade(*geo, bc[:, 0], bc[:, 1], bc[:, 2], m, r, envmap_padded(env_linear),
-                          [u[i] for i in range(5)], [li[:, 0], li[:, 1], li[:, 2]])
+        lanes = torch.cat([bc, m[:, None], r[:, None], li], 1).reshape(-1)
+        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), [u[i] for i in range(5)])
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
