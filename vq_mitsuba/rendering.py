@@ -296,8 +296,8 @@ class ShadingScene:
             # pass is one kernel instead of one per input, each tracing the shading again.
             # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
             # the default mode's per-thread copies bake the array size in: a compile per size.
-            idx = dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
-            br, bg, bb, metal, rough, *li = (dr.gather(mi.Float, f(lanes), idx + c, mode=dr.ReduceMode.Permute)
+            lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
+            br, bg, bb, metal, rough, *li = (dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute)
                                              for c in range(LANE_INPUTS))
             params[key] = env
             params.update()
