@@ -39,6 +39,17 @@ def _points(n=256, seed=1):
     return t(0.5 * nrm), t(nrm), t(wi)
 
 
+def _touching_spheres(env, size=40):
+    """Two spheres that light each other, the scene over them and a camera that sees both."""
+    a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    b = a.copy()
+    b.apply_translation([0.0, 0.0, 1.02])
+    both = trimesh.util.concatenate([a, b])
+    scene = ShadingScene(both.vertices, both.faces, env, np.eye(4), normals=both.vertex_normals)
+    cam = Camera("c", look_at([2.2, 0.3, 0.5], [0, 0, 0.5], [0, 0, 1]), 45.0, size, size)
+    return scene, cam
+
+
 def test_envmap_padding_matches_mitsuba_layout():
     env = _env(4)
     emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(env)})
@@ -195,15 +206,9 @@ def test_no_kernel_recompiles_after_warm_up():
 def test_one_bounce_matches_mitsuba_path_depth_3():
     """Two touching spheres light each other: with `material_fn`, shading equals Mitsuba's `path`
     integrator at max_depth 3 (direct + one bounce); without it, Mitsuba's `direct`."""
-    a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
-    b = a.copy()
-    b.apply_translation([0.0, 0.0, 1.02])
-    a.apply_translation([0.0, 0.0, 0.0])
-    both = trimesh.util.concatenate([a, b])
     env = _env()
-    scene = ShadingScene(both.vertices, both.faces, env, np.eye(4), normals=both.vertex_normals)
+    scene, cam = _touching_spheres(env)
     base, metal, rough = [0.8, 0.7, 0.6], 0.6, 0.25
-    cam = Camera("c", look_at([2.2, 0.3, 0.5], [0, 0, 0.5], [0, 0, 1]), 45.0, 40, 40)
     hits = scene.trace(*camera_rays(cam))
     v = hits.valid
     assert int(v.sum()) > 200  # the camera sees both spheres
@@ -240,13 +245,8 @@ def test_bounce_gradient_matches_finite_differences():
     """The light bounced off the object carries gradients back to the material it bounced off
     (the bounce radiance enters the shading as differentiable per-lane inputs): autograd agrees
     with central differences of the same estimator (same random numbers)."""
-    a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
-    b = a.copy()
-    b.apply_translation([0.0, 0.0, 1.02])
-    both = trimesh.util.concatenate([a, b])
     env = torch.tensor(_env())
-    scene = ShadingScene(both.vertices, both.faces, env.numpy(), np.eye(4), normals=both.vertex_normals)
-    cam = Camera("c", look_at([2.2, 0.3, 0.5], [0, 0, 0.5], [0, 0, 1]), 45.0, 32, 32)
+    scene, cam = _touching_spheres(env.numpy(), size=32)
     hits = scene.trace(*camera_rays(cam))
     v = hits.valid
     m = int(v.sum())
