@@ -100,7 +100,7 @@ class TrainConfig:
 class RenderConfig:
     spp: int = 256  # samples per pixel when rendering views (primary rays x light samples)
     aa: int = 16  # primary rays per pixel, stratified over the pixel (a square number)
-    chunk: int = 16384  # shading points per Mitsuba call
+    chunk: int = 65536  # surface points shaded per Mitsuba call (more: fewer calls, more memory)
 
 
 @dataclass

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 # Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
 _R = BLENDER_ENV_TO_WORLD[:3, :3]
+MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
 
 
 def convert_world(camera: Camera, src: str, dst: str) -> Camera:
@@ -115,42 +116,47 @@ class Renderer:
         aa = aa or cfg.aa
         h, w = camera.height, camera.width
         n_pix = h * w
-        gen = torch.Generator(device=self.env_t.device).manual_seed(seed)
+        dev = self.env_t.device
+        gen = torch.Generator(device=dev).manual_seed(seed)
         rng = np.random.default_rng(seed)
-        acc = {k: np.zeros((n_pix, c), np.float64) for k, c in
-               (("rgb", 3), ("basecolor", 3), ("metallic", 1), ("roughness", 1), ("normal", 3))}
-        hits_count = np.zeros(n_pix, np.float64)
+        jitter = [np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng) for a in range(aa)]
+        hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
+        channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
         discrete = self.fitted.discrete
         n_mat = int(discrete.num_materials) if discrete is not None else 0
-        votes = np.zeros((n_pix, n_mat + 1), np.int32) if discrete is not None else None
+        votes = torch.zeros(n_pix, n_mat + 1, dtype=torch.int32, device=dev) if discrete is not None else None
         if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
-            acc.update({k: np.zeros((n_pix, c), np.float64) for k, c in
-                        (("basecolor_d", 3), ("metallic_d", 1), ("roughness_d", 1))})
+            channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
+        acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
         light_spp = max(2, spp // aa)
-        for a in range(aa):
-            jitter = np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng)
-            o, d = camera_rays(camera, jitter)
-            hits = self.scene.trace(o, d)
+        # Several primary-ray passes per trace (up to MAX_RAYS rays), their hits shaded in chunks:
+        # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
+        per_trace = max(1, MAX_RAYS // n_pix)
+        for first in range(0, aa, per_trace):
+            rays = [camera_rays(camera, j) for j in jitter[first:first + per_trace]]
+            hits = self.scene.trace(np.concatenate([r[0] for r in rays]), np.concatenate([r[1] for r in rays]))
             idx = torch.nonzero(hits.valid)[:, 0]
+            pixel = idx % n_pix  # the pixel of each hit
+            hits_count += torch.bincount(pixel, minlength=n_pix)
             for s in range(0, len(idx), cfg.chunk):
-                sel = idx[s:s + cfg.chunk]
+                sel, pix = idx[s:s + cfg.chunk], pixel[s:s + cfg.chunk]
                 out = self.fitted.model(hits.position[sel])
                 rgb = self.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out["basecolor"],
                                        out["metallic"], out["roughness"], self.env_t, light_spp, generator=gen,
                                        material_fn=self.fitted.model if self.fitted.cfg.train.bounces > 0 else None)
-                sel_np = sel.cpu().numpy()
-                acc["rgb"][sel_np] += rgb.cpu().numpy()
-                acc["basecolor"][sel_np] += out["basecolor"].cpu().numpy()
-                acc["metallic"][sel_np, 0] += out["metallic"].cpu().numpy()
-                acc["roughness"][sel_np, 0] += out["roughness"].cpu().numpy()
-                acc["normal"][sel_np] += hits.normal[sel].cpu().numpy()
+                values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
+                          "roughness": out["roughness"][:, None], "normal": hits.normal[sel]}
                 if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
                     od = discrete(out["z"], n_codes=n_mat)  # nearest ranked codeword and its BRDF
-                    np.add.at(votes, (sel_np, od["index"].cpu().numpy() + 1), 1)
-                    acc["basecolor_d"][sel_np] += od["basecolor"].cpu().numpy()
-                    acc["metallic_d"][sel_np, 0] += od["metallic"].cpu().numpy()
-                    acc["roughness_d"][sel_np, 0] += od["roughness"].cpu().numpy()
-            hits_count += hits.valid.cpu().numpy()
+                    votes.index_put_((pix, od["index"] + 1), torch.ones_like(pix, dtype=torch.int32),
+                                     accumulate=True)
+                    values.update({"basecolor_d": od["basecolor"], "metallic_d": od["metallic"][:, None],
+                                   "roughness_d": od["roughness"][:, None]})
+                for k, v in values.items():  # hits of one chunk may share a pixel: index_add sums them
+                    acc[k].index_add_(0, pix, v.double())
+        acc = {k: v.cpu().numpy() for k, v in acc.items()}
+        hits_count = hits_count.cpu().numpy()
+        votes = votes.cpu().numpy() if votes is not None else None
         alpha = hits_count / aa
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
         # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
