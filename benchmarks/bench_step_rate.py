@@ -1,8 +1,9 @@
 #!/usr/bin/env python
-"""Benchmark: training steps per second of `fit`, for one or more git revisions in one run.
+"""Benchmark: training steps per second of `fit` (and, with --eval-spp, the time of
+`vq-mitsuba eval` on the fitted run), for one or more git revisions in one run.
 
     python benchmarks/bench_step_rate.py [--refs BASE HEAD] [--scene balls] [--resolution 128]
-        [--data DIR] [--iterations 200] [--repeats 3] [--out benchmarks/out/step_rate]
+        [--data DIR] [--iterations 200] [--repeats 3] [--eval-spp 0] [--out benchmarks/out/step_rate]
 
 Each revision is checked out into a temporary git worktree and `fit` runs from there in a child
 process, on the same dataset and config (configs/SCENE.yaml of that revision), with a new
@@ -11,7 +12,10 @@ same machine load. The rate is measured after the first `--warmup` steps, which 
 kernel compilation; a kernel that compiles again at every step (a size baked into it) still
 shows. Prints the median steps per second of each revision, its ratio to the first, and the
 training-batch PSNR at the end (the same schedule, so the error is comparable); writes
-OUT/step_rate.json and OUT/step_rate.md.
+OUT/step_rate.json and OUT/step_rate.md. With --eval-spp N, each fit is then scored by
+`vq_mitsuba.evaluate` at N spp (all test views, fitted light and every relighting envmap; the
+dataset needs relit views, as `make-scene` writes them), and the median evaluation time and its
+novel-view, basecolor and relighting PSNR are printed beside the step rate.
 """
 
 from __future__ import annotations
@@ -51,8 +55,19 @@ def child(args) -> int:
     start = next(h for h in hist if h["step"] >= args.warmup)
     end = hist[-1]
     rate = (end["step"] - start["step"]) / max(end["seconds"] - start["seconds"], 1e-9)
-    print("STEP_RATE " + json.dumps({"steps_per_s": rate, "iterations": summary["iterations"],
-                                     "seconds": summary["seconds"], "final_psnr": end["psnr"]}))
+    result = {"steps_per_s": rate, "iterations": summary["iterations"], "seconds": summary["seconds"],
+              "final_psnr": end["psnr"]}
+    if args.eval_spp:
+        import time
+
+        from vq_mitsuba.evaluate import evaluate
+
+        t0 = time.perf_counter()
+        m = evaluate(run, Path(args.data), spp=args.eval_spp, progress=False, meanshift_bandwidths=())
+        result.update({"eval_s": time.perf_counter() - t0, "eval_novel_psnr": m["novel_view"]["psnr"],
+                       "eval_basecolor_psnr": m["basecolor"]["psnr"],
+                       "eval_relit_psnr": m["relighting"]["albedo_scale"]["mean"]["psnr"]})
+    print("STEP_RATE " + json.dumps(result))
     return 0
 
 
@@ -66,6 +81,8 @@ def main(argv=None) -> int:
     p.add_argument("--iterations", type=int, default=200, help="steps per fit (default 200)")
     p.add_argument("--warmup", type=int, default=30, help="first steps left out of the rate (default 30)")
     p.add_argument("--repeats", type=int, default=3, help="fits per revision (default 3)")
+    p.add_argument("--eval-spp", type=int, default=0, help="also time `vq-mitsuba eval` of each fitted run at "
+                   "this many samples per pixel (default 0: no evaluation)")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "step_rate")
     # Internal: one fit inside a worktree.
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -109,7 +126,7 @@ def main(argv=None) -> int:
                     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--src", str(trees[ref]),
                            "--run", str(run_dir), "--data", str(Path(data).resolve()), "--scene", args.scene,
                            "--iterations", str(args.iterations), "--warmup", str(args.warmup),
-                           "--seed", str(1000 + rep)]
+                           "--seed", str(1000 + rep), "--eval-spp", str(args.eval_spp)]
                     res = subprocess.run(cmd, capture_output=True, text=True, cwd=trees[ref],
                                          env={**os.environ, "PYTHONPATH": str(trees[ref])})
                     line = [ln for ln in res.stdout.splitlines() if ln.startswith("STEP_RATE ")]
@@ -119,7 +136,8 @@ def main(argv=None) -> int:
                     r = json.loads(line[0].split(" ", 1)[1])
                     runs[ref].append(r)
                     print(f"[{ref} {commits[ref]}] repeat {rep + 1}/{args.repeats}: "
-                          f"{r['steps_per_s']:.2f} steps/s, train PSNR {r['final_psnr']:.2f} dB")
+                          f"{r['steps_per_s']:.2f} steps/s, train PSNR {r['final_psnr']:.2f} dB"
+                          + (f", eval {r['eval_s']:.1f} s" if "eval_s" in r else ""))
         finally:
             for tree in trees.values():
                 subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
@@ -132,9 +150,13 @@ def main(argv=None) -> int:
         med = statistics.median(r["steps_per_s"] for r in runs[ref])
         rows.append({"ref": ref, "commit": commits[ref], "median_steps_per_s": med, "ratio": med / med0,
                      "median_final_psnr": statistics.median(r["final_psnr"] for r in runs[ref]), "runs": runs[ref]})
+        if args.eval_spp:
+            rows[-1].update({f"median_{k}": statistics.median(r[k] for r in runs[ref])
+                             for k in ("eval_s", "eval_novel_psnr", "eval_basecolor_psnr", "eval_relit_psnr")})
     command = "python benchmarks/bench_step_rate.py " + " ".join(sys.argv[1:] if argv is None else argv)
     result = {"command": command, "machine": machine_info(), "scene": args.scene, "data": str(data),
-              "iterations": args.iterations, "warmup": args.warmup, "repeats": args.repeats, "rows": rows}
+              "iterations": args.iterations, "warmup": args.warmup, "repeats": args.repeats,
+              "eval_spp": args.eval_spp, "rows": rows}
     lines = [f"# Step rate of `fit` ({args.scene}, {args.iterations} steps, rate after step {args.warmup}, "
              f"median of {args.repeats})", "", f"`{command}`", "",
              f"Machine: {result['machine']['cpu']}, {result['machine']['cores']} cores, GPU: "
@@ -147,6 +169,17 @@ def main(argv=None) -> int:
         each = ", ".join(f"{x['steps_per_s']:.2f}" for x in r["runs"])
         lines.append(f"| {r['ref']} | {r['commit']} | {r['median_steps_per_s']:.2f} | {r['ratio']:.2f} | "
                      f"{r['median_final_psnr']:.2f} | {each} |")
+    if args.eval_spp:
+        e0 = rows[0]["median_eval_s"]
+        lines += ["", f"Evaluation of each fitted run (`vq_mitsuba.evaluate`, {args.eval_spp} spp; PSNR in dB, "
+                  "relighting: mean over the envmaps, albedo scale):", "",
+                  "| revision | commit | eval s (median) | ratio to first | novel view | basecolor | relit | eval s of each run |",
+                  "|---|---|---:|---:|---:|---:|---:|---|"]
+        for r in rows:
+            each = ", ".join(f"{x['eval_s']:.1f}" for x in r["runs"])
+            lines.append(f"| {r['ref']} | {r['commit']} | {r['median_eval_s']:.1f} | {r['median_eval_s'] / e0:.2f} | "
+                         f"{r['median_eval_novel_psnr']:.2f} | {r['median_eval_basecolor_psnr']:.2f} | "
+                         f"{r['median_eval_relit_psnr']:.2f} | {each} |")
     text = "\n".join(lines) + "\n"
     (args.out / "step_rate.json").write_text(json.dumps(result, indent=2))
     (args.out / "step_rate.md").write_text(text)
