@@ -72,3 +72,21 @@ def test_per_material_scores_name_the_wrong_material():
     pred1 = dict(pred, metallic=pred["metallic"][..., 0])
     rows = per_material_scores([pred, pred1], [gt, gt1], np.full(3, 2.0), meta)
     assert [r["pixels"] for r in rows] == [2 + 5, 3]
+
+
+def test_coverage_scores_separate_missed_pixels_from_material_error():
+    """Hand-made view: 4 foreground pixels, the prediction covers 3 of them plus 1 background
+    pixel; its basecolor is exact where it covers and empty (0) where it misses."""
+    import numpy as np
+
+    from vq_mitsuba.evaluate import coverage_scores
+
+    mask = np.array([[True, True, True, True, False, False]])
+    alpha = np.array([[1.0, 1.0, 0.6, 0.2, 0.9, 0.0]])
+    gt = np.full((1, 6, 3), 0.5)
+    pred = np.where((alpha >= 0.5)[..., None], gt, 0.0)
+    s = coverage_scores(alpha, pred, gt, mask)
+    assert s["coverage_iou"] == pytest.approx(3 / 5)  # 3 covered foreground of 5 in the union
+    assert math.isinf(s["basecolor_psnr_covered"])
+    pred[0, 1] = 0.25  # a material error on a covered pixel lowers it
+    assert math.isfinite(coverage_scores(alpha, pred, gt, mask)["basecolor_psnr_covered"])

@@ -241,6 +241,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
                "roughness_mae": float(np.abs(pred["roughness"] - gt["roughness"])[m].mean()) if m.any() else math.nan}
         if "normal" in gt:
             row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
+        row.update(coverage_scores(pred["alpha"], pred["basecolor"] * bc_scales, gt["basecolor"], m))
         per_view.append(row)
     discrete = None
     if all("discrete" in p for p in preds):  # the discrete branch's maps, aligned on their own
@@ -319,6 +320,9 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
         "metallic": {"psnr": avg("metallic_psnr"), "mae": avg("metallic_mae")},
         "roughness": {"psnr": avg("roughness_psnr"), "mae": avg("roughness_mae")},
         "normal": {"mae_deg": avg("normal_mae_deg")},
+        "coverage": {"iou": avg("coverage_iou"), "basecolor_psnr_covered": avg("basecolor_psnr_covered"),
+                     "what": "predicted alpha >= 0.5 against the ground-truth mask; basecolor PSNR (aligned) on "
+                             "the foreground pixels the prediction covers"},
         "relighting": relighting,
         "discrete_branch": discrete,
         "segmentation": segmentation,
@@ -333,6 +337,15 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
         out_path.parent.mkdir(parents=True, exist_ok=True)
         out_path.write_text(json.dumps(json_safe(result), indent=2))
     return result
+
+
+def coverage_scores(alpha: np.ndarray, basecolor: np.ndarray, gt_basecolor: np.ndarray, mask: np.ndarray) -> dict:
+    """How well a view's silhouette matches the truth, and the basecolor PSNR (sRGB; `basecolor`
+    already aligned) on the foreground pixels it covers. A reconstructed mesh misses some
+    foreground pixels, where the maps are empty: this separates that from the material error."""
+    covered = np.asarray(alpha) >= 0.5
+    return {"coverage_iou": float((covered & mask).sum() / max((covered | mask).sum(), 1)),
+            "basecolor_psnr_covered": M.psnr(M.srgb(basecolor), M.srgb(gt_basecolor), mask & covered)}
 
 
 def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarray, meta: dict) -> list[dict] | None:
@@ -446,6 +459,10 @@ def format_table(metrics: dict) -> str:
     lines += [f"{label:{width}}  {_fmt(p, 2):>7}  {_fmt(s, 4):>6}" for label, p, s in rows]
     scales = ", ".join(f"{s:.3f}" for s in metrics["alignment"]["scales"])
     lines.append(f"basecolor scales ({metrics['alignment']['method']}): {scales}")
+    cov = metrics.get("coverage")
+    if cov and cov["iou"] is not None:
+        lines.append(f"silhouette IoU {cov['iou']:.4f}; basecolor PSNR on the covered foreground "
+                     f"{_fmt(cov['basecolor_psnr_covered'], 2)} dB")
     if metrics["normal"]["mae_deg"] is not None and not math.isnan(metrics["normal"]["mae_deg"]):
         lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
     seg = metrics.get("segmentation")
