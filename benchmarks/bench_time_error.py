@@ -3,14 +3,17 @@
 
     python benchmarks/bench_time_error.py [--data benchmarks/out/cycles] [--scenes demo texture balls]
         [--methods ours texel ours_vq] [--budgets 30,60,120,240,480] [--eval-spp 64]
-        [--capture json|xml] [--out benchmarks/out/time_error] [--compare OLD.json]
+        [--capture json|xml] [--fit-per-budget] [--out benchmarks/out/time_error] [--compare OLD.json]
 
 Datasets: DATA/NAME, written by `vq-mitsuba make-scene NAME --renderer cycles -o DATA/NAME` (this
 script renders a missing one that way, at --resolution). Each method fits the training views
 once, with a time limit of the largest budget, and keeps its state at every budget (fit seconds,
 excluding the copies); every kept state is then scored by `vq_mitsuba.evaluate` on the test views:
 novel view, basecolor (per-channel lstsq alignment), metallic, roughness, relighting under every
-held-aside envmap (albedo scale and per-image scale). Methods:
+held-aside envmap (albedo scale and per-image scale). With --fit-per-budget each budget gets a
+fit of its own with that time limit instead, so that the schedules (learning-rate decay, prior
+and barrier, frequency annealing) run their course in the budget, as when a user sets
+`train.time_limit_s`; its final state is scored. Methods:
 
 - `ours`: `vq-mitsuba fit` (continuous branch; configs/NAME.yaml when present);
 - `ours_vq`: the same with the discrete branch (`vq.enabled=true`): its final state also gives
@@ -91,14 +94,16 @@ def figures(m: dict, seconds: float, iterations: int) -> dict:
     return fig
 
 
-def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out: Path) -> list[dict]:
+def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
     import torch
 
-    overrides = [f"train.time_limit_s={max(budgets)}", "train.snapshot_s=" + ",".join(f"{b:g}" for b in budgets)]
+    overrides = [f"train.time_limit_s={max(budgets)}"]
+    if len(budgets) > 1:
+        overrides.append("train.snapshot_s=" + ",".join(f"{b:g}" for b in budgets))
     if method == "ours_vq":
         overrides.append("vq.enabled=true")
     cfg, _ = scene_config(name, overrides + list(args.set))
-    run_dir = out / "runs" / name / method
+    run_dir = out / "runs" / name / (method + tag)
     if run_dir.exists():
         shutil.rmtree(run_dir)
     capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
@@ -127,10 +132,10 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
     return rows
 
 
-def run_texel(name: str, data: Path, budgets: list[float], args, out: Path) -> list[dict]:
+def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
     from vq_mitsuba.texel import TexelConfig, TexelPredictor, fit_texel
 
-    run_dir = out / "runs" / name / "texel"
+    run_dir = out / "runs" / name / ("texel" + tag)
     if run_dir.exists():
         shutil.rmtree(run_dir)
     capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
@@ -176,8 +181,12 @@ def markdown(result: dict) -> str:
 
 
 def _at_budget(rows: list[dict], scene: str, method: str, budget: float) -> dict | None:
-    """The state kept at `budget` seconds (the first at or after it; a fit that ended earlier gives its end)."""
+    """The state kept at `budget` seconds (the first at or after it; a fit that ended earlier gives its end),
+    or with --fit-per-budget the end of that budget's own fit."""
     cands = sorted((r for r in rows if r["scene"] == scene and r["method"] == method), key=lambda r: r["seconds"])
+    own = [r for r in cands if r.get("budget") is not None]
+    if own:
+        return next((r for r in own if abs(r["budget"] - budget) < 1e-6), None)
     for r in cands:
         if r["seconds"] >= budget - 1e-6:
             return r
@@ -241,6 +250,9 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution", type=int, default=64, help="image size of the datasets (rendered here when missing; an existing one of another size is an error)")
     ap.add_argument("--capture", choices=("json", "xml"), default="json",
                     help="fit the NeRF-synthetic transforms_train.json (Blender world) or the scene.xml")
+    ap.add_argument("--fit-per-budget", action="store_true",
+                    help="one fit per budget with that time limit (schedules complete in the budget), "
+                         "instead of states kept along one fit of the largest budget")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the `ours` methods (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
@@ -261,10 +273,11 @@ def main(argv=None) -> int:
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
               "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
-              "eval_spp": args.eval_spp, "capture": args.capture, "rows": []}
+              "eval_spp": args.eval_spp, "capture": args.capture, "fit_per_budget": args.fit_per_budget, "rows": []}
     if args.append and old is not None:
-        if old.get("budgets") != budgets or old.get("eval_spp") != args.eval_spp:
-            raise SystemExit(f"--append: {old_path} has other budgets or eval spp")
+        if old.get("budgets") != budgets or old.get("eval_spp") != args.eval_spp \
+                or bool(old.get("fit_per_budget")) != args.fit_per_budget:
+            raise SystemExit(f"--append: {old_path} has other budgets, eval spp or --fit-per-budget")
         rerun = {(s_, m_) for s_ in args.scenes for m_ in args.methods}
         result["rows"] = [r for r in old["rows"] if (r["scene"], r["method"]) not in rerun]
         result["scenes"] = list(dict.fromkeys(old["scenes"] + args.scenes))
@@ -273,10 +286,14 @@ def main(argv=None) -> int:
     for name in args.scenes:
         data = ensure_cycles_dataset(name, args.data / name, args.resolution)
         for method in args.methods:
-            if method == "texel":
-                rows = run_texel(name, data, budgets, args, args.out)
+            runner = (lambda bs, tag: run_texel(name, data, bs, args, args.out, tag)) if method == "texel" else \
+                (lambda bs, tag: run_ours(name, data, method, bs, args, args.out, tag))
+            if args.fit_per_budget:
+                rows = []
+                for b in budgets:
+                    rows += [{**r, "budget": b} for r in runner([b], f"_{b:g}s")]
             else:
-                rows = run_ours(name, data, method, budgets, args, args.out)
+                rows = runner(budgets, "")
             result["rows"] += rows
             # Written after every method: an interrupted benchmark keeps what it measured.
             json_path.write_text(json.dumps(json_safe(result), indent=2))
