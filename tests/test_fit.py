@@ -281,3 +281,21 @@ def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
     assert not all(torch.equal(v, three["discrete"][k]) for k, v in weights(one["discrete"]).items())
     shared = state("shared", 3, False)
     assert not all(torch.equal(v, shared["envmap"][k]) for k, v in one["envmap"].items())
+
+
+@pytest.mark.parametrize("by_iterations", [False, True])
+def test_time_limited_fit_opens_the_frequencies_with_the_clock_or_the_iterations(sphere_capture, tmp_path,
+                                                                                by_iterations):
+    """Under a time limit the training progress follows the clock, so a fit stopped by it ends with
+    every encoding frequency open; with field.pe_anneal_iterations they open with the share of
+    train.iterations done instead."""
+    cfg = load_config(None, ["train.iterations=100000", "train.time_limit_s=1.5", "train.batch_rays=128",
+                             "field.pe_anneal=0.5", f"field.pe_anneal_iterations={str(by_iterations).lower()}"])
+    fit(sphere_capture, tmp_path / "run", cfg, progress=False)
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    n = cfg.field.pe_freqs
+    opened = float(state["model"]["encoder.pe.progress"])
+    # The progress is set before each step: the last step ran at step - 1 steps done.
+    expected = n * (state["step"] - 1) / 100000 / 0.5 if by_iterations else float(n)
+    assert 0 < state["step"] < 100000
+    assert opened == pytest.approx(expected, rel=1e-5, abs=1e-6)

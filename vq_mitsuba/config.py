@@ -23,6 +23,7 @@ class FieldConfig:
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
     roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
     pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
+    pe_anneal_iterations: bool = False  # open the frequencies with the share of train.iterations done, also under a time limit (off: with the training progress, which under train.time_limit_s follows the clock, so a short budget opens them all)
     metallic_delay: float = 0.0  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again (0: no delay)
     metallic_init: float = 0.02  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
 

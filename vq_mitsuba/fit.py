@@ -331,7 +331,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         else:
             idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
             hit_idx = idx
-        model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay)
+        model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay,
+                           pe_fraction=step / max(total, 1) if cfg.field.pe_anneal_iterations else None)
         # The material at each hit of the footprint, or at the pixel's first hit for all of them.
         out = model(pool.position[hit_idx.reshape(-1) if per_hit else idx])
         env = env_module() if learn_env else fixed_env

@@ -125,14 +125,17 @@ class ContinuousMaterial(nn.Module):
         state_dict.setdefault(prefix + "metallic_gate", torch.tensor(1.0))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-    def set_progress(self, fraction: float, anneal: float, metallic_delay: float = 0.0) -> None:
-        """Open the positional-encoding frequencies over the first `anneal` fraction of training;
-        hold metallic at 0 for the first `metallic_delay` fraction, then fade it in linearly over
-        as long again (a dielectric explanation first: a glossy plastic otherwise often settles
-        as a rough coloured metal, a local minimum the Lambertian prior does not leave)."""
+    def set_progress(self, fraction: float, anneal: float, metallic_delay: float = 0.0,
+                     pe_fraction: float | None = None) -> None:
+        """Open the positional-encoding frequencies over the first `anneal` fraction of training
+        (`pe_fraction` when given, else `fraction`); hold metallic at 0 for the first
+        `metallic_delay` fraction, then fade it in linearly over as long again (a dielectric
+        explanation first: a glossy plastic otherwise often settles as a rough coloured metal, a
+        local minimum the Lambertian prior does not leave)."""
         pe = self.encoder.pe
         n = pe.freqs.shape[0]
-        pe.progress.fill_(n if anneal <= 0 else min(n, n * fraction / anneal))
+        pf = fraction if pe_fraction is None else pe_fraction
+        pe.progress.fill_(n if anneal <= 0 else min(n, n * pf / anneal))
         gate = 1.0 if metallic_delay <= 0 else min(max(fraction / metallic_delay - 1.0, 0.0), 1.0)
         self.metallic_gate.fill_(gate)
 
