@@ -9,7 +9,11 @@ pixels within --band pixels of the silhouette form the band, the rest the interi
 run: basecolor PSNR (sRGB) of all / interior / band pixels, the band's share of the squared
 error, the share of foreground pixels the run's geometry misses, and the angle between the
 rendered and the true world normals in the interior; then per ground-truth material its interior
-basecolor PSNR and normal error. Meant for comparing a run on a reconstructed mesh with one on the
+basecolor PSNR and normal error; then the interior split at the true basecolor's edges (pixels
+where its sRGB gradient exceeds --edge, e.g. a texture's stripes, where a surface slightly off
+the truth shows the texture shifted from view to view), and the interior away from those edges
+binned by normal error: each bin's share of the pixels, basecolor PSNR and share of the squared
+error. Meant for comparing a run on a reconstructed mesh with one on the
 true mesh (`bench_geometry.py --materials` leaves both).
 """
 
@@ -41,6 +45,8 @@ def main() -> int:
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--views", type=int, default=8, help="first test views used")
     ap.add_argument("--band", type=int, default=2, help="silhouette band width in pixels")
+    ap.add_argument("--edge", type=float, default=0.05,
+                    help="gradient of the true sRGB basecolor (per pixel) above which a pixel is a texture edge")
     args = ap.parse_args()
 
     from scipy import ndimage
@@ -78,6 +84,20 @@ def main() -> int:
             a = np.concatenate([angle_deg(n[s], g["normal"][s]) for n, g, s in zip(normals, gts, sel)])
             print(f"    material {k}: interior basecolor PSNR {psnr_of([e[s] for e, s in zip(err, sel)]):.2f} dB, "
                   f"normal error median {np.median(a):.2f} deg, p90 {np.percentile(a, 90):.2f} deg")
+        edges = [np.hypot(*np.gradient(M.srgb(g["basecolor"]).mean(-1))) > args.edge for g in gts]
+        total = max(sum(e[i].sum() for e, i in zip(err, inner)), 1e-12)
+        on = [e[i & d] for e, i, d in zip(err, inner, edges)]
+        off = [e[i & ~d] for e, i, d in zip(err, inner, edges)]
+        print(f"    interior on texture edges ({100 * sum(x.size for x in on) / max(sum(i.sum() for i in inner), 1):.1f} % "
+              f"of its pixels): basecolor PSNR {psnr_of(on):.2f} dB, {sum(x.sum() for x in on) / total:.2f} of its "
+              f"squared error; away from them {psnr_of(off):.2f} dB")
+        ang_off = np.concatenate([angle_deg(n[i & ~d], g["normal"][i & ~d]) for n, g, i, d in zip(normals, gts, inner, edges)])
+        se_off = np.concatenate(off)
+        for lo, hi in ((0, 1), (1, 2), (2, 4), (4, 8), (8, 180)):
+            sel = (ang_off >= lo) & (ang_off < hi)
+            if sel.any():
+                print(f"      normal error {lo}-{hi} deg: {100 * sel.mean():.1f} % of those pixels, basecolor PSNR "
+                      f"{psnr_of([se_off[sel]]):.2f} dB, {se_off[sel].sum() / total:.2f} of the interior's squared error")
     return 0
 
 
