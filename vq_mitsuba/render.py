@@ -119,7 +119,6 @@ class Renderer:
         dev = self.env_t.device
         gen = torch.Generator(device=dev).manual_seed(seed)
         rng = np.random.default_rng(seed)
-        jitter = [np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng) for a in range(aa)]
         hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
         channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
         discrete = self.fitted.discrete
@@ -133,7 +132,9 @@ class Renderer:
         # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
         per_trace = max(1, MAX_RAYS // n_pix)
         for first in range(0, aa, per_trace):
-            rays = [camera_rays(camera, j) for j in jitter[first:first + per_trace]]
+            # Each pass's offsets are drawn here, in pass order, so only this trace's are held.
+            rays = [camera_rays(camera, np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng))
+                    for a in range(first, min(first + per_trace, aa))]
             hits = self.scene.trace(np.concatenate([r[0] for r in rays]), np.concatenate([r[1] for r in rays]))
             idx = torch.nonzero(hits.valid)[:, 0]
             pixel = idx % n_pix  # the pixel of each hit
