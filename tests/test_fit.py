@@ -299,3 +299,26 @@ def test_time_limited_fit_opens_the_frequencies_with_the_clock_or_the_iterations
     expected = n * (state["step"] - 1) / 100000 / 0.5 if by_iterations else float(n)
     assert 0 < state["step"] < 100000
     assert opened == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+
+@pytest.mark.parametrize("bounce_from, with_bounce", [(0.0, 12), (0.5, 6), (1.0, 0)])
+def test_bounce_starts_at_its_share_of_training(sphere_capture, tmp_path, monkeypatch, bounce_from, with_bounce):
+    """train.bounce_from: the steps before that share of training shade direct light only (no
+    material lookup at the bounce's hits), the steps from it on simulate the bounce."""
+    from vq_mitsuba.rendering import ShadingScene
+
+    calls = []
+    original = ShadingScene.shade
+
+    def spy(self, *args, material_fn=None, **kwargs):
+        if args[-1] == 8:  # the training step's call (spp 8); the bounce's own shading uses spp 1
+            calls.append(material_fn is not None)
+        return original(self, *args, material_fn=material_fn, **kwargs)
+
+    monkeypatch.setattr(ShadingScene, "shade", spy)
+    cfg = load_config(None, ["train.iterations=12", "train.batch_rays=64", "train.spp=8", "train.bounces=1",
+                             f"train.bounce_from={bounce_from}"])
+    fit(sphere_capture, tmp_path / "run", cfg, progress=False)
+    assert len(calls) == 12
+    assert sum(calls) == with_bounce
+    assert calls == sorted(calls)  # once on, it stays on

@@ -336,9 +336,10 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         # The material at each hit of the footprint, or at the pixel's first hit for all of them.
         out = model(pool.position[hit_idx.reshape(-1) if per_hit else idx])
         env = env_module() if learn_env else fixed_env
+        bounce = cfg.train.bounces > 0 and frac >= cfg.train.bounce_from
         samples = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], *shading_material(out),
                               env, cfg.train.spp, generator=gen, reduce=False,
-                              material_fn=model if cfg.train.bounces > 0 else None, groups=groups_mc)
+                              material_fn=model if bounce else None, groups=groups_mc)
         rgb = samples.mean(1)
         target = pool.rgb[idx]
         l_rec = rec_loss(samples, target)
@@ -357,7 +358,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             frozen = cfg.vq.light_from_continuous
             env_d = env.detach() if frozen else env
             bounce_fn = None
-            if cfg.train.bounces > 0:
+            if bounce:
                 bounce_fn = _without_gradients(model) if frozen else model
             samples_d = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx],
                                     *shading_material(od), env_d, cfg.train.spp, generator=gen,
