@@ -120,7 +120,7 @@ def test_decays_barrier_end_joint_scale_and_bounce_start_outside_their_range_are
     assert load_config(overrides=["loss.lam_decay=0.1"]).loss.lam_decay == 0.1
     assert load_config(overrides=["vq.lam_decay=0.5"]).vq.lam_decay == 0.5
     assert load_config(overrides=["loss.metallic_barrier_until=0.3"]).loss.metallic_barrier_until == 0.3
-    for bad in ("1.5", "-0.1"):
-        with pytest.raises(InputError, match=r"train\.bounce_from"):
-            load_config(overrides=[f"train.bounce_from={bad}"])
-    assert load_config(overrides=["train.bounce_from=0"]).train.bounce_from == 0.0
+    for bad in ("-1", "1.5"):
+        with pytest.raises(InputError, match=r"train\.bounce_after"):
+            load_config(overrides=[f"train.bounce_after={bad}"])
+    assert load_config(overrides=["train.bounce_after=300"]).train.bounce_after == 300

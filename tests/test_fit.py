@@ -301,10 +301,10 @@ def test_time_limited_fit_opens_the_frequencies_with_the_clock_or_the_iterations
     assert opened == pytest.approx(expected, rel=1e-5, abs=1e-6)
 
 
-@pytest.mark.parametrize("bounce_from, with_bounce", [(0.0, 12), (0.5, 6), (1.0, 0)])
-def test_bounce_starts_at_its_share_of_training(sphere_capture, tmp_path, monkeypatch, bounce_from, with_bounce):
-    """train.bounce_from: the steps before that share of training shade direct light only (no
-    material lookup at the bounce's hits), the steps from it on simulate the bounce."""
+@pytest.mark.parametrize("bounce_after, with_bounce", [(0, 12), (5, 7), (12, 0)])
+def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monkeypatch, bounce_after, with_bounce):
+    """train.bounce_after: the first steps shade direct light only (no material lookup at the
+    bounce's hits), the later ones simulate the bounce."""
     from vq_mitsuba.rendering import ShadingScene
 
     calls = []
@@ -317,7 +317,7 @@ def test_bounce_starts_at_its_share_of_training(sphere_capture, tmp_path, monkey
 
     monkeypatch.setattr(ShadingScene, "shade", spy)
     cfg = load_config(None, ["train.iterations=12", "train.batch_rays=64", "train.spp=8", "train.bounces=1",
-                             f"train.bounce_from={bounce_from}"])
+                             f"train.bounce_after={bounce_after}"])
     fit(sphere_capture, tmp_path / "run", cfg, progress=False)
     assert len(calls) == 12
     assert sum(calls) == with_bounce

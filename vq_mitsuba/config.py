@@ -93,7 +93,7 @@ class TrainConfig:
     footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (materials: train.footprint_per_hit): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
     footprint_per_hit: bool = True  # with train.footprint, the material field is evaluated at every jittered hit of the pixel (false: the first hit's material for all of them, as before); a texture edge inside a pixel is then fitted as such
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
-    bounce_from: float = 0.0  # training progress (0-1) from which train.bounces are simulated; before it direct light only (steps about 1.5x faster; the bounce refines, early steps are far from needing it)
+    bounce_after: int = 0  # training steps before train.bounces are simulated: the first ones shade direct light only, each about 1.3x faster (a short train.time_limit_s gets more steps; early materials are far from needing the bounce)
     time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
     snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
 
@@ -181,9 +181,9 @@ def _check_ranges(cfg: Config, source) -> None:
                             ("loss.metallic_barrier_until", cfg.loss.metallic_barrier_until, "the whole fit")):
         if not 0.0 < value <= 1.0:
             raise InputError(source, f"{key} must be in (0, 1] (1: {one}), got {value}")
-    if not 0.0 <= cfg.train.bounce_from <= 1.0:
-        raise InputError(source, f"train.bounce_from must be in [0, 1] (0: bounces from the first step), "
-                         f"got {cfg.train.bounce_from}")
+    if cfg.train.bounce_after < 0:
+        raise InputError(source, f"train.bounce_after must be >= 0 steps (0: bounces from the first step), "
+                         f"got {cfg.train.bounce_after}")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:

@@ -336,7 +336,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         # The material at each hit of the footprint, or at the pixel's first hit for all of them.
         out = model(pool.position[hit_idx.reshape(-1) if per_hit else idx])
         env = env_module() if learn_env else fixed_env
-        bounce = cfg.train.bounces > 0 and frac >= cfg.train.bounce_from
+        bounce = cfg.train.bounces > 0 and step >= cfg.train.bounce_after
         samples = scene.shade(pool.position[hit_idx], pool.normal[hit_idx], pool.wi[hit_idx], *shading_material(out),
                               env, cfg.train.spp, generator=gen, reduce=False,
                               material_fn=model if bounce else None, groups=groups_mc)
