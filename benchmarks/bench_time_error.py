@@ -24,7 +24,10 @@ and barrier, frequency annealing) run their course in the budget, as when a user
 Writes OUT/time_error.json, OUT/time_error.md and OUT/time_error.png (error against seconds), and
 with --compare (or an older OUT/time_error.json) prints new / old ratios of matching points.
 Single runs; the fit clocks of methods in one invocation are comparable (same machine, same
-load), across invocations only roughly.
+load), across invocations only roughly. Each method first gets an unscored warm-up fit of
+--warmup seconds per scene (default 10), so that the one-off cost of its first fit in a process
+(Dr.Jit compiling its kernels or loading them from the disk cache) does not fall on the first
+budget only.
 """
 
 from __future__ import annotations
@@ -132,6 +135,28 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
     return rows
 
 
+def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
+    """An unscored fit of `args.warmup` seconds, so that the timed fits after it do not pay the
+    one-off costs of a method's first fit in a process (Dr.Jit kernel compilation or loading from
+    its disk cache, first-touch allocations); without it the first budget of each method is
+    charged for them."""
+    run_dir = out / "runs" / name / (method + "_warmup")
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    print(f"[{name}/{method}] warm-up fit of {args.warmup:g} s (not scored)")
+    if method == "texel":
+        from vq_mitsuba.texel import TexelConfig, fit_texel
+
+        fit_texel(capture, run_dir, TexelConfig(), time_limit_s=args.warmup, progress=False)
+    else:
+        # Every kernel of the timed fits is built here: the bounce from the first step on.
+        overrides = [f"train.time_limit_s={args.warmup}"] + (["vq.enabled=true"] if method == "ours_vq" else [])
+        cfg, _ = scene_config(name, overrides + list(args.set) + ["train.bounce_after=0"])
+        fit(capture, run_dir, cfg, progress=False)
+    shutil.rmtree(run_dir)
+
+
 def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
     from vq_mitsuba.texel import TexelConfig, TexelPredictor, fit_texel
 
@@ -161,7 +186,8 @@ def markdown(result: dict) -> str:
              f"Mitsuba {mach['mitsuba']} ({mach['mitsuba_variant']}), Dr.Jit {mach['drjit']}, torch {mach['torch']}; "
              f"commit {mach['commit']}", "",
              f"Evaluation: {result['eval_spp']} spp, basecolor aligned per channel (lstsq), metallic and roughness "
-             "unaligned, relighting mean over the held-aside envmaps. Methods: "
+             "unaligned, relighting mean over the held-aside envmaps. "
+             f"Warm-up fit before the timed ones: {result.get('warmup_s', 0):g} s per scene and method. Methods: "
              + "; ".join(f"`{k}`: {v}" for k, v in METHODS.items() if k in result["methods"]), "",
              "| scene | method | " + " | ".join(label for _, label, _ in FIGURES) + " |",
              "|---|---|" + "---:|" * len(FIGURES)]
@@ -253,6 +279,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-per-budget", action="store_true",
                     help="one fit per budget with that time limit (schedules complete in the budget), "
                          "instead of states kept along one fit of the largest budget")
+    ap.add_argument("--warmup", type=float, default=10.0,
+                    help="seconds of an unscored fit per scene and method before the timed ones, so that "
+                         "one-off costs (kernel compilation) do not fall on the first budget (0: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the `ours` methods (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
@@ -273,7 +302,8 @@ def main(argv=None) -> int:
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
               "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
-              "eval_spp": args.eval_spp, "capture": args.capture, "fit_per_budget": args.fit_per_budget, "rows": []}
+              "eval_spp": args.eval_spp, "capture": args.capture, "fit_per_budget": args.fit_per_budget,
+              "warmup_s": args.warmup, "rows": []}
     if args.append and old is not None:
         if old.get("budgets") != budgets or old.get("eval_spp") != args.eval_spp \
                 or bool(old.get("fit_per_budget")) != args.fit_per_budget:
@@ -286,6 +316,8 @@ def main(argv=None) -> int:
     for name in args.scenes:
         data = ensure_cycles_dataset(name, args.data / name, args.resolution)
         for method in args.methods:
+            if args.warmup > 0:
+                warm_up(name, data, method, args, args.out)
             runner = (lambda bs, tag: run_texel(name, data, bs, args, args.out, tag)) if method == "texel" else \
                 (lambda bs, tag: run_ours(name, data, method, bs, args, args.out, tag))
             if args.fit_per_budget:
