@@ -261,7 +261,8 @@ def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
     after one step; with the discrete loss allowed to train the light, the envmap moves."""
     base = ["--quiet", "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0", "--set", "vq.joint=false",
             "--set", "loss.w_rec_c=0", "--set", "loss.w_chr=0", "--set", "loss.w_lam=0",
-            "--set", "envmap.tv_weight=0", "--set", "train.bounces=1", "--set", "train.batch_rays=128"]
+            "--set", "envmap.tv_weight=0", "--set", "train.bounces=1", "--set", "train.bounce_after=0",
+            "--set", "train.batch_rays=128"]
 
     capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=16, known_envmap=False)
 

@@ -93,7 +93,7 @@ class TrainConfig:
     footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (materials: train.footprint_per_hit): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
     footprint_per_hit: bool = True  # with train.footprint, the material field is evaluated at every jittered hit of the pixel (false: the first hit's material for all of them, as before); a texture edge inside a pixel is then fitted as such
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
-    bounce_after: int = 0  # training steps before train.bounces are simulated: the first ones shade direct light only, each about 1.3x faster (a short train.time_limit_s gets more steps; early materials are far from needing the bounce)
+    bounce_after: int = 300  # training steps before train.bounces are simulated: the first ones shade direct light only, each about 1.3x faster (0: the bounce from the first step); a short train.time_limit_s gets more steps, and the early materials are far from needing the bounce
     time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
     snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
 
