@@ -10,7 +10,8 @@ process, on the same dataset and config (configs/SCENE.yaml of that revision), w
 `train.seed` per repeat. Runs of the revisions alternate (A B A B ...), so that both see the
 same machine load. The rate is measured after the first `--warmup` steps, which include Dr.Jit's
 kernel compilation; a kernel that compiles again at every step (a size baked into it) still
-shows. Prints the median steps per second of each revision, its ratio to the first, and the
+shows. Every step simulates the bounce (`train.bounce_after=0` where a revision has that key),
+so the steady-state step is timed in every revision. Prints the median steps per second of each revision, its ratio to the first, and the
 training-batch PSNR at the end (the same schedule, so the error is comparable); writes
 OUT/step_rate.json and OUT/step_rate.md. With --eval-spp N, each fit is then scored by
 `vq_mitsuba.evaluate` at N spp (all test views, fitted light and every relighting envmap; the
@@ -44,9 +45,12 @@ def child(args) -> int:
         raise SystemExit(f"imported {vq_mitsuba.__file__}, not the revision's copy in {args.src}")
 
     preset = Path(args.src) / "configs" / f"{args.scene}.yaml"
-    cfg = load_config(preset if preset.is_file() else None,
-                      [f"train.iterations={args.iterations}", f"train.seed={args.seed}", "train.log_every=10",
-                       f"train.checkpoint_every={args.iterations + 1}", "train.time_limit_s=0"])
+    overrides = [f"train.iterations={args.iterations}", f"train.seed={args.seed}", "train.log_every=10",
+                 f"train.checkpoint_every={args.iterations + 1}", "train.time_limit_s=0"]
+    if "bounce_after" in vars(load_config(None).train):
+        # Every step with the bounce, as in revisions before that key: the steady-state step is timed.
+        overrides.append("train.bounce_after=0")
+    cfg = load_config(preset if preset.is_file() else None, overrides)
     run = Path(args.run)
     summary = fit(Path(args.data) / "transforms_train.json", run, cfg, progress=False)
     import torch
