@@ -11,12 +11,13 @@ process, on the same dataset and config (configs/SCENE.yaml of that revision), w
 same machine load. The rate is measured after the first `--warmup` steps, which include Dr.Jit's
 kernel compilation; a kernel that compiles again at every step (a size baked into it) still
 shows. Every step simulates the bounce (`train.bounce_after=0` where a revision has that key),
-so the steady-state step is timed in every revision. Prints the median steps per second of each revision, its ratio to the first, and the
-training-batch PSNR at the end (the same schedule, so the error is comparable); writes
-OUT/step_rate.json and OUT/step_rate.md. With --eval-spp N, each fit is then scored by
-`vq_mitsuba.evaluate` at N spp (all test views, fitted light and every relighting envmap; the
-dataset needs relit views, as `make-scene` writes them), and the median evaluation time and its
-novel-view, basecolor and relighting PSNR are printed beside the step rate.
+so the steady-state step is timed in every revision. Prints the median steps per second of
+each revision, its ratio to the first, and the training-batch PSNR at the end (the same
+schedule, so the error is comparable); writes OUT/step_rate.json and OUT/step_rate.md. With
+--eval-spp N, each fit is then scored by `vq_mitsuba.evaluate` at N spp (all test views, fitted
+light and every relighting envmap; the dataset needs relit views, as `make-scene` writes them),
+and the median evaluation time and its novel-view, basecolor and relighting PSNR are printed
+beside the step rate.
 """
 
 from __future__ import annotations

@@ -97,19 +97,30 @@ def figures(m: dict, seconds: float, iterations: int) -> dict:
     return fig
 
 
+def fresh_run(name: str, data: Path, label: str, args, out: Path) -> tuple[Path, Path]:
+    """The capture file to fit (--capture) and the run folder OUT/runs/NAME/LABEL, emptied."""
+    run_dir = out / "runs" / name / label
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    return data / ("transforms_train.json" if args.capture == "json" else "scene.xml"), run_dir
+
+
+def ours_config(name: str, method: str, args, overrides: list[str], last: list[str] = ()):
+    """The config of an `ours` method: configs/NAME.yaml, `overrides`, the discrete branch for
+    `ours_vq`, the user's --set, then `last`."""
+    vq = ["vq.enabled=true"] if method == "ours_vq" else []
+    cfg, _ = scene_config(name, overrides + vq + list(args.set) + list(last))
+    return cfg
+
+
 def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
     import torch
 
     overrides = [f"train.time_limit_s={max(budgets)}"]
     if len(budgets) > 1:
         overrides.append("train.snapshot_s=" + ",".join(f"{b:g}" for b in budgets))
-    if method == "ours_vq":
-        overrides.append("vq.enabled=true")
-    cfg, _ = scene_config(name, overrides + list(args.set))
-    run_dir = out / "runs" / name / (method + tag)
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    cfg = ours_config(name, method, args, overrides)
+    capture, run_dir = fresh_run(name, data, method + tag, args, out)
     print(f"[{name}/{method}] fitting {capture} -> {run_dir} ({cfg.train.iterations} iterations planned, "
           f"time limit {max(budgets):g} s)")
     summary = fit(capture, run_dir, cfg, progress=not args.quiet)
@@ -140,10 +151,7 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
     one-off costs of a method's first fit in a process (Dr.Jit kernel compilation or loading from
     its disk cache, first-touch allocations); without it the first budget of each method is
     charged for them."""
-    run_dir = out / "runs" / name / (method + "_warmup")
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    capture, run_dir = fresh_run(name, data, method + "_warmup", args, out)
     print(f"[{name}/{method}] warm-up fit of {args.warmup:g} s (not scored)")
     if method == "texel":
         from vq_mitsuba.texel import TexelConfig, fit_texel
@@ -151,8 +159,7 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
         fit_texel(capture, run_dir, TexelConfig(), time_limit_s=args.warmup, progress=False)
     else:
         # Every kernel of the timed fits is built here: the bounce from the first step on.
-        overrides = [f"train.time_limit_s={args.warmup}"] + (["vq.enabled=true"] if method == "ours_vq" else [])
-        cfg, _ = scene_config(name, overrides + list(args.set) + ["train.bounce_after=0"])
+        cfg = ours_config(name, method, args, [f"train.time_limit_s={args.warmup}"], ["train.bounce_after=0"])
         fit(capture, run_dir, cfg, progress=False)
     shutil.rmtree(run_dir)
 
@@ -160,10 +167,7 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
 def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
     from vq_mitsuba.texel import TexelConfig, TexelPredictor, fit_texel
 
-    run_dir = out / "runs" / name / ("texel" + tag)
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    capture = data / ("transforms_train.json" if args.capture == "json" else "scene.xml")
+    capture, run_dir = fresh_run(name, data, "texel" + tag, args, out)
     print(f"[{name}/texel] fitting {capture} -> {run_dir} (time limit {max(budgets):g} s)")
     result = fit_texel(capture, run_dir, TexelConfig(), time_limit_s=max(budgets), snapshot_s=budgets,
                        progress=not args.quiet)
