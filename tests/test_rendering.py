@@ -436,3 +436,41 @@ def test_renderer_matches_mitsuba_direct_render(monkeypatch, tmp_path):
     np.testing.assert_allclose(one["normal"], out["normal"], atol=1e-5)
     np.testing.assert_allclose(one["rgb"].reshape(-1, 3).mean(0), out["rgb"].reshape(-1, 3).mean(0), rtol=0.02)
 
+
+
+def test_relight_pass_gives_each_lighting_its_own_render():
+    """`Renderer.render(..., relight=...)` returns, for every other lighting, the image its own
+    `render` gives with the same seed (bounce included), while the material field runs once
+    per chunk for the primary hits and once for the bounce hits, however many lightings."""
+    from vq_mitsuba import render as render_mod
+    from vq_mitsuba.config import load_config
+
+    _, cam = _touching_spheres(_env(), size=24)
+    a = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    b = a.copy()
+    b.apply_translation([0.0, 0.0, 1.02])
+    both = trimesh.util.concatenate([a, b])
+    calls = []
+
+    class Counted(_ConstantMaterial):
+        def forward(self, p):
+            calls.append(p.shape[0])
+            return super().forward(p)
+
+    cfg = load_config(None, ["render.chunk=4000", "train.bounces=1"])
+    fitted = render_mod.FittedRun(None, cfg, {"envmap_to_world": np.eye(4).tolist()},
+                                  Counted([0.7, 0.6, 0.5], 0.2, 0.3), None, _env(seed=0), both, 0)
+    lights = [render_mod.Renderer(fitted, env) for env in (None, _env(seed=1), _env(h=8, seed=2) * 3.0)]
+    alone = [r.render(cam, spp=32, aa=4, seed=5)["rgb"] for r in lights]
+    calls_alone = len(calls)
+    calls.clear()
+    shared = lights[0].render(cam, spp=32, aa=4, seed=5, relight=lights[1:])
+    assert len(shared["relit"]) == 2
+    for got, want in zip([shared["rgb"], *shared["relit"]], alone):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    assert not np.allclose(alone[1], alone[2])  # the lightings differ, so the test can tell them apart
+    assert calls_alone == 3 * len(calls) and len(calls) >= 2  # primary and bounce hits, once each
+
+    other = render_mod.FittedRun(None, cfg, fitted.info, fitted.model, None, _env(), both, 0)
+    with pytest.raises(ValueError, match="same fitted run"):
+        lights[0].render(cam, spp=4, aa=1, relight=[render_mod.Renderer(other)])

@@ -270,24 +270,25 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
         meanshift = meanshift_segmentation(preds, gts, meanshift_bandwidths, seed=0)
     del preds
 
-    # Relighting under each held-aside envmap.
-    relit: dict[str, dict] = {"albedo_scale": {}, "image_scale": {}}
-    for env_name, env_path in envs:
-        env, _ = read_image(env_path)
-        renderer = predictor.renderer(env)
-        rows = {"albedo_scale": [], "image_scale": []}
-        for i, (cam, view, gt) in enumerate(zip(cameras, views, gts)):
+    # Relighting under each held-aside envmap, view by view: one pass per view renders all envmaps.
+    renderers = [predictor.renderer(read_image(env_path)[0]) for _, env_path in envs]
+    rows = {name: {"albedo_scale": [], "image_scale": []} for name, _ in envs}
+    for i, (cam, view, gt) in enumerate(zip(cameras, views, gts)):
+        m = gt["mask"]
+        for (env_name, _), pred in zip(envs, relit_views(renderers, view, spp=spp, aa=aa, seed=i)):
             ref, _ = _read_rgba(root / "relit" / env_name / f"{cam.name}.exr")
-            pred = renderer.render(view, spp=spp, aa=aa, seed=i)["rgb"].astype(np.float64)
-            m = gt["mask"]
-            rows["albedo_scale"].append(M.image_metrics(pred * bc_scales, ref, m))
+            pred = pred.astype(np.float64)
+            env_rows = rows[env_name]
+            env_rows["albedo_scale"].append(M.image_metrics(pred * bc_scales, ref, m))
             aligned, _ = M.scale_align(pred, ref, m, method="lstsq")
-            rows["image_scale"].append(M.image_metrics(aligned, ref, m))
-            for variant in rows:
-                per_view[i][f"relit_{env_name}_{variant}_psnr"] = rows[variant][-1]["psnr"]
+            env_rows["image_scale"].append(M.image_metrics(aligned, ref, m))
+            for variant in env_rows:
+                per_view[i][f"relit_{env_name}_{variant}_psnr"] = env_rows[variant][-1]["psnr"]
             bar.update(1)
-        del renderer
-        for variant, r in rows.items():
+    del renderers
+    relit: dict[str, dict] = {"albedo_scale": {}, "image_scale": {}}
+    for env_name, env_rows in rows.items():
+        for variant, r in env_rows.items():
             relit[variant][env_name] = {"psnr": _mean(x["psnr"] for x in r), "ssim": _mean(x["ssim"] for x in r)}
     bar.close()
 
@@ -337,6 +338,20 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
         out_path.parent.mkdir(parents=True, exist_ok=True)
         out_path.write_text(json.dumps(json_safe(result), indent=2))
     return result
+
+
+def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) -> list[np.ndarray]:
+    """The rgb image of one view under each renderer's lighting. Renderers of a fitted run
+    (`render.Renderer`) share one pass: the rays and the material field are evaluated once."""
+    from .render import Renderer
+
+    if not renderers:
+        return []
+    first, *rest = renderers
+    if isinstance(first, Renderer) and all(isinstance(r, Renderer) and r.fitted is first.fitted for r in rest):
+        out = first.render(camera, spp=spp, aa=aa, seed=seed, relight=rest)
+        return [out["rgb"], *out.get("relit", [])]
+    return [r.render(camera, spp=spp, aa=aa, seed=seed)["rgb"] for r in renderers]
 
 
 def coverage_scores(alpha: np.ndarray, basecolor: np.ndarray, gt_basecolor: np.ndarray, mask: np.ndarray) -> dict:

@@ -6,7 +6,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -102,12 +102,17 @@ class Renderer:
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
 
     @torch.no_grad()
-    def render(self, camera: Camera, spp: int | None = None, aa: int | None = None, seed: int = 0) -> dict[str, np.ndarray]:
+    def render(self, camera: Camera, spp: int | None = None, aa: int | None = None, seed: int = 0,
+               relight: Sequence[Renderer] = ()) -> dict[str, np.ndarray]:
         """Images of one view: rgb (linear, HxWx3), alpha, basecolor, metallic, roughness, normal.
 
         Each pixel averages `aa` primary rays (stratified over the pixel); each hit is shaded with
         spp/aa light samples. Pixel coverage, not light sampling, dominates the error at edges
         and on small highlights, so aa is high by default.
+
+        `relight`: renderers of the same fitted run under other lighting. Their rgb images come
+        back as the list `relit`, each the same image as their own `render` with this seed, but
+        the rays are traced and the material field evaluated once for all of them.
         """
         from .rendering import camera_rays, pixel_jitter
 
@@ -117,7 +122,6 @@ class Renderer:
         h, w = camera.height, camera.width
         n_pix = h * w
         dev = self.env_t.device
-        gen = torch.Generator(device=dev).manual_seed(seed)
         rng = np.random.default_rng(seed)
         hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
         channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
@@ -128,6 +132,12 @@ class Renderer:
             channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
         acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
         light_spp = max(2, spp // aa)
+        lights = [self, *relight]
+        if any(r.fitted is not self.fitted for r in relight):
+            raise ValueError("relight renderers must render the same fitted run")
+        # One generator per lighting, all seeded alike: each draws the samples its own render would.
+        gens = [torch.Generator(device=dev).manual_seed(seed) for _ in lights]
+        relit = [torch.zeros(n_pix, 3, dtype=torch.float64, device=dev) for _ in relight]
         # Several primary-ray passes per trace (up to MAX_RAYS rays), their hits shaded in chunks:
         # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
         per_trace = max(1, MAX_RAYS // n_pix)
@@ -142,9 +152,14 @@ class Renderer:
             for s in range(0, len(idx), cfg.chunk):
                 sel, pix = idx[s:s + cfg.chunk], pixel[s:s + cfg.chunk]
                 out = self.fitted.model(hits.position[sel])
-                rgb = self.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out["basecolor"],
-                                       out["metallic"], out["roughness"], self.env_t, light_spp, generator=gen,
-                                       material_fn=self.fitted.model if self.fitted.cfg.train.bounces > 0 else None)
+                # Every lighting's bounce samples land on the same points: the field runs once for them.
+                bounce_field = _LastAnswer(self.fitted.model) if self.fitted.cfg.train.bounces > 0 else None
+                rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel],
+                                                     out["basecolor"], out["metallic"], out["roughness"],
+                                                     light.env_t, light_spp, generator=g, material_fn=bounce_field)
+                                   for light, g in zip(lights, gens))
+                for acc_relit, v in zip(relit, rgb_relit):
+                    acc_relit.index_add_(0, pix, v.double())
                 values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
                           "roughness": out["roughness"][:, None], "normal": hits.normal[sel]}
                 if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
@@ -162,6 +177,8 @@ class Renderer:
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
         # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
         out["rgb"] = (acc["rgb"] / aa).reshape(h, w, 3).astype(np.float32)
+        if relight:
+            out["relit"] = [(v.cpu().numpy() / aa).reshape(h, w, 3).astype(np.float32) for v in relit]
         safe = np.maximum(hits_count, 1)[:, None]
         for k in ("basecolor", "metallic", "roughness"):
             out[k] = (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
@@ -178,6 +195,18 @@ class Renderer:
             ids = np.argmax(votes[:, 1:], axis=1) + 1
             out["material"] = np.where(alpha >= 0.5, ids, 0).reshape(h, w).astype(np.uint8)
         return out
+
+
+class _LastAnswer:
+    """A material field that keeps its last answer and gives it again for the same points."""
+
+    def __init__(self, field):
+        self.field, self.points, self.answer = field, None, None
+
+    def __call__(self, points: torch.Tensor) -> dict[str, torch.Tensor]:
+        if self.points is None or self.points.shape != points.shape or not torch.equal(self.points, points):
+            self.points, self.answer = points, self.field(points)
+        return self.answer
 
 
 def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
