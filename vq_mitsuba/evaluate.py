@@ -182,8 +182,9 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
                        fit_summary: dict | None = None) -> dict:
     """The scores of `evaluate` for any predictor: an object with `world` ("mitsuba" or "blender"),
     `default_spp`, `default_aa`, `num_materials` (None without a segmentation) and `renderer(envmap)` returning
-    an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.Renderer.render`.
-    Writes `output` when given."""
+    an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.Renderer.render`
+    (`render.Renderer`s of one run render all relighting envmaps of a view in one pass, see
+    `relit_views`). Writes `output` when given."""
     from tqdm import tqdm
 
     from .capture.dataset import load_cameras
