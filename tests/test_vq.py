@@ -194,3 +194,40 @@ def test_redundant_ranking_moves_each_codeword_at_most_once():
     order, errs, moved = redundant_last(measure, [0, 1, 2, 3], 0.002)
     assert moved == [1, 2, 3] and order == [0, 1, 2, 3]
     assert errs == measure(order) and choose_num_materials(errs, 0.002) == 4
+
+
+def test_a_moved_codeword_stays_ahead_of_the_duplicates_and_unused_ones():
+    from vq_mitsuba.materials.vq import redundant_last
+
+    # Codewords 0-3 are distinct (n_keep = 4); 4 duplicates 3 and 5 is unused. Codeword 1 (material
+    # B) adds nothing at its early position, since B's pixels stay with 0 until 2 is in too; while
+    # B is not covered, the duplicate 4 takes half of B's pixels. Moved to the end of the distinct
+    # block, 1 is measured there and stays among the first n_keep, ahead of the duplicate.
+    share = {0: 0.4, 1: 0.2, 2: 0.25, 3: 0.15}
+
+    def measure(order):
+        def err(prefix):
+            missing = sum(v for m, v in share.items() if m not in prefix)
+            b_covered = 1 in prefix and 2 in prefix
+            if 1 in prefix and not b_covered:
+                missing += share[1]
+            if 4 in prefix and not b_covered:
+                missing -= share[1] / 2
+            return 0.01 + 0.1 * missing
+        return [err(order[:k]) for k in range(1, len(order) + 1)]
+
+    order, errs, moved = redundant_last(measure, [0, 1, 2, 3, 4, 5], 0.002, n_keep=4)
+    assert moved == [1] and order == [0, 2, 3, 1, 4, 5]
+    assert errs == measure(order) and choose_num_materials(errs, 0.002) == 4
+    # Moved to the very end, B would rank behind the duplicate, outside the first n_keep (the
+    # number of materials is capped there), and its pixels would get the duplicate's id.
+    order = redundant_last(measure, [0, 1, 2, 3, 4, 5], 0.002)[0]
+    assert order.index(4) < 4 <= order.index(1)
+
+    # A weak codeword behind n_keep (inside the chosen prefix) goes to the very end.
+    def measure2(order):
+        gain = {0: 0.01, 1: 0.01, 2: 0.0005, 3: 0.02}
+        return [0.1 - sum(gain.get(i, 0.0) for i in order[:k]) for k in range(1, len(order) + 1)]
+
+    order, _, moved = redundant_last(measure2, [0, 1, 2, 3, 4, 5], 0.002, n_keep=2)
+    assert moved == [2] and order == [0, 1, 3, 4, 5, 2]

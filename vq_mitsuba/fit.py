@@ -480,7 +480,7 @@ def rank_materials(scene, model, discrete, pool: PixelPool, env: torch.Tensor, c
 
     redundant = []
     if cfg.vq.ranking and cfg.vq.redundant_last:
-        ranked, errs, redundant = redundant_last(measure, ranked, cfg.vq.rank_eps)
+        ranked, errs, redundant = redundant_last(measure, ranked, cfg.vq.rank_eps, n_keep=n_distinct)
     else:
         errs = measure(ranked)
     order = torch.as_tensor(ranked, device=order.device)

@@ -157,16 +157,20 @@ def choose_num_materials(err: list[float] | torch.Tensor, eps: float = 0.002) ->
     return len(err)
 
 
-def redundant_last(measure, order: list[int], eps: float) -> tuple[list[int], list[float], list[int]]:
+def redundant_last(measure, order: list[int], eps: float,
+                   n_keep: int | None = None) -> tuple[list[int], list[float], list[int]]:
     """Rank again until every codeword inside the chosen prefix pays for itself.
 
     `measure(order)` gives err_k for the prefixes of `order`. While some codeword at position
     j >= 1 inside the prefix that `choose_num_materials` picks lowers the error by less than `eps`
-    when added (err_{j-1} - err_j < eps), it moves to the end and err_k is measured again: a
-    near-copy of an earlier material that dropout happened to rank early no longer counts as one.
-    Each codeword moves at most once. Returns (order, err_k of that order, the codewords moved, in
-    the order they moved)."""
+    when added (err_{j-1} - err_j < eps), it moves to the end of the first `n_keep` positions (all
+    of them when None) and err_k is measured again: a near-copy of an earlier material that dropout
+    happened to rank early no longer counts as one. The codewords behind `n_keep` (duplicates and
+    unused ones, see `duplicates_last`) stay behind every moved one, so a distinct material that
+    was moved is still ranked before them. Each codeword moves at most once. Returns (order, err_k
+    of that order, the codewords moved, in the order they moved)."""
     order, moved = list(order), []
+    n_keep = len(order) if n_keep is None else max(1, min(int(n_keep), len(order)))
     errs = list(measure(order))
     for _ in range(len(order)):
         m = choose_num_materials(errs, eps)
@@ -177,7 +181,8 @@ def redundant_last(measure, order: list[int], eps: float) -> tuple[list[int], li
             break
         j = weak[0]
         moved.append(order[j])
-        order = order[:j] + order[j + 1:] + [order[j]]
+        end = n_keep if j < n_keep else len(order)  # a weak duplicate itself goes to the very end
+        order = order[:j] + order[j + 1:end] + [order[j]] + order[end:]
         errs = list(measure(order))
     return order, errs, moved
 
