@@ -39,15 +39,24 @@ def _points(n=256, seed=1):
     return t(0.5 * nrm), t(nrm), t(wi)
 
 
-def _touching_spheres(env, size=40):
-    """Two spheres that light each other, the scene over them and a camera that sees both."""
-    a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+def _two_spheres(subdivisions=4):
+    """Two spheres one above the other, 0.02 apart, so that they light each other."""
+    a = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)
     b = a.copy()
     b.apply_translation([0.0, 0.0, 1.02])
-    both = trimesh.util.concatenate([a, b])
+    return trimesh.util.concatenate([a, b])
+
+
+def _two_spheres_camera(size):
+    """A camera that sees both of `_two_spheres`, `size` pixels square."""
+    return Camera("c", look_at([2.2, 0.3, 0.5], [0, 0, 0.5], [0, 0, 1]), 45.0, size, size)
+
+
+def _touching_spheres(env, size=40):
+    """Two spheres that light each other, the scene over them and a camera that sees both."""
+    both = _two_spheres()
     scene = ShadingScene(both.vertices, both.faces, env, np.eye(4), normals=both.vertex_normals)
-    cam = Camera("c", look_at([2.2, 0.3, 0.5], [0, 0, 0.5], [0, 0, 1]), 45.0, size, size)
-    return scene, cam
+    return scene, _two_spheres_camera(size)
 
 
 def test_envmap_padding_matches_mitsuba_layout():
@@ -437,7 +446,6 @@ def test_renderer_matches_mitsuba_direct_render(monkeypatch, tmp_path):
     np.testing.assert_allclose(one["rgb"].reshape(-1, 3).mean(0), out["rgb"].reshape(-1, 3).mean(0), rtol=0.02)
 
 
-
 def test_relight_pass_gives_each_lighting_its_own_render():
     """`Renderer.render(..., relight=...)` returns, for every other lighting, the image its own
     `render` gives with the same seed (bounce included), while the material field runs once
@@ -445,11 +453,7 @@ def test_relight_pass_gives_each_lighting_its_own_render():
     from vq_mitsuba import render as render_mod
     from vq_mitsuba.config import load_config
 
-    _, cam = _touching_spheres(_env(), size=24)
-    a = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    b = a.copy()
-    b.apply_translation([0.0, 0.0, 1.02])
-    both = trimesh.util.concatenate([a, b])
+    cam, both = _two_spheres_camera(24), _two_spheres(subdivisions=3)
     calls = []
 
     class Counted(_ConstantMaterial):

@@ -167,8 +167,9 @@ def redundant_last(measure, order: list[int], eps: float,
     of them when None) and err_k is measured again: a near-copy of an earlier material that dropout
     happened to rank early no longer counts as one. The codewords behind `n_keep` (duplicates and
     unused ones, see `duplicates_last`) stay behind every moved one, so a distinct material that
-    was moved is still ranked before them. Each codeword moves at most once. Returns (order, err_k
-    of that order, the codewords moved, in the order they moved)."""
+    was moved is still ranked before them; a weak codeword from behind `n_keep` goes to the very
+    end. Each codeword moves at most once. Returns (order, err_k of that order, the codewords
+    moved, in the order they moved)."""
     order, moved = list(order), []
     n_keep = len(order) if n_keep is None else max(1, min(int(n_keep), len(order)))
     errs = list(measure(order))
