@@ -70,7 +70,7 @@ class VQConfig:
     merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
     redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
     joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
-    joint_scale: float = 0.2  # with vq.joint, the share in (0, 1] of the discrete branch's gradients (straight-through and commitment) that reaches the shared encoder; 1: the paper's joint training, under which the discrete loss (w2 = 5 w1) dominates the encoder and costs the continuous basecolor (texture at 128 px, 300 s: 25.7 against 30.7 dB alone)
+    joint_scale: float = 0.05  # with vq.joint, the share in (0, 1] of the discrete branch's gradients (straight-through and commitment) that reaches the shared encoder; 1: the paper's joint training, under which the discrete loss (w2 = 5 w1) dominates the encoder and costs the continuous basecolor (texture at 128 px, 300 s: 25.7 against 30.7 dB alone; 0.2 still cost it 3.8 dB with seed 0)
     lam_decay: float = 0.1  # the Lambertian prior's decay on the discrete branch, like loss.lam_decay on the continuous one (1: constant)
     light_from_continuous: bool = True  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too, the paper's shared light)
     warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
