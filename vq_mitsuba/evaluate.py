@@ -349,7 +349,7 @@ def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) ->
     if not renderers:
         return []
     first, *rest = renderers
-    if isinstance(first, Renderer) and all(isinstance(r, Renderer) and r.fitted is first.fitted for r in rest):
+    if all(isinstance(r, Renderer) for r in renderers):  # `Renderer.render` checks they share one run
         out = first.render(camera, spp=spp, aa=aa, seed=seed, relight=rest)
         return [out["rgb"], *out.get("relit", [])]
     return [r.render(camera, spp=spp, aa=aa, seed=seed)["rgb"] for r in renderers]

@@ -130,6 +130,8 @@ class Renderer:
         votes = torch.zeros(n_pix, n_mat + 1, dtype=torch.int32, device=dev) if discrete is not None else None
         if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
             channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
+        relit_keys = [f"relit_{j}" for j in range(len(relight))]  # rgb under each other lighting
+        channels.update({k: 3 for k in relit_keys})
         acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
         light_spp = max(2, spp // aa)
         lights = [self, *relight]
@@ -137,7 +139,6 @@ class Renderer:
             raise ValueError("relight renderers must render the same fitted run")
         # One generator per lighting, all seeded alike: each draws the samples its own render would.
         gens = [torch.Generator(device=dev).manual_seed(seed) for _ in lights]
-        relit = [torch.zeros(n_pix, 3, dtype=torch.float64, device=dev) for _ in relight]
         # Several primary-ray passes per trace (up to MAX_RAYS rays), their hits shaded in chunks:
         # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
         per_trace = max(1, MAX_RAYS // n_pix)
@@ -158,10 +159,9 @@ class Renderer:
                                                      out["basecolor"], out["metallic"], out["roughness"],
                                                      light.env_t, light_spp, generator=g, material_fn=bounce_field)
                                    for light, g in zip(lights, gens))
-                for acc_relit, v in zip(relit, rgb_relit):
-                    acc_relit.index_add_(0, pix, v.double())
                 values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
-                          "roughness": out["roughness"][:, None], "normal": hits.normal[sel]}
+                          "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
+                          **dict(zip(relit_keys, rgb_relit))}
                 if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
                     od = discrete(out["z"], n_codes=n_mat)  # nearest ranked codeword and its BRDF
                     votes.index_put_((pix, od["index"] + 1), torch.ones_like(pix, dtype=torch.int32),
@@ -178,7 +178,7 @@ class Renderer:
         # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
         out["rgb"] = (acc["rgb"] / aa).reshape(h, w, 3).astype(np.float32)
         if relight:
-            out["relit"] = [(v.cpu().numpy() / aa).reshape(h, w, 3).astype(np.float32) for v in relit]
+            out["relit"] = [(acc[k] / aa).reshape(h, w, 3).astype(np.float32) for k in relit_keys]
         safe = np.maximum(hits_count, 1)[:, None]
         for k in ("basecolor", "metallic", "roughness"):
             out[k] = (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
