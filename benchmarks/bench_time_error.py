@@ -154,9 +154,9 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
     capture, run_dir = fresh_run(name, data, method + "_warmup", args, out)
     print(f"[{name}/{method}] warm-up fit of {args.warmup:g} s (not scored)")
     if method == "texel":
-        from vq_mitsuba.texel import TexelConfig, fit_texel
+        from vq_mitsuba.texel import fit_texel
 
-        fit_texel(capture, run_dir, TexelConfig(), time_limit_s=args.warmup, progress=False)
+        fit_texel(capture, run_dir, texel_config(args), time_limit_s=args.warmup, progress=False)
     else:
         # Every kernel of the timed fits is built here: the bounce from the first step on.
         cfg = ours_config(name, method, args, [f"train.time_limit_s={args.warmup}"], ["train.bounce_after=0"])
@@ -164,12 +164,30 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
     shutil.rmtree(run_dir)
 
 
+def texel_config(args):
+    """The baseline's TexelConfig with the user's --texel-set overrides (values parsed as YAML)."""
+    import dataclasses
+
+    import yaml
+
+    from vq_mitsuba.texel import TexelConfig
+
+    fields = {f.name for f in dataclasses.fields(TexelConfig)}
+    changes = {}
+    for item in args.texel_set:
+        key, sep, value = item.partition("=")
+        if not sep or key not in fields:
+            raise SystemExit(f"--texel-set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(fields))}")
+        changes[key] = yaml.safe_load(value)
+    return TexelConfig(**changes)
+
+
 def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
-    from vq_mitsuba.texel import TexelConfig, TexelPredictor, fit_texel
+    from vq_mitsuba.texel import TexelPredictor, fit_texel
 
     capture, run_dir = fresh_run(name, data, "texel" + tag, args, out)
     print(f"[{name}/texel] fitting {capture} -> {run_dir} (time limit {max(budgets):g} s)")
-    result = fit_texel(capture, run_dir, TexelConfig(), time_limit_s=max(budgets), snapshot_s=budgets,
+    result = fit_texel(capture, run_dir, texel_config(args), time_limit_s=max(budgets), snapshot_s=budgets,
                        progress=not args.quiet)
     rows = []
     snaps = result["snapshots"]
@@ -288,6 +306,8 @@ def main(argv=None) -> int:
                          "one-off costs (kernel compilation) do not fall on the first budget (0: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the `ours` methods (repeatable)")
+    ap.add_argument("--texel-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="TexelConfig override for the per-texel baseline, e.g. lr_decay=1.0 (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
     ap.add_argument("--compare", type=Path, help="an earlier time_error.json (default: the one in OUT)")
     ap.add_argument("--append", action="store_true",

@@ -85,6 +85,7 @@ class TrainConfig:
     spp: int = 8  # emitter + BSDF sample pairs per pixel and step
     lr: float = 2e-3  # Adam learning rate of the material fields
     lr_decay: float = 0.1  # learning rates decay exponentially to this fraction at the end
+    lr_decay_iterations: bool = True  # the learning rates decay with the share of train.iterations done, also under a time limit, so a fit the clock stops early ends at a higher rate (off: with the training progress, which under train.time_limit_s follows the clock: a 30 s fit then spends most of its few steps at a small rate, about 5 dB of basecolor lost on balls and texture at 128 px)
     seed: int = 0  # seeds torch (networks, batches, light samples)
     checkpoint_every: int = 500  # steps between checkpoints (a run resumes from the last one)
     log_every: int = 50  # steps between loss-curve entries
@@ -94,7 +95,7 @@ class TrainConfig:
     footprint_per_hit: bool = True  # with train.footprint, the material field is evaluated at every jittered hit of the pixel (false: the first hit's material for all of them, as before); a texture edge inside a pixel is then fitted as such
     bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
     bounce_after: int = 300  # training steps before train.bounces are simulated: the first ones shade direct light only, each about 1.3x faster (0: the bounce from the first step); a short train.time_limit_s gets more steps, and the early materials are far from needing the bounce
-    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the schedules then follow the clock when it runs ahead of the iterations
+    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the other schedules then follow the clock when it runs ahead of the iterations
     snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
 
 

@@ -237,7 +237,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         groups.append({"params": env_module.parameters(), "lr": cfg.envmap.lr})
     optim = torch.optim.Adam(groups)
     total = cfg.train.iterations
-    base_lrs = [g["lr"] for g in optim.param_groups]  # decayed by training progress (below)
+    base_lrs = [g["lr"] for g in optim.param_groups]  # decayed during training (below)
     gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
     history: list[dict] = []
     step, elapsed_before = 0, 0.0
@@ -307,14 +307,17 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         return losses.lambertian_prior(out["metallic"], out["roughness"], cfg.loss.lam_metallic, logit, gate)
 
     while step < total:
-        # Training progress in [0, 1] drives every schedule (learning rate, encoding frequencies,
-        # metallic delay, VQ warm-up): the share of iterations done or, under a time limit, of
+        # Training progress in [0, 1] drives the schedules (encoding frequencies, metallic delay,
+        # Lambertian prior, VQ warm-up): the share of iterations done or, under a time limit, of
         # the time used if larger, so that a fit stopped by the clock has run its whole schedule.
+        # The learning rates follow the iterations alone (train.lr_decay_iterations): a short
+        # budget's few steps need a large rate more than a finished schedule.
         frac = step / max(total, 1)
         if t_limit > 0:
             frac = min(max(frac, (elapsed_before + time.perf_counter() - t0) / t_limit), 1.0)
+        lr_frac = step / max(total, 1) if cfg.train.lr_decay_iterations else frac
         for g, lr in zip(optim.param_groups, base_lrs):
-            g["lr"] = lr * cfg.train.lr_decay ** frac
+            g["lr"] = lr * cfg.train.lr_decay ** lr_frac
         w_lam = cfg.loss.w_lam * cfg.loss.lam_decay ** frac  # continuous branch's prior
         w_lam_d = cfg.loss.w_lam * cfg.vq.lam_decay ** frac  # discrete branch's prior
         if discrete is not None and frac >= cfg.vq.warmup_frac and not bool(discrete.initialised):
