@@ -15,7 +15,7 @@ from vq_mitsuba.capture.dataset import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.config import NeuSConfig, apply_overrides
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import DenseGrid, NeuS, camera_rays, reconstruct, train
+from vq_mitsuba.geometry.neus import ColorNetwork, DenseGrid, NeuS, camera_rays, reconstruct, train
 
 RADIUS = 0.5
 
@@ -304,3 +304,22 @@ def test_one_config_file_holds_the_material_and_the_neus_sections(tmp_path):
     bad.write_text("neus: [1, 2\n")
     with pytest.raises(InputError, match="bad.yaml"):
         load_neus_config(None, bad)
+
+
+def test_reflecting_colour_network_sees_the_mirror_direction():
+    """neus.reflect: the colour network's direction input is the view direction mirrored about
+    the normal (a ray going down-right onto an upward normal leaves up-right), after their cosine."""
+    cfg = NeuSConfig(reflect=True)
+    net = ColorNetwork(cfg)
+    seen = []
+    net.net[0].register_forward_hook(lambda mod, inp, out: seen.append(inp[0].detach()))
+    feat = torch.zeros(1, cfg.geo_features)
+    normal = torch.tensor([[0.0, 0.0, 1.0]])
+    view = torch.tensor([[1.0, 0.0, -1.0]]) / 2 ** 0.5
+    net(feat, normal, view)
+    x = seen[0][0]
+    start = cfg.geo_features + 3  # after the features and the normal
+    assert x[start].item() == pytest.approx(-(0.5 ** 0.5))
+    assert torch.allclose(x[start + 1:start + 4], torch.tensor([1.0, 0.0, 1.0]) / 2 ** 0.5, atol=1e-6)
+    plain = ColorNetwork(NeuSConfig(reflect=False))
+    assert plain.net[0].in_features == net.net[0].in_features - 1

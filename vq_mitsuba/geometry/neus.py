@@ -249,17 +249,25 @@ class SDFNetwork(nn.Module):
 
 
 class ColorNetwork(nn.Module):
-    """Radiance from SDF features, normal and view direction (with a small frequency encoding)."""
+    """Radiance from SDF features, normal and view direction (with a small frequency encoding).
+    With cfg.reflect the direction encoded is the view direction reflected about the normal, and
+    the cosine between the two is one more input."""
 
     def __init__(self, cfg: NeuSConfig, view_freqs: int = 3):
         super().__init__()
         self.view_freqs = view_freqs
-        d_in = cfg.geo_features + 3 + 3 + 6 * view_freqs
+        self.reflect = cfg.reflect
+        d_in = cfg.geo_features + 3 + 3 + 6 * view_freqs + (1 if cfg.reflect else 0)
         self.net = nn.Sequential(nn.Linear(d_in, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden),
                                  nn.ReLU(), nn.Linear(cfg.hidden, 3))
 
     def forward(self, feat, normal, view):
-        enc = [view]
+        extra = []
+        if self.reflect:
+            cos = (view * normal).sum(-1, keepdim=True)
+            view = view - 2.0 * cos * normal
+            extra = [cos]
+        enc = extra + [view]
         for k in range(self.view_freqs):
             enc += [torch.sin((2.0 ** k) * math.pi * view), torch.cos((2.0 ** k) * math.pi * view)]
         return torch.sigmoid(self.net(torch.cat([feat, normal] + enc, -1)))
