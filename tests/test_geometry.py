@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -201,6 +202,12 @@ def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
     assert info["seconds"]["train"] > 0
     again = reconstruct(capture, tmp_path, small_cfg(iterations=6), resume=True, progress=False)
     assert again["iterations"] == 6
+    # Resuming under other network shapes is refused by name, and the checkpoint is kept.
+    other = not small_cfg().reflect
+    with pytest.raises(InputError, match=f"neus.reflect={not other} \\(now {other}\\)") as err:
+        reconstruct(capture, tmp_path, small_cfg(iterations=8, reflect=other), resume=True, progress=False)
+    assert err.value.path == tmp_path / "neus.pt"
+    assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 6
 
 
 def test_neus_needs_masks_and_foreground():
@@ -323,3 +330,14 @@ def test_reflecting_colour_network_sees_the_mirror_direction():
     assert torch.allclose(x[start + 1:start + 4], torch.tensor([1.0, 0.0, 1.0]) / 2 ** 0.5, atol=1e-6)
     plain = ColorNetwork(NeuSConfig(reflect=False))
     assert plain.net[0].in_features == net.net[0].in_features - 1
+
+
+def test_a_checkpoint_from_before_neus_reflect_counts_as_made_without_it(tmp_path):
+    from vq_mitsuba.geometry.neus import _check_architecture
+
+    saved = {k: v for k, v in dataclasses.asdict(small_cfg(reflect=False)).items() if k != "reflect"}
+    _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False))
+    with pytest.raises(InputError, match="neus.reflect=False"):
+        _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=True))
+    with pytest.raises(InputError, match="neus.max_res=24 \\(now 32\\)"):
+        _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False, max_res=32))

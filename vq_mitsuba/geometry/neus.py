@@ -556,6 +556,24 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
+# Keys that shape the networks: a checkpoint resumes only under the same values. A checkpoint
+# written before a key existed was made with the value given here.
+_ARCHITECTURE = {"levels": None, "base_res": None, "max_res": None, "features": None, "hidden": None,
+                 "geo_features": None, "reflect": False}
+
+
+def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
+    diff = []
+    for key, before in _ARCHITECTURE.items():
+        now = getattr(cfg, key)
+        then = saved.get(key, now if before is None else before)
+        if then != now:
+            diff.append(f"neus.{key}={then} (now {now})")
+    if diff:
+        raise InputError(path, "this NeuS checkpoint was made with " + ", ".join(diff) + "; resume with "
+                         "the same values (--set neus.KEY=VALUE), or start over without --resume")
+
+
 def train(neus: NeuS, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
           callback=None, callback_every_s: float = 0.0) -> dict:
     """Optimise the NeuS model; returns a summary. `callback(neus, step, train_seconds)` is called
@@ -581,6 +599,7 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
     ckpt = run_dir / CHECKPOINT if run_dir is not None else None
     if resume and ckpt is not None and ckpt.is_file():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        _check_architecture(ckpt, state.get("config") or {}, cfg)
         model.load_state_dict(state["model"])
         optim.load_state_dict(state["optim"])
         gen.set_state(state["generator"])
