@@ -3,8 +3,9 @@
     .venv/bin/python benchmarks/bench_geometry.py [--scenes demo texture balls] [--time-limit 600]
         [--checkpoint-every 60] [--resolution 128] [--n-train 64] [--test-views 4] [--set neus.key=value ...]
 
-For each scene: a dataset with N training views at R x R (data/NAME or data/geom_NAME when its
-scene.json matches, else benchmarks/out/data/NAME, else generated into data/geom_NAME), NeuS from
+For each scene: a dataset with N training views at R x R (DATA/NAME with --data, e.g.
+benchmarks/out/cycles128; otherwise data/NAME or data/geom_NAME when its scene.json matches,
+else benchmarks/out/data/NAME, else generated into data/geom_NAME), NeuS from
 its transforms_train.json (images and alpha masks only; Blender world) into
 benchmarks/out/geometry/NAME, with a time limit on training. Every --checkpoint-every seconds of
 training a mesh is extracted (128^3, outside the timed training) and scored; the final mesh is
@@ -39,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def find_dataset(name: str, resolution: int, n_train: int, progress: bool) -> Path:
+def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_root: Path | None = None) -> Path:
     def ok(folder: Path) -> bool:
         meta = folder / "scene.json"
         if not meta.is_file():
@@ -47,6 +48,12 @@ def find_dataset(name: str, resolution: int, n_train: int, progress: bool) -> Pa
         m = json.loads(meta.read_text())
         return m.get("resolution") == [resolution, resolution] and m.get("n_train") == n_train
 
+    if data_root is not None:  # --data: that folder's dataset or an error, nothing generated
+        folder = data_root / name
+        if not ok(folder):
+            raise SystemExit(f"{folder / 'scene.json'}: no dataset of {n_train} training views at {resolution} x "
+                             f"{resolution} px there (see --n-train and --resolution)")
+        return folder
     for folder in (ROOT / "data" / name, ROOT / "data" / f"geom_{name}", ROOT / "benchmarks" / "out" / "data" / name):
         if ok(folder):
             return folder
@@ -176,7 +183,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
         if args.materials:
             result["materials"] = material_runs(name, Path(result["dataset"]), ROOT / args.out / name / "mesh.ply", args)
         return result
-    data = find_dataset(name, args.resolution, args.n_train, not args.quiet)
+    data = find_dataset(name, args.resolution, args.n_train, not args.quiet, args.data)
     run_dir = ROOT / args.out / name
     for stale in ("neus.pt", "mesh.ply", "geometry.json"):
         (run_dir / stale).unlink(missing_ok=True)
@@ -270,6 +277,10 @@ def main() -> int:
     p.add_argument("--checkpoint-every", type=float, default=60.0, help="training seconds between scored meshes")
     p.add_argument("--resolution", type=int, default=128)
     p.add_argument("--n-train", type=int, default=64)
+    p.add_argument("--data", type=Path, default=None,
+                   help="folder of datasets named by scene (e.g. benchmarks/out/cycles128, Cycles renders); "
+                        "default: data/NAME, data/geom_NAME or benchmarks/out/data/NAME, else a Mitsuba dataset "
+                        "generated into data/geom_NAME")
     p.add_argument("--test-views", type=int, default=4, help="test views rendered for the novel-view PSNR")
     p.add_argument("--out", default="benchmarks/out/geometry")
     p.add_argument("--results", default="benchmarks/results")
