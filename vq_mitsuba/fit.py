@@ -312,10 +312,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         # the time used if larger, so that a fit stopped by the clock has run its whole schedule.
         # The learning rates follow the iterations alone (train.lr_decay_iterations): a short
         # budget's few steps need a large rate more than a finished schedule.
-        frac = step / max(total, 1)
+        done = step / max(total, 1)  # the share of iterations done
+        frac = done
         if t_limit > 0:
-            frac = min(max(frac, (elapsed_before + time.perf_counter() - t0) / t_limit), 1.0)
-        lr_frac = step / max(total, 1) if cfg.train.lr_decay_iterations else frac
+            frac = min(max(done, (elapsed_before + time.perf_counter() - t0) / t_limit), 1.0)
+        lr_frac = done if cfg.train.lr_decay_iterations else frac
         for g, lr in zip(optim.param_groups, base_lrs):
             g["lr"] = lr * cfg.train.lr_decay ** lr_frac
         w_lam = cfg.loss.w_lam * cfg.loss.lam_decay ** frac  # continuous branch's prior
@@ -335,7 +336,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
             idx = torch.randint(0, len(pool), (B,), generator=gen, device=device)
             hit_idx = idx
         model.set_progress(frac, cfg.field.pe_anneal, cfg.field.metallic_delay,
-                           pe_fraction=step / max(total, 1) if cfg.field.pe_anneal_iterations else None)
+                           pe_fraction=done if cfg.field.pe_anneal_iterations else None)
         # The material at each hit of the footprint, or at the pixel's first hit for all of them.
         out = model(pool.position[hit_idx.reshape(-1) if per_hit else idx])
         env = env_module() if learn_env else fixed_env
