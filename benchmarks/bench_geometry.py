@@ -216,9 +216,15 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
         "seconds": {"load_capture": round(load_s, 1), **secs,
                     "pipeline": round(load_s + secs["total"], 1)},
         "iterations": info["iterations"], "iterations_per_s": info["iterations_per_s"],
+        "iterations_per_s_spread": info.get("iterations_per_s_spread"),
         "final": final, "novel_views": views, "curve": curve, "mesh": info["mesh"],
         "load_average": {"start": load_before, "end": os.getloadavg()},
     }
+    spread = result["iterations_per_s_spread"]
+    if spread and spread["max"] > 1.3 * spread["min"]:
+        print(f"[{name}] warning: NeuS ran {spread['min']:.1f} to {spread['max']:.1f} steps/s over "
+              f"{spread['window_s']:.0f} s windows; another process probably shared the CPU, so its "
+              "time and its Chamfer at the time limit are not representative", flush=True)
     (run_dir / "bench.json").write_text(json.dumps(result, indent=2))
     if args.materials:
         result["materials"] = material_runs(name, data, run_dir / "mesh.ply", args)
@@ -236,17 +242,20 @@ def write_markdown(report: dict, path: Path) -> None:
              + ", ".join(f"{k} {v}" for k, v in report["versions"].items()) + ".", "",
              "Targets: whole geometry stage <= 15 min on 2 cores, Chamfer <= 1% of the bounding-box diagonal.", "",
              "| scene | iterations | train s | total s | Chamfer (% diag) | normal consistency | "
-             "shading normal deg (median / p90) | F@1% | novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "shading normal deg (median / p90) | F@1% | novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) | "
+             "steps/s (min / median / max over 30 s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["scenes"]:
         f, v = r["final"], r["novel_views"]
         la = r["load_average"]
+        sp = r.get("iterations_per_s_spread")
+        rate = f"{sp['min']:.1f} / {sp['median']:.1f} / {sp['max']:.1f}" if sp else "n/a"
         lines.append(f"| {r['scene']}{' (earlier run)' if r.get('reused') else ''} | {r['iterations']} | {r['seconds']['train']:.0f} | {r['seconds']['pipeline']:.0f} | "
                      f"{100 * f['chamfer_rel']:.3f} | {f['normal_consistency']:.4f} | "
                      f"{f.get('shading_normal_deg_median', float('nan')):.2f} / "
                      f"{f.get('shading_normal_deg_p90', float('nan')):.2f} | {f['f_score@0.01']:.3f} | "
                      f"{v.get('psnr', float('nan')):.2f} | {v.get('psnr_foreground', float('nan')):.2f} | "
-                     f"{la['start'][0]:.1f} / {la['end'][0]:.1f} |")
+                     f"{la['start'][0]:.1f} / {la['end'][0]:.1f} | {rate} |")
     lines += ["", "Time against Chamfer (training seconds; meshes at 128^3 for the checkpoints, "
                   f"{report['mesh_resolution']}^3 for the final row):", ""]
     for r in report["scenes"]:

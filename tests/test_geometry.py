@@ -16,7 +16,7 @@ from vq_mitsuba.capture.dataset import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.config import NeuSConfig, apply_overrides
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import ColorNetwork, DenseGrid, NeuS, camera_rays, reconstruct, train
+from vq_mitsuba.geometry.neus import ColorNetwork, DenseGrid, NeuS, camera_rays, rate_spread, reconstruct, train
 
 RADIUS = 0.5
 
@@ -341,3 +341,17 @@ def test_a_checkpoint_from_before_neus_reflect_counts_as_made_without_it(tmp_pat
         _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=True))
     with pytest.raises(InputError, match="neus.max_res=24 \\(now 32\\)"):
         _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False, max_res=32))
+
+
+def test_rate_spread_finds_a_slowed_stretch_of_training():
+    # 10 steps/s for 60 s, then 5 steps/s for 30 s (as when another process takes half the CPU).
+    steady = [{"step": 10 * t, "seconds": float(t)} for t in range(0, 61)]
+    slowed = [{"step": 600 + 5 * t, "seconds": 60.0 + t} for t in range(1, 31)]
+    spread = rate_spread(steady + slowed, window_s=30.0)
+    assert spread["max"] == pytest.approx(10.0) and spread["min"] == pytest.approx(5.0)
+    assert spread["median"] == pytest.approx(10.0)
+    assert rate_spread(steady[:20], window_s=30.0)["min"] == pytest.approx(10.0)  # a tail of 19 s counts
+    assert rate_spread(steady[:10], window_s=30.0) is None  # 9 s: too short to tell
+    # A slowdown in the last, shorter stretch is found too.
+    tail = [{"step": 600 + 5 * t, "seconds": 60.0 + t} for t in range(1, 21)]
+    assert rate_spread(steady + tail, window_s=30.0)["min"] == pytest.approx(5.0)

@@ -666,6 +666,27 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
     return {"iterations": step, "train_seconds": elapsed, "history": history, "stopped_by_time": stopped_by_time}
 
 
+def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
+    """Training steps per second over consecutive windows of about window_s training seconds:
+    min, median and max. A wide spread on a fixed-size step means that something else shared the
+    CPU (the step's cost does not depend on the scene's progress)."""
+    rates, start = [], None
+    for h in history:
+        if start is None:
+            start = h
+            continue
+        if h["seconds"] - start["seconds"] >= window_s:
+            rates.append((h["step"] - start["step"]) / (h["seconds"] - start["seconds"]))
+            start = h
+    last = history[-1] if history else None
+    if start is not None and last is not start and last["seconds"] - start["seconds"] >= 0.5 * window_s:
+        rates.append((last["step"] - start["step"]) / (last["seconds"] - start["seconds"]))  # the tail
+    if not rates:
+        return None
+    return {"window_s": window_s, "min": float(np.min(rates)), "median": float(np.median(rates)),
+            "max": float(np.max(rates))}
+
+
 def _plot_history(history: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -727,6 +748,7 @@ def _reconstruct(capture, run_dir: Path, cfg: NeuSConfig, resume, progress, call
                     "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
                     "total": round(time.perf_counter() - t0, 2)},
         "iterations_per_s": summary["iterations"] / max(summary["train_seconds"], 1e-9),
+        "iterations_per_s_spread": rate_spread(summary["history"]),
         "final_train_psnr": last.get("psnr"),
         "final_sharpness_s": last.get("s"),
         "box_center": neus.center.tolist(),
