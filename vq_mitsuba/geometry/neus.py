@@ -669,7 +669,8 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
 def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
     """Training steps per second over consecutive windows of about window_s training seconds:
     min, median and max. A wide spread on a fixed-size step means that something else shared the
-    CPU (the step's cost does not depend on the scene's progress)."""
+    CPU (the step's cost hardly depends on the training's progress: a fixed number of rays and
+    samples per ray)."""
     rates, start = [], None
     for h in history:
         if start is None:
