@@ -26,7 +26,7 @@ class NeuSConfig:
     features: int = 2  # features per grid level
     hidden: int = 64  # width of the SDF and colour MLPs
     geo_features: int = 15  # SDF-network features passed to the colour network
-    reflect: bool = True  # the colour network sees the view direction reflected about the normal and their cosine (as Ref-NeRF, NeRO), not the view direction: a glossy surface's highlights then follow its normal, so a smooth surface explains them; Cycles data, basecolor gap to the true mesh (mean over material seeds): texture 1.27 dB (3 seeds) against 2.41 without (2 seeds), balls 0.55, demo -0.28 (-0.41 without)
+    reflect: bool = True  # the colour network sees the view direction reflected about the normal and their cosine (as Ref-NeRF, NeRO), not the view direction: a glossy surface's highlights then follow its normal, so a smooth surface explains them; Cycles data, basecolor gap to the true mesh (mean over material seeds): texture 1.45 dB (4 seeds) against 2.41 without (2 seeds), balls 0.87, demo -0.28 (-0.41 without)
     coarse_to_fine: float = 0.3  # fraction of training (steps or time) over which finer grid levels are faded in
     init: str = "hull"  # SDF initialisation: hull (smoothed visual-hull distance) or sphere
     init_radius: float = 0.6  # sphere initialisation radius (normalised box units)
