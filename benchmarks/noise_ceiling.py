@@ -22,6 +22,20 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 
+def true_scene(root: Path, meta: dict, shapes: dict, env_name: str):
+    """The dataset's true shapes (from scene_test.xml) under its envmaps/ENV_NAME.exr, rendered as
+    the dataset was: path tracing to its max_depth, the emitter hidden."""
+    import mitsuba as mi
+
+    from vq_mitsuba import envmaps
+    from vq_mitsuba.capture.imageio import read_exr
+
+    env = read_exr(root / "envmaps" / f"{env_name}.exr")[..., :3]
+    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": int(meta.get("max_depth", 4)),
+                                                         "hide_emitters": True},
+                         "envmap": envmaps.to_mitsuba_dict(env, blender_world=False), **shapes})
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dataset", help="a folder written by `vq-mitsuba make-scene` (either renderer)")
@@ -36,7 +50,6 @@ def main(argv=None) -> int:
 
     import mitsuba as mi
 
-    from vq_mitsuba import envmaps
     from vq_mitsuba import metrics as M
     from vq_mitsuba.capture.imageio import read_exr
     from vq_mitsuba.rendering import init_mitsuba
@@ -55,11 +68,7 @@ def main(argv=None) -> int:
             p.error(f"{root}: no envmaps/{name}.exr with relit/{name}/ views")
     summary = {}
     for name in ["train"] + envs:
-        env = read_exr(root / "envmaps" / f"{name}.exr")[..., :3]
-        d = {"type": "scene", "integrator": {"type": "path", "max_depth": int(meta.get("max_depth", 4)),
-                                             "hide_emitters": True},
-             "envmap": envmaps.to_mitsuba_dict(env, blender_world=False), **shapes}
-        truth = mi.load_dict(d)
+        truth = true_scene(root, meta, shapes, name)
         values = []
         ref_dir = root / "images" if name == "train" else root / "relit" / name
         for i, (sensor, mask) in enumerate(zip(sensors, masks)):

@@ -32,10 +32,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import mitsuba as mi
-    from PIL import Image
+    from noise_ceiling import true_scene
 
-    from vq_mitsuba import envmaps
-    from vq_mitsuba.capture.imageio import read_exr
+    from vq_mitsuba.evaluate import load_ground_truth
     from vq_mitsuba.rendering import init_mitsuba
 
     root = args.dataset
@@ -48,19 +47,15 @@ def main(argv=None) -> int:
     names = {i + 1: m.get("name", f"material {i + 1}") for i, m in enumerate(meta.get("materials", []))}
     scene = mi.load_file(str(root / "scene_test.xml"))
     shapes = {s.id(): s for s in scene.shapes()}
-    env = read_exr(root / "envmaps" / "train.exr")[..., :3]
-    truth = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": int(meta.get("max_depth", 4)),
-                                                          "hide_emitters": True},
-                          "envmap": envmaps.to_mitsuba_dict(env, blender_world=False), **shapes})
+    truth = true_scene(root, meta, shapes, "train")
     sums: dict[int, list[np.ndarray]] = {}
     for i, sensor in enumerate(scene.sensors()[:args.views]):
         mine = np.array(mi.render(truth, sensor=sensor, spp=args.spp, seed=11 + i))[..., :3]
-        theirs = read_exr(root / "images" / f"{sensor.id()}.exr")[..., :3]
-        label_path = root / "gt" / f"{sensor.id()}_material.png"
-        if not label_path.is_file():
-            p.error(f"{label_path}: missing (the per-material split needs the dataset's material labels)")
-        labels = np.array(Image.open(label_path))
-        labels = labels[..., 0] if labels.ndim == 3 else labels
+        gt = load_ground_truth(root, sensor.id())
+        if "material" not in gt:
+            p.error(f"{root / 'gt' / (sensor.id() + '_material.png')}: missing (the per-material split needs "
+                    "the dataset's material labels)")
+        theirs, labels = gt["rgb"], gt["material"]
         for m in np.unique(labels):
             if m == 0:
                 continue
