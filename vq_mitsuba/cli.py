@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .errors import InputError
+from vq_mitsuba.errors import InputError
 
 
 def _run_dir(args, command: str) -> Path:
@@ -16,53 +16,64 @@ def _run_dir(args, command: str) -> Path:
     return Path(args.output) if args.output else Path("runs") / Path(args.capture).resolve().parent.name
 
 
+def _help_config() -> int:
+    from vq_mitsuba.config import describe, presets
+
+    print("Config keys (set them in a preset, a YAML file, or with --set section.key=value):")
+    print("\n".join(describe()))
+    print(f"Presets (--preset NAME, configs/NAME.yaml): {', '.join(presets())}")
+    return 0
+
+
+def _config(args, run_dir: Path | None = None):
+    """Defaults <- the run's saved config (on --resume) <- --preset <- --config <- --set."""
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.run_dir import RunDir
+
+    base = RunDir(run_dir).saved_config() if (args.resume and run_dir is not None) else None
+    return load_config(args.config, args.set, base=base, preset=args.preset)
+
+
 def _cmd_fit(args) -> int:
-    from .config import describe, load_config
-    from .fit import fit
+    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.engine.trainer import fit
 
     if args.help_config:
-        print("Config keys (set them in a YAML file or with --set section.key=value):")
-        print("\n".join(describe()))
-        return 0
+        return _help_config()
     run_dir = _run_dir(args, "fit")
-    base = None
-    if args.resume and (run_dir / "config.yaml").is_file():
-        import yaml
-
-        base = yaml.safe_load((run_dir / "config.yaml").read_text())
-    neus_sets = [s for s in args.set if s.strip().startswith("neus.")]
-    cfg = load_config(args.config, [s for s in args.set if s not in neus_sets], base=base)
+    cfg = _config(args, run_dir)  # bad keys and values fail before any work
     mesh_path = args.mesh
     if args.geometry == "neus" and args.mesh is not None:
         raise InputError(args.mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; drop one")
     if args.geometry != "given" and args.mesh is None:
-        from .geometry.pipeline import capture_has_geometry, ensure_geometry
+        from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
 
         if args.geometry == "neus" or not capture_has_geometry(args.capture):
-            if (run_dir / "checkpoint.pt").exists() and not args.resume:
+            run = RunDir(run_dir)
+            if run.has_checkpoint() and not args.resume:
                 raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
-            reused = args.resume and (run_dir / "mesh.ply").is_file()
-            mesh_path = ensure_geometry(args.capture, run_dir, neus_sets, config_file=args.config,
-                                        resume=args.resume, progress=not args.quiet)
+            reused = args.resume and (run / RunDir.MESH).is_file()
+            mesh_path = ensure_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet)
             print(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh_path}")
     summary = fit(args.capture, run_dir, cfg, mesh_path=mesh_path, resume=args.resume, progress=not args.quiet)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
           f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")
+    materials = RunDir(run_dir).materials()
+    if materials is not None and cfg.vq.enabled:
+        print(f"materials: M = {materials['num_materials']} ({run_dir}/materials.json, materials_sheet.png, "
+              "materials_err.png)")
     return 0
 
 
 def _cmd_geometry(args) -> int:
-    from .geometry.pipeline import run_geometry
+    from vq_mitsuba.geometry.pipeline import run_geometry
 
     if args.help_config:
-        from .geometry.config import describe
-
-        print("NeuS config keys (set them with --set neus.key=value, or a `neus:` section of --config):")
-        print("\n".join(describe()))
-        return 0
+        return _help_config()
     run_dir = _run_dir(args, "geometry")
-    info = run_geometry(args.capture, run_dir, args.set, config_file=args.config, resume=args.resume,
-                        progress=not args.quiet, gt_mesh=args.gt_mesh)
+    cfg = _config(args)
+    info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
+                        gt_mesh=args.gt_mesh)
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
@@ -75,17 +86,33 @@ def _cmd_geometry(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from .render import render_run
+    """Reads the finished run through RunDir and renders it: no training module is imported."""
+    import json
 
-    out = render_run(args.run_dir, args.cameras, args.output, envmap_path=args.envmap,
-                     env_rotate_deg=args.env_rotate, exposure_ev=args.exposure, spp=args.spp,
-                     progress=not args.quiet)
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.data.imageio import read_image
+    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.render.views import render_views
+
+    run = RunDir(args.run_dir)
+    fitted = run.load()
+    cameras, world, _ = load_cameras(args.cameras)  # input checks before any rendering
+    envmap = read_image(args.envmap)[0] if args.envmap is not None else None
+    out = Path(args.output) if args.output else run.dir / "renders"
+    out.mkdir(parents=True, exist_ok=True)
+    render_views(fitted, cameras, world, out, envmap=envmap, env_rotate_deg=args.env_rotate,
+                 exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet)
+    (out / "render.json").write_text(json.dumps({
+        "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
+        "envmap": str(Path(args.envmap).resolve()) if args.envmap else "fitted",
+        "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
+    }, indent=2))
     print(f"rendered views in {out}/")
     return 0
 
 
 def _cmd_eval(args) -> int:
-    from .evaluate import evaluate, format_table
+    from vq_mitsuba.eval.evaluate import evaluate, format_table
 
     metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
                        progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
@@ -96,7 +123,7 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_make_scene(args) -> int:
-    from . import synthetic
+    from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
     if args.list or args.name is None:
         print("bundled scenes: " + ", ".join(synthetic.SCENES))
@@ -107,7 +134,7 @@ def _cmd_make_scene(args) -> int:
     kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
                                 ("n_test", args.n_test)) if v is not None}
     if args.renderer == "cycles":
-        from . import cycles
+        from vq_mitsuba.synthetic import cycles
 
         cycles.check_environment()  # before any work: names the missing interpreter and `make cycles`
         cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
@@ -138,14 +165,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
 
-    f = sub.add_parser("fit", help="fit materials (and lighting, if unknown) to a capture",
-                       description="Fit the continuous material branch and the environment map to a capture "
-                                   "with known geometry. Writes RUN_DIR (config.yaml, checkpoint.pt, mesh.ply, "
-                                   "envmap.exr, loss.png, fit.json).")
+    f = sub.add_parser("fit", help="decompose a capture into materials and lighting (VQ-NeRF)",
+                       description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the "
+                                   "continuous and discrete material branches, the lighting if unknown, and the "
+                                   "ranked materials. Writes RUN_DIR (docs/run_dir.md): config.yaml, checkpoint.pt, "
+                                   "mesh.ply, envmap.exr, materials.json, materials_err.png, materials_sheet.png, "
+                                   "loss.png, fit.json.")
     f.add_argument("capture", nargs="?", help="Mitsuba scene XML (sensors + images/<id>.exr|png), a "
                                               "transforms_*.json (NeRF-synthetic), or the folder holding one")
     f.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
-    f.add_argument("--config", help="YAML preset, e.g. configs/demo.yaml (see --help-config)")
+    f.add_argument("--preset", metavar="NAME", help="named preset configs/NAME.yaml, e.g. continuous (see --help-config)")
+    f.add_argument("--config", help="a YAML config file, applied after --preset")
     f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config key, e.g. --set train.iterations=500 (repeatable)")
     f.add_argument("--mesh", help="known geometry (PLY/OBJ) for a NeRF-synthetic capture")
@@ -155,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "reconstruct with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus: always "
                         "reconstruct from the images (needs alpha masks); given: never reconstruct")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
-    f.add_argument("--help-config", action="store_true", help="list every config key with its default and meaning")
+    f.add_argument("--help-config", action="store_true", help="list every config key and preset")
     f.set_defaults(func=_cmd_fit)
 
     g = sub.add_parser("geometry", help="reconstruct a mesh from posed images with alpha masks (NeuS)",
@@ -164,18 +194,20 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the NeuS checkpoint neus.pt. Known geometry in the capture is ignored.")
     g.add_argument("capture", nargs="?", help="Mitsuba scene XML, a transforms_*.json, or the folder holding one")
     g.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
-    g.add_argument("--config", help="YAML file whose `neus:` section sets NeuS keys")
+    g.add_argument("--preset", metavar="NAME", help="named preset configs/NAME.yaml (its `neus` section applies)")
+    g.add_argument("--config", help="a YAML config file (its `neus` section applies)")
     g.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE",
-                   help="override one NeuS key, e.g. --set neus.iterations=3000 (repeatable)")
+                   help="override one key, e.g. --set neus.iterations=3000 (repeatable)")
     g.add_argument("--gt-mesh", help="score the mesh against this ground-truth mesh (Chamfer, normal consistency)")
     g.add_argument("--resume", action="store_true", help="continue from RUN_DIR/neus.pt")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
-    g.add_argument("--help-config", action="store_true", help="list every NeuS config key with its default")
+    g.add_argument("--help-config", action="store_true", help="list every config key and preset")
     g.set_defaults(func=_cmd_geometry)
 
     r = sub.add_parser("render", help="render novel views, material maps and relighting of a fitted run",
                        description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, "
-                                   "NAME_metallic.exr, NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png.")
+                                   "NAME_metallic.exr, NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png, and with "
+                                   "the discrete branch NAME_material.png (ids) and NAME_segmentation.png (overlay).")
     r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
     r.add_argument("--envmap", help="relight with this lat-long HDR image (EXR), in the capture's world "

@@ -12,98 +12,174 @@ from pathlib import Path
 
 import yaml
 
-from .errors import InputError
+from vq_mitsuba.errors import InputError
 
 
 @dataclass
 class FieldConfig:
+    """The material field: encoder MLP with positional encoding, latent z, BRDF decoders."""
+
     pe_freqs: int = 8  # positional-encoding frequencies of the surface point
-    hidden: int = 128  # width of the encoder's 7 FC layers (paper: 256)
+    hidden: int = 128  # width of the encoder's 7 FC layers
     latent: int = 16  # dimension of the latent z
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
-    roughness_min: float = 0.02  # roughness output range is [roughness_min, 1]
-    pe_anneal: float = 0.5  # fraction of training over which encoding frequencies open (0: all at once)
-    pe_anneal_iterations: bool = False  # open the frequencies with the share of train.iterations done, also under a time limit (off: with the training progress, which under train.time_limit_s follows the clock, so a short budget opens them all)
-    metallic_delay: float = 0.0  # fraction of training with metallic held at 0 (dielectric first); it then fades in over as long again (0: no delay)
-    metallic_init: float = 0.02  # metallic output at initialisation, through the last layer's bias (0: PyTorch's default initialisation, about 0.5)
+    roughness_min: float = 0.02  # lower end of the roughness output range [roughness_min, 1]
+    pe_anneal: float = 0.5  # share of training over which the encoding frequencies open (0: all at once)
+    metallic_init: float = 0.02  # metallic output at initialisation (0: PyTorch's default, about 0.5)
 
 
 @dataclass
 class EnvmapConfig:
-    height: int = 32  # rows of the learned lat-long envmap (width is twice this)
-    init_scale: float = 2.0  # initial radiance = init_scale x mean foreground pixel value
+    """The learned lat-long environment map (used only when the capture's lighting is unknown)."""
+
+    height: int = 32  # rows of the learned envmap (width is twice this)
+    init_scale: float = 2.0  # initial radiance as a multiple of the mean foreground pixel value
     lr: float = 0.02  # Adam learning rate of the log-radiance texels
-    tv_weight: float = 1e-4  # smoothness of the log radiance (neighbouring texels)
+    tv_weight: float = 1e-4  # weight of the smoothness term on neighbouring log-radiance texels
 
 
 @dataclass
 class LossConfig:
+    """Loss weights of both branches (the paper's w1..w6)."""
+
     w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
-    w_lam: float = 1e-4  # w5: Lambertian prior (metallic -> 0, roughness -> 1); the paper's 0.001 is for its loss scale and saturates roughness at 1 with ours
-    lam_metallic: float = 2.0  # weight of L_lam's metallic term relative to its roughness term (the paper: 1; 2 keeps balls' glossy plastic dielectric, 3 lowers demo's partly metallic torus)
-    lam_decay: float = 0.1  # w5 at the end of training relative to its start, decayed like the learning rate (1: constant): the prior settles ambiguities early, then biases converged materials less towards rough
-    metallic_barrier: bool = True  # L_lam's metallic term as -log(1 - metallic) (false: metallic, the paper's): its pull on the metallic logit does not vanish where metallic saturates at 1, so a glossy dielectric does not saturate as a rough metal while the encoding is still coarse (balls' green plastic)
-    metallic_barrier_until: float = 0.3  # training progress in (0, 1] up to which loss.metallic_barrier applies, after it the paper's linear term: the barrier holds while the encoding is coarse (where balls' green plastic saturated as a metal) and then stops pulling true metals down (balls: metals 0.94-0.98 instead of 0.90-0.93); 1: the whole fit
-    decorrelated: bool = True  # L_rec from two independent half-estimates (no bias towards low-variance materials)
     w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
-    w_chr: float = 1.0  # w3: chromaticity of discrete vs continuous basecolor
+    w_chr: float = 1.0  # w3: chromaticity of the discrete against the continuous basecolor
     w_vq: float = 1.0  # w4: VQ (commitment) loss
-    w_sm: float = 0.0  # w6: colour-aware smoothness on neighbouring pixels (paper: 0.05; at our loss scale it over-smooths, see README)
-    sm_alpha: float = 60.0  # alpha: how fast image differences switch the smoothness off
-    sm_beta: float = 0.1  # beta: weight of metallic/roughness differences in L_sm
-    gamma: float = 2.2  # reconstruction is compared on x^(1/gamma): HDR highlights do not dominate
+    w_lam: float = 1e-4  # w5: Lambertian prior (metallic towards 0, roughness towards 1)
+    lam_metallic: float = 2.0  # weight of the Lambertian prior's metallic term relative to its roughness term
+    lam_decay: float = 0.1  # w5 at the end of training relative to its start (1: constant)
+    metallic_barrier_until: float = 0.3  # training share in (0, 1] during which the metallic prior is -log(1 - metallic)
+    w_sm: float = 0.0  # w6: colour-aware smoothness of neighbouring pixels (0: off)
+    sm_alpha: float = 60.0  # alpha of L_sm: how fast image differences switch the smoothness off
+    sm_beta: float = 0.1  # beta of L_sm: weight of metallic/roughness differences
+    gamma: float = 2.2  # reconstruction compares x^(1/gamma)
 
 
 @dataclass
 class VQConfig:
-    enabled: bool = False  # train the discrete branch (experimental; off: continuous branch only, the "single branch" ablation)
-    num_codes: int = 8  # M0: codebook size (15 for complex scenes)
-    warmup_frac: float = 0.3  # continuous-only warm-up, then the codebook starts from k-means of the latents
+    """The discrete branch: codebook, codeword dropout and the choice of the material count M."""
+
+    enabled: bool = True  # train the discrete branch and rank its codewords (false: continuous branch only)
+    num_codes: int = 8  # M0: codebook size
+    warmup_frac: float = 0.3  # share of training before the codebook starts (from k-means of the latents)
     decay: float = 0.99  # EMA decay of the codebook updates
     commitment: float = 0.1  # lambda of the VQ loss (Eq. 8)
-    dropout_max: float = 0.7  # codeword dropout rates rise linearly from 0 to this over the codebook
+    dropout_max: float = 0.7  # codeword dropout rate of the last codeword (rates rise linearly to it)
     protected: int = 1  # first codewords that are never dropped
-    ranking: bool = True  # choose M with the err_k rule (off: M = num_codes, the "no ranking" ablation)
-    rank_eps: float = 0.002  # epsilon of the err_k flattening rule
-    rank_pixels: int = 4096  # training pixels used to measure err_k
-    min_share: float = 0.005  # codewords picked by fewer pixels than this share are not ranked as materials
-    merge_tol: float = 0.1  # a codeword decoding to within this of a higher-ranked one's BRDF (gamma basecolor, metallic, roughness; max abs difference) is a duplicate, ranked behind the distinct ones (0: off)
-    redundant_last: bool = True  # a codeword inside the chosen prefix that lowers err_k by less than rank_eps moves to the end and err_k is measured again (off: the paper's single pass)
-    joint: bool = True  # discrete gradients also train the encoder (off: "separate" training)
-    joint_scale: float = 0.05  # with vq.joint, the share in (0, 1] of the discrete branch's gradients (straight-through and commitment) that reaches the shared encoder; 1: the paper's joint training, under which the discrete loss (w2 = 5 w1) dominates the encoder and costs the continuous basecolor (texture at 128 px, 300 s: 25.7 against 30.7 dB alone; 0.2 still cost it 3.8 dB with seed 0)
-    lam_decay: float = 0.1  # the Lambertian prior's decay on the discrete branch, like loss.lam_decay on the continuous one (1: constant)
-    light_from_continuous: bool = True  # the discrete branch is rendered under the environment map and indirect bounce that the continuous branch fits, without training them (off: its loss trains them too, the paper's shared light)
-    warm_start_decoder: bool = True  # the discrete decoder starts as a copy of the continuous one (off: random)
-    forced_gradient: bool = False  # straight-through gradient also for latents that dropout forced onto another codeword (on: their discrete loss moves the encoder towards a material that is not theirs)
-    single_branch: bool = False  # after warm-up, train the discrete branch alone (no L_rec,c, no L_chr): an ablation
+    rank_eps: float = 0.002  # epsilon of the err_k rule that chooses M
+    rank_pixels: int = 4096  # training pixels on which err_k is measured
+    min_share: float = 0.005  # codewords chosen by fewer pixels than this share are not materials
+    merge_tol: float = 0.1  # codewords decoding within this BRDF distance of a higher-ranked one are duplicates (0: off)
+    joint_scale: float = 0.05  # share in (0, 1] of the discrete branch's gradient that reaches the shared encoder
+    lam_decay: float = 0.1  # Lambertian prior decay on the discrete branch (1: constant)
+
+
+@dataclass
+class AblationConfig:
+    """Switches of the paper's ablations; each preset configs/ablation_*.yaml sets one."""
+
+    no_ranking: bool = False  # M = vq.num_codes, no dropout ranking
+    separate: bool = False  # the discrete branch's gradients do not reach the encoder
+    single_branch: bool = False  # after the warm-up, train the discrete branch alone
+    shared_light: bool = False  # the discrete loss also trains the envmap and the bounce light
+    single_pass_ranking: bool = False  # the paper's single ranking pass (no moving of redundant codewords)
 
 
 @dataclass
 class TrainConfig:
+    """The training loop."""
+
     iterations: int = 3000  # optimisation steps
     batch_rays: int = 2048  # random foreground pixels per step, drawn across all training views
     spp: int = 8  # emitter + BSDF sample pairs per pixel and step
-    lr: float = 2e-3  # Adam learning rate of the material fields
-    lr_decay: float = 0.1  # learning rates decay exponentially to this fraction at the end
-    lr_decay_iterations: bool = True  # the learning rates decay with the share of train.iterations done, also under a time limit, so a fit the clock stops early ends at a higher rate (off: with the training progress, which under train.time_limit_s follows the clock: a 30 s fit then spends most of its few steps at a small rate, and lost 5.5 to 7.6 dB of basecolor against a constant rate on balls and texture at 128 px)
-    seed: int = 0  # seeds torch (networks, batches, light samples)
-    checkpoint_every: int = 500  # steps between checkpoints (a run resumes from the last one)
+    lr: float = 2e-3  # Adam learning rate of the material networks
+    lr_decay: float = 0.1  # learning-rate factor reached at the last iteration (exponential decay)
+    seed: int = 0  # seed of the networks, batches and light samples
+    checkpoint_every: int = 500  # steps between checkpoints
     log_every: int = 50  # steps between loss-curve entries
-    alpha_threshold: float = 0.99  # pixels with alpha below this are not used for the loss
-    pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre only)
-    footprint: bool = False  # a pixel's spp samples are spread over its jittered hits (materials: train.footprint_per_hit): the loss compares pixel averages, so sharp reflections are not fitted rougher to cut the variance across the pixel
-    footprint_per_hit: bool = True  # with train.footprint, the material field is evaluated at every jittered hit of the pixel (false: the first hit's material for all of them, as before); a texture edge inside a pixel is then fitted as such
-    bounces: int = 1  # interreflections simulated (0: direct light only, 1: one bounce off the object)
-    bounce_after: int = 300  # training steps before train.bounces are simulated: the first ones shade direct light only, each about 1.3x faster (0: the bounce from the first step); a short train.time_limit_s gets more steps, and the early materials are far from needing the bounce
-    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit); the other schedules then follow the clock when it runs ahead of the iterations
-    snapshot_s: str = ""  # comma-separated fit seconds at which to keep a copy of the state in snapshots/ (time-vs-error curves)
+    alpha_threshold: float = 0.99  # pixels with alpha below this are not fitted
+    pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre)
+    bounces: int = 1  # interreflections simulated (0: direct light only)
+    bounce_after: int = 300  # steps of direct light only before the bounce is simulated
+    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit)
+    snapshot_s: str = ""  # comma-separated fit seconds at which a copy of the state is kept in snapshots/
 
 
 @dataclass
 class RenderConfig:
-    spp: int = 256  # samples per pixel when rendering views (primary rays x light samples)
-    aa: int = 16  # primary rays per pixel, stratified over the pixel (a square number)
-    chunk: int = 65536  # surface points shaded per Mitsuba call (more: fewer calls, more memory)
+    """Rendering views of a fitted run."""
+
+    spp: int = 256  # samples per pixel (primary rays x light samples)
+    aa: int = 16  # primary rays per pixel, stratified (a square number)
+    chunk: int = 65536  # surface points shaded per Mitsuba call
+
+
+@dataclass
+class NeuSConfig:
+    """The geometry stage: NeuS on posed, masked images, then mesh export."""
+
+    seed: int = 0  # seed of the networks, ray batches and sample jitter
+    iterations: int = 4000  # training steps
+    time_limit_s: float = 600.0  # stop training after this many seconds (0: no limit)
+    batch_rays: int = 512  # rays per step, drawn from all views
+    n_samples: int = 24  # stratified samples per ray inside its occupied interval
+    lr: float = 1e-2  # Adam learning rate of the feature grids and the colour network
+    lr_sdf_mlp: float = 1e-3  # Adam learning rate of the SDF MLP
+    lr_variance: float = 2e-3  # Adam learning rate of the sharpness parameter
+    lr_decay: float = 0.1  # learning rate at the end relative to the start (cosine decay)
+    warmup: int = 100  # steps of linear learning-rate warm-up
+    levels: int = 4  # resolution levels of the dense feature grid
+    base_res: int = 16  # coarsest grid resolution (points per axis)
+    max_res: int = 64  # finest grid resolution
+    features: int = 2  # features per grid level
+    hidden: int = 64  # width of the SDF and colour MLPs
+    geo_features: int = 15  # SDF-network features passed to the colour network
+    reflect: bool = True  # the colour network sees the reflected view direction instead of the view direction
+    coarse_to_fine: float = 0.3  # share of training over which finer grid levels fade in
+    init: str = "hull"  # SDF initialisation: hull (smoothed visual-hull distance) or sphere
+    init_radius: float = 0.6  # radius of the sphere initialisation (normalised box units)
+    init_variance: float = 0.5  # initial log-sharpness / 10 (s = exp(10 * variance))
+    w_eikonal: float = 0.1  # eikonal loss weight
+    w_mask: float = 0.1  # mask loss weight (BCE on the accumulated opacity)
+    hull_resolution: int = 128  # visual-hull / occupancy grid resolution
+    hull_threshold: float = 0.5  # alpha above which a pixel is foreground for carving
+    hull_min_views: float = 0.75  # share of the views whose frusta must hold a voxel for it to be carved in
+    occupancy_every: int = 500  # steps between occupancy-grid refreshes from the SDF
+    march_steps: int = 128  # coarse steps per ray that find its occupied interval
+    mesh_resolution: int = 256  # marching-cubes grid resolution
+    min_component: float = 0.05  # connected pieces smaller than this share of the largest are dropped
+    keep_largest: bool = False  # keep only the largest connected component
+    smooth_iterations: int = 0  # Taubin smoothing steps after marching cubes
+    normal_smoothing: int = 20  # vertex-normal averaging steps over edge neighbours (positions kept)
+    max_faces: int = 200000  # quadric decimation to this many faces (0: none)
+    checkpoint_every: int = 500  # steps between NeuS checkpoints
+    threads: int = 1  # torch CPU threads for NeuS (0: torch's default)
+
+
+@dataclass
+class TexelConfig:
+    """The per-texel baseline (`vq_mitsuba.eval.texel`): principled textures on a UV atlas."""
+
+    resolution: int = 256  # texels per side of each material texture
+    uv_padding: int = 2  # texels between charts in the UV atlas
+    envmap_height: int = 32  # rows of the learned lat-long envmap (width is twice this)
+    env_init_scale: float = 2.0  # initial radiance as a multiple of the mean foreground pixel value
+    spp: int = 16  # samples per pixel of each training render
+    max_depth: int = 3  # path length of the integrator (3: direct light plus one bounce)
+    views_per_step: int = 1  # random whole training views rendered per Adam step
+    lr_texture: float = 0.05  # Adam learning rate of the texels
+    lr_envmap: float = 0.03  # Adam learning rate of the envmap's log radiance
+    lr_decay: float = 0.1  # learning-rate factor reached at the time limit
+    gamma: float = 2.2  # the loss compares x^(1/gamma)
+    tv_weight: float = 1.0  # weight of the mean squared difference of neighbouring texels
+    env_tv_weight: float = 1e-4  # weight of the smoothness of the envmap's log radiance
+    init_basecolor: float = 0.5  # initial basecolor texels
+    init_metallic: float = 0.1  # initial metallic texels
+    init_roughness: float = 0.5  # initial roughness texels
+    roughness_min: float = 0.02  # roughness texels are clamped to [roughness_min, 1]
+    iterations: int = 0  # stop after this many steps (0: only the time limit)
+    seed: int = 0  # seed of the view order and the Monte Carlo samples
 
 
 @dataclass
@@ -114,6 +190,25 @@ class Config:
     vq: VQConfig = dataclasses.field(default_factory=VQConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
+    neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
+    ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)
+    texel: TexelConfig = dataclasses.field(default_factory=TexelConfig)
+
+
+PRESETS_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def presets() -> list[str]:
+    """Names of the presets in configs/."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def preset_path(name: str) -> Path:
+    """configs/NAME.yaml; an InputError listing the presets when there is none of that name."""
+    path = PRESETS_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise InputError(None, f"unknown preset '{name}' (presets: {', '.join(presets())})")
+    return path
 
 
 def to_dict(cfg) -> dict:
@@ -169,47 +264,74 @@ def read_config_file(path: str | Path) -> dict:
 
 def _check_ranges(cfg: Config, source) -> None:
     """Values that parse but make no sense; `source` is the layer that set them (file or --set)."""
+    def fail(message: str):
+        raise InputError(source, message)
+
     if not 0.0 <= cfg.field.metallic_init < 1.0:
-        raise InputError(source, f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
-    per_set = cfg.train.spp // (2 if cfg.loss.decorrelated else 1)
-    if cfg.train.footprint and cfg.train.pixel_jitter > 1 and per_set % cfg.train.pixel_jitter != 0:
-        raise InputError(source, f"train.footprint spreads each sample set ({per_set} samples: train.spp"
-                         f"{' / 2, loss.decorrelated' if cfg.loss.decorrelated else ''}) over train.pixel_jitter = "
-                         f"{cfg.train.pixel_jitter} hits: make it a multiple of pixel_jitter")
+        fail(f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
     for key, value, one in (("loss.lam_decay", cfg.loss.lam_decay, "a constant Lambertian prior"),
                             ("vq.lam_decay", cfg.vq.lam_decay, "a constant Lambertian prior"),
                             ("vq.joint_scale", cfg.vq.joint_scale, "the full joint gradient"),
                             ("loss.metallic_barrier_until", cfg.loss.metallic_barrier_until, "the whole fit")):
         if not 0.0 < value <= 1.0:
-            raise InputError(source, f"{key} must be in (0, 1] (1: {one}), got {value}")
+            fail(f"{key} must be in (0, 1] (1: {one}), got {value}")
     if cfg.train.bounce_after < 0:
-        raise InputError(source, f"train.bounce_after must be >= 0 steps (0: bounces from the first step), "
-                         f"got {cfg.train.bounce_after}")
+        fail(f"train.bounce_after must be >= 0 steps (0: bounces from the first step), got {cfg.train.bounce_after}")
+    if cfg.vq.num_codes < 1:
+        fail(f"vq.num_codes must be >= 1, got {cfg.vq.num_codes}")
+    check_neus(cfg.neus, source)
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None) -> Config:
-    """Defaults <- `base` (e.g. a run's saved config) <- YAML file <- `key=value` overrides."""
-    cfg = Config()
-    if base:
-        _apply(cfg, base, "config.yaml")
-        _check_ranges(cfg, "config.yaml")
-    if path is not None:
-        data = read_config_file(path)
-        data.pop("neus", None)  # the geometry stage's section (vq_mitsuba.geometry.config)
-        _apply(cfg, data, path)
-        _check_ranges(cfg, path)
+def check_neus(n: NeuSConfig, source=None) -> None:
+    """The `neus` section's value ranges."""
+    if n.init not in ("hull", "sphere"):
+        raise InputError(source, f"neus.init must be 'hull' or 'sphere', got {n.init!r}")
+    for key in ("iterations", "batch_rays", "n_samples", "levels", "base_res", "max_res", "features", "hidden",
+                "hull_resolution", "march_steps", "mesh_resolution"):
+        if getattr(n, key) < 1:
+            raise InputError(source, f"neus.{key} must be positive, got {getattr(n, key)}")
+    for key in ("smooth_iterations", "normal_smoothing", "max_faces"):
+        if getattr(n, key) < 0:
+            raise InputError(source, f"neus.{key} must be >= 0, got {getattr(n, key)}")
+    if n.base_res < 2 or n.max_res < n.base_res:
+        raise InputError(source, "neus.base_res must be >= 2 and neus.max_res >= neus.base_res")
+
+
+def parse_overrides(overrides: list[str] | None) -> dict:
+    """`section.key=value` items (values parsed as YAML) as a nested mapping."""
+    nested: dict = {}
     for item in overrides or []:
         if "=" not in item:
             raise InputError(None, f"--set expects key=value, got '{item}'")
         key, value = item.split("=", 1)
         parts = key.strip().split(".")
-        nested: dict = {}
         cur = nested
-        for p in parts[:-1]:
-            cur = cur.setdefault(p, {})
+        for part in parts[:-1]:
+            cur = cur.setdefault(part, {})
+            if not isinstance(cur, dict):
+                raise InputError(None, f"--set {key}: '{part}' is a key, not a section")
         cur[parts[-1]] = yaml.safe_load(value)
-        _apply(cfg, nested, "--set")
-        _check_ranges(cfg, "--set")
+    return nested
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None,
+                preset: str | None = None) -> Config:
+    """Defaults <- `base` (a run's saved config) <- preset configs/PRESET.yaml <- YAML file <- `key=value`
+    overrides; each layer is checked as it is applied, and an error names the layer."""
+    cfg = Config()
+    layers: list[tuple[object, dict]] = []
+    if base:
+        layers.append(("config.yaml", base))
+    if preset is not None:
+        path_p = preset_path(preset)
+        layers.append((path_p, read_config_file(path_p)))
+    if path is not None:
+        layers.append((path, read_config_file(path)))
+    if overrides:
+        layers.append(("--set", parse_overrides(overrides)))
+    for source, data in layers:
+        _apply(cfg, data, source)
+        _check_ranges(cfg, source)
     return cfg
 
 
@@ -217,20 +339,28 @@ def save_config(cfg: Config, path: str | Path) -> None:
     Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
 
 
-def describe(cfg_cls=Config, prefix: str = "") -> list[str]:
-    """Lines `section.key (default): comment` for --help, read from the field comments."""
+def _comments(cls) -> dict[str, str]:
+    """Each field's one-line description: the comment beside it in the class body."""
     import inspect
+    import re
 
+    out = {}
+    for line in inspect.getsource(cls).splitlines():
+        m = re.match(r"\s+(\w+): [\w\[\], |]+ = .*?#\s*(.*)$", line)
+        if m:
+            out[m.group(1)] = m.group(2)
+    return out
+
+
+def describe(cfg_cls=Config, prefix: str = "") -> list[str]:
+    """One line per key, `section.key = default: meaning`, for --help-config."""
     lines = []
-    src = inspect.getsource(cfg_cls)
-    comments = {}
-    for line in src.splitlines():
-        if ":" in line and "#" in line and "=" in line:
-            name = line.split(":")[0].strip()
-            comments[name] = line.split("#", 1)[1].strip()
+    comments = _comments(cfg_cls)
     for f in dataclasses.fields(cfg_cls):
         default = f.default_factory() if f.default is dataclasses.MISSING else f.default
         if dataclasses.is_dataclass(default):
+            doc = (type(default).__doc__ or "").strip().splitlines()[0]
+            lines.append(f"{prefix}{f.name}: {doc}")
             lines += describe(type(default), prefix + f.name + ".")
         else:
             lines.append(f"  {prefix}{f.name} = {default!r}: {comments.get(f.name, '')}")

@@ -32,8 +32,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..errors import InputError
-from .config import NeuSConfig, validate
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.config import check_neus as validate
 
 CHECKPOINT = "neus.pt"
 
@@ -515,7 +516,7 @@ class NeuS:
         return vol.numpy()
 
     def extract_mesh(self, res: int | None = None, clean: bool = True):
-        from .mesh import clean_mesh, marching_cubes, smooth_vertex_normals
+        from vq_mitsuba.geometry.mesh import clean_mesh, marching_cubes, smooth_vertex_normals
 
         res = res or self.cfg.mesh_resolution
         vol = self.sdf_volume(res)

@@ -6,14 +6,13 @@ import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from ..errors import InputError
-from .config import NeuSConfig, apply_overrides, from_dict
+from vq_mitsuba.config import NeuSConfig
 
 
 def capture_has_geometry(path: str | Path) -> bool:
     """True when a capture brings its own geometry: <shape> elements in a scene XML, or a
     mesh.ply beside a transforms json. Cheap: reads no images."""
-    from ..capture.dataset import resolve_capture_path
+    from vq_mitsuba.data.captures import resolve_capture_path
 
     source = resolve_capture_path(path)
     if source.suffix.lower() == ".xml":
@@ -25,37 +24,18 @@ def capture_has_geometry(path: str | Path) -> bool:
     return (source.parent / "mesh.ply").exists()
 
 
-def load_neus_config(overrides: list[str] | None = None, config_file: str | Path | None = None) -> NeuSConfig:
-    """Defaults, then the `neus:` section of a YAML file (if any), then neus.key=value overrides."""
-    cfg = NeuSConfig()
-    if config_file is not None:
-        from ..config import read_config_file
-
-        path = Path(config_file)
-        section = read_config_file(path).get("neus")
-        if section is not None:
-            if not isinstance(section, dict):
-                raise InputError(path, "the `neus` section must be a mapping of keys to values")
-            try:
-                cfg = from_dict(section)
-            except InputError as exc:
-                raise InputError(path, exc.message) from exc
-    return apply_overrides(cfg, overrides)
-
-
-def run_geometry(capture_path, run_dir, overrides: list[str] | None = None, config_file=None, resume: bool = False,
-                 progress: bool = True, gt_mesh=None) -> dict:
+def run_geometry(capture_path, run_dir, cfg: NeuSConfig, resume: bool = False, progress: bool = True,
+                 gt_mesh=None) -> dict:
     """Load the capture, run NeuS + mesh export into run_dir; score against gt_mesh if given."""
-    from ..capture.dataset import load_capture, load_mesh
-    from .neus import reconstruct
+    from vq_mitsuba.data.captures import load_capture, load_mesh
+    from vq_mitsuba.geometry.neus import reconstruct
 
-    cfg = load_neus_config(overrides, config_file)  # bad keys fail before the images are read
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path)
     info = reconstruct(capture, run_dir, cfg, resume=resume, progress=progress)
     info.pop("_neus", None)
     if gt is not None:
-        from .mesh import mesh_metrics
+        from vq_mitsuba.geometry.mesh import mesh_metrics
 
         mesh = load_mesh(Path(run_dir) / "mesh.ply")
         info["metrics"] = mesh_metrics(mesh, gt)
@@ -64,12 +44,11 @@ def run_geometry(capture_path, run_dir, overrides: list[str] | None = None, conf
     return info
 
 
-def ensure_geometry(capture_path, run_dir, overrides: list[str] | None = None, config_file=None,
-                    resume: bool = False, progress: bool = True) -> Path:
+def ensure_geometry(capture_path, run_dir, cfg: NeuSConfig, resume: bool = False, progress: bool = True) -> Path:
     """RUN_DIR/mesh.ply from NeuS, reusing an existing one on resume; returns its path."""
     run_dir = Path(run_dir)
     mesh = run_dir / "mesh.ply"
     if resume and mesh.is_file():
         return mesh
-    run_geometry(capture_path, run_dir, overrides, config_file=config_file, resume=resume, progress=progress)
+    run_geometry(capture_path, run_dir, cfg, resume=resume, progress=progress)
     return mesh

@@ -1,27 +1,21 @@
-"""Rendering a fitted run: novel views, material maps and relighting (reads a finished run)."""
+"""Views of a fitted scene: novel views, material maps, segmentation and relighting.
+
+Works on a `FittedModel` (`vq_mitsuba.engine.run_dir.RunDir.load`); nothing here trains.
+"""
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
 
-from .capture.cameras import BLENDER_ENV_TO_WORLD, Camera
-from .capture.dataset import load_cameras, load_mesh
-from .capture.imageio import read_image, write_exr, write_png
-from .config import Config, load_config
-from .errors import InputError
-from .fit import Run, build_scene
-from .materials.fields import ContinuousMaterial
-from .materials.vq import DiscreteBranch
-
-if TYPE_CHECKING:
-    import trimesh
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera
+from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
+from vq_mitsuba.models.fitted import FittedModel
+from vq_mitsuba.render.shading import scene_for_mesh
 
 # Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
 _R = BLENDER_ENV_TO_WORLD[:3, :3]
@@ -45,60 +39,16 @@ def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:
     return np.asarray(env_to_world) @ rot
 
 
-@dataclass
-class FittedRun:
-    run: Run
-    cfg: Config
-    info: dict
-    model: ContinuousMaterial
-    discrete: DiscreteBranch | None  # None when the run has no (initialised) discrete branch
-    envmap: np.ndarray
-    mesh: trimesh.Trimesh
-    step: int  # training steps behind the loaded state (-1 when the state file does not say)
-
-
-def load_run(run_dir: str | Path, checkpoint: str | Path | None = None) -> FittedRun:
-    """A fitted run from its checkpoint, or from another state file of it (`checkpoint`, e.g. a
-    snapshot written at `train.snapshot_s`)."""
-    from .rendering import init_mitsuba, torch_device
-
-    run = Run(run_dir)
-    info = run.info()
-    ckpt = Path(checkpoint) if checkpoint is not None else run.checkpoint_path
-    if not ckpt.is_file():
-        raise InputError(ckpt, "checkpoint missing: the run did not finish its first checkpoint")
-    cfg = load_config(base=__import__("yaml").safe_load((run.dir / "config.yaml").read_text()))
-    init_mitsuba()
-    state = torch.load(ckpt, map_location=torch_device(), weights_only=False)
-    mesh = load_mesh(run.dir / "mesh.ply")
-    bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
-    model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(torch_device())
-    model.load_state_dict(state["model"])
-    model.eval()
-    discrete = None
-    if state.get("discrete") is not None:
-        discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(torch_device())
-        discrete.load_state_dict(state["discrete"])
-        discrete.eval()
-        if not bool(discrete.initialised):
-            discrete = None
-    if state.get("envmap") is not None:
-        envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
-    else:
-        envmap = state["envmap_fixed"].cpu().numpy()
-    return FittedRun(run, cfg, info, model, discrete, envmap, mesh, int(state.get("step", -1)))
-
-
 class Renderer:
     """Renders views of a fitted run under its own lighting or another envmap."""
 
-    def __init__(self, fitted: FittedRun, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
+    def __init__(self, fitted: FittedModel, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
                  exposure_ev: float = 0.0):
         self.fitted = fitted
         env = fitted.envmap if envmap is None else envmap
         self.envmap = np.ascontiguousarray(env * (2.0 ** exposure_ev), dtype=np.float32)
-        to_world = rotate_about_up(np.asarray(fitted.info["envmap_to_world"]), env_rotate_deg)
-        self.scene = build_scene(fitted.mesh, self.envmap, to_world)
+        to_world = rotate_about_up(fitted.envmap_to_world, env_rotate_deg)
+        self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
 
     @torch.no_grad()
@@ -114,7 +64,7 @@ class Renderer:
         back as the list `relit`, each the same image as their own `render` with this seed, but
         the rays are traced and the material field evaluated once for all of them.
         """
-        from .rendering import camera_rays, pixel_jitter
+        from vq_mitsuba.data.cameras import camera_rays, pixel_jitter
 
         cfg = self.fitted.cfg.render
         spp = spp or cfg.spp
@@ -209,6 +159,34 @@ class _LastAnswer:
         return self.answer
 
 
+# Distinct colours for material ids 1..20 (id 0, the background, is not drawn).
+PALETTE = np.array([
+    [0.90, 0.10, 0.10], [0.10, 0.60, 0.90], [0.20, 0.75, 0.20], [0.95, 0.75, 0.10], [0.60, 0.25, 0.80],
+    [0.95, 0.45, 0.10], [0.10, 0.80, 0.75], [0.90, 0.30, 0.60], [0.55, 0.55, 0.15], [0.35, 0.35, 0.85],
+    [0.65, 0.35, 0.20], [0.50, 0.85, 0.50], [0.85, 0.85, 0.85], [0.20, 0.40, 0.30], [0.80, 0.55, 0.55],
+    [0.30, 0.20, 0.50], [0.70, 0.90, 0.20], [0.15, 0.55, 0.55], [0.95, 0.60, 0.75], [0.45, 0.45, 0.45],
+], dtype=np.float32)
+
+
+def material_colours(ids: np.ndarray) -> np.ndarray:
+    """(H, W, 3) colour of each material id (palette; black for 0, the background)."""
+    colours = np.concatenate([np.zeros((1, 3), np.float32), PALETTE])
+    ids = np.asarray(ids, dtype=np.int64)
+    return colours[np.where(ids > 0, (ids - 1) % len(PALETTE) + 1, 0)]
+
+
+def segmentation_overlay(rgb_linear: np.ndarray, alpha: np.ndarray, material: np.ndarray,
+                         opacity: float = 0.5) -> np.ndarray:
+    """sRGB image (H, W, 3) in [0, 1]: the view over white, each material's pixels tinted with its
+    palette colour."""
+    a = alpha[..., None]
+    straight = rgb_linear / np.maximum(a, 1e-6)
+    over_white = linear_to_srgb(np.clip(straight, 0, None)) * a + (1 - a)
+    tint = material_colours(material)
+    on = (material > 0)[..., None]
+    return np.clip(np.where(on, (1 - opacity) * over_white + opacity * tint, over_white), 0, 1)
+
+
 def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     """The per-view files of INTERFACE.md."""
     a = images["alpha"]
@@ -223,32 +201,20 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     write_png(out_dir / f"{name}_alpha.png", a, srgb=False)
     if "material" in images:
         write_png(out_dir / f"{name}_material.png", images["material"])
+        overlay = segmentation_overlay(images["rgb"], a, images["material"])
+        write_png(out_dir / f"{name}_segmentation.png", overlay, srgb=False)
 
 
-def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Path | None = None,
-               envmap_path: str | Path | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
-               spp: int | None = None, progress: bool = True) -> Path:
-    """`vq-mitsuba render`: all frames of CAMERAS, under the fitted lighting or ENVMAP."""
+def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: str, out_dir: Path,
+                 envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
+                 spp: int | None = None, progress: bool = True) -> None:
+    """Render every camera (given in world `cameras_world`) and write the per-view files."""
     from tqdm import tqdm
 
-    fitted = load_run(run_dir)
-    cameras, world, _ = load_cameras(cameras_path)  # input checks first
-    envmap = None
-    if envmap_path is not None:
-        envmap, _ = read_image(envmap_path)
-    out_dir = Path(out_dir) if out_dir is not None else Path(run_dir) / "renders"
-    out_dir.mkdir(parents=True, exist_ok=True)
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
-    run_world = fitted.info["world"]
     for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
-        images = renderer.render(convert_world(cam, world, run_world), spp=spp)
-        if world != run_world:  # normals in the cameras' world
-            rot = _R if (run_world, world) == ("mitsuba", "blender") else _R.T
+        images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp)
+        if cameras_world != fitted.world:  # normals in the cameras' world
+            rot = _R if (fitted.world, cameras_world) == ("mitsuba", "blender") else _R.T
             images["normal"] = images["normal"] @ rot.T
         write_view(out_dir, cam.name, images)
-    (out_dir / "render.json").write_text(json.dumps({
-        "run": str(Path(run_dir).resolve()), "cameras": str(Path(cameras_path).resolve()),
-        "envmap": str(Path(envmap_path).resolve()) if envmap_path else "fitted",
-        "env_rotate_deg": env_rotate_deg, "exposure_ev": exposure_ev, "views": [c.name for c in cameras],
-    }, indent=2))
-    return out_dir

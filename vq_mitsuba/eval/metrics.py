@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from .capture.imageio import linear_to_srgb
+from vq_mitsuba.data.imageio import linear_to_srgb
 
 SCALE_METHODS = ("lstsq", "median")
 _EPS = 1e-8

@@ -34,12 +34,12 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from . import envmaps
-from .capture.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at
-from .capture.imageio import write_exr, write_png
-from .errors import InputError
+from vq_mitsuba.data import envmaps
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at
+from vq_mitsuba.data.imageio import write_exr, write_png
+from vq_mitsuba.errors import InputError
 
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = R @ Mitsuba_world
 FOV_X_DEG = 40.0
 FILL = 0.7  # fraction of the half-frame the bounding sphere's silhouette covers
@@ -416,7 +416,7 @@ def _barycentric(p, a, b, c) -> np.ndarray:
 # The whole scene
 # --------------------------------------------------------------------------------------------
 def _ensure_variant() -> None:
-    from .rendering import init_mitsuba
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()
 
@@ -452,7 +452,7 @@ def _versions() -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from . import __version__
+    from vq_mitsuba import __version__
 
     return {"vq_mitsuba": __version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
             "numpy": np.__version__, "variant": mi.variant()}

@@ -14,7 +14,7 @@ MEANSHIFT_BANDWIDTHS = (0.2, 0.3, 0.5)
 
 def brdf_features(basecolor_linear: np.ndarray, metallic: np.ndarray, roughness: np.ndarray) -> np.ndarray:
     """(N, 5) features: sRGB basecolor, metallic, roughness."""
-    from .metrics import srgb
+    from vq_mitsuba.eval.metrics import srgb
 
     bc = srgb(np.asarray(basecolor_linear, dtype=np.float64).reshape(-1, 3))
     return np.concatenate([bc, np.asarray(metallic, dtype=np.float64).reshape(-1, 1),

@@ -36,11 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import envmaps, synthetic
-from .capture.imageio import write_exr, write_png
-from .errors import InputError
+from vq_mitsuba.data import envmaps
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.data.imageio import write_exr, write_png
+from vq_mitsuba.errors import InputError
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
 WORKER = Path(__file__).resolve().parent / "cycles_worker.py"
 ENV_VAR = "VQ_CYCLES_PYTHON"  # overrides the interpreter that has bpy
 MAX_BOUNCES = synthetic.MAX_DEPTH - 2
@@ -116,7 +118,7 @@ def build_job(spec: dict, shapes: list[dict], cameras: list, renders: list[dict]
     Mitsuba generator numbers gt/<id>_material.png. A patterned base_color is baked into
     per-vertex colours with synthetic.eval_base_color, as the Mitsuba generator does.
     """
-    from .capture.cameras import camera_to_nerf
+    from vq_mitsuba.data.cameras import camera_to_nerf
 
     mats = {m["name"]: m for m in spec["materials"]}
     job_mats = []
@@ -410,6 +412,6 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
 
 
 def _pkg_version() -> str:
-    from . import __version__
+    from vq_mitsuba import __version__
 
     return __version__

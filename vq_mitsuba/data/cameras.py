@@ -90,3 +90,30 @@ def look_at(origin, target, up) -> np.ndarray:
     m = np.eye(4)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, origin
     return m
+
+
+def pixel_jitter(n_pixels: int, index: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Offsets in [0, 1)^2 for the `index`-th of `count` primary rays of each pixel: one random
+    point in cell `index` of a sqrt(count) x sqrt(count) grid (stratified; random if not square)."""
+    side = int(round(count ** 0.5))
+    if side * side != count:
+        return rng.random((n_pixels, 2))
+    cell = np.array([index % side, index // side], dtype=np.float64)
+    return (cell + rng.random((n_pixels, 2))) / side
+
+
+def camera_rays(camera: Camera, jitter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through pixels (row-major, y down). jitter: (H*W, 2) offsets in [0,1)."""
+    h, w = camera.height, camera.width
+    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    if jitter is None:
+        px, py = xs.ravel() + 0.5, ys.ravel() + 0.5
+    else:
+        px, py = xs.ravel() + jitter[:, 0], ys.ravel() + jitter[:, 1]
+    f = camera.focal_px()
+    # Inverse of Camera.project: +X is left in Mitsuba camera space.
+    local = np.stack([(0.5 * w - px) / f, (0.5 * h - py) / f, np.ones_like(px)], -1)
+    d = local @ camera.to_world[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    o = np.broadcast_to(camera.origin, d.shape)
+    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)

@@ -21,39 +21,16 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from .capture.cameras import Camera
-from .config import EnvmapConfig
-from .errors import InputError
+from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.config import TexelConfig
+from vq_mitsuba.errors import InputError
 
 SNAPSHOT_FORMAT = 1
-
-
-@dataclass
-class TexelConfig:
-    resolution: int = 256  # texels per side of each material texture (square atlas)
-    uv_padding: int = 2  # texels between charts in the xatlas packing (bilinear lookups stay in the chart)
-    envmap_height: int = EnvmapConfig.height  # rows of the learned lat-long envmap (width is twice this)
-    env_init_scale: float = 2.0  # initial radiance = this x mean foreground pixel value (as ours)
-    spp: int = 16  # samples per pixel of each training render (4 is noisier per step, and barely cheaper)
-    max_depth: int = 3  # path length of the integrator (3: direct light plus one bounce)
-    views_per_step: int = 1  # random whole training views rendered per Adam step
-    lr_texture: float = 0.05  # Adam learning rate of the texels (values in [0, 1])
-    lr_envmap: float = 0.03  # Adam learning rate of the envmap's log radiance
-    lr_decay: float = 0.1  # learning rates decay exponentially to this fraction at the time limit
-    gamma: float = 2.2  # the loss compares x^(1/gamma) (as losses.encode_gamma)
-    tv_weight: float = 1.0  # mean squared difference of neighbouring texels (all three textures; 0: off)
-    env_tv_weight: float = 1e-4  # mean squared difference of neighbouring log-radiance texels (as ours)
-    init_basecolor: float = 0.5
-    init_metallic: float = 0.1
-    init_roughness: float = 0.5
-    roughness_min: float = 0.02  # roughness texels are clamped to [roughness_min, 1]
-    iterations: int = 0  # stop after this many steps (0: only the time limit stops the fit)
-    seed: int = 0  # view order and Monte Carlo seeds
 
 
 TEXTURES = ("basecolor", "metallic", "roughness")
@@ -239,7 +216,7 @@ class TexelScene:
     def __init__(self, capture, cfg: TexelConfig):
         import mitsuba as mi
 
-        from .rendering import init_mitsuba
+        from vq_mitsuba.backend import init_mitsuba
 
         if capture.mesh is None:
             raise InputError(capture.source, "the per-texel baseline needs known geometry (no mesh in the capture)")
@@ -353,7 +330,7 @@ def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | 
     import mitsuba as mi
     from tqdm import tqdm
 
-    from .capture.dataset import load_capture
+    from vq_mitsuba.data.captures import load_capture
 
     cfg = cfg or TexelConfig()
     if time_limit_s <= 0 and cfg.iterations <= 0:
@@ -499,7 +476,7 @@ class TexelRenderer:
     def __init__(self, arrays: dict[str, np.ndarray], envmap: np.ndarray, max_depth: int = 3):
         import mitsuba as mi
 
-        from .rendering import init_mitsuba
+        from vq_mitsuba.backend import init_mitsuba
 
         init_mitsuba()
         self.max_depth = int(max_depth)
@@ -524,7 +501,7 @@ class TexelRenderer:
         import drjit as dr
         import mitsuba as mi
 
-        from .rendering import camera_rays, pixel_jitter
+        from vq_mitsuba.data.cameras import camera_rays, pixel_jitter
 
         spp = int(spp or 256)
         aa = int(aa or 16)

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import nn
 
-from ..config import FieldConfig
+from vq_mitsuba.config import FieldConfig
 
 
 class PositionalEncoding(nn.Module):
@@ -78,30 +78,19 @@ class BRDFDecoder(nn.Module):
         self.roughness = mk(1)
         if cfg.metallic_init > 0.0:
             # Metallic starts near the Lambertian prior's side and the images must raise it: with
-            # PyTorch's initialisation every object reads about 0.5-0.9 once the gate fades in.
+            # PyTorch's initialisation every object starts at about 0.5.
             with torch.no_grad():
                 self.metallic.layers[-1].bias.fill_(math.log(cfg.metallic_init / (1.0 - cfg.metallic_init)))
 
-    @staticmethod
-    def _zeros(z: torch.Tensor) -> torch.Tensor:
-        # A leaf that still takes a gradient while training, so the Mitsuba kernels get the same
-        # differentiable inputs with the gate shut or open.
-        return z.new_zeros(z.shape[:-1]).requires_grad_(torch.is_grad_enabled() and z.requires_grad)
-
-    def forward(self, z: torch.Tensor, metallic: bool = True) -> dict[str, torch.Tensor]:
-        """`metallic` False: metallic is 0 and its MLP is not evaluated (its parameters get no
-        gradient, not a zero one, so Adam leaves their state alone)."""
+    def forward(self, z: torch.Tensor) -> dict[str, torch.Tensor]:
         r0 = self.roughness_min
-        out = {
+        logit = self.metallic(z)[..., 0]
+        return {
             "basecolor": torch.sigmoid(self.basecolor(z)),
             "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
+            "metallic_logit": logit,
+            "metallic": torch.sigmoid(logit),
         }
-        if metallic:
-            out["metallic_logit"] = self.metallic(z)[..., 0]
-            out["metallic"] = torch.sigmoid(out["metallic_logit"])
-        else:
-            out["metallic"] = self._zeros(z)
-        return out
 
 
 class ContinuousMaterial(nn.Module):
@@ -116,39 +105,18 @@ class ContinuousMaterial(nn.Module):
         half = 0.5 * (bbox_max - bbox_min).max() * 1.05
         self.register_buffer("center", center.float())
         self.register_buffer("half_extent", half.float().reshape(()))
-        self.register_buffer("metallic_gate", torch.tensor(1.0))  # metallic output scale (schedule)
         self.encoder = Encoder(cfg)
         self.decoder = BRDFDecoder(cfg)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # Runs saved before the metallic schedule existed have no gate: theirs is 1.
-        state_dict.setdefault(prefix + "metallic_gate", torch.tensor(1.0))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def set_progress(self, fraction: float, anneal: float, metallic_delay: float = 0.0,
-                     pe_fraction: float | None = None) -> None:
-        """Open the positional-encoding frequencies over the first `anneal` fraction of training
-        (`pe_fraction` when given, else `fraction`); hold metallic at 0 for the first
-        `metallic_delay` fraction, then fade it in linearly over as long again (a dielectric
-        explanation first: a glossy plastic otherwise often settles as a rough coloured metal, a
-        local minimum the Lambertian prior does not leave)."""
+    def set_progress(self, fraction: float, anneal: float) -> None:
+        """Open the positional-encoding frequencies over the first `anneal` share of training."""
         pe = self.encoder.pe
         n = pe.freqs.shape[0]
-        pf = fraction if pe_fraction is None else pe_fraction
-        pe.progress.fill_(n if anneal <= 0 else min(n, n * pf / anneal))
-        gate = 1.0 if metallic_delay <= 0 else min(max(fraction / metallic_delay - 1.0, 0.0), 1.0)
-        self.metallic_gate.fill_(gate)
+        pe.progress.fill_(n if anneal <= 0 else min(n, n * fraction / anneal))
 
     def forward(self, x_world: torch.Tensor) -> dict[str, torch.Tensor]:
         z = self.encoder((x_world - self.center) / self.half_extent)
-        # While the gate is shut the metallic MLP is left out of the graph: a gradient of exactly
-        # zero would still advance its Adam state (step count and bias correction moving on with
-        # the moments at 0), and its first real steps after the delay would be a few times the
-        # learning rate instead of about one.
-        gate = float(self.metallic_gate)
-        out = self.decoder(z, metallic=gate > 0.0)
-        if gate != 1.0:
-            out["metallic"] = out["metallic"] * self.metallic_gate
+        out = self.decoder(z)
         out["z"] = z
         return out
 

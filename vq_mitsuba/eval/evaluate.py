@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import metrics as M
-from .baselines import MEANSHIFT_BANDWIDTHS
-from .capture.imageio import read_exr, read_image
-from .errors import InputError
+from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
+from vq_mitsuba.data.imageio import read_exr, read_image
+from vq_mitsuba.errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
 DEFAULT_AA = None  # primary rays per pixel: None takes the run's render.aa
@@ -137,27 +137,22 @@ class RunPredictor:
     of materials, and a renderer under its own lighting (envmap None) or another envmap."""
 
     def __init__(self, run_dir: str | Path, checkpoint: str | Path | None = None):
-        from .render import load_run
+        from vq_mitsuba.engine.run_dir import RunDir
 
-        self.fitted = load_run(run_dir, checkpoint)
-        self.run_dir = Path(run_dir)
-        self.world = self.fitted.info["world"]
+        self.run = RunDir(run_dir)
+        self.fitted = self.run.load(checkpoint)
+        self.world = self.fitted.world
         self.default_spp = int(self.fitted.cfg.render.spp)
         self.default_aa = int(self.fitted.cfg.render.aa)
-        d = self.fitted.discrete
-        self.num_materials = int(d.num_materials) if d is not None else None
+        self.num_materials = self.fitted.num_materials
 
     def renderer(self, envmap: np.ndarray | None = None):
-        from .render import Renderer
+        from vq_mitsuba.render.views import Renderer
 
         return Renderer(self.fitted, envmap=envmap)
 
     def fit_summary(self) -> dict:
-        path = self.run_dir / "fit.json"
-        if not path.is_file():
-            return {}
-        return {k: v for k, v in json.loads(path.read_text()).items()
-                if k in ("iterations", "seconds", "iterations_per_s")}
+        return {k: v for k, v in self.run.fit_summary().items() if k in ("iterations", "seconds", "iterations_per_s")}
 
 
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
@@ -187,8 +182,8 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     `relit_views`). Writes `output` when given."""
     from tqdm import tqdm
 
-    from .capture.dataset import load_cameras
-    from .render import _R, convert_world
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.render.views import _R, convert_world
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
@@ -344,7 +339,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
 def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) -> list[np.ndarray]:
     """The rgb image of one view under each renderer's lighting. Renderers of a fitted run
     (`render.Renderer`) share one pass: the rays and the material field are evaluated once."""
-    from .render import Renderer
+    from vq_mitsuba.render.views import Renderer
 
     if not renderers:
         return []
@@ -396,7 +391,7 @@ def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarra
 def meanshift_segmentation(preds: list[dict], gts: list[dict], bandwidths, seed: int = 0) -> dict:
     """The MeanShift baseline on the continuous branch's BRDF maps of the test views, pooled
     over views like the discrete branch's scores: one entry per bandwidth."""
-    from .baselines import brdf_features, meanshift_labels
+    from vq_mitsuba.eval.baselines import brdf_features, meanshift_labels
 
     fg = [g["mask"] & (g["material"] > 0) for g in gts]
     feats = np.concatenate([brdf_features(p["basecolor"][m], p["metallic"][m], p["roughness"][m])

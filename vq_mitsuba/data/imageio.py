@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from vq_mitsuba.errors import InputError
 
 
 def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:

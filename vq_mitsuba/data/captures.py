@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import InputError
-from .cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
-from .imageio import read_image
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from vq_mitsuba.data.imageio import read_image
 
 if TYPE_CHECKING:
     import trimesh
@@ -123,7 +123,7 @@ def _ensure_variant():
     """mitsuba, with the project's variant selected (vq_mitsuba.rendering.init_mitsuba)."""
     import mitsuba as mi
 
-    from ..rendering import init_mitsuba
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()
     return mi

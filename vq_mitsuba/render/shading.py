@@ -25,38 +25,18 @@ import torch
 import drjit as dr
 import mitsuba as mi
 
-from .capture.cameras import Camera
+from vq_mitsuba.backend import init_mitsuba, torch_device
 
-_VARIANT_READY = False
+_PLUGINS_READY = False
 LANE_INPUTS = 8  # differentiable inputs per shading lane: basecolor (3), metallic, roughness, bounce radiance (3)
-
-
-def init_mitsuba(variant: str | None = None) -> str:
-    """Select the Mitsuba variant once: `cuda_ad_rgb` when a GPU works, else `llvm_ad_rgb`."""
-    global _VARIANT_READY
-    if not _VARIANT_READY:
-        if variant is None:
-            variant = "llvm_ad_rgb"
-            if torch.cuda.is_available():
-                try:
-                    mi.set_variant("cuda_ad_rgb")
-                    variant = "cuda_ad_rgb"
-                except Exception:  # no usable CUDA driver for Dr.Jit
-                    variant = "llvm_ad_rgb"
-        if mi.variant() != variant:
-            mi.set_variant(variant)
-        _register_plugins()
-        _VARIANT_READY = True
-    return mi.variant()
-
-
-def torch_device() -> torch.device:
-    """The torch device matching the Mitsuba variant (tensors cross `dr.wrap` without copies)."""
-    return torch.device("cuda") if mi.variant().startswith("cuda") else torch.device("cpu")
 
 
 def _register_plugins() -> None:
     # Mitsuba classes exist only once a variant is set, so the plugin is defined here.
+    global _PLUGINS_READY
+    if _PLUGINS_READY:
+        return
+    _PLUGINS_READY = True
     class LaneTexture(mi.Texture):
         """A texture that returns values set per lane by the caller (one lane = one shading sample).
 
@@ -161,38 +141,12 @@ class Hits:
     wi: torch.Tensor  # (N, 3) world, unit vector from the point towards the ray origin
 
 
-def pixel_jitter(n_pixels: int, index: int, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Offsets in [0, 1)^2 for the `index`-th of `count` primary rays of each pixel: one random
-    point in cell `index` of a sqrt(count) x sqrt(count) grid (stratified; random if not square)."""
-    side = int(round(count ** 0.5))
-    if side * side != count:
-        return rng.random((n_pixels, 2))
-    cell = np.array([index % side, index // side], dtype=np.float64)
-    return (cell + rng.random((n_pixels, 2))) / side
-
-
-def camera_rays(camera: Camera, jitter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through pixels (row-major, y down). jitter: (H*W, 2) offsets in [0,1)."""
-    h, w = camera.height, camera.width
-    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
-    if jitter is None:
-        px, py = xs.ravel() + 0.5, ys.ravel() + 0.5
-    else:
-        px, py = xs.ravel() + jitter[:, 0], ys.ravel() + jitter[:, 1]
-    f = camera.focal_px()
-    # Inverse of Camera.project: +X is left in Mitsuba camera space.
-    local = np.stack([(0.5 * w - px) / f, (0.5 * h - py) / f, np.ones_like(px)], -1)
-    d = local @ camera.to_world[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    o = np.broadcast_to(camera.origin, d.shape)
-    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
-
-
 class ShadingScene:
     """Fixed geometry + an envmap emitter + a `principled` BSDF fed by lane textures."""
 
     def __init__(self, vertices, faces, env_init: np.ndarray, env_to_world: np.ndarray, normals=None):
         init_mitsuba()
+        _register_plugins()
         self.mesh = mesh_to_mitsuba(vertices, faces, normals)
         env_init = np.ascontiguousarray(env_init, dtype=np.float32)
         self.env_shape = env_init.shape
@@ -383,3 +337,8 @@ class ShadingScene:
         rgb = self._shade(*geo, lanes, envmap_padded(env_linear), [u[i] for i in range(5)])
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
+
+
+def scene_for_mesh(mesh, envmap: np.ndarray, env_to_world: np.ndarray) -> ShadingScene:
+    """A shading scene of a trimesh mesh (its vertex normals as shading normals) under an envmap."""
+    return ShadingScene(mesh.vertices, mesh.faces, envmap, env_to_world, normals=mesh.vertex_normals)

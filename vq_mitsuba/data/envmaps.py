@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture.cameras import BLENDER_ENV_TO_WORLD
-from .capture.imageio import clamp_tiny_negatives, read_image, write_exr
-from .errors import InputError
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
+from vq_mitsuba.data.imageio import clamp_tiny_negatives, read_image, write_exr
+from vq_mitsuba.errors import InputError
 
 PRESETS = ("sky", "sunset", "studio", "overcast")
 

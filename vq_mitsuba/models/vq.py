@@ -57,12 +57,11 @@ class VectorQuantizerEMA(nn.Module):
         return sim.argmax(-1)
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None,
-                forced_gradient: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                n_codes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns (z_q with straight-through gradient, codeword indices, VQ loss).
 
-        forced_gradient False: latents that dropout forced onto another codeword than their
-        nearest get no straight-through gradient (the identity z_q ~ z that the estimator
+        Latents that dropout forced onto another codeword than their nearest get no
+        straight-through gradient (the identity z_q ~ z that the estimator
         assumes does not hold for them); they still train the decoder and the codebook."""
         z_unit = F.normalize(z, dim=-1)
         idx = self.nearest(z_unit.detach(), drop_mask, n_codes)
@@ -71,7 +70,7 @@ class VectorQuantizerEMA(nn.Module):
             self.ema_update(z_unit.detach(), idx)
         z_q = z_unit + (e - z_unit).detach()
         own = None
-        if drop_mask is not None and not forced_gradient:
+        if drop_mask is not None:
             own = idx == self.nearest(z_unit.detach(), None, n_codes)
             z_q = torch.where(own[:, None], z_q, e.detach())
         sq = torch.sum((z_unit - e.detach()) ** 2, -1)
@@ -193,7 +192,7 @@ class DiscreteBranch(nn.Module):
 
     def __init__(self, field_cfg, num_codes: int, decay: float, commitment: float):
         super().__init__()
-        from .fields import BRDFDecoder
+        from vq_mitsuba.models.fields import BRDFDecoder
 
         self.vq = VectorQuantizerEMA(num_codes, field_cfg.latent, decay=decay, commitment=commitment)
         self.decoder = BRDFDecoder(field_cfg)
@@ -213,8 +212,8 @@ class DiscreteBranch(nn.Module):
         self.latent_scale.fill_(float(latents.norm(dim=-1).mean().clamp_min(1e-6)))
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None, forced_gradient: bool = True) -> dict[str, torch.Tensor]:
-        z_q, idx, loss = self.vq(z, drop_mask, n_codes, forced_gradient)
+                n_codes: int | None = None) -> dict[str, torch.Tensor]:
+        z_q, idx, loss = self.vq(z, drop_mask, n_codes)
         out = self.decoder(z_q * self.latent_scale)
         out["index"] = idx
         out["vq_loss"] = loss

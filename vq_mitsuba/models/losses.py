@@ -31,16 +31,16 @@ def reconstruction_l2_decorrelated(samples: torch.Tensor, rgb_target: torch.Tens
 
 
 def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,
-                     metallic_logit: torch.Tensor | None = None, gate: float = 1.0) -> torch.Tensor:
+                     metallic_logit: torch.Tensor | None = None) -> torch.Tensor:
     """L_lam: pulls materials towards Lambertian (metallic 0, roughness 1) unless the images object.
 
     `metallic_weight` scales the metallic term against the roughness one (the paper weighs them
-    equally). With `metallic_logit` (metallic = gate * sigmoid(logit)) the metallic term is
-    gate * softplus(logit), which is -log(1 - metallic) at gate 1: its pull on the logit tends to
+    equally). With `metallic_logit` (metallic = sigmoid(logit)) the metallic term is
+    softplus(logit) = -log(1 - metallic): its pull on the logit tends to
     the full weight where metallic saturates at 1, where the paper's linear term's pull vanishes
     with the sigmoid's slope (a saturated wrong metal then never comes back)."""
     if metallic_logit is not None:
-        m_term = gate * torch.mean(torch.nn.functional.softplus(metallic_logit))
+        m_term = torch.mean(torch.nn.functional.softplus(metallic_logit))
     else:
         m_term = torch.mean(metallic)
     return metallic_weight * m_term + torch.mean(1.0 - roughness)

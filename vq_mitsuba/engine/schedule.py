@@ -1,0 +1,40 @@
+"""Per-step schedules of a fit: training progress, learning rate, prior weights, discrete start."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vq_mitsuba.config import Config
+
+
+@dataclass(frozen=True)
+class StepSchedule:
+    done: float  # share of train.iterations done
+    progress: float  # training progress in [0, 1]: `done`, or under a time limit the share of time used if larger
+    lr_factor: float  # learning-rate multiplier (exponential decay with `done`)
+    w_lam: float  # weight of the continuous branch's Lambertian prior
+    w_lam_d: float  # weight of the discrete branch's Lambertian prior
+    metallic_barrier: bool  # the metallic prior is -log(1 - metallic) (else the paper's linear term)
+    discrete: bool  # the discrete branch trains (after its warm-up)
+
+
+def schedule_at(cfg: Config, step: int, elapsed_s: float) -> StepSchedule:
+    """The schedule of step `step` (0-based) after `elapsed_s` seconds of fitting.
+
+    The encoding frequencies, the prior's decay and the discrete warm-up follow the progress, so a
+    fit stopped by train.time_limit_s has run its whole schedule; the learning rate follows the
+    iterations alone, so a short budget's few steps keep a large rate.
+    """
+    done = step / max(cfg.train.iterations, 1)
+    progress = done
+    if cfg.train.time_limit_s > 0:
+        progress = min(max(done, elapsed_s / cfg.train.time_limit_s), 1.0)
+    return StepSchedule(
+        done=done,
+        progress=progress,
+        lr_factor=cfg.train.lr_decay ** done,
+        w_lam=cfg.loss.w_lam * cfg.loss.lam_decay ** progress,
+        w_lam_d=cfg.loss.w_lam * cfg.vq.lam_decay ** progress,
+        metallic_barrier=progress < cfg.loss.metallic_barrier_until,
+        discrete=cfg.vq.enabled and progress >= cfg.vq.warmup_frac,
+    )

@@ -1,0 +1,342 @@
+"""The training loop: both branches of VQ-NeRF on known geometry, checkpoints, time limit.
+
+Primary hits of every training pixel are traced once (`vq_mitsuba.data.pixels`); each step
+draws a random batch of foreground pixels across all views, evaluates the material field once
+per hit and shades through Mitsuba (`vq_mitsuba.render.shading`). After `vq.warmup_frac` of
+training the discrete branch starts from k-means of the latents and trains beside the
+continuous one; at the end its codewords are ranked (`vq_mitsuba.engine.ranking`). Every file
+is written through `RunDir`; a run resumes from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from vq_mitsuba.backend import init_mitsuba, torch_device
+from vq_mitsuba.config import Config, to_dict
+from vq_mitsuba.data.captures import Capture, load_capture
+from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
+from vq_mitsuba.engine.plots import plot_err_k, plot_history
+from vq_mitsuba.engine.ranking import rank_materials
+from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
+from vq_mitsuba.errors import InputError, NumericalError
+from vq_mitsuba.models import losses
+from vq_mitsuba.models.fields import ContinuousMaterial, EnvironmentMap
+from vq_mitsuba.models.vq import DiscreteBranch, dropout_rates, kmeans_codebook, sample_drop_mask, scale_gradient
+from vq_mitsuba.render.shading import scene_for_mesh
+
+MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
+KMEANS_LATENTS = 20000  # latents clustered to start the codebook
+
+
+def parse_snapshot_times(text: str) -> list[float]:
+    """`train.snapshot_s` ("30,60,120") as sorted seconds."""
+    try:
+        times = sorted(float(t) for t in str(text).replace(";", ",").split(",") if t.strip())
+    except ValueError:
+        raise InputError(None, f"train.snapshot_s expects comma-separated seconds, got '{text}'") from None
+    if any(t <= 0 for t in times):
+        raise InputError(None, f"train.snapshot_s expects positive seconds, got '{text}'")
+    return times
+
+
+def _without_gradients(model):
+    """model as a material function whose outputs carry no gradient back into it."""
+    def material(points):
+        with torch.no_grad():
+            return model(points)
+    return material
+
+
+class Trainer:
+    """The networks, the optimiser and the pixel pool of one fit, and one training step."""
+
+    def __init__(self, capture: Capture, run: RunDir, cfg: Config):
+        self.cfg, self.run, self.capture = cfg, run, capture
+        torch.manual_seed(cfg.train.seed)
+        np.random.seed(cfg.train.seed)
+        init_mitsuba()
+        self.device = device = torch_device()
+        mean_fg = float(np.mean(capture.images[capture.alpha >= cfg.train.alpha_threshold])) if capture.has_alpha \
+            else float(np.mean(capture.images))
+        self.learn_env = capture.envmap is None
+        if self.learn_env:
+            self.env_module = EnvironmentMap(cfg.envmap.height, cfg.envmap.init_scale * max(mean_fg, 1e-3)).to(device)
+            env_init = self.env_module().detach().cpu().numpy()
+        else:
+            self.fixed_env = torch.as_tensor(capture.envmap, device=device)
+            env_init = capture.envmap
+        self.scene = scene_for_mesh(capture.mesh, env_init, capture.envmap_to_world)
+        self.pool, self.pool_stats = trace_training_pixels(self.scene, capture, cfg.train.alpha_threshold,
+                                                           cfg.train.pixel_jitter, cfg.train.seed)
+        if len(self.pool) == 0:
+            raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh "
+                                             "and the alpha masks")
+        bbox = torch.tensor(np.asarray(capture.mesh.bounds), dtype=torch.float32)
+        self.model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
+        self.discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(device) \
+            if cfg.vq.enabled else None
+        groups = [{"params": self.model.parameters(), "lr": cfg.train.lr}]
+        if self.discrete is not None:
+            groups.append({"params": self.discrete.parameters(), "lr": cfg.train.lr})
+        if self.learn_env:
+            groups.append({"params": self.env_module.parameters(), "lr": cfg.envmap.lr})
+        self.optim = torch.optim.Adam(groups)
+        self.base_lrs = [g["lr"] for g in self.optim.param_groups]
+        self.gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
+        self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
+        self.pairs = neighbour_pairs(self.pool, capture.width, capture.height).to(device) \
+            if cfg.loss.w_sm > 0 else None
+        self.batch = min(cfg.train.batch_rays, len(self.pool))
+        self.history: list[dict] = []
+        self.step, self.elapsed_before = 0, 0.0
+
+    # --- state ----------------------------------------------------------------------------------
+    def envmap(self) -> torch.Tensor:
+        return self.env_module() if self.learn_env else self.fixed_env
+
+    def fitted_state(self, elapsed: float) -> dict:
+        """What rendering and scoring need."""
+        return {"model": self.model.state_dict(),
+                "discrete": self.discrete.state_dict() if self.discrete is not None else None,
+                "envmap": self.env_module.state_dict() if self.learn_env else None,
+                "envmap_fixed": None if self.learn_env else torch.as_tensor(self.capture.envmap),
+                "step": self.step, "elapsed_s": elapsed, "config": to_dict(self.cfg)}
+
+    def checkpoint(self, elapsed: float) -> None:
+        """The fitted state plus what resuming needs."""
+        self.run.save_state({**self.fitted_state(elapsed), "optim": self.optim.state_dict(),
+                             "generator": self.gen.get_state(), "history": self.history})
+
+    def snapshot(self, elapsed: float) -> None:
+        self.run.save_state(self.fitted_state(elapsed), self.run.snapshot_path(elapsed, self.step))
+
+    def resume(self) -> None:
+        state = self.run.load_state(device=self.device)
+        self.model.load_state_dict(state["model"])
+        if self.discrete is not None:
+            self.discrete.load_state_dict(state["discrete"])
+        if self.learn_env:
+            self.env_module.load_state_dict(state["envmap"])
+        self.optim.load_state_dict(state["optim"])
+        self.gen.set_state(state["generator"])
+        self.history, self.step, self.elapsed_before = state["history"], state["step"], state["elapsed_s"]
+
+    # --- one step -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def start_discrete(self) -> None:
+        """The codebook from k-means of the warmed-up latents; the discrete decoder as a copy of
+        the continuous one."""
+        pool = self.pool
+        sub = torch.randint(0, len(pool), (min(KMEANS_LATENTS, len(pool)),), generator=self.gen, device=self.device)
+        z_warm = self.model(pool.position[sub])["z"]
+        self.discrete.vq.init_codebook(kmeans_codebook(z_warm, self.cfg.vq.num_codes, self.cfg.train.seed))
+        self.discrete.warm_start(self.model.decoder, z_warm)
+        self.discrete.initialised.fill_(True)
+
+    def _render(self, idx, material: dict, env, bounce_fn):
+        """Per-pixel Monte Carlo samples (B, spp, 3) of the pixels `idx` with `material`'s BRDF,
+        in two independent halves for the decorrelated loss."""
+        p = self.pool
+        return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material["basecolor"],
+                                material["metallic"], material["roughness"], env, self.cfg.train.spp,
+                                generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2)
+
+    def _lambertian(self, out: dict, s: StepSchedule) -> torch.Tensor:
+        """Eq. (9), L_lam, with the metallic barrier early in training."""
+        logit = out["metallic_logit"] if s.metallic_barrier else None
+        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit)
+
+    def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool) -> tuple[dict, torch.Tensor]:
+        """The weighted loss terms of one batch (Eq. 10: their sum is the loss) and the
+        continuous branch's pixel colours."""
+        cfg, pool, ab = self.cfg, self.pool, self.cfg.ablation
+        gamma = cfg.loss.gamma
+        out = self.model(pool.position[idx])
+        env = self.envmap()
+        target = pool.rgb[idx]
+        samples = self._render(idx, out, env, self.model if bounce else None)
+        discrete_on = self.discrete is not None and bool(self.discrete.initialised)
+        single = discrete_on and ab.single_branch
+        terms = {
+            "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target, gamma),
+            "lam_c": s.w_lam * self._lambertian(out, s),
+        }
+        if discrete_on:
+            z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
+            drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
+            od = self.discrete(z, drop)
+            # The discrete branch is lit by the envmap and bounce that the continuous branch fits,
+            # without training them: a few materials cannot explain a texture, and their residual
+            # would otherwise bend the shared light (ablation.shared_light lets it).
+            shared = ab.shared_light
+            bounce_fn = None
+            if bounce:
+                bounce_fn = self.model if shared else _without_gradients(self.model)
+            samples_d = self._render(idx, od, env if shared else env.detach(), bounce_fn)
+            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma)
+            terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
+                                                                                           out["basecolor"])
+            terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
+            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s)
+        if self.pairs is not None and len(self.pairs) > 0:
+            pick = self.pairs[torch.randint(0, len(self.pairs), (max(self.batch // 4, 1),), generator=self.gen,
+                                            device=self.device)]
+            oa, ob = self.model(pool.position[pick[:, 0]]), self.model(pool.position[pick[:, 1]])
+            ia = losses.encode_gamma(pool.rgb[pick[:, 0]], gamma)
+            ib = losses.encode_gamma(pool.rgb[pick[:, 1]], gamma)
+            terms["sm"] = cfg.loss.w_sm * losses.colour_aware_smoothness(oa, ob, ia, ib, cfg.loss.sm_alpha,
+                                                                         cfg.loss.sm_beta)
+        if self.learn_env and cfg.envmap.tv_weight > 0:
+            terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
+        return terms, samples.mean(1)
+
+    def train_step(self, s: StepSchedule) -> tuple[bool, float, float]:
+        """One optimisation step; (finite, loss, sRGB MSE of the continuous branch). A step whose
+        loss or gradients are not finite is not applied."""
+        for g, lr in zip(self.optim.param_groups, self.base_lrs):
+            g["lr"] = lr * s.lr_factor
+        if s.discrete and not bool(self.discrete.initialised):
+            self.start_discrete()
+        self.model.set_progress(s.progress, self.cfg.field.pe_anneal)
+        idx = torch.randint(0, len(self.pool), (self.batch,), generator=self.gen, device=self.device)
+        bounce = self.cfg.train.bounces > 0 and self.step >= self.cfg.train.bounce_after
+        terms, rgb = self.loss_terms(idx, s, bounce)
+        loss = sum(terms.values())
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        grads = [p.grad for g in self.optim.param_groups for p in g["params"] if p.grad is not None]
+        finite = bool(torch.isfinite(loss)) and bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
+        self.step += 1
+        if not finite:
+            return False, math.nan, math.nan
+        self.optim.step()
+        with torch.no_grad():
+            mse = float(losses.srgb_mse(rgb.detach(), self.pool.rgb[idx]))
+        return True, float(loss.detach()), mse
+
+    # --- the loop -------------------------------------------------------------------------------
+    def train(self, progress: bool = True) -> dict:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        total = cfg.train.iterations
+        snap_times = [t for t in parse_snapshot_times(cfg.train.snapshot_s) if t > self.elapsed_before]
+        start_step = self.step
+        t0 = time.perf_counter()
+        clock = lambda: self.elapsed_before + time.perf_counter() - t0  # noqa: E731
+        bar = tqdm(total=total, initial=self.step, desc="fit", disable=not progress, dynamic_ncols=True)
+        loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
+        nonfinite_steps, nonfinite_run = 0, 0
+        while self.step < total:
+            finite, loss, mse = self.train_step(schedule_at(cfg, self.step, clock()))
+            bar.update(1)
+            if not finite:
+                nonfinite_steps += 1
+                nonfinite_run += 1
+                if nonfinite_steps == 1:
+                    print(f"warning: step {self.step}: loss or gradients not finite; the step is skipped")
+                if nonfinite_run >= MAX_NONFINITE_RUN:
+                    bar.close()
+                    self.checkpoint(clock())
+                    raise NumericalError(self.run.dir, f"steps {self.step - nonfinite_run + 1} to {self.step} all "
+                                         f"gave a non-finite loss or gradient; the checkpoint (step {self.step}) "
+                                         f"keeps the parameters of step {self.step - nonfinite_run}, the last finite "
+                                         "one; try a lower train.lr, or --resume with another train.seed")
+                continue
+            nonfinite_run = 0
+            loss_acc, mse_acc, n_acc = loss_acc + loss, mse_acc + mse, n_acc + 1
+            if self.step % cfg.train.log_every == 0 or self.step == total:
+                self.history.append({"step": self.step, "seconds": clock(), "loss": loss_acc / n_acc,
+                                     "psnr": losses.psnr(mse_acc / n_acc)})
+                bar.set_postfix(loss=f"{loss_acc / n_acc:.4g}", psnr=f"{self.history[-1]['psnr']:.2f}")
+                loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
+            elapsed = clock()
+            if self.step % cfg.train.checkpoint_every == 0:
+                self.checkpoint(elapsed)
+            if snap_times and elapsed >= snap_times[0]:
+                while snap_times and elapsed >= snap_times[0]:
+                    snap_times.pop(0)
+                t_write = time.perf_counter()
+                self.snapshot(elapsed)
+                t0 += time.perf_counter() - t_write  # the fit's clock does not count the copy
+            if cfg.train.time_limit_s > 0 and elapsed >= cfg.train.time_limit_s:
+                print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
+                break
+        bar.close()
+        elapsed = clock()
+        self.checkpoint(elapsed)
+        return {"iterations": self.step, "seconds": elapsed,
+                "iterations_per_s": self.step / elapsed if elapsed > 0 else math.nan,
+                "final_psnr_train_batch": self.history[-1]["psnr"] if self.history else None,
+                "training_pixels": len(self.pool), "steps_this_call": self.step - start_step,
+                "nonfinite_steps_skipped": nonfinite_steps}
+
+    def finish(self, summary: dict) -> None:
+        """Rank the codewords (when the discrete branch ran) and write the run's results."""
+        from vq_mitsuba.render.sheet import write_material_sheet
+
+        run, env = self.run, self.envmap().detach()
+        if self.discrete is not None and bool(self.discrete.initialised):
+            info = rank_materials(self.scene, self.model, self.discrete, self.pool, env, self.cfg)
+            self.checkpoint(summary["seconds"])  # with the ranked codebook and M
+            run.write_materials(info)
+            plot_err_k(info["err_k"], info["num_materials"], info["epsilon"], run / RunDir.ERR_PLOT)
+            write_material_sheet(info["materials"], env.cpu().numpy(), self.capture.envmap_to_world,
+                                 run / RunDir.SHEET)
+        elif self.cfg.vq.enabled:
+            print("warning: the fit ended before the discrete branch started (vq.warmup_frac); "
+                  "no materials.json was written")
+        run.write_envmap(env.cpu().numpy())
+        plot_history(self.history, run / RunDir.LOSS_PLOT)
+        run.write_fit_summary(summary)
+
+
+def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
+        resume: bool = False, progress: bool = True) -> dict:
+    """`vq-mitsuba fit` on known geometry: returns the summary written to RUN_DIR/fit.json."""
+    run = RunDir(run_dir)
+    parse_snapshot_times(cfg.train.snapshot_s)
+    if run.has_checkpoint() and not resume:
+        raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
+    if resume and not run.has_checkpoint():
+        if not run.dir.is_dir():
+            raise InputError(run.dir, "no run to resume (the folder does not exist)")
+        # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
+        # material fit from the beginning, keeping what the folder already holds (mesh.ply).
+        print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
+        resume = False
+    capture = load_capture(capture_path, mesh=mesh_path)  # every input check happens here, first
+    if capture.mesh is None:
+        raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
+                         "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from masked images "
+                         "with `fit --geometry neus` or `vq-mitsuba geometry`)")
+    if resume:
+        info = run.info()
+        if Path(info["capture"]) != Path(capture.source).resolve():
+            raise InputError(run.dir, f"was fitted to {info['capture']}, not {Path(capture.source).resolve()}; "
+                                      "resume it with that capture, or choose another -o")
+    run.create()
+    run.write_config(cfg)
+    run.write_mesh(capture.mesh)
+    trainer = Trainer(capture, run, cfg)
+    stats = trainer.pool_stats
+    if stats["geometry_coverage"] < 0.9:
+        print(f"warning: only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
+              "the geometry may not match the images (units, world axes?)")
+    run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
+                    "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
+                    "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})
+    if resume:
+        trainer.resume()
+        if trainer.step >= cfg.train.iterations:
+            print(f"{run.dir}: already fitted ({trainer.step} of {cfg.train.iterations} iterations); nothing to do")
+    summary = trainer.train(progress)
+    trainer.finish(summary)
+    return summary

@@ -1,0 +1,32 @@
+"""A fitted scene as the layers above the trainer see it: networks, lighting and geometry."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from vq_mitsuba.config import Config
+from vq_mitsuba.models.fields import ContinuousMaterial
+from vq_mitsuba.models.vq import DiscreteBranch
+
+if TYPE_CHECKING:
+    import trimesh
+
+
+@dataclass
+class FittedModel:
+    cfg: Config
+    model: ContinuousMaterial  # the continuous branch (encoder + decoders), eval mode
+    discrete: DiscreteBranch | None  # the discrete branch, None when the run has none (or it never started)
+    envmap: np.ndarray  # (H, W, 3) linear radiance, lat-long in Mitsuba's frame
+    envmap_to_world: np.ndarray  # (4, 4) the envmap's frame in the run's world
+    world: str  # "mitsuba" (Y up) or "blender" (Z up): the world convention of the run's capture
+    mesh: trimesh.Trimesh
+    step: int  # training steps behind this state (-1 when the state file does not say)
+
+    @property
+    def num_materials(self) -> int | None:
+        """M, the chosen number of materials, or None without a discrete branch."""
+        return int(self.discrete.num_materials) if self.discrete is not None else None
