@@ -28,8 +28,8 @@ sys.path.insert(0, str(REPO))
 
 from vq_mitsuba import synthetic  # noqa: E402
 from vq_mitsuba.config import load_config  # noqa: E402
-from vq_mitsuba.evaluate import evaluate, format_table, json_safe  # noqa: E402
-from vq_mitsuba.fit import fit  # noqa: E402
+from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
+from vq_mitsuba.engine.trainer import fit  # noqa: E402
 
 # Headline figures: (key, label, number format). Ratios new/old are printed for these.
 FIGURES = [
@@ -78,12 +78,12 @@ def machine_info() -> dict:
     }
 
 
-def scene_config(name: str, overrides: list[str]):
-    """A bundled scene's fit config: configs/NAME.yaml when there is one (else the defaults), then
-    the overrides. Returns (config, the preset's path or None)."""
-    preset = REPO / "configs" / f"{name}.yaml"
-    preset = preset if preset.is_file() else None
-    return load_config(preset, overrides), preset
+def scene_config(name: str, overrides: list[str], preset: str | None = None):
+    """A bundled scene's fit config: the named preset (if any), configs/NAME.yaml when there is one,
+    then the overrides. Returns (config, the scene file's path or None)."""
+    path = REPO / "configs" / f"{name}.yaml"
+    path = path if path.is_file() else None
+    return load_config(path, overrides, preset=preset), path
 
 
 def ensure_dataset(name: str, out: Path, resolution: int, progress: bool) -> Path:

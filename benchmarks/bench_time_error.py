@@ -2,7 +2,7 @@
 """Benchmark of error against run time, on Cycles ground truth, with the per-texel baseline.
 
     python benchmarks/bench_time_error.py [--data benchmarks/out/cycles] [--scenes demo texture balls]
-        [--methods ours texel ours_vq] [--budgets 30,60,120,240,480] [--eval-spp 64]
+        [--methods vqnerf continuous texel] [--budgets 30,60,120,240,480] [--eval-spp 64]
         [--capture json|xml] [--fit-per-budget] [--out benchmarks/out/time_error] [--compare OLD.json]
 
 Datasets: DATA/NAME, written by `vq-mitsuba make-scene NAME --renderer cycles -o DATA/NAME` (this
@@ -15,9 +15,9 @@ fit of its own with that time limit instead, so that the schedules (learning-rat
 and barrier, frequency annealing) run their course in the budget, as when a user sets
 `train.time_limit_s`; its final state is scored. Methods:
 
-- `ours`: `vq-mitsuba fit` (continuous branch; configs/NAME.yaml when present);
-- `ours_vq`: the same with the discrete branch (`vq.enabled=true`): its final state also gives
-  the segmentation and the MeanShift baseline on its continuous maps;
+- `vqnerf`: `vq-mitsuba fit` with its defaults (configs/NAME.yaml when present): its final state
+  also gives the segmentation and the MeanShift baseline on its continuous maps;
+- `continuous`: the same with `--preset continuous` (the continuous branch alone);
 - `texel`: per-texel principled textures on an xatlas UV map and an envmap, optimised with
   Mitsuba's own differentiable path tracer (`vq_mitsuba.texel`).
 
@@ -45,12 +45,12 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_scenes import _fmt, machine_info, scene_config  # noqa: E402
-from vq_mitsuba.evaluate import evaluate, evaluate_predictor, json_safe  # noqa: E402
-from vq_mitsuba.fit import fit  # noqa: E402
+from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe  # noqa: E402
+from vq_mitsuba.engine.trainer import fit  # noqa: E402
 
 METHODS = {
-    "ours": "vq-mitsuba fit, continuous branch",
-    "ours_vq": "vq-mitsuba fit with the discrete branch (vq.enabled=true)",
+    "vqnerf": "vq-mitsuba fit with its defaults (both branches, dropout ranking)",
+    "continuous": "vq-mitsuba fit --preset continuous (the continuous branch alone)",
     "texel": "per-texel principled textures (xatlas UVs) + envmap, Mitsuba prb + mi.ad.Adam",
 }
 
@@ -106,10 +106,10 @@ def fresh_run(name: str, data: Path, label: str, args, out: Path) -> tuple[Path,
 
 
 def ours_config(name: str, method: str, args, overrides: list[str], last: list[str] = ()):
-    """The config of an `ours` method: configs/NAME.yaml, `overrides`, the discrete branch for
-    `ours_vq`, the user's --set, then `last`."""
-    vq = ["vq.enabled=true"] if method == "ours_vq" else []
-    cfg, _ = scene_config(name, overrides + vq + list(args.set) + list(last))
+    """The config of one of our methods: the preset of the method (`continuous`, or the defaults),
+    configs/NAME.yaml, `overrides`, the user's --set, then `last`."""
+    cfg, _ = scene_config(name, overrides + list(args.set) + list(last),
+                          preset="continuous" if method == "continuous" else None)
     return cfg
 
 
@@ -140,7 +140,7 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
         last = i == len(states) - 1
         print(f"[{name}/{method}] scoring the state at {sec:.0f} s ({step} iterations)")
         m = evaluate(run_dir, data, spp=args.eval_spp, progress=not args.quiet, checkpoint=snap,
-                     meanshift_bandwidths=(0.2, 0.3, 0.5) if last and method == "ours_vq" else (),
+                     meanshift_bandwidths=(0.2, 0.3, 0.5) if last and method == "vqnerf" else (),
                      output=run_dir / f"metrics_{sec:07.1f}s.json")
         rows.append({"scene": name, "method": method, "final": last, **figures(m, sec, step)})
     return rows
@@ -154,7 +154,7 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
     capture, run_dir = fresh_run(name, data, method + "_warmup", args, out)
     print(f"[{name}/{method}] warm-up fit of {args.warmup:g} s (not scored)")
     if method == "texel":
-        from vq_mitsuba.texel import fit_texel
+        from vq_mitsuba.eval.texel import fit_texel
 
         fit_texel(capture, run_dir, texel_config(args), time_limit_s=args.warmup, progress=False)
     else:
@@ -170,7 +170,7 @@ def texel_config(args):
 
     import yaml
 
-    from vq_mitsuba.texel import TexelConfig
+    from vq_mitsuba.eval.texel import TexelConfig
 
     fields = {f.name for f in dataclasses.fields(TexelConfig)}
     changes = {}
@@ -183,7 +183,7 @@ def texel_config(args):
 
 
 def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag: str = "") -> list[dict]:
-    from vq_mitsuba.texel import TexelPredictor, fit_texel
+    from vq_mitsuba.eval.texel import TexelPredictor, fit_texel
 
     capture, run_dir = fresh_run(name, data, "texel" + tag, args, out)
     print(f"[{name}/texel] fitting {capture} -> {run_dir} (time limit {max(budgets):g} s)")
@@ -292,7 +292,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles",
                     help="folder of Cycles datasets DATA/NAME (rendered when missing)")
     ap.add_argument("--scenes", nargs="+", default=["demo", "texture", "balls"])
-    ap.add_argument("--methods", nargs="+", default=["ours", "texel"], choices=list(METHODS))
+    ap.add_argument("--methods", nargs="+", default=["vqnerf", "continuous", "texel"], choices=list(METHODS))
     ap.add_argument("--budgets", default="30,60,120,240,480", help="fit seconds at which states are scored")
     ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scoring renders")
     ap.add_argument("--resolution", type=int, default=64, help="image size of the datasets (rendered here when missing; an existing one of another size is an error)")
@@ -305,7 +305,7 @@ def main(argv=None) -> int:
                     help="seconds of an unscored fit per scene and method before the timed ones, so that "
                          "one-off costs (kernel compilation) do not fall on the first budget (0: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="config override for the `ours` methods (repeatable)")
+                    help="config override for the vqnerf and continuous methods (repeatable)")
     ap.add_argument("--texel-set", action="append", default=[], metavar="KEY=VALUE",
                     help="TexelConfig override for the per-texel baseline, e.g. lr_decay=1.0 (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
@@ -320,7 +320,7 @@ def main(argv=None) -> int:
     old_path = args.compare or (json_path if json_path.is_file() else None)
     old = json.loads(old_path.read_text()) if old_path and old_path.is_file() else None
 
-    from vq_mitsuba.rendering import init_mitsuba
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()  # the variant is part of the machine record
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
