@@ -57,7 +57,7 @@ def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_
     for folder in (ROOT / "data" / name, ROOT / "data" / f"geom_{name}", ROOT / "benchmarks" / "out" / "data" / name):
         if ok(folder):
             return folder
-    from vq_mitsuba import synthetic
+    from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
     out = ROOT / "data" / f"geom_{name}"
     print(f"[{name}] generating {out} ({n_train} views at {resolution}x{resolution})")
@@ -73,7 +73,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 def novel_view_psnr(neus, data: Path, n_views: int) -> dict:
     import torch
 
-    from vq_mitsuba.capture.dataset import load_capture
+    from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.geometry.neus import _srgb
 
     test = load_capture(data / "transforms_test.json", mesh=data / "mesh.ply")
@@ -130,8 +130,8 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
     import shutil
 
     from bench_scenes import scene_config
-    from vq_mitsuba.evaluate import evaluate
-    from vq_mitsuba.fit import fit
+    from vq_mitsuba.eval.evaluate import evaluate
+    from vq_mitsuba.engine.trainer import fit
 
     rows = []
     for seed in args.seeds:
@@ -173,10 +173,10 @@ def reused_scene(name: str, args) -> dict:
 
 
 def run_scene(name: str, args, overrides: list[str]) -> dict:
-    from vq_mitsuba.capture.dataset import load_capture, load_mesh
+    from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.geometry.mesh import mesh_metrics
     from vq_mitsuba.geometry.neus import reconstruct
-    from vq_mitsuba.geometry.pipeline import load_neus_config
+    from vq_mitsuba.config import load_config
 
     if args.reuse:  # the earlier run names its dataset
         result = reused_scene(name, args)
@@ -187,7 +187,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     run_dir = ROOT / args.out / name
     for stale in ("neus.pt", "mesh.ply", "geometry.json"):
         (run_dir / stale).unlink(missing_ok=True)
-    cfg = load_neus_config([f"neus.time_limit_s={args.time_limit}"] + overrides)
+    cfg = load_config(None, [f"neus.time_limit_s={args.time_limit}"] + overrides).neus
     gt = load_mesh(data / "mesh.ply")
     t0 = time.perf_counter()
     capture = load_capture(data / "transforms_train.json")
@@ -319,9 +319,9 @@ def main() -> int:
 
     import torch
 
-    from vq_mitsuba.geometry.pipeline import load_neus_config
+    from vq_mitsuba.config import load_config
 
-    cfg = load_neus_config(args.set)
+    cfg = load_config(None, args.set).neus
     report = {"commit": commit(), "command": " ".join([".venv/bin/python", "benchmarks/bench_geometry.py"] + sys.argv[1:]),
               "machine": machine(), "versions": versions(), "threads": cfg.threads or torch.get_num_threads(),
               "time_limit_s": args.time_limit, "mesh_resolution": cfg.mesh_resolution, "overrides": args.set,

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from vq_mitsuba.capture.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
-from vq_mitsuba.capture.dataset import _ensure_variant, load_cameras, load_capture
-from vq_mitsuba.capture.imageio import srgb_to_linear, write_exr, write_png
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from vq_mitsuba.data.captures import _ensure_variant, load_cameras, load_capture
+from vq_mitsuba.data.imageio import srgb_to_linear, write_exr, write_png
 from vq_mitsuba.errors import InputError
 
 W, H = 24, 16

@@ -9,9 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from vq_mitsuba import cycles, synthetic
-from vq_mitsuba.capture.cameras import camera_to_nerf
-from vq_mitsuba.capture.imageio import read_exr
+from vq_mitsuba.synthetic import cycles
+
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.data.cameras import camera_to_nerf
+from vq_mitsuba.data.imageio import read_exr
 from vq_mitsuba.cli import main
 from vq_mitsuba.errors import InputError
 
@@ -139,7 +141,7 @@ def test_read_passes_groups_multilayer_channels(tmp_path):
 
 
 def test_load_probe_clamps_tiny_negatives(tmp_path):
-    from vq_mitsuba.capture.imageio import write_exr
+    from vq_mitsuba.data.imageio import write_exr
 
     img = np.full((4, 8, 3), 0.5, np.float32)
     img[0, 0, 1] = -0.001
@@ -319,7 +321,7 @@ def test_images_match_mitsuba_renders_of_the_same_views(rendered):
 
 @needs_bpy
 def test_capture_loads_for_fit(rendered):
-    from vq_mitsuba.capture.dataset import load_capture
+    from vq_mitsuba.data.captures import load_capture
 
     cy, _ = rendered
     for path in (cy / "transforms_train.json", cy / "scene.xml"):
@@ -331,7 +333,7 @@ def test_capture_loads_for_fit(rendered):
 def test_patterned_basecolor_matches_the_mitsuba_generator(tmp_path):
     """The texture scene's striped basecolor (baked per vertex) reaches Cycles' shading and AOV:
     the AOV equals the Mitsuba generator's map inside the striped object (it once came out black)."""
-    from vq_mitsuba.capture.imageio import read_image
+    from vq_mitsuba.data.imageio import read_image
 
     kw = dict(resolution=24, n_train=1, n_test=1, spp=4, progress=False)
     cy = cycles.make_scene_cycles("texture", tmp_path / "cy", **kw)

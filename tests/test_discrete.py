@@ -5,13 +5,13 @@ import json
 import pytest
 
 from vq_mitsuba.config import load_config
-from vq_mitsuba.fit import fit
+from vq_mitsuba.engine.trainer import fit
 
 
 @pytest.mark.slow
 def test_two_material_scene_gives_two_materials(tmp_path):
-    from vq_mitsuba.evaluate import evaluate
-    from vq_mitsuba.synthetic import make_scene
+    from vq_mitsuba.eval.evaluate import evaluate
+    from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
     data = make_scene("demo", tmp_path / "demo", resolution=48, n_train=16, n_test=3, spp=64, progress=False)
     cfg = load_config(None, ["vq.enabled=true", "train.iterations=1200", "train.batch_rays=1024", "render.spp=32"])

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from vq_mitsuba import envmaps as E
-from vq_mitsuba.capture.cameras import BLENDER_ENV_TO_WORLD
+from vq_mitsuba.data import envmaps as E
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
 from vq_mitsuba.errors import InputError
 
 

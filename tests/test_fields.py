@@ -1,72 +1,10 @@
-"""The continuous material field's schedules: encoding annealing and the metallic delay."""
+"""The continuous material field: metallic initialisation and config range checks."""
 
 import pytest
 import torch
 
 from vq_mitsuba.config import FieldConfig
-from vq_mitsuba.materials.fields import ContinuousMaterial
-
-
-@pytest.mark.parametrize("fraction,gate", [(0.0, 0.0), (0.1, 0.0), (0.15, 0.5), (0.2, 1.0), (0.9, 1.0)])
-def test_metallic_delay_holds_then_fades_in(fraction, gate):
-    torch.manual_seed(0)
-    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
-    x = torch.rand(32, 3) * 2 - 1
-    model.set_progress(fraction, anneal=0.5, metallic_delay=0.0)  # same encoding, no delay
-    free = model(x)
-    model.set_progress(fraction, anneal=0.5, metallic_delay=0.1)
-    out = model(x)
-    assert free["metallic"].abs().min() > 0
-    torch.testing.assert_close(out["metallic"], gate * free["metallic"])
-    # Basecolor and roughness are not touched by the schedule.
-    torch.testing.assert_close(out["roughness"], free["roughness"])
-    torch.testing.assert_close(out["basecolor"], free["basecolor"])
-    if gate > 0:  # the metallic network learns while it fades in
-        out["metallic"].sum().backward()
-        assert model.decoder.metallic.parameters().__next__().grad.abs().sum() > 0
-
-
-def test_metallic_gate_is_saved_with_the_model():
-    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
-    model.set_progress(0.05, anneal=0.5, metallic_delay=0.1)
-    other = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
-    other.load_state_dict(model.state_dict())
-    assert float(other.metallic_gate) == 0.0
-
-
-def test_models_saved_before_the_metallic_schedule_still_load():
-    old = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3)).state_dict()
-    del old["metallic_gate"]
-    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
-    model.metallic_gate.fill_(0.0)
-    model.load_state_dict(old)  # strict: the missing gate is filled in, not an error
-    assert float(model.metallic_gate) == 1.0
-
-
-def test_shut_metallic_gate_leaves_the_adam_state_of_the_metallic_network_alone():
-    """While metallic is held at 0 its network gets no gradient at all (None, not zeros), so Adam
-    neither advances its step count nor decays its moments: when the gate opens, its first steps
-    are ordinary first Adam steps (about one learning rate), not bias-corrected leaps."""
-    torch.manual_seed(0)
-    model = ContinuousMaterial(FieldConfig(), -torch.ones(3), torch.ones(3))
-    optim = torch.optim.Adam(model.parameters(), lr=1e-2)
-    x = torch.rand(64, 3) * 2 - 1
-    model.set_progress(0.05, anneal=0.5, metallic_delay=0.1)
-    for _ in range(5):
-        optim.zero_grad(set_to_none=True)
-        out = model(x)
-        (out["basecolor"].sum() + out["roughness"].sum() + out["metallic"].sum()).backward()
-        assert all(p.grad is None for p in model.decoder.metallic.parameters())
-        optim.step()
-    assert all(p not in optim.state for p in model.decoder.metallic.parameters())
-    assert all(int(optim.state[p]["step"]) == 5 for p in model.decoder.roughness.parameters())
-    model.set_progress(0.15, anneal=0.5, metallic_delay=0.1)
-    before = [p.detach().clone() for p in model.decoder.metallic.parameters()]
-    optim.zero_grad(set_to_none=True)
-    model(x)["metallic"].sum().backward()
-    optim.step()
-    steps = [float((p.detach() - b).abs().max()) for p, b in zip(model.decoder.metallic.parameters(), before)]
-    assert 0 < max(steps) <= 1e-2 * 1.001
+from vq_mitsuba.models.fields import ContinuousMaterial
 
 
 @pytest.mark.parametrize("init", [0.02, 0.05, 0.2])

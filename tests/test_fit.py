@@ -10,7 +10,7 @@ from tiny_scene import write_sphere_capture
 from vq_mitsuba.cli import main
 from vq_mitsuba.config import load_config
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.fit import fit
+from vq_mitsuba.engine.trainer import fit
 
 
 @pytest.fixture(scope="module")
@@ -20,12 +20,12 @@ def sphere_capture(tmp_path_factory):
 
 def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
     run = tmp_path / "run"
-    args = ["fit", str(sphere_capture), "-o", str(run), "--set", "vq.enabled=true", "--set", "loss.w_sm=0.05",
+    args = ["fit", str(sphere_capture), "-o", str(run), "--set", "vq.warmup_frac=0.3", "--set", "loss.w_sm=0.05",
             "--quiet", "--set", "train.iterations=6",
             "--set", "train.batch_rays=256", "--set", "train.log_every=2", "--set", "train.checkpoint_every=3"]
     assert main(args) == 0
     for name in ("config.yaml", "checkpoint.pt", "mesh.ply", "envmap.exr", "loss.png", "fit.json", "run.json",
-                 "materials.json", "materials_err.png"):
+                 "materials.json", "materials_err.png", "materials_sheet.png"):
         assert (run / name).is_file(), name
     materials = json.loads((run / "materials.json").read_text())
     assert len(materials["err_k"]) == 8 and 1 <= materials["num_materials"] <= 8
@@ -45,10 +45,10 @@ def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
     out = tmp_path / "views"
     assert main(["render", str(run), "--cameras", str(sphere_capture), "-o", str(out), "--quiet", "--spp", "8",
                  "--exposure", "1", "--env-rotate", "30"]) == 0
-    from vq_mitsuba.capture.imageio import read_image
+    from vq_mitsuba.data.imageio import read_image
 
     for kind in ("rgb.exr", "rgb.png", "basecolor.exr", "metallic.exr", "roughness.exr", "normal.exr", "alpha.png",
-                 "material.png"):
+                 "material.png", "segmentation.png"):
         assert (out / f"view_00_{kind}").is_file(), kind
     rgb, alpha = read_image(out / "view_00_rgb.exr")
     assert np.isfinite(rgb).all() and alpha[12, 12] == 1.0 and alpha[0, 0] == 0.0
@@ -96,8 +96,8 @@ def test_resume_without_checkpoint_starts_the_fit(sphere_capture, tmp_path, caps
 
 
 def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
-    """train.snapshot_s keeps the state at those fit seconds; load_run reads a snapshot as the run."""
-    from vq_mitsuba.render import load_run
+    """train.snapshot_s keeps the state at those fit seconds; RunDir.load reads a snapshot as the run."""
+    from vq_mitsuba.engine.run_dir import RunDir
 
     run = tmp_path / "run"
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.snapshot_s=1e-6,1e-5"])
@@ -106,7 +106,7 @@ def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
     assert len(snaps) == 1  # both times had passed after the first step: one copy, not two
     state = torch.load(snaps[0], weights_only=False)
     assert state["step"] == 1 and "optim" not in state
-    early, last = load_run(run, snaps[0]), load_run(run)
+    early, last = RunDir(run).load(snaps[0]), RunDir(run).load()
     x = torch.zeros(3, 3)
     assert not torch.allclose(early.model(x)["basecolor"], last.model(x)["basecolor"])  # three more steps
     with pytest.raises(InputError, match="snapshot_s"):
@@ -115,12 +115,11 @@ def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
 
 
 def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
-    """A fit stopped by the clock long before its iteration count has opened its metallic output
-    and, with train.lr_decay_iterations off, decayed its learning rate: the schedules follow the
-    time used."""
+    """A fit stopped by the clock long before its iteration count has run its schedules to the end
+    (every encoding frequency open), while its learning rate decayed with the iterations only."""
     import itertools
 
-    import vq_mitsuba.fit as fit_module
+    import vq_mitsuba.engine.trainer as fit_module
 
     # The fit's clock advances 10 ms per reading, so the test does not depend on how fast (or how
     # evenly: a kernel compiled mid-fit makes one step long) this machine runs the steps.
@@ -128,14 +127,14 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     monkeypatch.setattr(fit_module.time, "perf_counter", lambda: 0.01 * next(ticks))
     run = tmp_path / "run"
     cfg = load_config(None, ["train.iterations=100000", "train.batch_rays=64", "train.time_limit_s=2",
-                             "train.lr=0.01", "train.lr_decay=0.1", "field.metallic_delay=0.2",
-                             "train.lr_decay_iterations=false"])
+                             "train.lr=0.002", "train.lr_decay=0.01", "field.pe_anneal=0.5", "vq.enabled=false"])
     summary = fit(sphere_capture, run, cfg, progress=False)
-    assert summary["iterations"] < 100000
     state = torch.load(run / "checkpoint.pt", weights_only=False)
-    lr_end = state["optim"]["param_groups"][0]["lr"]
-    assert 0.001 <= lr_end < 0.0013  # 0.01 x 0.1^f, f the progress of the last step (close to 1)
-    assert float(state["model"]["metallic_gate"]) == 1.0
+    assert 10 < summary["iterations"] < 100000  # stopped by the clock
+    assert float(state["model"]["encoder.pe.progress"]) == float(cfg.field.pe_freqs)
+    # Set before each step: the last step ran at step - 1 steps done.
+    factor = 0.01 ** ((state["step"] - 1) / 100000)
+    assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(0.002 * factor, rel=1e-9)
     # Without a time limit the schedule follows the iterations.
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01", "train.lr_decay=0.1"])
     fit(sphere_capture, tmp_path / "r2", cfg, progress=False)
@@ -147,11 +146,11 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
     """Known lighting, known geometry: basecolor within 0.05 and roughness within 0.1."""
     xml = write_sphere_capture(tmp_path / "cap", base_color=(0.7, 0.35, 0.2), roughness=0.3, size=32,
                                n_views=12, spp=64)
-    cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8"])
+    cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8"], preset="continuous")
     fit(xml, tmp_path / "run", cfg, progress=False)
-    from vq_mitsuba.render import load_run
+    from vq_mitsuba.engine.run_dir import RunDir
 
-    fitted = load_run(tmp_path / "run")
+    fitted = RunDir(tmp_path / "run").load()
     pts = torch.tensor(np.asarray(fitted.mesh.vertices), dtype=torch.float32)
     with torch.no_grad():
         out = fitted.model(pts)
@@ -161,63 +160,28 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
     assert out["metallic"].mean().item() < 0.1
 
 
-def test_footprint_table_groups_each_pixels_hits():
-    from vq_mitsuba.fit import PixelPool, footprint_table
-
-    # view 0: pixel 1 with hits 0 and 1, pixel 3 with hit 0 only; view 1: pixel 2 with both
-    view = torch.tensor([0, 0, 1, 0, 1])
-    pixel = torch.tensor([1, 3, 2, 1, 2])
-    copy = torch.tensor([0, 0, 0, 1, 1])
-    z = torch.zeros(5, 3)
-    pool = PixelPool(z, z, z, z, view, pixel, copy)
-    first, table = footprint_table(pool, 2, 2, 2)
-    assert first.tolist() == [0, 1, 2]
-    assert table.tolist() == [[0, 3], [1, 1], [2, 4]]  # the missing hit falls back to the first
-
-
-def test_footprint_needs_sample_sets_divisible_by_the_hits():
-    from vq_mitsuba.config import load_config
-    from vq_mitsuba.errors import InputError
-
-    with pytest.raises(InputError, match="pixel_jitter"):
-        load_config(overrides=["train.footprint=true", "train.spp=4", "train.pixel_jitter=4"])
-    cfg = load_config(overrides=["train.footprint=true", "train.spp=8", "train.pixel_jitter=4"])
-    assert cfg.train.footprint
-
-
-@pytest.mark.parametrize("per_hit", [True, False])
-def test_footprint_fit_runs_both_branches(sphere_capture, tmp_path, per_hit):
-    run = tmp_path / "run"
-    assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.footprint=true",
-                 "--set", f"train.footprint_per_hit={str(per_hit).lower()}",
-                 "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0.2", "--set", "train.iterations=5",
-                 "--set", "train.batch_rays=128", "--set", "train.log_every=1"]) == 0
-    history = torch.load(run / "checkpoint.pt", weights_only=False)["history"]
-    assert len(history) == 5 and all(np.isfinite(h["loss"]) for h in history)
-
-
 def test_metallic_barrier_stops_at_its_progress(sphere_capture, tmp_path, monkeypatch):
     """loss.metallic_barrier_until = 0.5 over 4 steps (progress 0, 0.25, 0.5, 0.75): the prior gets
     the metallic logit (the barrier) on the first two steps and the linear term after."""
-    from vq_mitsuba import losses
+    from vq_mitsuba.models import losses
 
     real, seen = losses.lambertian_prior, []
 
-    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None, gate=1.0):
+    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None):
         seen.append(metallic_logit is not None)
-        return real(metallic, roughness, metallic_weight, metallic_logit, gate)
+        return real(metallic, roughness, metallic_weight, metallic_logit)
 
     monkeypatch.setattr(losses, "lambertian_prior", spy)
     run = tmp_path / "run"
     assert main(["fit", str(sphere_capture), "-o", str(run), "--quiet", "--set", "train.iterations=4",
-                 "--set", "train.batch_rays=64", "--set", "field.metallic_delay=0",
-                 "--set", "loss.metallic_barrier_until=0.5"]) == 0
+                 "--set", "train.batch_rays=64", "--set", "loss.metallic_barrier_until=0.5",
+                 "--preset", "continuous"]) == 0
     assert seen == [True, True, False, False]
 
 
 def _nan_on_calls(monkeypatch, calls):
     """Make the reconstruction loss NaN on the given (1-based) calls."""
-    from vq_mitsuba import losses
+    from vq_mitsuba.models import losses
 
     real, count = losses.reconstruction_l2_decorrelated, [0]
 
@@ -242,7 +206,7 @@ def test_a_non_finite_step_is_skipped(sphere_capture, tmp_path, monkeypatch):
 
 def test_non_finite_steps_in_a_row_stop_the_fit_keeping_the_last_finite_state(sphere_capture, tmp_path,
                                                                               monkeypatch, capsys):
-    from vq_mitsuba.fit import MAX_NONFINITE_RUN
+    from vq_mitsuba.engine.trainer import MAX_NONFINITE_RUN
 
     _nan_on_calls(monkeypatch, set(range(3, 100)))
     run = tmp_path / "run"
@@ -258,10 +222,10 @@ def test_non_finite_steps_in_a_row_stop_the_fit_keeping_the_last_finite_state(sp
 
 
 def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
-    """Separate training with light_from_continuous: nothing but the discrete branch learns (the
+    """Separate training (ablation.separate), light from the continuous branch: nothing but the discrete branch learns (the
     continuous loss and priors are off), so the continuous field and the envmap stay as they were
     after one step; with the discrete loss allowed to train the light, the envmap moves."""
-    base = ["--quiet", "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0", "--set", "vq.joint=false",
+    base = ["--quiet", "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0", "--set", "ablation.separate=true",
             "--set", "loss.w_rec_c=0", "--set", "loss.w_chr=0", "--set", "loss.w_lam=0",
             "--set", "envmap.tv_weight=0", "--set", "train.bounces=1", "--set", "train.bounce_after=0",
             "--set", "train.batch_rays=128"]
@@ -271,7 +235,7 @@ def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
     def state(name, iterations, frozen):
         run = tmp_path / name
         assert main(["fit", str(capture), "-o", str(run), *base, "--set", f"train.iterations={iterations}",
-                     "--set", f"vq.light_from_continuous={str(frozen).lower()}"]) == 0
+                     "--set", f"ablation.shared_light={str(not frozen).lower()}"]) == 0
         return torch.load(run / "checkpoint.pt", weights_only=False)
 
     def weights(sd):
@@ -286,51 +250,11 @@ def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
     assert not all(torch.equal(v, shared["envmap"][k]) for k, v in one["envmap"].items())
 
 
-@pytest.mark.parametrize("by_iterations", [False, True])
-def test_time_limited_fit_opens_the_frequencies_with_the_clock_or_the_iterations(sphere_capture, tmp_path,
-                                                                                by_iterations):
-    """Under a time limit the training progress follows the clock, so a fit stopped by it ends with
-    every encoding frequency open; with field.pe_anneal_iterations they open with the share of
-    train.iterations done instead."""
-    cfg = load_config(None, ["train.iterations=100000", "train.time_limit_s=1.5", "train.batch_rays=128",
-                             "field.pe_anneal=0.5", f"field.pe_anneal_iterations={str(by_iterations).lower()}"])
-    fit(sphere_capture, tmp_path / "run", cfg, progress=False)
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
-    n = cfg.field.pe_freqs
-    opened = float(state["model"]["encoder.pe.progress"])
-    # The progress is set before each step: the last step ran at step - 1 steps done.
-    expected = n * (state["step"] - 1) / 100000 / 0.5 if by_iterations else float(n)
-    assert 0 < state["step"] < 100000
-    assert opened == pytest.approx(expected, rel=1e-5, abs=1e-6)
-
-
-def test_time_limited_fit_decays_the_learning_rate_with_the_iterations(sphere_capture, tmp_path, monkeypatch):
-    """train.lr_decay_iterations (the default): a fit that the clock stops after a small share of
-    train.iterations has decayed its learning rate only by that share
-    (test_time_limit_drives_the_schedules has the clock-driven decay)."""
-    import itertools
-
-    import vq_mitsuba.fit as fit_module
-
-    ticks = itertools.count()  # the fit's clock advances 10 ms per reading, as in that test
-    monkeypatch.setattr(fit_module.time, "perf_counter", lambda: 0.01 * next(ticks))
-    cfg = load_config(None, ["train.iterations=100000", "train.time_limit_s=2", "train.batch_rays=64",
-                             "train.lr=0.002", "train.lr_decay=0.01"])
-    assert cfg.train.lr_decay_iterations
-    fit(sphere_capture, tmp_path / "run", cfg, progress=False)
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
-    assert 10 < state["step"] < 100000  # stopped by the clock
-    # Set before each step: the last step ran at step - 1 steps done.
-    factor = 0.01 ** ((state["step"] - 1) / 100000)
-    assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(0.002 * factor, rel=1e-9)
-    assert factor > 0.99
-
-
 @pytest.mark.parametrize("bounce_after, with_bounce", [(0, 12), (5, 7), (12, 0)])
 def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monkeypatch, bounce_after, with_bounce):
     """train.bounce_after: the first steps shade direct light only (no material lookup at the
     bounce's hits), the later ones simulate the bounce."""
-    from vq_mitsuba.rendering import ShadingScene
+    from vq_mitsuba.render.shading import ShadingScene
 
     calls = []
     original = ShadingScene.shade

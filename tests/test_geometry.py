@@ -11,10 +11,10 @@ import pytest
 import torch
 import trimesh
 
-from vq_mitsuba.capture.cameras import Camera, look_at
-from vq_mitsuba.capture.dataset import Capture
+from vq_mitsuba.data.cameras import Camera, look_at
+from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.geometry.config import NeuSConfig, apply_overrides
+from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.geometry.neus import ColorNetwork, DenseGrid, NeuS, camera_rays, rate_spread, reconstruct, train
 
@@ -53,7 +53,7 @@ def small_cfg(**kw) -> NeuSConfig:
     base = dict(batch_rays=256, n_samples=16, levels=3, base_res=8, max_res=24, hidden=32, hull_resolution=48,
                 march_steps=64, mesh_resolution=48, checkpoint_every=0, warmup=10, threads=1)
     base.update(kw)
-    return apply_overrides(NeuSConfig(), [f"{k}={v}" for k, v in base.items()])
+    return load_config(None, [f"neus.{k}={v}" for k, v in base.items()]).neus
 
 
 def sdf_world(neus: NeuS, points: np.ndarray) -> np.ndarray:
@@ -123,7 +123,7 @@ def test_clean_mesh_removes_small_floating_piece_but_keeps_other_objects():
 
 
 def test_normal_smoothing_removes_bumps_keeps_positions_and_survives_ply(tmp_path):
-    from vq_mitsuba.capture.dataset import load_mesh
+    from vq_mitsuba.data.captures import load_mesh
 
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
     v = sphere.vertices.copy()
@@ -220,14 +220,14 @@ def test_neus_needs_masks_and_foreground():
 
 
 def test_config_overrides_are_checked():
-    cfg = apply_overrides(NeuSConfig(), ["neus.iterations=12", "keep_largest=true", "neus.lr=0.5"])
+    cfg = load_config(None, ["neus.iterations=12", "neus.keep_largest=true", "neus.lr=0.5"]).neus
     assert cfg.iterations == 12 and cfg.keep_largest is True and cfg.lr == 0.5
-    with pytest.raises(InputError, match="unknown"):
-        apply_overrides(NeuSConfig(), ["neus.nope=1"])
-    with pytest.raises(InputError, match="bad value"):
-        apply_overrides(NeuSConfig(), ["neus.iterations=many"])
+    with pytest.raises(InputError, match="unknown config key 'neus.nope'"):
+        load_config(None, ["neus.nope=1"])
+    with pytest.raises(InputError, match="'neus.iterations' expects int"):
+        load_config(None, ["neus.iterations=many"])
     with pytest.raises(InputError, match="normal_smoothing"):
-        apply_overrides(NeuSConfig(), ["neus.normal_smoothing=-1"])
+        load_config(None, ["neus.normal_smoothing=-1"])
 
 
 def _write_json_capture(folder: Path, with_alpha: bool, n_frames: int = 2) -> Path:
@@ -299,18 +299,14 @@ def test_cli_fit_refuses_mesh_with_geometry_neus(tmp_path, capsys):
 
 
 def test_one_config_file_holds_the_material_and_the_neus_sections(tmp_path):
-    from vq_mitsuba.config import load_config
-    from vq_mitsuba.errors import InputError
-    from vq_mitsuba.geometry.pipeline import load_neus_config
-
     path = tmp_path / "both.yaml"
     path.write_text("train:\n  iterations: 7\nneus:\n  iterations: 5\n")
     assert load_config(path).train.iterations == 7
-    assert load_neus_config(None, path).iterations == 5
+    assert load_config(path).neus.iterations == 5
     bad = tmp_path / "bad.yaml"
     bad.write_text("neus: [1, 2\n")
     with pytest.raises(InputError, match="bad.yaml"):
-        load_neus_config(None, bad)
+        load_config(bad)
 
 
 def test_reflecting_colour_network_sees_the_mirror_direction():

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from vq_mitsuba import losses
+from vq_mitsuba.models import losses
 
 
 def test_lambertian_prior_value_and_gradients_with_metallic_weight():
@@ -68,11 +68,3 @@ def test_metallic_barrier_is_minus_log_one_minus_metallic_and_keeps_pulling_at_s
     assert float(g_barrier[3]) > 0.49 and float(g_linear[3]) < 1e-5
     # Near metallic 0 the two agree to first order.
     assert abs(float(g_barrier[0]) - float(g_linear[0])) < 0.05 * float(g_linear[0])
-
-
-def test_metallic_barrier_follows_the_gate():
-    logit = torch.tensor([1.0, 2.0])
-    rough = torch.ones(2)
-    full = losses.lambertian_prior(torch.sigmoid(logit), rough, 1.0, metallic_logit=logit)
-    half = losses.lambertian_prior(0.5 * torch.sigmoid(logit), rough, 1.0, metallic_logit=logit, gate=0.5)
-    assert torch.allclose(half, 0.5 * full)

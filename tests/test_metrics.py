@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from vq_mitsuba import metrics as M
-from vq_mitsuba.evaluate import format_table, json_safe
+from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.eval.evaluate import format_table, json_safe
 
 
 def _image(h=24, w=20, c=3, seed=0):
@@ -134,7 +134,7 @@ def test_format_table_and_json_safe():
 
 
 def test_segmentation_scores_permuted_labels_give_one():
-    from vq_mitsuba.metrics import segmentation_scores
+    from vq_mitsuba.eval.metrics import segmentation_scores
 
     gt = np.array([[0, 1, 1, 2], [2, 3, 3, 0]])
     perm = {0: 0, 1: 7, 2: 4, 3: 1}
@@ -145,7 +145,7 @@ def test_segmentation_scores_permuted_labels_give_one():
 
 
 def test_segmentation_scores_hand_computed():
-    from vq_mitsuba.metrics import segmentation_scores
+    from vq_mitsuba.eval.metrics import segmentation_scores
 
     gt = np.array([1, 1, 1, 1, 2, 2, 0])
     pred = np.array([5, 5, 5, 6, 6, 6, 5])  # 6 -> 2 (2 of 3), one pixel of material 1 is wrong
@@ -161,8 +161,8 @@ def test_segmentation_scores_hand_computed():
 def test_training_srgb_mse_matches_numpy_encoding():
     import torch
 
-    from vq_mitsuba import losses
-    from vq_mitsuba.capture.imageio import linear_to_srgb
+    from vq_mitsuba.models import losses
+    from vq_mitsuba.data.imageio import linear_to_srgb
 
     rng = np.random.default_rng(3)
     a = rng.uniform(-0.1, 1.5, (500, 3)).astype(np.float32)  # out-of-range values are clipped by both
@@ -174,7 +174,7 @@ def test_training_srgb_mse_matches_numpy_encoding():
 
 
 def test_meanshift_baseline_separates_distinct_materials():
-    from vq_mitsuba.baselines import brdf_features, meanshift_labels
+    from vq_mitsuba.eval.baselines import brdf_features, meanshift_labels
 
     rng = np.random.default_rng(0)
     # Three materials: red diffuse, grey metal, green plastic; small per-pixel noise.

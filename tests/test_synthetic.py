@@ -9,9 +9,9 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from vq_mitsuba import synthetic
-from vq_mitsuba.capture.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
-from vq_mitsuba.capture.imageio import read_exr, read_image
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from vq_mitsuba.data.imageio import read_exr, read_image
 from vq_mitsuba.errors import InputError
 
 RES, N_TRAIN, N_TEST = 32, 4, 2
@@ -171,7 +171,7 @@ def _blocks(img, b=8):
 
 def test_identity_envmap_in_mitsuba_world_relights_the_same(demo, mi, tmp_path):
     """scene.xml + the train EXR with identity to_world renders what images/ holds (Blender world + R)."""
-    from vq_mitsuba import envmaps
+    from vq_mitsuba.data import envmaps
 
     env = envmaps.load_envmap(demo / "envmaps" / "train.exr")
     envmaps.save_envmap(tmp_path / "rotated.exr", envmaps.rotate_z(env, 180.0))

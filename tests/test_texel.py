@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from tiny_scene import write_sphere_capture
-from vq_mitsuba.capture.dataset import load_capture
-from vq_mitsuba.texel import (TexelConfig, TexelPredictor, TexelScene, _write_snapshot, fit_texel, load_snapshot,
+from vq_mitsuba.data.captures import load_capture
+from vq_mitsuba.eval.texel import (TexelConfig, TexelPredictor, TexelScene, _write_snapshot, fit_texel, load_snapshot,
                               uv_unwrap)
 
 TRUE_BASE = (0.7, 0.35, 0.2)  # write_sphere_capture's material
@@ -57,7 +57,7 @@ def test_voronoi_atlas_fallback_keeps_faces():
     input vertex, possibly rotated within the triangle), UVs in the unit square, charts not flat."""
     import trimesh
 
-    from vq_mitsuba.texel import _voronoi_atlas
+    from vq_mitsuba.eval.texel import _voronoi_atlas
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     vmap, faces, uvs = _voronoi_atlas(mesh.vertices, mesh.faces)
@@ -137,7 +137,7 @@ def test_true_materials_reproduce_the_capture(sphere):
     roughness, or the right material under the envmap turned by 90 degrees."""
     import dataclasses
 
-    from vq_mitsuba.render import rotate_about_up
+    from vq_mitsuba.render.views import rotate_about_up
 
     capture = load_capture(sphere)
     views = list(range(len(capture.cameras)))
@@ -204,8 +204,8 @@ def test_predictor_renders_texture_values_as_maps(fitted, sphere, tmp_path):
 
 
 def test_evaluate_predictor_scores_a_texel_snapshot(tmp_path):
-    from vq_mitsuba.evaluate import evaluate_predictor
-    from vq_mitsuba.synthetic import make_scene
+    from vq_mitsuba.eval.evaluate import evaluate_predictor
+    from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
     data = make_scene("demo", tmp_path / "demo", resolution=16, n_train=4, n_test=2, spp=8, progress=False)
     res = fit_texel(data / "transforms_train.json", tmp_path / "fit", TexelConfig(resolution=32, iterations=3),

@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vq_mitsuba.materials.vq import (VectorQuantizerEMA, choose_num_materials, dropout_rates,
+from vq_mitsuba.models.vq import (VectorQuantizerEMA, choose_num_materials, dropout_rates,
                                      sample_drop_mask, scale_gradient)
 
 
@@ -89,19 +89,19 @@ def test_choose_num_materials(err, expected):
     assert choose_num_materials(err, eps=0.002) == expected
 
 
-def test_forced_assignments_get_no_straight_through_gradient_when_asked():
+def test_forced_assignments_get_no_straight_through_gradient():
     vq = VectorQuantizerEMA(2, 2, dead_after=1000)
     vq.init_codebook(torch.tensor([[1.0, 0.0], [0.0, 1.0]]))
     vq.eval()
     z = torch.tensor([[1.0, 0.1], [0.1, 1.0]], requires_grad=True)
     drop = torch.tensor([[True, False], [False, False]])  # latent 0's own codeword is dropped
-    z_q, idx, loss = vq(z, drop, forced_gradient=False)
+    z_q, idx, loss = vq(z, drop)
     assert idx.tolist() == [1, 1]
     (z_q.sum() + loss).backward()
     assert z.grad[0].abs().max() == 0  # forced onto codeword 1: no gradient, no commitment pull
     assert z.grad[1].abs().max() > 0
     z.grad = None
-    z_q, _, loss = vq(z, drop, forced_gradient=True)  # the plain estimator passes it through
+    z_q, _, loss = vq(z, None)  # without dropout the straight-through gradient reaches both
     (z_q.sum() + loss).backward()
     assert z.grad[0].abs().max() > 0
 
@@ -109,8 +109,8 @@ def test_forced_assignments_get_no_straight_through_gradient_when_asked():
 def test_warm_started_discrete_decoder_matches_the_continuous_one_at_the_codewords():
     from types import SimpleNamespace
 
-    from vq_mitsuba.materials.fields import BRDFDecoder
-    from vq_mitsuba.materials.vq import DiscreteBranch
+    from vq_mitsuba.models.fields import BRDFDecoder
+    from vq_mitsuba.models.vq import DiscreteBranch
 
     torch.manual_seed(1)
     cfg = SimpleNamespace(latent=6, decoder_hidden=16, roughness_min=0.02, metallic_init=0.05)
@@ -142,7 +142,7 @@ def test_reorder_permutes_codewords_and_their_statistics():
 
 
 def test_duplicate_codewords_rank_behind_the_distinct_ones():
-    from vq_mitsuba.materials.vq import duplicates_last
+    from vq_mitsuba.models.vq import duplicates_last
 
     brdf = {
         "basecolor": torch.tensor([[0.8, 0.1, 0.1], [0.2, 0.2, 0.8], [0.79, 0.11, 0.1], [0.8, 0.1, 0.1], [0.5, 0.5, 0.5]]),
@@ -160,7 +160,7 @@ def test_duplicate_codewords_rank_behind_the_distinct_ones():
 
 
 def test_a_codeword_that_adds_nothing_moves_behind_and_err_k_is_measured_again():
-    from vq_mitsuba.materials.vq import redundant_last
+    from vq_mitsuba.models.vq import redundant_last
 
     # Codewords 0 and 1 both decode to material A (half the pixels), 2 to B, 3 to C, 4 is unused.
     covers = {0: "A", 1: "A", 2: "B", 3: "C", 4: None}
@@ -183,7 +183,7 @@ def test_a_codeword_that_adds_nothing_moves_behind_and_err_k_is_measured_again()
 
 
 def test_redundant_ranking_moves_each_codeword_at_most_once():
-    from vq_mitsuba.materials.vq import redundant_last
+    from vq_mitsuba.models.vq import redundant_last
 
     # Codewords 1 and 3 share a material: the error falls (by 0.05) only once both are in the
     # prefix, and every codeword added otherwise raises it by 0.001. Moving 1, 2, then 3 to the
@@ -197,7 +197,7 @@ def test_redundant_ranking_moves_each_codeword_at_most_once():
 
 
 def test_a_moved_codeword_stays_ahead_of_the_duplicates_and_unused_ones():
-    from vq_mitsuba.materials.vq import redundant_last
+    from vq_mitsuba.models.vq import redundant_last
 
     # Codewords 0-3 are distinct (n_keep = 4); 4 duplicates 3 and 5 is unused. Codeword 1 (material
     # B) adds nothing at its early position, since B's pixels stay with 0 until 2 is in too; while

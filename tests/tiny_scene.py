@@ -23,9 +23,9 @@ def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: floa
     import mitsuba as mi
     import trimesh
 
-    from vq_mitsuba.capture.cameras import Camera, look_at
-    from vq_mitsuba.capture.imageio import write_exr
-    from vq_mitsuba.rendering import init_mitsuba
+    from vq_mitsuba.data.cameras import Camera, look_at
+    from vq_mitsuba.data.imageio import write_exr
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()
     out = Path(out)
@@ -65,3 +65,61 @@ def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: floa
            '  <shape type="ply"><string name="filename" value="sphere.ply"/></shape>\n' + emitter + "</scene>\n")
     (out / "scene.xml").write_text(xml)
     return out / "scene.xml"
+
+
+THREE_MATERIALS = [  # (centre, basecolor, metallic, roughness): three spheres that differ in every way
+    ((-0.62, 0.0, 0.0), (0.80, 0.15, 0.10), 0.0, 0.7),  # rough red dielectric
+    ((0.62, 0.0, 0.0), (0.15, 0.45, 0.85), 0.0, 0.25),  # glossy blue dielectric
+    ((0.0, 0.0, 0.62), (0.95, 0.75, 0.35), 1.0, 0.3),  # gold-like metal
+]
+
+
+def write_three_material_capture(out: Path, size: int = 32, n_views: int = 10, spp: int = 32) -> Path:
+    """Three spheres (radius 0.3) of three materials under a known envmap, rendered with Mitsuba's
+    path tracer; returns the XML path. Ground-truth ids: `three_material_ids`."""
+    import mitsuba as mi
+    import trimesh
+
+    from vq_mitsuba.backend import init_mitsuba
+    from vq_mitsuba.data.cameras import Camera, look_at
+    from vq_mitsuba.data.imageio import write_exr
+
+    init_mitsuba()
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    write_exr(out / "env.exr", smooth_env())
+    shapes, xml_shapes = {}, []
+    for k, (centre, base, metal, rough) in enumerate(THREE_MATERIALS):
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+        mesh.apply_translation(centre)
+        mesh.export(out / f"sphere{k}.ply")
+        shapes[f"s{k}"] = {"type": "ply", "filename": str(out / f"sphere{k}.ply"),
+                           "bsdf": {"type": "principled", "base_color": {"type": "rgb", "value": list(base)},
+                                    "metallic": metal, "roughness": rough}}
+        xml_shapes.append(f'  <shape type="ply"><string name="filename" value="sphere{k}.ply"/></shape>')
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
+                          "env": {"type": "envmap", "filename": str(out / "env.exr")}, **shapes})
+    sensors = []
+    for i in range(n_views):
+        a = 2 * np.pi * i / n_views
+        origin = 2.4 * np.array([np.sin(a), 0.55 + 0.25 * np.cos(3 * a), np.cos(a)])
+        cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0.2], [0, 1, 0]), 45.0, size, size)
+        img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=i))
+        write_exr(out / "images" / f"{cam.name}.exr", img)
+        m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
+        sensors.append(
+            f'  <sensor type="perspective" id="{cam.name}">\n'
+            f'    <float name="fov" value="45"/>\n    <string name="fov_axis" value="x"/>\n'
+            f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
+            f'    <film type="hdrfilm"><integer name="width" value="{size}"/>'
+            f'<integer name="height" value="{size}"/></film>\n  </sensor>')
+    (out / "scene.xml").write_text('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n" + "\n".join(xml_shapes)
+                                   + '\n  <emitter type="envmap"><string name="filename" value="env.exr"/></emitter>\n'
+                                   "</scene>\n")
+    return out / "scene.xml"
+
+
+def three_material_ids(positions: np.ndarray) -> np.ndarray:
+    """Ground-truth material id (1..3) of surface points of `write_three_material_capture`."""
+    centres = np.array([c for c, *_ in THREE_MATERIALS])
+    return 1 + np.argmin(np.linalg.norm(positions[:, None, :] - centres[None], axis=-1), axis=1)

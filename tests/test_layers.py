@@ -1,0 +1,70 @@
+"""The package's layers import one way: data -> models -> render -> engine -> eval -> cli, and
+rendering a finished run imports no training code."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
+# Each layer may import its own and the lower ones. geometry (NeuS) sits beside models; synthetic
+# (the make-scene datasets) and cli sit on top. Base modules (config, errors, backend) are below all.
+LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models", "geometry"}, {"render"}, {"engine"}, {"eval"},
+          {"synthetic"}, {"cli"}]
+
+
+def _layer(module: str) -> int:
+    top = module.split(".")[1] if module.count(".") else ""
+    return next(i for i, names in enumerate(LAYERS) if top in names)
+
+
+def _imports(path: Path) -> set[str]:
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("vq_mitsuba"):
+            for alias in node.names:
+                full = f"{node.module}.{alias.name}"
+                out.add(full if (PACKAGE.parent / (full.replace(".", "/") + ".py")).is_file() else node.module)
+        elif isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.startswith("vq_mitsuba")}
+    return out
+
+
+def _module(path: Path) -> str:
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    return ".".join(p for p in rel.parts if p != "__init__")
+
+
+def test_no_upward_import_and_no_cycle():
+    graph = {}
+    for path in PACKAGE.rglob("*.py"):
+        if path.name == "cycles_worker.py":  # runs inside Blender's interpreter, imports nothing of ours
+            continue
+        graph[_module(path)] = {m for m in _imports(path) if m != "vq_mitsuba"}
+    upward = [(m, i) for m, deps in graph.items() if m != "vq_mitsuba" for i in deps if _layer(i) > _layer(m)]
+    assert not upward, upward
+    state: dict[str, int] = {}
+
+    def visit(m, stack):
+        state[m] = 1
+        for d in graph.get(m, ()):
+            if state.get(d) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack + [m, d]))
+            if d not in state:
+                visit(d, stack + [m])
+        state[m] = 2
+
+    for m in graph:
+        if m not in state:
+            visit(m, [])
+
+
+def test_render_command_imports_no_training_code(tmp_path):
+    code = ("import sys\nfrom vq_mitsuba import cli\n"
+            "try:\n    cli.main(['render', sys.argv[1], '--cameras', sys.argv[1] + '/none.json', '--quiet'])\n"
+            "except SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('vq_mitsuba')))")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True)
+    loaded = eval(out.stdout.strip().splitlines()[-1])
+    assert "vq_mitsuba.engine.run_dir" in loaded and "vq_mitsuba.render.views" in loaded
+    assert not [m for m in loaded if m.startswith("vq_mitsuba.engine.") and m != "vq_mitsuba.engine.run_dir"]
