@@ -37,10 +37,11 @@ setup: llvm $(VENV)/.installed
 # interrupted one resumes from its checkpoint.
 demo: setup
 	@[ -f data/demo/scene.json ] || $(VENV)/bin/vq-mitsuba make-scene demo -o data/demo
-	$(VENV)/bin/vq-mitsuba fit data/demo/scene.xml -o runs/demo --config configs/demo.yaml \
+	$(VENV)/bin/vq-mitsuba fit data/demo/scene.xml -o runs/demo --preset demo \
 	  $$([ -f runs/demo/checkpoint.pt ] && echo --resume)
 	$(VENV)/bin/vq-mitsuba render runs/demo --cameras data/demo/transforms_test.json -o runs/demo/test_views
-	@echo "Demo results: runs/demo (decomposition, envmap.exr, plots) and runs/demo/test_views (novel views and maps)"
+	@echo "Demo results: runs/demo (materials.json, materials_sheet.png, materials_err.png, envmap.exr, loss.png)"
+	@echo "  and runs/demo/test_views (novel views, maps, NAME_material.png ids, NAME_segmentation.png overlays)"
 
 # Blender as a module for `make-scene --renderer cycles`: bpy needs Python 3.11 and numpy < 2, so it
 # gets its own environment; the Cycles worker runs there as a subprocess.
@@ -54,8 +55,9 @@ $(CYCLES_VENV)/.installed:
 
 cycles: $(CYCLES_VENV)/.installed
 
-test: setup
-	$(PY) -m pytest -q
+# The Cycles ground-truth path is part of the product: its environment is set up too, so its tests run.
+test: setup cycles
+	$(PY) -m pytest -q -rs
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow

@@ -62,3 +62,16 @@ def test_decays_barrier_end_joint_scale_and_bounce_start_outside_their_range_are
         with pytest.raises(InputError, match=r"train\.bounce_after"):
             load_config(overrides=[f"train.bounce_after={bad}"])
     assert load_config(overrides=["train.bounce_after=300"]).train.bounce_after == 300
+
+
+def test_configuration_doc_is_generated_from_the_config():
+    """docs/configuration.md is `python -m vq_mitsuba.config` (regenerate it after changing a key)."""
+    from pathlib import Path
+
+    from vq_mitsuba.config import describe, markdown
+
+    doc = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
+    assert doc.read_text() == markdown()
+    keys = [line for line in describe() if line.startswith("  ")]
+    assert all(line.split(": ", 1)[1].strip() for line in keys)  # every key says what it does, on one line
+    assert all("\n" not in line for line in keys)
