@@ -266,7 +266,7 @@ def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monke
 
     monkeypatch.setattr(ShadingScene, "shade", spy)
     cfg = load_config(None, ["train.iterations=12", "train.batch_rays=64", "train.spp=8", "train.bounces=1",
-                             f"train.bounce_after={bounce_after}"])
+                             f"train.bounce_after={bounce_after}"], preset="continuous")
     fit(sphere_capture, tmp_path / "run", cfg, progress=False)
     assert len(calls) == 12
     assert sum(calls) == with_bounce
