@@ -29,8 +29,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_scenes import _fmt, ensure_dataset, machine_info, scene_config  # noqa: E402
 from vq_mitsuba import synthetic  # noqa: E402
-from vq_mitsuba.evaluate import evaluate, format_table, json_safe  # noqa: E402
-from vq_mitsuba.fit import fit  # noqa: E402
+from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
+from vq_mitsuba.engine.trainer import fit  # noqa: E402
 
 # name -> (overrides, what it tests). "vq" is the full method with this project's defaults.
 VARIANTS = {

@@ -40,7 +40,7 @@ def child(args) -> int:
     sys.path.insert(0, str(Path(args.src).resolve()))
     import vq_mitsuba
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.fit import fit
+    from vq_mitsuba.engine.trainer import fit
 
     if not Path(vq_mitsuba.__file__).resolve().is_relative_to(Path(args.src).resolve()):
         raise SystemExit(f"imported {vq_mitsuba.__file__}, not the revision's copy in {args.src}")
@@ -65,7 +65,7 @@ def child(args) -> int:
     if args.eval_spp:
         import time
 
-        from vq_mitsuba.evaluate import evaluate
+        from vq_mitsuba.eval.evaluate import evaluate
 
         t0 = time.perf_counter()
         m = evaluate(run, Path(args.data), spp=args.eval_spp, progress=False, meanshift_bandwidths=())
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
         p.error(f"--warmup ({args.warmup}) must be below --iterations ({args.iterations})")
 
     from bench_scenes import ensure_dataset, machine_info
-    from vq_mitsuba.rendering import init_mitsuba
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()  # the variant the children pick, for the machine line
 

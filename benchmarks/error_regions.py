@@ -51,10 +51,10 @@ def main() -> int:
 
     from scipy import ndimage
 
-    from vq_mitsuba import metrics as M
-    from vq_mitsuba.capture.dataset import load_cameras
-    from vq_mitsuba.evaluate import RunPredictor, dataset_root, load_ground_truth
-    from vq_mitsuba.render import _R, convert_world
+    from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.eval.evaluate import RunPredictor, dataset_root, load_ground_truth
+    from vq_mitsuba.render.views import _R, convert_world
 
     root = dataset_root(args.dataset)
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")

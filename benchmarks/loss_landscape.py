@@ -45,8 +45,8 @@ def main() -> int:
     mi.set_variant("llvm_ad_rgb")
     from PIL import Image
 
-    from vq_mitsuba.capture.imageio import read_image
-    from vq_mitsuba.losses import encode_gamma
+    from vq_mitsuba.data.imageio import read_image
+    from vq_mitsuba.models.losses import encode_gamma
 
     data = args.dataset.resolve()
     meta = json.loads((data / "scene.json").read_text())

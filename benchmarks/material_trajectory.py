@@ -37,7 +37,7 @@ def main() -> int:
     import trimesh
 
     from vq_mitsuba.errors import InputError
-    from vq_mitsuba.render import load_run
+    from vq_mitsuba.render.views import load_run
 
     snaps = sorted((args.run / "snapshots").glob("*.pt"))
     if not snaps:

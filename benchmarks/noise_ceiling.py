@@ -27,8 +27,8 @@ def true_scene(root: Path, meta: dict, shapes: dict, env_name: str):
     the dataset was: path tracing to its max_depth, the emitter hidden."""
     import mitsuba as mi
 
-    from vq_mitsuba import envmaps
-    from vq_mitsuba.capture.imageio import read_exr
+    from vq_mitsuba.data import envmaps
+    from vq_mitsuba.data.imageio import read_exr
 
     env = read_exr(root / "envmaps" / f"{env_name}.exr")[..., :3]
     return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": int(meta.get("max_depth", 4)),
@@ -50,9 +50,9 @@ def main(argv=None) -> int:
 
     import mitsuba as mi
 
-    from vq_mitsuba import metrics as M
-    from vq_mitsuba.capture.imageio import read_exr
-    from vq_mitsuba.rendering import init_mitsuba
+    from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.data.imageio import read_exr
+    from vq_mitsuba.backend import init_mitsuba
 
     init_mitsuba()
     mi.set_log_level(mi.LogLevel.Error)  # not the sampler's note that it rounds spp up

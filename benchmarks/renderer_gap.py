@@ -34,8 +34,8 @@ def main(argv=None) -> int:
     import mitsuba as mi
     from noise_ceiling import true_scene
 
-    from vq_mitsuba.evaluate import load_ground_truth
-    from vq_mitsuba.rendering import init_mitsuba
+    from vq_mitsuba.eval.evaluate import load_ground_truth
+    from vq_mitsuba.backend import init_mitsuba
 
     root = args.dataset
     for need in ("scene.json", "scene_test.xml", "envmaps/train.exr"):
