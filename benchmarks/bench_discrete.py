@@ -28,21 +28,20 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_scenes import _fmt, ensure_dataset, machine_info, scene_config  # noqa: E402
-from vq_mitsuba import synthetic  # noqa: E402
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic  # noqa: E402
 from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
 from vq_mitsuba.engine.trainer import fit  # noqa: E402
 
 # name -> (overrides, what it tests). "vq" is the full method with this project's defaults.
 VARIANTS = {
-    "continuous": (["vq.enabled=false"], "continuous branch alone"),
-    "vq": (["vq.enabled=true"], "full method: joint training, dropout ranking, L_chr"),
-    "vq_forced_gradient": (["vq.enabled=true", "vq.forced_gradient=true"],
-                           "straight-through gradient also for dropout-forced assignments (the earlier default)"),
-    "no_ranking": (["vq.enabled=true", "vq.ranking=false"], "ablation: M = M0, no dropout ranking"),
-    "no_chr": (["vq.enabled=true", "loss.w_chr=0"], "ablation: no chromaticity loss"),
-    "sm_paper": (["vq.enabled=true", "loss.w_sm=0.05"], "with L_sm at the paper's weight 0.05 (default 0)"),
-    "single_branch": (["vq.enabled=true", "vq.single_branch=true"], "ablation: discrete branch alone after warm-up"),
-    "separate": (["vq.enabled=true", "vq.joint=false"], "ablation: discrete branch trained on detached latents"),
+    "continuous": (["vq.enabled=false"], "continuous branch alone (--preset continuous)"),
+    "vq": ([], "the defaults: joint training, dropout ranking, L_chr"),
+    "no_ranking": (["ablation.no_ranking=true"], "ablation: M = M0, no dropout ranking"),
+    "no_chr": (["loss.w_chr=0"], "ablation: no chromaticity loss"),
+    "sm_paper": (["loss.w_sm=0.05"], "with L_sm at the paper's weight 0.05 (default 0)"),
+    "single_branch": (["ablation.single_branch=true"], "ablation: discrete branch alone after warm-up"),
+    "separate": (["ablation.separate=true"], "ablation: discrete branch trained on detached latents"),
+    "shared_light": (["ablation.shared_light=true"], "ablation: the discrete loss also trains the light"),
 }
 
 FIGURES = [

@@ -26,7 +26,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from vq_mitsuba import synthetic  # noqa: E402
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic  # noqa: E402
 from vq_mitsuba.config import load_config  # noqa: E402
 from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
 from vq_mitsuba.engine.trainer import fit  # noqa: E402

@@ -324,52 +324,6 @@ def test_mesh_without_normals_gets_smooth_vertex_normals():
     assert float(angle.max()) < 0.5
 
 
-def test_hits_per_pixel_spread_each_sample_set_over_the_pixel():
-    """(N, K, 3) hits: K identical hits shade exactly as one; K different hits give the mean of
-    shading each hit alone (statistically), with every sample set covering all K hits."""
-    env = _env()
-    scene = _scene(env)
-    p, nrm, wi = _points(64)
-    base, metal, rough = torch.rand(64, 3), torch.rand(64), 0.2 + 0.6 * torch.rand(64)
-    shade = lambda pp, nn, ww, spp, seed: scene.shade(pp, nn, ww, base, metal, rough, torch.tensor(env), spp,
-                                                     generator=torch.Generator().manual_seed(seed), groups=2)
-    stack = lambda t: t[:, None].expand(-1, 4, -1)
-    np.testing.assert_allclose(shade(stack(p), stack(nrm), stack(wi), 8, 5).numpy(),
-                               shade(p, nrm, wi, 8, 5).numpy(), rtol=1e-6)
-    p2, n2, w2 = _points(64, seed=2)  # other hits: alternate the pixel's hits between two surfaces
-    hp, hn, hw = (torch.stack([a, b, a, b], 1) for a, b in ((p, p2), (nrm, n2), (wi, w2)))
-    spread = shade(hp, hn, hw, 512, 6)
-    alone = 0.5 * (shade(p, nrm, wi, 512, 7) + shade(p2, n2, w2, 512, 8))
-    assert float((spread - alone).abs().mean()) < 0.03 * float(alone.abs().mean())
-    assert float((spread - shade(p, nrm, wi, 512, 9)).abs().mean()) > 0.1 * float(alone.abs().mean())
-
-
-def test_hits_per_pixel_take_a_material_per_hit():
-    """(N, K) materials with (N, K, 3) hits: K copies of one material shade exactly as that material;
-    two materials alternating over the hits give the mean of shading each alone (statistically),
-    and each sample at its own hit's material (a texture edge inside the pixel)."""
-    env = _env()
-    scene = _scene(env)
-    p, nrm, wi = _points(64)
-    base, metal, rough = torch.rand(64, 3), torch.rand(64), 0.2 + 0.6 * torch.rand(64)
-    base2, metal2, rough2 = torch.rand(64, 3), torch.rand(64), 0.2 + 0.6 * torch.rand(64)
-    env_t = torch.tensor(env)
-    hits = [t[:, None].expand(-1, 4, -1) for t in (p, nrm, wi)]
-    run = lambda b, m, r, spp, seed, h=hits: scene.shade(*h, b, m, r, env_t, spp,
-                                                         generator=torch.Generator().manual_seed(seed), groups=2)
-    same = run(base[:, None].expand(-1, 4, -1), metal[:, None].expand(-1, 4), rough[:, None].expand(-1, 4), 8, 5)
-    np.testing.assert_allclose(same.numpy(), run(base, metal, rough, 8, 5).numpy(), rtol=1e-6)
-    alt = lambda a, b: torch.stack([a, b, a, b], 1)
-    mixed = run(alt(base, base2), alt(metal, metal2), alt(rough, rough2), 512, 6)
-    alone = 0.5 * (run(base, metal, rough, 512, 7) + run(base2, metal2, rough2, 512, 8))
-    assert float((mixed - alone).abs().mean()) < 0.03 * float(alone.abs().mean())
-    assert float((mixed - run(base, metal, rough, 512, 9)).abs().mean()) > 0.1 * float(alone.abs().mean())
-    # Gradients reach each hit's material.
-    b = alt(base, base2).clone().requires_grad_(True)
-    run(b, alt(metal, metal2), alt(rough, rough2), 8, 10).sum().backward()
-    assert b.grad is not None and bool((b.grad[:, 0].abs().sum(-1) > 0).all()) and bool((b.grad[:, 1].abs().sum(-1) > 0).all())
-
-
 class _ConstantMaterial(torch.nn.Module):
     """A stand-in for a fitted field: the same principled parameters at every point."""
 

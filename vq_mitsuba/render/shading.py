@@ -300,24 +300,14 @@ class ShadingScene:
         With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
         samples that hit the object are lit by that point's direct radiance (one bounce).
         `groups` independent stratified sample sets per point (see `stratified_samples`).
-        Hits given as (N, K, 3) (K primary hits inside one pixel) spread each set's samples over
-        the K hits in turn, so each set estimates the pixel's average (sets of at least K samples);
-        the material may then be one per pixel or one per hit (basecolor (N, K, 3), metallic and
-        roughness (N, K)).
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them.
         """
         n = hits_position.shape[0]
-        rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()
-        spread = rep
-        if hits_position.dim() == 3:  # (N, K, 3): K hits per point, sample s of each group at hit s % K
-            k = torch.arange(spp, device=hits_position.device) % max(spp // max(groups, 1), 1) \
-                % hits_position.shape[1]
-            spread = lambda t: t[:, k].reshape(n * spp, *t.shape[2:]).contiguous()
-        p, nrm, wi = spread(hits_position), spread(hits_normal), spread(hits_wi)
-        material = spread if basecolor.dim() == 3 else rep  # one material per hit, or per point
-        bc, m, r = material(basecolor), material(metallic), material(roughness)
+        rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()  # noqa: E731
+        p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
+        bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
         u = stratified_samples(n, spp, groups, generator, p.device)
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
