@@ -74,13 +74,13 @@ def novel_view_psnr(neus, data: Path, n_views: int) -> dict:
     import torch
 
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus import _srgb
+    from vq_mitsuba.geometry.neus import encode_srgb
 
     test = load_capture(data / "transforms_test.json", mesh=data / "mesh.ply")
     full, masked = [], []
     for k in range(min(n_views, len(test.cameras))):
         rgb, _ = neus.render_camera(test.cameras[k])
-        gt = _srgb(torch.from_numpy(test.images[k])).numpy()
+        gt = encode_srgb(torch.from_numpy(test.images[k])).numpy()
         full.append(psnr(rgb, gt))
         fg = test.alpha[k] > 0.5
         masked.append(psnr(rgb[fg], gt[fg]))

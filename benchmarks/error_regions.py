@@ -54,7 +54,8 @@ def main() -> int:
     from vq_mitsuba.eval import metrics as M
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.eval.evaluate import RunPredictor, dataset_root, load_ground_truth
-    from vq_mitsuba.render.views import _R, convert_world
+    from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
+    from vq_mitsuba.render.views import convert_world
 
     root = dataset_root(args.dataset)
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
@@ -70,7 +71,7 @@ def main() -> int:
         _, scale = M.scale_align(np.stack([m["basecolor"] for m in maps]), np.stack([g["basecolor"] for g in gts]),
                                  masks, method="lstsq")
         err = [((M.srgb(m["basecolor"] * scale) - M.srgb(g["basecolor"])) ** 2).mean(-1) for m, g in zip(maps, gts)]
-        normals = [m["normal"] @ _R.T if pred.world == "mitsuba" else m["normal"] for m in maps]
+        normals = [m["normal"] @ MITSUBA_TO_BLENDER.T if pred.world == "mitsuba" else m["normal"] for m in maps]
         band_se = [e[g["mask"] & ~i] for e, g, i in zip(err, gts, inner)]
         all_se = [e[g["mask"]] for e, g in zip(err, gts)]
         missed = np.mean([((m["alpha"] < 0.5) & g["mask"]).sum() / max(g["mask"].sum(), 1) for m, g in zip(maps, gts)])

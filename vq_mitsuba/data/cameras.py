@@ -16,6 +16,7 @@ import numpy as np
 BLENDER_ENV_TO_WORLD = np.array(
     [[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64
 )
+MITSUBA_TO_BLENDER = BLENDER_ENV_TO_WORLD[:3, :3]  # Blender world = this @ Mitsuba world
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 
 

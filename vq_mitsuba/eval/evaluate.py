@@ -183,7 +183,8 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     from tqdm import tqdm
 
     from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.render.views import _R, convert_world
+    from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
+    from vq_mitsuba.render.views import convert_world
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
@@ -214,7 +215,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     for i, cam in enumerate(views):
         out = renderer.render(cam, spp=spp, aa=aa, seed=i)
         if run_world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
-            out["normal"] = out["normal"] @ _R.T
+            out["normal"] = out["normal"] @ MITSUBA_TO_BLENDER.T
         preds.append(out)
         bar.update(1)
     del renderer

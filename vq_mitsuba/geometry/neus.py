@@ -296,7 +296,7 @@ class NeuSModel(nn.Module):
 # The reconstruction: data, occupancy, rendering
 
 
-def _srgb(x: torch.Tensor) -> torch.Tensor:
+def encode_srgb(x: torch.Tensor) -> torch.Tensor:
     x = x.clamp(0.0, 1.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=1e-8) ** (1 / 2.4) - 0.055)
 
@@ -346,7 +346,7 @@ class NeuS:
         self.rays_o = self.to_box(origins[sel])
         self.rays_d = dirs[sel]
         rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3)
-        self.rays_rgb = _srgb(rgb[sel])
+        self.rays_rgb = encode_srgb(rgb[sel])
         self.rays_alpha = alpha.reshape(-1)[sel].clamp(0, 1)
 
     # ---- coordinates

@@ -12,13 +12,11 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera
+from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER, Camera
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.models.fitted import FittedModel
 from vq_mitsuba.render.shading import scene_for_mesh
 
-# Blender world = R @ Mitsuba world (R is the rotation of BLENDER_ENV_TO_WORLD).
-_R = BLENDER_ENV_TO_WORLD[:3, :3]
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
 
 
@@ -27,7 +25,7 @@ def convert_world(camera: Camera, src: str, dst: str) -> Camera:
     if src == dst:
         return camera
     rot = np.eye(4)
-    rot[:3, :3] = _R if (src, dst) == ("mitsuba", "blender") else _R.T
+    rot[:3, :3] = MITSUBA_TO_BLENDER if (src, dst) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
     return Camera(camera.name, rot @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
 
 
@@ -215,6 +213,6 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp)
         if cameras_world != fitted.world:  # normals in the cameras' world
-            rot = _R if (fitted.world, cameras_world) == ("mitsuba", "blender") else _R.T
+            rot = MITSUBA_TO_BLENDER if (fitted.world, cameras_world) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
             images["normal"] = images["normal"] @ rot.T
         write_view(out_dir, cam.name, images)
