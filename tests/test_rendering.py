@@ -423,28 +423,33 @@ def _welch_rejections(a: np.ndarray, b: np.ndarray, alpha: float = 0.01) -> np.n
     return p < alpha / t.size
 
 
-def test_renderer_matches_mitsuba_per_pixel(tmp_path):
-    """Every pixel of `Renderer.render` (its own pixel sampling, coverage and MIS shading) has the
-    expectation of Mitsuba's `direct` integrator on the same scene: a per-pixel Welch test over
+@pytest.mark.parametrize("two_spheres", [False, True])
+def test_renderer_matches_mitsuba_per_pixel(tmp_path, two_spheres):
+    """Every pixel of `Renderer.render` (its own pixel sampling, coverage, MIS shading and, for two
+    spheres that light each other, the bounce) has the expectation of Mitsuba's own integrator on
+    the same scene (`direct`; `path` at max_depth 3 for the bounce): a per-pixel Welch test over
     independent renders finds no pixel that differs, while a slightly rougher material is found
-    to differ in many pixels (the test can fail)."""
+    to differ (the test can fail)."""
     from vq_mitsuba.config import load_config
     from vq_mitsuba.render.views import Renderer
 
     env = _env()
     base, metal, rough = [0.6, 0.4, 0.2], 0.5, 0.3
-    cfg = load_config(None, [])
-    cam = Camera("c", look_at([0, -2.0, 0.4], [0, 0, 0], [0, 0, 1]), 40.0, 24, 24)
-    ply = tmp_path / "sphere.ply"
-    SPHERE.export(ply)
+    cfg = load_config(None, ["train.bounces=1"])
+    mesh = _two_spheres(subdivisions=3) if two_spheres else SPHERE
+    cam = _two_spheres_camera(24) if two_spheres else \
+        Camera("c", look_at([0, -2.0, 0.4], [0, 0, 0], [0, 0, 1]), 40.0, 24, 24)
+    ply = tmp_path / "mesh.ply"
+    mesh.export(ply)
 
     def ours(r, seeds):
-        fitted = FittedModel(cfg, _ConstantMaterial(base, metal, r), None, env, np.eye(4), "mitsuba", SPHERE, 0)
+        fitted = FittedModel(cfg, _ConstantMaterial(base, metal, r), None, env, np.eye(4), "mitsuba", mesh, 0)
         renderer = Renderer(fitted)
         return np.stack([renderer.render(cam, spp=64, aa=16, seed=s)["rgb"] for s in seeds])
 
+    integrator = {"type": "path", "max_depth": 3} if two_spheres else {"type": "direct"}
     ref_scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "direct", "hide_emitters": True},
+        "type": "scene", "integrator": {**integrator, "hide_emitters": True},
         "s": {"type": "ply", "filename": str(ply), "bsdf": {
             "type": "principled", "base_color": {"type": "rgb", "value": base}, "metallic": metal, "roughness": rough}},
         "env": {"type": "envmap", "bitmap": mi.Bitmap(env)},
