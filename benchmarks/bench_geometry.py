@@ -15,7 +15,7 @@ the first test views. Results: JSON + markdown in benchmarks/results/geometry_<c
 
 With --materials, the material stage then runs twice on the same training views with the same
 config and seed: once on the NeuS mesh (the pipeline from images alone) and once on the dataset's
-true mesh. Both runs are scored by `vq_mitsuba.evaluate` on the test views, and the table gives
+true mesh. Both runs are scored by `vq_mitsuba.eval.evaluate` on the test views, and the table gives
 their basecolor PSNR and its difference (target: within 1.5 dB). --seeds repeats the pair with
 other seeds; --reuse takes an existing NeuS mesh in the output folder instead of training again.
 

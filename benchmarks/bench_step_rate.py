@@ -14,7 +14,7 @@ shows. Every step simulates the bounce (`train.bounce_after=0` where a revision 
 so the steady-state step is timed in every revision. Prints the median steps per second of
 each revision, its ratio to the first, and the training-batch PSNR at the end (the same
 schedule, so the error is comparable); writes OUT/step_rate.json and OUT/step_rate.md. With
---eval-spp N, each fit is then scored by `vq_mitsuba.evaluate` at N spp (all test views, fitted
+--eval-spp N, each fit is then scored by `vq_mitsuba.eval.evaluate` at N spp (all test views, fitted
 light and every relighting envmap; the dataset needs relit views, as `make-scene` writes them),
 and the median evaluation time and its novel-view, basecolor and relighting PSNR are printed
 beside the step rate.
@@ -176,7 +176,7 @@ def main(argv=None) -> int:
                      f"{r['median_final_psnr']:.2f} | {each} |")
     if args.eval_spp:
         e0 = rows[0]["median_eval_s"]
-        lines += ["", f"Evaluation of each fitted run (`vq_mitsuba.evaluate`, {args.eval_spp} spp; PSNR in dB, "
+        lines += ["", f"Evaluation of each fitted run (`vq_mitsuba.eval.evaluate`, {args.eval_spp} spp; PSNR in dB, "
                   "relighting: mean over the envmaps, albedo scale):", "",
                   "| revision | commit | eval s (median) | ratio to first | novel view | basecolor | relit | eval s of each run |",
                   "|---|---|---:|---:|---:|---:|---:|---|"]

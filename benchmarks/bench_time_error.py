@@ -8,7 +8,7 @@
 Datasets: DATA/NAME, written by `vq-mitsuba make-scene NAME --renderer cycles -o DATA/NAME` (this
 script renders a missing one that way, at --resolution). Each method fits the training views
 once, with a time limit of the largest budget, and keeps its state at every budget (fit seconds,
-excluding the copies); every kept state is then scored by `vq_mitsuba.evaluate` on the test views:
+excluding the copies); every kept state is then scored by `vq_mitsuba.eval.evaluate` on the test views:
 novel view, basecolor (per-channel lstsq alignment), metallic, roughness, relighting under every
 held-aside envmap (albedo scale and per-image scale). With --fit-per-budget each budget gets a
 fit of its own with that time limit instead, so that the schedules (learning-rate decay, prior
@@ -19,7 +19,7 @@ and barrier, frequency annealing) run their course in the budget, as when a user
   also gives the segmentation and the MeanShift baseline on its continuous maps;
 - `continuous`: the same with `--preset continuous` (the continuous branch alone);
 - `texel`: per-texel principled textures on an xatlas UV map and an envmap, optimised with
-  Mitsuba's own differentiable path tracer (`vq_mitsuba.texel`).
+  Mitsuba's own differentiable path tracer (`vq_mitsuba.eval.texel`).
 
 Writes OUT/time_error.json, OUT/time_error.md and OUT/time_error.png (error against seconds), and
 with --compare (or an older OUT/time_error.json) prints new / old ratios of matching points.

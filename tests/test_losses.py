@@ -1,4 +1,4 @@
-"""Loss functions against hand-computed values and their defining properties (vq_mitsuba.losses)."""
+"""Loss functions against hand-computed values and their defining properties (vq_mitsuba.models.losses)."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""Image metrics against hand-computed values (vq_mitsuba.metrics)."""
+"""Image metrics against hand-computed values (vq_mitsuba.eval.metrics)."""
 
 import math
 

@@ -120,7 +120,7 @@ def load_mesh(path: str | Path):
 
 
 def _ensure_variant():
-    """mitsuba, with the project's variant selected (vq_mitsuba.rendering.init_mitsuba)."""
+    """mitsuba, with the project's variant selected (vq_mitsuba.backend.init_mitsuba)."""
     import mitsuba as mi
 
     from vq_mitsuba.backend import init_mitsuba

@@ -177,8 +177,8 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
                        fit_summary: dict | None = None) -> dict:
     """The scores of `evaluate` for any predictor: an object with `world` ("mitsuba" or "blender"),
     `default_spp`, `default_aa`, `num_materials` (None without a segmentation) and `renderer(envmap)` returning
-    an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.Renderer.render`
-    (`render.Renderer`s of one run render all relighting envmaps of a view in one pass, see
+    an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.views.Renderer.render`
+    (`render.views.Renderer`s of one run render all relighting envmaps of a view in one pass, see
     `relit_views`). Writes `output` when given."""
     from tqdm import tqdm
 
@@ -339,7 +339,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
 
 def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) -> list[np.ndarray]:
     """The rgb image of one view under each renderer's lighting. Renderers of a fitted run
-    (`render.Renderer`) share one pass: the rays and the material field are evaluated once."""
+    (`render.views.Renderer`) share one pass: the rays and the material field are evaluated once."""
     from vq_mitsuba.render.views import Renderer
 
     if not renderers:

@@ -1,6 +1,6 @@
 """Image metrics for evaluating a decomposition: PSNR, SSIM and per-channel scale alignment.
 
-Pure numpy (scikit-image for SSIM). Conventions, used by `vq_mitsuba.evaluate`:
+Pure numpy (scikit-image for SSIM). Conventions, used by `vq_mitsuba.eval.evaluate`:
 - colour images (views, relit views, basecolor) are compared in sRGB: `linear_to_srgb` of the
   linear values clipped to [0, 1], as NeRF / NeRFactor / TensoIR report them;
 - scalar maps (metallic, roughness) are compared linearly in [0, 1];

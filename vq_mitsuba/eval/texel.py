@@ -471,7 +471,7 @@ class TexelPredictor:
 
 class TexelRenderer:
     """Renders views of a texel snapshot under its envmap (or another): the dict of
-    render.Renderer.render."""
+    render.views.Renderer.render."""
 
     def __init__(self, arrays: dict[str, np.ndarray], envmap: np.ndarray, max_depth: int = 3):
         import mitsuba as mi

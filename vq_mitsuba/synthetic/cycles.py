@@ -2,8 +2,8 @@
 
 Blender-as-a-module (`bpy`) needs numpy < 2, which the project's environment does not have, so it
 lives in its own environment `.venv-cycles` (`make cycles`) and renders in a subprocess running
-`vq_mitsuba/cycles_worker.py`. This module does everything else with the same building blocks as
-`vq_mitsuba.synthetic`: scene spec, geometry, cameras, envmaps, transforms json, scene.xml. It
+`vq_mitsuba/synthetic/cycles_worker.py`. This module does everything else with the same building blocks as
+`vq_mitsuba.synthetic.mitsuba_scenes`: scene spec, geometry, cameras, envmaps, transforms json, scene.xml. It
 writes a job file (`_cycles/job.json`), runs the worker, and turns the worker's multilayer EXRs
 into the layout `synthetic.make_scene` writes (see its docstring), so `fit`, `render` and `eval`
 read a Cycles dataset exactly like a Mitsuba one:
@@ -22,7 +22,7 @@ max_bounces MAX_BOUNCES (Mitsuba's max_depth 4 counts the camera segment and the
 the same paths), no clamping, no glossy blur, no adaptive sampling, denoiser off, 1-pixel box
 pixel filter, transparent film, view transform Standard. The envmap lights the Blender-world
 scene through an Environment Texture node with no mapping: Cycles' equirectangular lookup is the
-convention of `vq_mitsuba.envmaps` (centre = +X, u = 0.25 = +Y, top = +Z).
+convention of `vq_mitsuba.data.envmaps` (centre = +X, u = 0.25 = +Y, top = +Z).
 """
 
 from __future__ import annotations
@@ -39,7 +39,6 @@ import numpy as np
 from vq_mitsuba.data import envmaps
 
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
-from vq_mitsuba.data.imageio import write_exr, write_png
 from vq_mitsuba.errors import InputError
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -258,15 +257,6 @@ def gt_maps(passes: dict[str, np.ndarray], n_materials: int) -> dict[str, np.nda
             "material": material, "alpha": alpha.astype(np.float32)}
 
 
-def _write_gt(stem: Path, gt: dict) -> None:
-    write_exr(f"{stem}_basecolor.exr", gt["basecolor"])
-    write_exr(f"{stem}_metallic.exr", gt["metallic"])
-    write_exr(f"{stem}_roughness.exr", gt["roughness"])
-    write_exr(f"{stem}_normal.exr", gt["normal"])
-    write_png(f"{stem}_material.png", gt["material"])
-    write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
-
-
 # --------------------------------------------------------------------------------------------
 # The whole scene
 # --------------------------------------------------------------------------------------------
@@ -375,7 +365,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
         passes = read_passes(work / f"{cam.name}.exr")
         synthetic._write_rgba(out / "images" / cam.name, passes["Combined"])
         if cam.name in test_names:
-            _write_gt(out / "gt" / cam.name, gt_maps(passes, n_mat))
+            synthetic.write_gt(out / "gt" / cam.name, gt_maps(passes, n_mat))
     for rl in relights:
         (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
         for cam in test:

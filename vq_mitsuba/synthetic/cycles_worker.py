@@ -1,9 +1,9 @@
-"""Render a job file with Blender Cycles (run by `vq_mitsuba.cycles`, not imported by the package).
+"""Render a job file with Blender Cycles (run by `vq_mitsuba.synthetic.cycles`, not imported by the package).
 
-    .venv-cycles/bin/python vq_mitsuba/cycles_worker.py JOB.json
+    .venv-cycles/bin/python vq_mitsuba/synthetic/cycles_worker.py JOB.json
 
 This script runs inside Blender-as-a-module's own environment (`make cycles`), so it imports only
-bpy, numpy and the standard library. The job file (written by `vq_mitsuba.cycles.build_job`)
+bpy, numpy and the standard library. The job file (written by `vq_mitsuba.synthetic.cycles.build_job`)
 holds everything in Blender world (Z up):
 
     render     samples, seed, max_bounces, denoise, filter_width, threads

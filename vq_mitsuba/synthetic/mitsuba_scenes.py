@@ -17,7 +17,7 @@ colours) and shapes made with trimesh. `make_scene` writes into `out_dir`:
 Worlds: Blender_world = R @ Mitsuba_world with R the 3x3 part of BLENDER_ENV_TO_WORLD. Every
 vertex and camera of the XML is the Blender one mapped by R^-1, so an envmap with identity
 to_world in the XML's scene lights it exactly as the same EXR with to_world = R lights the
-Blender-world scene (see vq_mitsuba.envmaps for the lat-long convention).
+Blender-world scene (see vq_mitsuba.data.envmaps for the lat-long convention).
 
 Images: EXR is linear RGBA with premultiplied colour (OpenEXR's convention; background 0),
 PNG is sRGB RGBA with straight (un-premultiplied) colour and alpha = pixel coverage.
@@ -458,6 +458,17 @@ def _versions() -> dict:
             "numpy": np.__version__, "variant": mi.variant()}
 
 
+def write_gt(stem: Path, gt: dict) -> None:
+    """A test view's ground-truth maps: STEM_basecolor/metallic/roughness/normal.exr, STEM_material.png
+    (ids), STEM_alpha.png (coverage)."""
+    write_exr(f"{stem}_basecolor.exr", gt["basecolor"])
+    write_exr(f"{stem}_metallic.exr", gt["metallic"])
+    write_exr(f"{stem}_roughness.exr", gt["roughness"])
+    write_exr(f"{stem}_normal.exr", gt["normal"])
+    write_png(f"{stem}_material.png", gt["material"])
+    write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
+
+
 def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
                n_test: int | None = None, spp: int | None = None, seed: int = 0,
                progress: bool = True) -> Path:
@@ -571,13 +582,7 @@ def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int |
     rng = np.random.default_rng(seed + 1)
     for cam in test_mi:
         gt = render_gt(scene, cam, spec, shape_info, rng)
-        stem = out / "gt" / cam.name
-        write_exr(f"{stem}_basecolor.exr", gt["basecolor"])
-        write_exr(f"{stem}_metallic.exr", gt["metallic"])
-        write_exr(f"{stem}_roughness.exr", gt["roughness"])
-        write_exr(f"{stem}_normal.exr", gt["normal"])
-        write_png(f"{stem}_material.png", gt["material"])
-        write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
+        write_gt(out / "gt" / cam.name, gt)
     del scene
     for rl in relights:
         scene = scene_with(rl.pop("array"))
