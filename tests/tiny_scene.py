@@ -17,6 +17,22 @@ def smooth_env(height: int = 32, lobe_strength: float = 40.0, lobe_width: float 
     return (env + lobe_strength * sun[..., None]).astype(np.float32)
 
 
+def _render_view(scene, cam, spp: int, seed: int, out: Path) -> str:
+    """Render `cam` with Mitsuba into OUT/images/NAME.exr; returns the camera's <sensor> XML."""
+    import mitsuba as mi
+
+    from vq_mitsuba.data.imageio import write_exr
+
+    img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=seed))
+    write_exr(out / "images" / f"{cam.name}.exr", img)
+    m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
+    return (f'  <sensor type="perspective" id="{cam.name}">\n'
+            f'    <float name="fov" value="{cam.fov_x_deg:g}"/>\n    <string name="fov_axis" value="x"/>\n'
+            f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
+            f'    <film type="hdrfilm"><integer name="width" value="{cam.width}"/>'
+            f'<integer name="height" value="{cam.height}"/></film>\n  </sensor>')
+
+
 def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: float = 0.3, metallic: float = 0.0,
                          size: int = 32, n_views: int = 12, spp: int = 64, known_envmap: bool = True) -> Path:
     """A uniform principled sphere (radius 0.5) seen from n_views cameras; returns the XML path."""
@@ -50,16 +66,7 @@ def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: floa
         origin = 2.2 * np.array([r * np.cos(golden * i), y, r * np.sin(golden * i)])
         cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0], [0, 1, 0] if abs(y) < 0.95 else [1, 0, 0]),
                      40.0, size, size)
-        img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=i))
-        write_exr(out / "images" / f"{cam.name}.exr", img)
-        m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
-        sensors.append(
-            f'  <sensor type="perspective" id="{cam.name}">\n'
-            f'    <float name="fov" value="40"/>\n    <string name="fov_axis" value="x"/>\n'
-            f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
-            f'    <film type="hdrfilm"><integer name="width" value="{size}"/>'
-            f'<integer name="height" value="{size}"/></film>\n  </sensor>'
-        )
+        sensors.append(_render_view(scene, cam, spp, i, out))
     emitter = '  <emitter type="envmap"><string name="filename" value="env.exr"/></emitter>\n' if known_envmap else ""
     xml = ('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n"
            '  <shape type="ply"><string name="filename" value="sphere.ply"/></shape>\n' + emitter + "</scene>\n")
@@ -104,15 +111,7 @@ def write_three_material_capture(out: Path, size: int = 32, n_views: int = 10, s
         a = 2 * np.pi * i / n_views
         origin = 2.4 * np.array([np.sin(a), 0.55 + 0.25 * np.cos(3 * a), np.cos(a)])
         cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0.2], [0, 1, 0]), 45.0, size, size)
-        img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=i))
-        write_exr(out / "images" / f"{cam.name}.exr", img)
-        m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
-        sensors.append(
-            f'  <sensor type="perspective" id="{cam.name}">\n'
-            f'    <float name="fov" value="45"/>\n    <string name="fov_axis" value="x"/>\n'
-            f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
-            f'    <film type="hdrfilm"><integer name="width" value="{size}"/>'
-            f'<integer name="height" value="{size}"/></film>\n  </sensor>')
+        sensors.append(_render_view(scene, cam, spp, i, out))
     (out / "scene.xml").write_text('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n" + "\n".join(xml_shapes)
                                    + '\n  <emitter type="envmap"><string name="filename" value="env.exr"/></emitter>\n'
                                    "</scene>\n")
