@@ -11,7 +11,8 @@ benchmarks/out/geometry/NAME, with a time limit on training. Every --checkpoint-
 training a mesh is extracted (128^3, outside the timed training) and scored; the final mesh is
 scored against the dataset's mesh.ply: Chamfer distance as a fraction of the bounding-box
 diagonal, normal consistency, F-scores, and NeuS novel-view PSNR (sRGB, black background) on
-the first test views. Results: JSON + markdown in benchmarks/results/geometry_<commit>.{json,md}.
+the first test views. Results: JSON + markdown in benchmarks/out/geometry/geometry_<commit>.{json,md}
+(copy them into a study folder of benchmarks/results/ to keep them).
 
 With --materials, the material stage then runs twice on the same training views with the same
 config and seed: once on the NeuS mesh (the pipeline from images alone) and once on the dataset's
@@ -303,7 +304,7 @@ def main() -> int:
                         "generated into data/geom_NAME")
     p.add_argument("--test-views", type=int, default=4, help="test views rendered for the novel-view PSNR")
     p.add_argument("--out", default="benchmarks/out/geometry")
-    p.add_argument("--results", default="benchmarks/results")
+    p.add_argument("--results", default="benchmarks/out/geometry", help="folder for the report (JSON and markdown)")
     p.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--reuse", action="store_true", help="take the NeuS mesh already in OUT/NAME instead of training")
