@@ -117,7 +117,9 @@ def _cmd_eval(args) -> int:
     metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
                        progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
     print(format_table(metrics))
-    out = args.output or str(Path(args.run_dir) / "metrics.json")
+    from vq_mitsuba.engine.run_dir import RunDir
+
+    out = args.output or str(RunDir(args.run_dir) / RunDir.METRICS)
     print(f"metrics written to {out}")
     return 0
 

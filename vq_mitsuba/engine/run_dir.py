@@ -166,11 +166,6 @@ class RunDir:
     def fit_summary(self) -> dict:
         return self._read_json(self.FIT) or {}
 
-    def write_metrics(self, metrics: dict, path: str | Path | None = None) -> Path:
-        path = Path(path) if path is not None else self.dir / self.METRICS
-        write_json(path, metrics)
-        return path
-
     # --- the fitted scene ---------------------------------------------------------------------
     def load(self, checkpoint: str | Path | None = None) -> FittedModel:
         """The fitted networks, lighting and mesh, from the checkpoint or another state file of

@@ -34,6 +34,7 @@ import numpy as np
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
 from vq_mitsuba.data.imageio import read_exr, read_image
+from vq_mitsuba.engine.run_dir import RunDir
 from vq_mitsuba.errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
@@ -137,8 +138,6 @@ class RunPredictor:
     of materials, and a renderer under its own lighting (envmap None) or another envmap."""
 
     def __init__(self, run_dir: str | Path, checkpoint: str | Path | None = None):
-        from vq_mitsuba.engine.run_dir import RunDir
-
         self.run = RunDir(run_dir)
         self.fitted = self.run.load(checkpoint)
         self.world = self.fitted.world
@@ -166,7 +165,7 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
     dataset_root(dataset_dir)
     predictor = RunPredictor(run_dir, checkpoint)
     return evaluate_predictor(predictor, dataset_dir, spp=spp, scale_method=scale_method, progress=progress,
-                              output=Path(output) if output is not None else Path(run_dir) / "metrics.json",
+                              output=Path(output) if output is not None else predictor.run / RunDir.METRICS,
                               aa=aa, meanshift_bandwidths=meanshift_bandwidths,
                               run_label=str(Path(run_dir).resolve()), fit_summary=predictor.fit_summary())
 
