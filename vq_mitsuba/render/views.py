@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER, Camera
+from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER, Camera, camera_rays, pixel_jitter
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.models.fitted import FittedModel
 from vq_mitsuba.render.shading import scene_for_mesh
@@ -20,12 +20,19 @@ from vq_mitsuba.render.shading import scene_for_mesh
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
 
 
+def world_rotation(src: str, dst: str) -> np.ndarray:
+    """The (3, 3) rotation taking world `src` to world `dst` ("mitsuba" Y-up / "blender" Z-up)."""
+    if src == dst:
+        return np.eye(3)
+    return MITSUBA_TO_BLENDER if (src, dst) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
+
+
 def convert_world(camera: Camera, src: str, dst: str) -> Camera:
-    """Express a camera given in world `src` in world `dst` ("mitsuba" Y-up / "blender" Z-up)."""
+    """Express a camera given in world `src` in world `dst`."""
     if src == dst:
         return camera
     rot = np.eye(4)
-    rot[:3, :3] = MITSUBA_TO_BLENDER if (src, dst) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
+    rot[:3, :3] = world_rotation(src, dst)
     return Camera(camera.name, rot @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
 
 
@@ -62,8 +69,6 @@ class Renderer:
         back as the list `relit`, each the same image as their own `render` with this seed, but
         the rays are traced and the material field evaluated once for all of them.
         """
-        from vq_mitsuba.data.cameras import camera_rays, pixel_jitter
-
         cfg = self.fitted.cfg.render
         spp = spp or cfg.spp
         aa = aa or cfg.aa
@@ -213,6 +218,5 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp)
         if cameras_world != fitted.world:  # normals in the cameras' world
-            rot = MITSUBA_TO_BLENDER if (fitted.world, cameras_world) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
-            images["normal"] = images["normal"] @ rot.T
+            images["normal"] = images["normal"] @ world_rotation(fitted.world, cameras_world).T
         write_view(out_dir, cam.name, images)
