@@ -30,7 +30,7 @@ import yaml
 
 from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.models.fitted import FittedModel
+from vq_mitsuba.models.fitted import FittedModel, material_networks
 
 FORMAT_VERSION = 1
 
@@ -171,8 +171,6 @@ class RunDir:
         """The fitted networks, lighting and mesh, from the checkpoint or another state file of
         this run (`checkpoint`, e.g. a snapshot)."""
         from vq_mitsuba.backend import init_mitsuba, torch_device
-        from vq_mitsuba.models.fields import ContinuousMaterial
-        from vq_mitsuba.models.vq import DiscreteBranch
 
         info = self.info()
         cfg = self.config()
@@ -180,13 +178,12 @@ class RunDir:
         device = torch_device()
         state = self.load_state(checkpoint, device)
         mesh = self.mesh()
-        bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
-        model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
+        model, discrete = material_networks(cfg, mesh, device)
         model.load_state_dict(state["model"])
         model.eval()
-        discrete = None
-        if state.get("discrete") is not None:
-            discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(device)
+        if state.get("discrete") is None:
+            discrete = None
+        if discrete is not None:
             discrete.load_state_dict(state["discrete"])
             discrete.eval()
             if not bool(discrete.initialised):

@@ -27,8 +27,9 @@ from vq_mitsuba.engine.run_dir import RunDir
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models import losses
-from vq_mitsuba.models.fields import ContinuousMaterial, EnvironmentMap
-from vq_mitsuba.models.vq import DiscreteBranch, dropout_rates, kmeans_codebook, sample_drop_mask, scale_gradient
+from vq_mitsuba.models.fields import EnvironmentMap
+from vq_mitsuba.models.fitted import material_networks
+from vq_mitsuba.models.vq import dropout_rates, kmeans_codebook, sample_drop_mask, scale_gradient
 from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
@@ -78,10 +79,7 @@ class Trainer:
         if len(self.pool) == 0:
             raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh "
                                              "and the alpha masks")
-        bbox = torch.tensor(np.asarray(capture.mesh.bounds), dtype=torch.float32)
-        self.model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
-        self.discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(device) \
-            if cfg.vq.enabled else None
+        self.model, self.discrete = material_networks(cfg, capture.mesh, device)
         groups = [{"params": self.model.parameters(), "lr": cfg.train.lr}]
         if self.discrete is not None:
             groups.append({"params": self.discrete.parameters(), "lr": cfg.train.lr})

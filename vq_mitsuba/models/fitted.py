@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from vq_mitsuba.config import Config
 from vq_mitsuba.models.fields import ContinuousMaterial
@@ -30,3 +31,13 @@ class FittedModel:
     def num_materials(self) -> int | None:
         """M, the chosen number of materials, or None without a discrete branch."""
         return int(self.discrete.num_materials) if self.discrete is not None else None
+
+
+def material_networks(cfg: Config, mesh, device) -> tuple[ContinuousMaterial, DiscreteBranch | None]:
+    """The continuous branch over the mesh's bounding box and, with vq.enabled, the discrete
+    branch: what a fit trains and what a finished run's checkpoint is loaded into."""
+    bbox = torch.tensor(np.asarray(mesh.bounds), dtype=torch.float32)
+    model = ContinuousMaterial(cfg.field, bbox[0], bbox[1]).to(device)
+    discrete = DiscreteBranch(cfg.field, cfg.vq.num_codes, cfg.vq.decay, cfg.vq.commitment).to(device) \
+        if cfg.vq.enabled else None
+    return model, discrete
