@@ -14,6 +14,9 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     metrics.json         written by `vq-mitsuba eval`
     snapshots/           states kept at train.snapshot_s
 
+An edited run (`vq-mitsuba edit`) holds only run.json, naming the fitted run it edits
+(`edit_of`), and edits.json, its edit list; everything else is read from the fitted run.
+
 Reading a finished run needs no training code: `RunDir(path).load()` builds the networks from
 the checkpoint and returns a `FittedModel`.
 """
@@ -30,6 +33,7 @@ import yaml
 
 from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError
+from vq_mitsuba.models.edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 
 FORMAT_VERSION = 1
@@ -63,6 +67,7 @@ class RunDir:
     METRICS = "metrics.json"
     GEOMETRY = "geometry.json"
     SNAPSHOTS = "snapshots"
+    EDITS = "edits.json"
 
     def __init__(self, path: str | Path):
         self.dir = Path(path)
@@ -101,6 +106,50 @@ class RunDir:
                                    "version of vq-mitsuba reads; fit the capture again")
         return info
 
+    # --- edited runs ---------------------------------------------------------------------------
+    def source(self) -> RunDir:
+        """The fitted run this run edits, or the run itself when it is not an edit."""
+        info = self.info()
+        if "edit_of" not in info:
+            return self
+        ref = info["edit_of"]
+        for candidate in (self.dir / ref["relative"], Path(ref["absolute"])):
+            if (candidate / self.INFO).is_file():
+                return RunDir(candidate)
+        raise InputError(self.dir / self.INFO, f"edits the run {ref['absolute']}, which is not there any more "
+                                               f"(nor at {ref['relative']} from this folder)")
+
+    def is_edit(self) -> bool:
+        return "edit_of" in self.info()
+
+    def edits(self) -> list[Edit]:
+        """The edit list (empty for a fitted run)."""
+        path = self.dir / self.EDITS
+        if not self.is_edit():
+            return []
+        if not path.is_file():
+            raise InputError(path, "missing: an edited run stores its edit list here")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(path, f"not valid JSON ({exc})") from None
+        entries = data.get("edits") if isinstance(data, dict) else None
+        if not isinstance(entries, list):
+            raise InputError(path, "expected {\"edits\": [...]}")
+        return [Edit.from_dict(e, path, i) for i, e in enumerate(entries)]
+
+    def write_edit(self, source: RunDir, edits: list[Edit]) -> None:
+        """Make this folder an edited run of the fitted run `source` with the edit list `edits`."""
+        base = source.source()
+        if self.dir.resolve() == base.dir.resolve():
+            raise InputError(self.dir, "an edit writes a new run: choose an -o other than the fitted run")
+        self.create()
+        info = {k: v for k, v in base.info().items() if k not in ("format", "edit_of")}
+        info["edit_of"] = {"absolute": str(base.dir.resolve()),
+                           "relative": os.path.relpath(base.dir.resolve(), self.dir.resolve())}
+        write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
+        self.write_info(info)
+
     # --- configuration ------------------------------------------------------------------------
     def write_config(self, cfg: Config) -> None:
         save_config(cfg, self.dir / self.CONFIG)
@@ -116,6 +165,8 @@ class RunDir:
             raise InputError(path, f"invalid YAML: {exc}") from None
 
     def config(self) -> Config:
+        if self.is_edit():
+            return self.source().config()
         base = self.saved_config()
         if base is None:
             raise InputError(self.dir / self.CONFIG, "missing: the run directory is incomplete")
@@ -128,7 +179,7 @@ class RunDir:
     def mesh(self):
         from vq_mitsuba.data.captures import load_mesh
 
-        return load_mesh(self.dir / self.MESH)
+        return load_mesh(self.source().dir / self.MESH)
 
     def write_envmap(self, envmap: np.ndarray) -> None:
         from vq_mitsuba.data.imageio import write_exr
@@ -158,7 +209,8 @@ class RunDir:
         write_json(self.dir / self.MATERIALS, materials)
 
     def materials(self) -> dict | None:
-        return self._read_json(self.MATERIALS)
+        """materials.json of the fitted run (an edit keeps its materials and their ids)."""
+        return self.source()._read_json(self.MATERIALS)
 
     def write_fit_summary(self, summary: dict) -> None:
         write_json(self.dir / self.FIT, summary)
@@ -169,10 +221,15 @@ class RunDir:
     # --- the fitted scene ---------------------------------------------------------------------
     def load(self, checkpoint: str | Path | None = None) -> FittedModel:
         """The fitted networks, lighting and mesh, from the checkpoint or another state file of
-        this run (`checkpoint`, e.g. a snapshot)."""
+        this run (`checkpoint`, e.g. a snapshot). An edited run is its fitted run with the edits."""
         from vq_mitsuba.backend import init_mitsuba, torch_device
 
         info = self.info()
+        if "edit_of" in info:
+            edits = self.edits()
+            fitted = self.source().load(checkpoint)
+            fitted.edits = edits
+            return fitted
         cfg = self.config()
         init_mitsuba()
         device = torch_device()

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from vq_mitsuba.config import Config
+from vq_mitsuba.models.edits import Edit, apply_edits
 from vq_mitsuba.models.fields import ContinuousMaterial
 from vq_mitsuba.models.vq import DiscreteBranch
 
@@ -26,6 +27,30 @@ class FittedModel:
     world: str  # "mitsuba" (Y up) or "blender" (Z up): the world convention of the run's capture
     mesh: trimesh.Trimesh
     step: int  # training steps behind this state (-1 when the state file does not say)
+    edits: list[Edit] = field(default_factory=list)  # material edits, applied wherever the fields are read
+
+    @torch.no_grad()
+    def materials_at(self, points: torch.Tensor, discrete: bool = False, ids: bool = True) -> dict[str, torch.Tensor]:
+        """The BRDF at world points (N, 3), with the run's edits applied: basecolor (N, 3) linear,
+        metallic (N,), roughness (N,) of the continuous branch; with a discrete branch also
+        `material` (N,), the ranked material id 1..M. `discrete=True` adds `discrete`, the same
+        three maps decoded from each point's material (edited alike). `ids=False` skips the
+        material ids where no edit needs them (the cheaper bounce evaluation)."""
+        out = self.model(points)
+        brdf = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
+        material, od = None, None
+        if self.discrete is not None and (discrete or ids or self.edits):
+            od = self.discrete(out["z"], n_codes=self.num_materials)
+            material = od["index"] + 1
+        r0 = self.cfg.field.roughness_min
+        if self.edits:
+            brdf = apply_edits(self.edits, points, brdf, material, r0)
+        if material is not None:
+            brdf["material"] = material
+        if discrete and od is not None:
+            d = {k: od[k] for k in ("basecolor", "metallic", "roughness")}
+            brdf["discrete"] = apply_edits(self.edits, points, d, material, r0) if self.edits else d
+        return brdf
 
     @property
     def num_materials(self) -> int | None:

@@ -105,9 +105,10 @@ class Renderer:
             hits_count += torch.bincount(pixel, minlength=n_pix)
             for s in range(0, len(idx), cfg.chunk):
                 sel, pix = idx[s:s + cfg.chunk], pixel[s:s + cfg.chunk]
-                out = self.fitted.model(hits.position[sel])
+                out = self.fitted.materials_at(hits.position[sel], discrete=discrete is not None)
                 # Every lighting's bounce samples land on the same points: the field runs once for them.
-                bounce_field = _LastAnswer(self.fitted.model) if self.fitted.cfg.train.bounces > 0 else None
+                bounce_field = _LastAnswer(lambda p: self.fitted.materials_at(p, ids=False)) \
+                    if self.fitted.cfg.train.bounces > 0 else None
                 rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel],
                                                      out["basecolor"], out["metallic"], out["roughness"],
                                                      light.env_t, light_spp, generator=g, material_fn=bounce_field)
@@ -115,9 +116,9 @@ class Renderer:
                 values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
                           "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
                           **dict(zip(relit_keys, rgb_relit))}
-                if discrete is not None:  # material id of the hit: its nearest ranked codeword, 1..M
-                    od = discrete(out["z"], n_codes=n_mat)  # nearest ranked codeword and its BRDF
-                    votes.index_put_((pix, od["index"] + 1), torch.ones_like(pix, dtype=torch.int32),
+                if discrete is not None:  # material id of the hit (its nearest ranked codeword, 1..M) and its BRDF
+                    od = out["discrete"]
+                    votes.index_put_((pix, out["material"]), torch.ones_like(pix, dtype=torch.int32),
                                      accumulate=True)
                     values.update({"basecolor_d": od["basecolor"], "metallic_d": od["metallic"][:, None],
                                    "roughness_d": od["roughness"][:, None]})
