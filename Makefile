@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all setup llvm demo test test-slow bench clean cycles
+.PHONY: all setup llvm demo test test-slow bench clean cycles gltf-validator
 
 all: setup
 
@@ -55,8 +55,19 @@ $(CYCLES_VENV)/.installed:
 
 cycles: $(CYCLES_VENV)/.installed
 
+# The Khronos glTF validator (npm) checks the exported .glb files in the tests.
+NODE_DIR := .node
+
+$(NODE_DIR)/.installed:
+	@command -v npm >/dev/null 2>&1 || { echo "Installing Node.js and npm (for the glTF validator)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq nodejs npm; }
+	npm install --silent --no-audit --no-fund --prefix $(NODE_DIR) gltf-validator@2.0.0-dev.3.10
+	touch $@
+
+gltf-validator: $(NODE_DIR)/.installed
+
 # The Cycles ground-truth path is part of the product: its environment is set up too, so its tests run.
-test: setup cycles
+test: setup cycles gltf-validator
 	$(PY) -m pytest -q -rs
 
 test-slow: setup
@@ -66,4 +77,4 @@ bench: setup
 	$(PY) benchmarks/bench_scenes.py
 
 clean:
-	rm -rf runs data benchmarks/out
+	rm -rf runs data benchmarks/out $(NODE_DIR)

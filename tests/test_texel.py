@@ -7,8 +7,8 @@ import pytest
 
 from tiny_scene import write_sphere_capture
 from vq_mitsuba.data.captures import load_capture
-from vq_mitsuba.eval.texel import (TexelConfig, TexelPredictor, TexelScene, _write_snapshot, fit_texel, load_snapshot,
-                              uv_unwrap)
+from vq_mitsuba.eval.texel import TexelConfig, TexelPredictor, TexelScene, _write_snapshot, fit_texel, load_snapshot
+from vq_mitsuba.geometry.uv import uv_unwrap
 
 TRUE_BASE = (0.7, 0.35, 0.2)  # write_sphere_capture's material
 TRUE_ROUGH = 0.3
@@ -57,7 +57,7 @@ def test_voronoi_atlas_fallback_keeps_faces():
     input vertex, possibly rotated within the triangle), UVs in the unit square, charts not flat."""
     import trimesh
 
-    from vq_mitsuba.eval.texel import _voronoi_atlas
+    from vq_mitsuba.geometry.uv import _voronoi_atlas
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     vmap, faces, uvs = _voronoi_atlas(mesh.vertices, mesh.faces)

@@ -143,6 +143,17 @@ def _cmd_edit(args) -> int:
     return 0
 
 
+def _cmd_export(args) -> int:
+    from vq_mitsuba.export.formats import export_run
+
+    summary = export_run(args.run_dir, args.format, args.output, args.texture_size, args.branch, args.envmap,
+                         progress=not args.quiet)
+    s = summary["seconds"]
+    print(f"exported {summary['format']} ({summary['branch']} branch, {summary['texture_size']}^2 textures, "
+          f"baked in {s['bake']:.1f} s) to {args.output}/: {', '.join(summary['files'])}")
+    return 0
+
+
 def _cmd_eval(args) -> int:
     from vq_mitsuba.eval.evaluate import evaluate, format_table
 
@@ -276,6 +287,21 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--preset", metavar="NAME", help="a named material of the library (see --list-presets)")
     d.add_argument("--list-presets", action="store_true", help="list the library's materials")
     d.set_defaults(func=_cmd_edit)
+
+    x = sub.add_parser("export", help="take a fitted or edited run to Blender, three.js or Mitsuba",
+                       description="UV-unwrap the mesh, bake basecolor, metallic, roughness and the material ids "
+                                   "into textures, and write a glTF binary (.glb, metallic-roughness PBR), OBJ+MTL "
+                                   "(PBR keys) or a Mitsuba scene XML (mesh, principled with textures, envmap, the "
+                                   "capture's cameras). The lighting goes beside it as envmap.exr and envmap.hdr.")
+    x.add_argument("run_dir", help="a fitted or edited run directory")
+    x.add_argument("--format", required=True, choices=["gltf", "obj", "mitsuba"], help="what to write")
+    x.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
+    x.add_argument("--texture-size", type=int, default=1024, metavar="N", help="texture width and height in texels")
+    x.add_argument("--branch", choices=["continuous", "discrete"], default="continuous",
+                   help="bake the continuous field (texture detail) or the discrete materials (flat per material)")
+    x.add_argument("--envmap", help="export this lat-long HDR image as the lighting instead of the fitted one")
+    x.add_argument("--quiet", action="store_true", help="no progress bar")
+    x.set_defaults(func=_cmd_export)
 
     e = sub.add_parser("eval", help="score a fitted run against a synthetic dataset's ground truth",
                        description="Render the dataset's test views (transforms_test.json) and compare inside "

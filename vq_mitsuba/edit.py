@@ -88,25 +88,17 @@ def parse_changes(sets: Sequence[str] = (), scales: Sequence[str] = (), hue_shif
     return changes
 
 
-def find_view(run: RunDir, view: str) -> tuple[Camera, str]:
+def find_view(run: RunDir, view: str) -> Camera:
     """The camera named `view` among the fitted run's capture views (train, then test / val
-    cameras beside it): (camera, its world convention)."""
-    from vq_mitsuba.data.captures import load_cameras
-
-    capture = Path(run.source().info()["capture"])
-    candidates = [capture] + [capture.parent / f"transforms_{s}.json" for s in ("test", "val")]
+    cameras beside the capture), in the run's world."""
     names = []
-    for path in candidates:
-        if not path.is_file():
-            continue
-        cameras, world, _ = load_cameras(path)
+    for cameras in run.cameras().values():
         for cam in cameras:
             if cam.name == view:
-                return cam, world
+                return cam
         names += [c.name for c in cameras]
     shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
-    raise InputError(None, f"--pick: no view named '{view}' in {capture} or the test cameras beside it "
-                           f"(views: {shown or 'none found'})")
+    raise InputError(None, f"--pick: no view named '{view}' among the capture's views ({shown})")
 
 
 def material_under_pixel(fitted: FittedModel, camera: Camera, x: int, y: int) -> int:
@@ -141,8 +133,6 @@ def build_edit(run: RunDir, fitted: FittedModel, materials: Sequence[int] = (), 
                boxes: Sequence[str] = (), sets: Sequence[str] = (), scales: Sequence[str] = (),
                hue_shift: float | None = None, preset: str | None = None, label: str = "") -> Edit:
     """One edit from command-line style arguments (checked; raises InputError)."""
-    from vq_mitsuba.render.views import convert_world
-
     if not (materials or picks or boxes):
         raise InputError(None, "select what to edit: --material K, --pick VIEW:X,Y and / or --box x0,y0,z0,x1,y1,z1")
     changes = parse_changes(sets, scales, hue_shift, preset)
@@ -156,8 +146,7 @@ def build_edit(run: RunDir, fitted: FittedModel, materials: Sequence[int] = (), 
         ids.append(int(k))
     for text in picks:
         view, x, y = parse_pick(text)
-        camera, world = find_view(run, view)
-        ids.append(material_under_pixel(fitted, convert_world(camera, world, fitted.world), x, y))
+        ids.append(material_under_pixel(fitted, find_view(run, view), x, y))
     return Edit(Selection(tuple(dict.fromkeys(ids)), tuple(parse_box(b) for b in boxes)), changes, label)
 
 

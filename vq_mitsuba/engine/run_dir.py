@@ -150,6 +150,26 @@ class RunDir:
         write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
         self.write_info(info)
 
+    # --- the capture's cameras ------------------------------------------------------------------
+    def cameras(self) -> dict[str, list]:
+        """The capture's views in the run's world: {"train": [...], and "test" / "val" where a
+        transforms_test.json / transforms_val.json lies beside the capture}."""
+        from vq_mitsuba.data.captures import load_cameras
+        from vq_mitsuba.render.views import convert_world
+
+        info = self.source().info()
+        capture = Path(info["capture"])
+        splits = {"train": capture}
+        splits.update({s: capture.parent / f"transforms_{s}.json" for s in ("test", "val")})
+        out = {}
+        for split, path in splits.items():
+            if path.is_file() and (split == "train" or path != capture):
+                cameras, world, _ = load_cameras(path)
+                out[split] = [convert_world(c, world, info["world"]) for c in cameras]
+        if "train" not in out:
+            raise InputError(capture, f"the capture of the run {self.dir} is not there any more")
+        return out
+
     # --- configuration ------------------------------------------------------------------------
     def write_config(self, cfg: Config) -> None:
         save_config(cfg, self.dir / self.CONFIG)

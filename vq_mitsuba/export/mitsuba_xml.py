@@ -1,0 +1,91 @@
+"""A Mitsuba 3 scene: the mesh (PLY with UVs and the renderer's shading normals), a two-sided
+`principled` BSDF reading linear EXR textures, the envmap with its frame, and cameras as
+sensors, in the capture's own coordinates. `path` with max_depth 2 + train.bounces renders what
+`vq-mitsuba render` renders (direct light and the same number of interreflections)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.imageio import write_exr
+from vq_mitsuba.export.bake import BakedMesh
+
+
+def write_ply(path: Path, vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray) -> Path:
+    """Binary little-endian PLY with x y z, nx ny nz, u v per vertex and triangle faces."""
+    n = len(vertices)
+    vert = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
+                              ("nz", "<f4"), ("u", "<f4"), ("v", "<f4")])
+    for i, k in enumerate("xyz"):
+        vert[k] = vertices[:, i]
+        vert["n" + k] = normals[:, i]
+    vert["u"], vert["v"] = uvs[:, 0], uvs[:, 1]
+    face = np.zeros(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    face["n"], face["idx"] = 3, faces
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment vq-mitsuba export\nelement vertex {n}\n"
+              + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz", "u", "v"))
+              + f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(vert.tobytes())
+        f.write(face.tobytes())
+    return path
+
+
+def _matrix(m: np.ndarray) -> str:
+    return " ".join(f"{x:.9g}" for x in np.asarray(m, np.float64).ravel())
+
+
+def sensor_xml(camera: Camera, spp: int) -> str:
+    return (f'  <sensor type="perspective" id="{camera.name}">\n'
+            f'    <float name="fov" value="{camera.fov_x_deg:.9g}"/>\n'
+            f'    <string name="fov_axis" value="x"/>\n'
+            f'    <transform name="to_world"><matrix value="{_matrix(camera.to_world)}"/></transform>\n'
+            f'    <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>\n'
+            f'    <film type="hdrfilm"><integer name="width" value="{camera.width}"/>'
+            f'<integer name="height" value="{camera.height}"/><string name="pixel_format" value="rgba"/>'
+            f'<rfilter type="box"/></film>\n  </sensor>')
+
+
+def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world: np.ndarray,
+                  cameras: Sequence[Camera], spp: int, max_depth: int, name: str = "object") -> list[Path]:
+    """OUT/scene.xml with OUT/NAME.ply, NAME_{basecolor,metallic,roughness}.exr and envmap.exr.
+
+    Render a view with `mitsuba OUT/scene.xml` (first sensor) or
+    `mi.render(mi.load_file(...), sensor=i)`; `-Dspp=N` sets the samples per pixel."""
+    from vq_mitsuba.export.files import write_envmap
+
+    written = [write_ply(out / f"{name}.ply", baked.vertices, baked.normals, baked.uvs, baked.faces)]
+    for key in ("basecolor", "metallic", "roughness"):
+        write_exr(out / f"{name}_{key}.exr", getattr(baked, key))
+        written.append(out / f"{name}_{key}.exr")
+    written += write_envmap(out / "envmap", envmap)
+
+    def texture(key: str) -> str:
+        return (f'<texture type="bitmap" name="{"base_color" if key == "basecolor" else key}">'
+                f'<string name="filename" value="{name}_{key}.exr"/><boolean name="raw" value="true"/>'
+                f'<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>')
+
+    xml = "\n".join([
+        '<scene version="3.0.0">',
+        f'  <default name="spp" value="{int(spp)}"/>',
+        f'  <integrator type="path"><integer name="max_depth" value="{int(max_depth)}"/>'
+        '<boolean name="hide_emitters" value="true"/></integrator>',
+        *[sensor_xml(c, spp) for c in cameras],
+        f'  <shape type="ply" id="{name}"><string name="filename" value="{name}.ply"/>',
+        '    <bsdf type="twosided"><bsdf type="principled">',
+        *[f"      {texture(k)}" for k in ("basecolor", "metallic", "roughness")],
+        '      <float name="specular" value="0.5"/>',
+        "    </bsdf></bsdf>",
+        "  </shape>",
+        '  <emitter type="envmap"><string name="filename" value="envmap.exr"/>',
+        f'    <transform name="to_world"><matrix value="{_matrix(env_to_world)}"/></transform>',
+        "  </emitter>",
+        "</scene>",
+    ]) + "\n"
+    (out / "scene.xml").write_text(xml)
+    return [out / "scene.xml"] + written
