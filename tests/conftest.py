@@ -2,3 +2,25 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))  # tests import their helpers (tiny_scene) directly
+
+
+import pytest  # noqa: E402
+
+# Short enough for the default suite; the discrete branch starts at vq.warmup_frac of these steps.
+THREE_MATERIAL_SETTINGS = ["train.iterations=360", "train.batch_rays=768", "train.bounce_after=1000",
+                           "train.checkpoint_every=1000"]
+
+
+@pytest.fixture(scope="session")
+def three_materials(tmp_path_factory):
+    """(capture XML, RunDir) of the three-sphere capture fitted with the defaults (both branches)."""
+    from tiny_scene import write_three_material_capture
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.engine.trainer import fit
+
+    out = tmp_path_factory.mktemp("three")
+    capture = write_three_material_capture(out)
+    run = out / "run"
+    fit(capture, run, load_config(None, THREE_MATERIAL_SETTINGS), progress=False)
+    return capture, RunDir(run)

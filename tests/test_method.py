@@ -2,28 +2,13 @@
 that matches the truth, with the defaults (both branches, dropout ranking)."""
 
 import numpy as np
-import pytest
 import torch
 
-from tiny_scene import three_material_ids, write_three_material_capture
-from vq_mitsuba.config import load_config
+from tiny_scene import three_material_ids
 from vq_mitsuba.data.captures import load_capture
 from vq_mitsuba.engine.run_dir import RunDir
-from vq_mitsuba.engine.trainer import fit
 from vq_mitsuba.eval.metrics import segmentation_scores
 from vq_mitsuba.render.views import Renderer
-
-# Short enough for the default suite; the discrete branch starts at vq.warmup_frac of these steps.
-SETTINGS = ["train.iterations=360", "train.batch_rays=768", "train.bounce_after=1000", "train.checkpoint_every=1000"]
-
-
-@pytest.fixture(scope="module")
-def three_materials(tmp_path_factory):
-    out = tmp_path_factory.mktemp("three")
-    capture = write_three_material_capture(out)
-    run = out / "run"
-    fit(capture, run, load_config(None, SETTINGS), progress=False)
-    return capture, RunDir(run)
 
 
 def test_three_materials_give_m_3(three_materials):
