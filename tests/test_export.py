@@ -1,0 +1,188 @@
+"""Exports that are right, not just written: the Mitsuba scene renders like `vq-mitsuba render`
+in plain Mitsuba, the .glb passes the Khronos validator and re-imports, the textures hold the
+field's values, and the envmap keeps its directions in Blender's convention."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from vq_mitsuba import cli
+from vq_mitsuba.data.envmaps import texel_directions
+from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.export.bake import bake, rasterise_uv
+from vq_mitsuba.export.files import Y_UP_TO_BLENDER, envmap_for_blender, world_to_y_up
+from vq_mitsuba.export.formats import export_run
+from vq_mitsuba.render.views import Renderer
+
+ROOT = Path(__file__).resolve().parent.parent
+VALIDATOR = ROOT / ".node" / "node_modules" / "gltf-validator"
+
+# Renders the first sensor named NAME of an exported scene with Mitsuba alone: no vq_mitsuba.
+PLAIN_MITSUBA = """
+import sys
+import numpy as np
+import mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+scene = mi.load_file(sys.argv[1], spp=int(sys.argv[3]))
+index = [s.id() for s in scene.sensors()].index(sys.argv[2])
+np.save(sys.argv[4], np.array(mi.render(scene, sensor=index, seed=int(sys.argv[5]))))
+assert not [m for m in sys.modules if m.startswith("vq_mitsuba")]
+"""
+
+
+def _bilinear(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup with texel centres at (i + 0.5) / S and row 0 at v = 0 (glTF / Mitsuba)."""
+    s = tex.shape[0]
+    x, y = uv[:, 0] * s - 0.5, uv[:, 1] * s - 0.5
+    x0, y0 = np.clip(np.floor(x).astype(int), 0, s - 2), np.clip(np.floor(y).astype(int), 0, s - 2)
+    fx, fy = np.clip(x - x0, 0, 1), np.clip(y - y0, 0, 1)
+    if tex.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    return ((tex[y0, x0] * (1 - fx) + tex[y0, x0 + 1] * fx) * (1 - fy)
+            + (tex[y0 + 1, x0] * (1 - fx) + tex[y0 + 1, x0 + 1] * fx) * fy)
+
+
+@pytest.fixture(scope="module")
+def fitted(three_materials):
+    return three_materials[1].load()
+
+
+def test_rasteriser_covers_each_triangle_once():
+    uvs = np.array([[0.1, 0.1], [0.9, 0.1], [0.1, 0.9], [0.9, 0.9]], np.float32)
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    texel, tri, bary = rasterise_uv(uvs, faces, 32, grow_px=0.0)
+    assert len(np.unique(texel)) == len(texel)
+    # Every texel centre inside the square is covered, none outside it (grow 0).
+    ys, xs = np.divmod(texel, 32)
+    centres = np.stack([(xs + 0.5) / 32, (ys + 0.5) / 32], 1)
+    assert np.all((centres >= 0.1 - 1e-6) & (centres <= 0.9 + 1e-6))
+    assert len(texel) == 26 * 26
+    assert np.allclose(bary.sum(1), 1.0, atol=1e-5) and bary.min() >= -1e-5
+    recon = np.einsum("tk,tkc->tc", bary, uvs[faces[tri]])
+    assert np.allclose(recon, centres, atol=1e-5)
+
+
+def test_textures_hold_the_field_values(fitted):
+    baked = bake(fitted, 256, progress=False)
+    # At the mesh's vertices (inside charts, on their borders too) a bilinear lookup of the
+    # textures gives what the field gives there.
+    pts = torch.as_tensor(baked.vertices)
+    truth = fitted.materials_at(pts)
+    for key in ("basecolor", "metallic", "roughness"):
+        err = np.abs(_bilinear(getattr(baked, key), baked.uvs) - truth[key].numpy())
+        assert np.median(err) < 0.01 and np.percentile(err, 95) < 0.05, (key, np.median(err), np.percentile(err, 95))
+    ids = baked.material[np.clip((baked.uvs[:, 1] * 256).astype(int), 0, 255),
+                         np.clip((baked.uvs[:, 0] * 256).astype(int), 0, 255)]
+    assert np.mean(ids == truth["material"].numpy()) > 0.97
+    assert baked.material[baked.coverage].min() >= 1 and baked.coverage.mean() > 0.3
+
+
+def test_discrete_branch_bakes_one_brdf_per_material(fitted):
+    baked = bake(fitted, 128, branch="discrete", progress=False)
+    covered = baked.coverage
+    colours = np.round(baked.basecolor[covered], 4)
+    assert len(np.unique(colours, axis=0)) == fitted.num_materials
+
+
+def test_mitsuba_export_renders_like_vq_mitsuba_in_plain_mitsuba(three_materials, tmp_path):
+    _, run = three_materials
+    out = tmp_path / "mitsuba"
+    export_run(run.dir, "mitsuba", out, texture_size=512, progress=False)
+    fitted = run.load()
+    cam = run.cameras()["train"][0]
+    spp = 1024
+    plain = tmp_path / "plain.npy"
+    subprocess.run([sys.executable, "-c", PLAIN_MITSUBA, str(out / "scene.xml"), cam.name, str(spp), str(plain), "1"],
+                   check=True, capture_output=True, text=True)
+    theirs = np.load(plain)
+    renderer = Renderer(fitted)
+    ours = renderer.render(cam, spp=spp, seed=0)
+    ours_again = renderer.render(cam, spp=spp, seed=1)
+    mask = ours["alpha"] > 0
+    assert np.abs(theirs[..., 3] - ours["alpha"]).mean() < 0.01  # same coverage: same mesh and cameras
+    psnr = M.image_metrics(theirs[..., :3], ours["rgb"], mask)["psnr"]
+    noise_floor = M.image_metrics(ours_again["rgb"], ours["rgb"], mask)["psnr"]
+    # The two renderers differ by no more than two renders of ours with different seeds...
+    assert psnr >= noise_floor - 1.0, (psnr, noise_floor)
+    # ... and not on average (a texture off by a seam or a flipped v would shift it).
+    mean_theirs, mean_ours = theirs[..., :3][mask].mean(0), ours["rgb"][mask].mean(0)
+    assert np.allclose(mean_theirs, mean_ours, rtol=0.02), (mean_theirs, mean_ours)
+
+
+@pytest.mark.skipif(shutil.which("node") is None or not VALIDATOR.is_dir(),
+                    reason="the glTF validator is not installed (`make gltf-validator` needs node and npm)")
+def test_glb_passes_the_khronos_validator_and_reimports(three_materials, tmp_path):
+    import trimesh
+
+    _, run = three_materials
+    summary = export_run(run.dir, "gltf", tmp_path, texture_size=256, progress=False)
+    glb = tmp_path / summary["files"][0]
+    report = json.loads(subprocess.run(["node", str(ROOT / "tools" / "validate_gltf.js"), str(glb)], check=True,
+                                       capture_output=True, text=True).stdout)
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
+    scene = trimesh.load(glb)
+    (mesh,) = scene.geometry.values()
+    material = mesh.visual.material
+    assert material.baseColorTexture.size == (256, 256) and material.metallicRoughnessTexture.size == (256, 256)
+    assert material.metallicFactor == 1.0 and material.roughnessFactor == 1.0
+    fitted = run.load()
+    # Y up: the mesh comes back as the run's, turned into glTF's axes.
+    rot = world_to_y_up(fitted.world)
+    expect = np.asarray(fitted.mesh.bounds) @ rot.T
+    assert np.allclose(np.sort(mesh.bounds, 0), np.sort(expect, 0), atol=1e-5)
+    # The metallic-roughness texture carries roughness in G and metallic in B.
+    mr = np.asarray(material.metallicRoughnessTexture.convert("RGB"), np.float32) / 255
+    baked = bake(fitted, 256, progress=False)
+    cov = baked.coverage
+    assert np.abs(mr[..., 1][cov] - baked.roughness[cov]).max() <= 0.5 / 255 + 1e-6
+    assert np.abs(mr[..., 2][cov] - baked.metallic[cov]).max() <= 0.5 / 255 + 1e-6
+
+
+def test_obj_export_reimports_with_its_pbr_material(three_materials, tmp_path):
+    import trimesh
+
+    _, run = three_materials
+    summary = export_run(run.dir, "obj", tmp_path, texture_size=128, progress=False)
+    obj = tmp_path / summary["files"][0]
+    mtl = obj.with_suffix(".mtl").read_text()
+    for key in ("map_Kd", "map_Pr", "map_Pm"):
+        assert key in mtl
+    mesh = trimesh.load(obj, process=False)
+    assert len(mesh.faces) == len(run.load().mesh.faces)
+    assert mesh.visual.uv.min() >= 0 and mesh.visual.uv.max() <= 1
+    assert (tmp_path / "envmap.exr").is_file() and (tmp_path / "envmap.hdr").is_file()
+
+
+def test_envmap_for_blender_keeps_the_light_direction():
+    h, w = 32, 64
+    # A lobe towards world direction d in a Mitsuba-world run (its envmap frame the identity).
+    d_world = np.array([0.3, 0.8, -0.52])
+    d_world /= np.linalg.norm(d_world)
+    from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
+
+    r_b = BLENDER_ENV_TO_WORLD[:3, :3]
+    dirs = texel_directions(w, h) @ r_b  # texel directions in the map's own frame = Mitsuba world here
+    env = np.exp(40 * (dirs @ d_world - 1))[..., None].repeat(3, -1) + 0.01
+    world_to_blender = Y_UP_TO_BLENDER @ world_to_y_up("mitsuba")
+    out = envmap_for_blender(env, np.eye(4), world_to_blender)
+    row, col = np.unravel_index(np.argmax(out[..., 0]), out.shape[:2])
+    d_out = texel_directions(out.shape[1], out.shape[0])[row, col]  # Blender-world direction of the peak
+    assert np.degrees(np.arccos(np.clip(d_out @ (world_to_blender @ d_world), -1, 1))) < 4.0
+    # A Blender-world run keeps its map (only upsampled).
+    same = envmap_for_blender(env, BLENDER_ENV_TO_WORLD, np.eye(3), upsample=1)
+    assert np.allclose(same, env, rtol=1e-5, atol=1e-6)
+
+
+def test_export_command_line(three_materials, tmp_path, capsys):
+    _, run = three_materials
+    assert cli.main(["export", str(run.dir), "--format", "gltf", "--texture-size", "64", "-o", str(tmp_path / "g"),
+                     "--quiet"]) == 0
+    assert json.loads((tmp_path / "g" / "export.json").read_text())["texture_size"] == 64
+    assert cli.main(["export", str(run.dir), "--format", "gltf", "--texture-size", "4", "-o", str(tmp_path / "bad")]) == 2
+    assert "16..8192" in capsys.readouterr().err and not (tmp_path / "bad").exists()
