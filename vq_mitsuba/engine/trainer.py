@@ -301,6 +301,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     """`vq-mitsuba fit` on known geometry: returns the summary written to RUN_DIR/fit.json."""
     run = RunDir(run_dir)
     parse_snapshot_times(cfg.train.snapshot_s)
+    if (run / RunDir.INFO).is_file() and run.is_edit():
+        raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
     if run.has_checkpoint() and not resume:
         raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
     if resume and not run.has_checkpoint():

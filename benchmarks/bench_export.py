@@ -1,0 +1,133 @@
+"""Export fidelity and bake time: does the exported Mitsuba scene, rendered by plain Mitsuba,
+look like `vq-mitsuba render` of the same run, and how long does a 1024^2 bake take?
+
+    .venv/bin/python benchmarks/bench_export.py RUN_DIR [RUN_DIR ...] [--spp 4096] [--texture-size 1024]
+        [--repeats 3] [--views 4] [-o benchmarks/out/export]
+
+For each run (fitted or edited):
+- bake: `export --format mitsuba` at the texture size, `--repeats` times; median seconds, split
+  into UV unwrap, rasterisation, field evaluation and padding;
+- fidelity: the first `--views` test cameras of the run's capture (transforms_test.json beside
+  it, else the training cameras) rendered by Mitsuba alone (a child process that imports no
+  vq_mitsuba) from the exported scene.xml, and by vq-mitsuba's renderer, both at --spp samples
+  per pixel. PSNR / SSIM in sRGB over the foreground, beside the noise floor: two renders of
+  ours with different seeds at the same spp (the difference that noise alone makes);
+- glTF: the .glb of the same run through the Khronos validator (errors, warnings).
+Writes OUT/export_<commit>.json and .md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+PLAIN = """
+import sys
+import numpy as np
+import mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+scene = mi.load_file(sys.argv[1], spp=int(sys.argv[2]))
+ids = [s.id() for s in scene.sensors()]
+for name in sys.argv[4:]:
+    np.save(f"{sys.argv[3]}/{name}.npy", np.array(mi.render(scene, sensor=ids.index(name), seed=7)))
+assert not [m for m in sys.modules if m.startswith("vq_mitsuba")]
+"""
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+")
+    p.add_argument("--spp", type=int, default=4096)
+    p.add_argument("--texture-size", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--views", type=int, default=4)
+    p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "export"))
+    args = p.parse_args()
+
+    from bench_geometry import commit, machine, versions
+
+    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.export.formats import export_run
+    from vq_mitsuba.render.views import Renderer
+
+    out_dir = Path(args.output)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for run_path in args.runs:
+        run = RunDir(run_path)
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            bakes = []
+            for r in range(args.repeats):
+                t0 = time.perf_counter()
+                summary = export_run(run.dir, "mitsuba", tmp / "mitsuba", args.texture_size, progress=False)
+                bakes.append({"total": time.perf_counter() - t0, **summary["seconds"]})
+            cams = run.cameras()
+            views = (cams.get("test") or cams["train"])[:args.views]
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-c", PLAIN, str(tmp / "mitsuba" / "scene.xml"), str(args.spp), str(tmp),
+                            *[c.name for c in views]], check=True)
+            plain_s = time.perf_counter() - t0
+            fitted = run.load()
+            renderer = Renderer(fitted)
+            per_view = []
+            t0 = time.perf_counter()
+            for cam in views:
+                theirs = np.load(tmp / f"{cam.name}.npy")
+                ours = renderer.render(cam, spp=args.spp, seed=0)
+                again = renderer.render(cam, spp=args.spp, seed=1)
+                mask = ours["alpha"] > 0
+                exp = M.image_metrics(theirs[..., :3], ours["rgb"], mask)
+                floor = M.image_metrics(again["rgb"], ours["rgb"], mask)
+                per_view.append({"view": cam.name, "psnr": exp["psnr"], "ssim": exp["ssim"],
+                                 "noise_floor_psnr": floor["psnr"], "noise_floor_ssim": floor["ssim"],
+                                 "alpha_mae": float(np.abs(theirs[..., 3] - ours["alpha"]).mean())})
+            ours_s = (time.perf_counter() - t0) / 2
+            gltf = export_run(run.dir, "gltf", tmp / "gltf", args.texture_size, progress=False)
+            report = json.loads(subprocess.run(["node", str(ROOT / "tools" / "validate_gltf.js"),
+                                                str(tmp / "gltf" / gltf["files"][0])],
+                                               check=True, capture_output=True, text=True).stdout)
+        med = {k: statistics.median(b[k] for b in bakes) for k in bakes[0]}
+        res = {"run": str(run.dir), "edits": len(fitted.edits), "faces": summary["faces"],
+               "texture_size": args.texture_size, "bake_seconds_median": med, "bake_seconds_all": bakes,
+               "spp": args.spp, "views": per_view,
+               "psnr_median": statistics.median(v["psnr"] for v in per_view),
+               "noise_floor_psnr_median": statistics.median(v["noise_floor_psnr"] for v in per_view),
+               "render_seconds": {"plain_mitsuba_all_views_with_load": plain_s, "ours_all_views": ours_s},
+               "gltf_validator": {"errors": report["issues"]["numErrors"],
+                                  "warnings": report["issues"]["numWarnings"]}}
+        results.append(res)
+        print(f"{run.dir}: bake {args.texture_size}^2 {med['total']:.1f} s (median of {args.repeats}; unwrap "
+              f"{med['unwrap']:.1f}, rasterise {med['rasterise']:.1f}, evaluate {med['evaluate']:.1f}, pad "
+              f"{med['pad']:.1f}); plain Mitsuba vs ours at {args.spp} spp: PSNR {res['psnr_median']:.2f} dB "
+              f"(noise floor {res['noise_floor_psnr_median']:.2f} dB); glTF validator: "
+              f"{res['gltf_validator']['errors']} errors, {res['gltf_validator']['warnings']} warnings", flush=True)
+    record = {"command": " ".join(sys.argv), "commit": commit(), "machine": machine(), "versions": versions(),
+              "results": results}
+    name = f"export_{record['commit']}"
+    (out_dir / f"{name}.json").write_text(json.dumps(record, indent=2))
+    lines = ["| run | faces | bake 1024² s (median) | PSNR export vs ours, dB | noise floor, dB | glTF errors |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for r in results:
+        lines.append(f"| {Path(r['run']).name} | {r['faces']} | {r['bake_seconds_median']['total']:.1f} | "
+                     f"{r['psnr_median']:.2f} | {r['noise_floor_psnr_median']:.2f} | {r['gltf_validator']['errors']} |")
+    (out_dir / f"{name}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"written {out_dir / name}.json, .md")
+
+
+if __name__ == "__main__":
+    main()
