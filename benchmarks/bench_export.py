@@ -12,7 +12,14 @@ For each run (fitted or edited):
   vq_mitsuba) from the exported scene.xml, and by vq-mitsuba's renderer, both at --spp samples
   per pixel. PSNR / SSIM in sRGB over the foreground, beside the noise floor: two renders of
   ours with different seeds at the same spp (the difference that noise alone makes);
-- glTF: the .glb of the same run through the Khronos validator (errors, warnings).
+- glTF: the .glb of the same run through the Khronos validator (errors, warnings);
+- edits, with --gt DATASET (the run's make-scene dataset, one per run): for every ranked
+  material K, `edit --material K --preset gold` rendered against the run on the test views
+  (same seed, --edit-spp): the share of changed pixels (sRGB change > 2/255) inside K's region
+  (its pixels and their 4-neighbours), with direct light only and with the run's
+  interreflections; and `--pick` at the most interior pixel of each ground-truth material in
+  the first test view: does it select the ranked material that most of that ground-truth
+  material's pixels get?
 Writes OUT/export_<commit>.json and .md.
 """
 
@@ -46,6 +53,58 @@ assert not [m for m in sys.modules if m.startswith("vq_mitsuba")]
 """
 
 
+def edit_checks(run, dataset: Path, n_views: int, spp: int) -> dict:
+    from vq_mitsuba.data.imageio import linear_to_srgb
+    from vq_mitsuba.edit import build_edit, edit_run
+    from vq_mitsuba.render.views import Renderer
+
+    fitted = run.load()
+    views = run.cameras()["test"][:n_views]
+    srgb = lambda x: linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    per_material = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(1, fitted.num_materials + 1):
+            edited = edit_run(run, Path(tmp) / f"k{k}", build_edit(run, fitted, materials=[k], preset="gold")).load()
+            shares = {}
+            for bounces in (0, fitted.cfg.train.bounces):
+                fitted.cfg.train.bounces = edited.cfg.train.bounces = bounces
+                changed_in, changed_all = 0, 0
+                for cam in views:
+                    a = Renderer(fitted).render(cam, spp=spp, seed=0)
+                    b = Renderer(edited).render(cam, spp=spp, seed=0)
+                    changed = np.abs(srgb(a["rgb"]) - srgb(b["rgb"])).max(-1) > 2 / 255
+                    r = a["material"] == k
+                    grown = r | np.roll(r, 1, 0) | np.roll(r, -1, 0) | np.roll(r, 1, 1) | np.roll(r, -1, 1)
+                    changed_in += int((changed & grown).sum())
+                    changed_all += int(changed.sum())
+                shares["direct" if bounces == 0 else "bounces"] = changed_in / max(changed_all, 1)
+            fitted.cfg.train.bounces = edited.cfg.train.bounces = run.config().train.bounces
+            per_material.append({"material": k, "inside_share_direct": shares["direct"],
+                                 "inside_share_bounces": shares.get("bounces", shares["direct"])})
+    # --pick at the most interior pixel of each ground-truth material of the first test view.
+    from scipy.ndimage import distance_transform_edt
+
+    cam = views[0]
+    import imageio.v3 as iio
+
+    gt_ids = np.asarray(iio.imread(dataset / "gt" / f"{cam.name}_material.png")).astype(int)
+    gt_ids = gt_ids[..., 0] if gt_ids.ndim == 3 else gt_ids
+    pred = Renderer(fitted).render(cam, spp=spp, seed=0)["material"]
+    picks = []
+    for g in np.unique(gt_ids[gt_ids > 0]):
+        region = gt_ids == g
+        if region.sum() < 9:
+            continue
+        y, x = np.unravel_index(np.argmax(distance_transform_edt(region)), region.shape)
+        chosen = build_edit(run, fitted, picks=[f"{cam.name}:{x},{y}"], sets=["roughness=0.5"]).selection.materials[0]
+        majority = int(np.bincount(pred[region]).argmax())
+        picks.append({"gt_material": int(g), "pixel": [int(x), int(y)], "picked": chosen, "majority": majority})
+    return {"per_material": per_material,
+            "inside_share_direct_min": min(m["inside_share_direct"] for m in per_material),
+            "inside_share_bounces_min": min(m["inside_share_bounces"] for m in per_material),
+            "picks": picks, "pick_tried": len(picks), "pick_right": sum(p["picked"] == p["majority"] for p in picks)}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+")
@@ -53,6 +112,8 @@ def main() -> None:
     p.add_argument("--texture-size", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--views", type=int, default=4)
+    p.add_argument("--gt", nargs="*", default=[], help="each run's make-scene dataset (enables the edit checks)")
+    p.add_argument("--edit-spp", type=int, default=64)
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "export"))
     args = p.parse_args()
 
@@ -66,6 +127,7 @@ def main() -> None:
     out_dir = Path(args.output)
     out_dir.mkdir(parents=True, exist_ok=True)
     results = []
+    gts = dict(zip(args.runs, args.gt))
     for run_path in args.runs:
         run = RunDir(run_path)
         with tempfile.TemporaryDirectory() as tmp:
@@ -109,6 +171,12 @@ def main() -> None:
                "render_seconds": {"plain_mitsuba_all_views_with_load": plain_s, "ours_all_views": ours_s},
                "gltf_validator": {"errors": report["issues"]["numErrors"],
                                   "warnings": report["issues"]["numWarnings"]}}
+        if run_path in gts:
+            res["edit_checks"] = edit_checks(run, Path(gts[run_path]), args.views, args.edit_spp)
+            e = res["edit_checks"]
+            print(f"  edits: changed pixels inside K, direct light: min {e['inside_share_direct_min']:.4f}; "
+                  f"with interreflections: min {e['inside_share_bounces_min']:.4f}; --pick right "
+                  f"{e['pick_right']} of {e['pick_tried']}", flush=True)
         results.append(res)
         print(f"{run.dir}: bake {args.texture_size}^2 {med['total']:.1f} s (median of {args.repeats}; unwrap "
               f"{med['unwrap']:.1f}, rasterise {med['rasterise']:.1f}, evaluate {med['evaluate']:.1f}, pad "
