@@ -16,8 +16,8 @@ For each run (fitted or edited):
 - edits, with --gt DATASET (the run's make-scene dataset, one per run): for every ranked
   material K, `edit --material K --preset gold` rendered against the run on the test views
   (same seed, --edit-spp): the share of changed pixels (sRGB change > 2/255) inside K's region
-  (its pixels and their 4-neighbours), with direct light only and with the run's
-  interreflections; and `--pick` at the most interior pixel of each ground-truth material in
+  (pixels where any primary ray hits K; also with K's majority pixels and their 4-neighbours),
+  with direct light only and with the run's interreflections; and `--pick` at the most interior pixel of each ground-truth material in
   the first test view: does it select the ranked material that most of that ground-truth
   material's pixels get?
 Writes OUT/export_<commit>.json and .md.
@@ -68,18 +68,22 @@ def edit_checks(run, dataset: Path, n_views: int, spp: int) -> dict:
             shares = {}
             for bounces in (0, fitted.cfg.train.bounces):
                 fitted.cfg.train.bounces = edited.cfg.train.bounces = bounces
-                changed_in, changed_all = 0, 0
+                changed_in, changed_grown, changed_all = 0, 0, 0
                 for cam in views:
                     a = Renderer(fitted).render(cam, spp=spp, seed=0)
                     b = Renderer(edited).render(cam, spp=spp, seed=0)
                     changed = np.abs(srgb(a["rgb"]) - srgb(b["rgb"])).max(-1) > 2 / 255
                     r = a["material"] == k
                     grown = r | np.roll(r, 1, 0) | np.roll(r, -1, 0) | np.roll(r, 1, 1) | np.roll(r, -1, 1)
-                    changed_in += int((changed & grown).sum())
+                    changed_in += int((changed & (a["material_share"][..., k] > 0)).sum())
+                    changed_grown += int((changed & grown).sum())
                     changed_all += int(changed.sum())
-                shares["direct" if bounces == 0 else "bounces"] = changed_in / max(changed_all, 1)
+                key = "direct" if bounces == 0 else "bounces"
+                shares[key] = changed_in / max(changed_all, 1)
+                shares[key + "_majority"] = changed_grown / max(changed_all, 1)
             fitted.cfg.train.bounces = edited.cfg.train.bounces = run.config().train.bounces
             per_material.append({"material": k, "inside_share_direct": shares["direct"],
+                                 "inside_share_direct_majority_mask": shares["direct_majority"],
                                  "inside_share_bounces": shares.get("bounces", shares["direct"])})
     # --pick at the most interior pixel of each ground-truth material of the first test view.
     from scipy.ndimage import distance_transform_edt
@@ -101,6 +105,7 @@ def edit_checks(run, dataset: Path, n_views: int, spp: int) -> dict:
         picks.append({"gt_material": int(g), "pixel": [int(x), int(y)], "picked": chosen, "majority": majority})
     return {"per_material": per_material,
             "inside_share_direct_min": min(m["inside_share_direct"] for m in per_material),
+            "inside_share_direct_majority_mask_min": min(m["inside_share_direct_majority_mask"] for m in per_material),
             "inside_share_bounces_min": min(m["inside_share_bounces"] for m in per_material),
             "picks": picks, "pick_tried": len(picks), "pick_right": sum(p["picked"] == p["majority"] for p in picks)}
 
@@ -174,7 +179,8 @@ def main() -> None:
         if run_path in gts:
             res["edit_checks"] = edit_checks(run, Path(gts[run_path]), args.views, args.edit_spp)
             e = res["edit_checks"]
-            print(f"  edits: changed pixels inside K, direct light: min {e['inside_share_direct_min']:.4f}; "
+            print(f"  edits: changed pixels inside K, direct light: min {e['inside_share_direct_min']:.4f} "
+                  f"(majority mask {e['inside_share_direct_majority_mask_min']:.4f}); "
                   f"with interreflections: min {e['inside_share_bounces_min']:.4f}; --pick right "
                   f"{e['pick_right']} of {e['pick_tried']}", flush=True)
         results.append(res)

@@ -59,7 +59,9 @@ class Renderer:
     @torch.no_grad()
     def render(self, camera: Camera, spp: int | None = None, aa: int | None = None, seed: int = 0,
                relight: Sequence[Renderer] = ()) -> dict[str, np.ndarray]:
-        """Images of one view: rgb (linear, HxWx3), alpha, basecolor, metallic, roughness, normal.
+        """Images of one view: rgb (linear, HxWx3), alpha, basecolor, metallic, roughness, normal;
+        with a discrete branch also material (majority id per pixel), material_share (H, W, M+1)
+        and discrete (the discrete branch's maps).
 
         Each pixel averages `aa` primary rays (stratified over the pixel); each hit is shaded with
         spp/aa light samples. Pixel coverage, not light sampling, dominates the error at edges
@@ -148,6 +150,8 @@ class Renderer:
         if votes is not None:  # majority over the pixel's primary rays; background (alpha < 0.5) is 0
             ids = np.argmax(votes[:, 1:], axis=1) + 1
             out["material"] = np.where(alpha >= 0.5, ids, 0).reshape(h, w).astype(np.uint8)
+            # Share of each pixel's primary rays that hit material k (index k = 1..M; index 0 stays 0).
+            out["material_share"] = (votes / aa).reshape(h, w, -1).astype(np.float32)
         return out
 
 
