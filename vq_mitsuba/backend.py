@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import mitsuba as mi
 import torch
 
@@ -29,3 +31,24 @@ def init_mitsuba(variant: str | None = None) -> str:
 def torch_device() -> torch.device:
     """The torch device matching the Mitsuba variant (tensors cross `dr.wrap` without copies)."""
     return torch.device("cuda") if mi.variant().startswith("cuda") else torch.device("cpu")
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, e.g. under taskset or a container quota)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def set_threads(n: int | None = None) -> int:
+    """Use n CPU threads (default: the available cores) in torch and in Dr.Jit's LLVM backend.
+
+    OpenMP's worker threads wait passively (OMP_WAIT_POLICY=PASSIVE, set when vq_mitsuba is
+    imported first): spinning threads would fight a busy neighbour process for the same cores."""
+    import drjit as dr
+
+    n = available_cores() if not n else int(n)
+    torch.set_num_threads(n)
+    dr.set_thread_count(n)
+    return n

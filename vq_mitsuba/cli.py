@@ -41,6 +41,7 @@ def _cmd_fit(args) -> int:
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "fit")
+    _output_folder(run_dir)
     cfg = _config(args, run_dir)  # bad keys and values fail before any work
     mesh_path = args.mesh
     if args.geometry == "neus" and args.mesh is not None:
@@ -71,6 +72,7 @@ def _cmd_geometry(args) -> int:
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "geometry")
+    _output_folder(run_dir)
     cfg = _config(args)
     info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
                         gt_mesh=args.gt_mesh)
@@ -90,14 +92,15 @@ def _cmd_render(args) -> int:
     import json
 
     from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.data.imageio import read_image
+    from vq_mitsuba.data.envmaps import load_envmap
     from vq_mitsuba.engine.run_dir import RunDir
     from vq_mitsuba.render.views import render_views
 
+    _output_folder(args.output)
     run = RunDir(args.run_dir)
     fitted = run.load()
     cameras, world, _ = load_cameras(args.cameras)  # input checks before any rendering
-    envmap = read_image(args.envmap)[0] if args.envmap is not None else None
+    envmap = load_envmap(args.envmap) if args.envmap is not None else None
     out = Path(args.output) if args.output else run.dir / "renders"
     out.mkdir(parents=True, exist_ok=True)
     render_views(fitted, cameras, world, out, envmap=envmap, env_rotate_deg=args.env_rotate,
@@ -130,6 +133,7 @@ def _cmd_edit(args) -> int:
         return 0
     if args.output is None:
         raise InputError(None, "edit writes a new run: give it a folder with -o NEW_RUN")
+    _output_folder(args.output)
     run = RunDir(args.run_dir)
     fitted = run.load()
     edit = build_edit(run, fitted, args.material, args.pick, args.box, args.set, args.scale, args.hue_shift,
@@ -146,6 +150,7 @@ def _cmd_edit(args) -> int:
 def _cmd_export(args) -> int:
     from vq_mitsuba.export.formats import export_run
 
+    _output_folder(args.output)
     summary = export_run(args.run_dir, args.format, args.output, args.texture_size, args.branch, args.envmap,
                          progress=not args.quiet)
     s = summary["seconds"]
@@ -190,6 +195,35 @@ def _cmd_make_scene(args) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _finite(limit: float):
+    """A float type accepting finite values of magnitude <= limit."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+        if not abs(value) <= limit:  # also refuses nan
+            raise argparse.ArgumentTypeError(f"must be a finite number within +-{limit:g}, got {text}")
+        return value
+    return parse
+
+
+def _output_folder(path: str | None) -> None:
+    """-o names a folder: refuse an existing file before any work."""
+    if path is not None and Path(path).exists() and not Path(path).is_dir():
+        raise InputError(path, "is a file; -o names an output folder")
+
+
 def _bandwidths(text: str) -> tuple[float, ...]:
     if text.strip().lower() in ("", "none", "off"):
         return ()
@@ -231,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "reconstruct from the images (needs alpha masks); given: never reconstruct")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.add_argument("--help-config", action="store_true", help="list every config key and preset")
+    f.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     f.set_defaults(func=_cmd_fit)
 
     g = sub.add_parser("geometry", help="reconstruct a mesh from posed images with alpha masks (NeuS)",
@@ -247,6 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--resume", action="store_true", help="continue from RUN_DIR/neus.pt")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.add_argument("--help-config", action="store_true", help="list every config key and preset")
+    g.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     g.set_defaults(func=_cmd_geometry)
 
     r = sub.add_parser("render", help="render novel views, material maps and relighting of a fitted run",
@@ -257,12 +295,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
     r.add_argument("--envmap", help="relight with this lat-long HDR image (EXR), in the capture's world "
                                     "convention (Blender's for NeRF/Blender captures)")
-    r.add_argument("--env-rotate", type=float, default=0.0, metavar="DEG",
+    r.add_argument("--env-rotate", type=_finite(1e6), default=0.0, metavar="DEG",
                    help="rotate the lighting about the up axis by DEG degrees")
-    r.add_argument("--exposure", type=float, default=0.0, metavar="EV", help="scale the lighting by 2^EV")
-    r.add_argument("--spp", type=int, help="samples per pixel (default: render.spp of the run's config)")
+    r.add_argument("--exposure", type=_finite(64), default=0.0, metavar="EV", help="scale the lighting by 2^EV")
+    r.add_argument("--spp", type=_positive_int, help="samples per pixel (default: render.spp of the run's config)")
     r.add_argument("-o", "--output", help="output folder (default: RUN_DIR/renders)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     r.set_defaults(func=_cmd_render)
 
     d = sub.add_parser("edit", help="select materials of a fitted run and change them (writes a new run)",
@@ -283,9 +323,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="basecolor=R,G,B (linear, 0..1) or basecolor=#RRGGBB (sRGB), metallic=V, roughness=V")
     d.add_argument("--scale", action="append", default=[], metavar="KEY=F",
                    help="multiply basecolor, metallic or roughness by F, keeping the texture (clamped to 0..1)")
-    d.add_argument("--hue-shift", type=float, metavar="DEG", help="rotate the basecolor's hue by DEG degrees")
+    d.add_argument("--hue-shift", type=_finite(1e6), metavar="DEG", help="rotate the basecolor's hue by DEG degrees")
     d.add_argument("--preset", metavar="NAME", help="a named material of the library (see --list-presets)")
     d.add_argument("--list-presets", action="store_true", help="list the library's materials")
+    d.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     d.set_defaults(func=_cmd_edit)
 
     x = sub.add_parser("export", help="take a fitted or edited run to Blender, three.js or Mitsuba",
@@ -296,11 +338,14 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("run_dir", help="a fitted or edited run directory")
     x.add_argument("--format", required=True, choices=["gltf", "obj", "mitsuba"], help="what to write")
     x.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
-    x.add_argument("--texture-size", type=int, default=1024, metavar="N", help="texture width and height in texels")
+    x.add_argument("--texture-size", type=_positive_int, default=1024, metavar="N",
+                   help="texture width and height in texels")
     x.add_argument("--branch", choices=["continuous", "discrete"], default="continuous",
                    help="bake the continuous field (texture detail) or the discrete materials (flat per material)")
     x.add_argument("--envmap", help="export this lat-long HDR image as the lighting instead of the fitted one")
     x.add_argument("--quiet", action="store_true", help="no progress bar")
+    x.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     x.set_defaults(func=_cmd_export)
 
     e = sub.add_parser("eval", help="score a fitted run against a synthetic dataset's ground truth",
@@ -313,13 +358,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset folder written by `vq-mitsuba make-scene` (scene.json, transforms_test.json, "
                         "images/, gt/, relit/, envmaps/)")
     e.add_argument("-o", "--output", help="metrics JSON path (default: RUN_DIR/metrics.json)")
-    e.add_argument("--spp", type=int, help="render samples per pixel (default: render.spp of the run's config)")
+    e.add_argument("--spp", type=_positive_int, help="render samples per pixel (default: render.spp of the run's config)")
     e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",
                    help="basecolor scale alignment: lstsq (NeRFactor) or median (TensoIR)")
     e.add_argument("--meanshift", type=_bandwidths, default=(0.2, 0.3, 0.5), metavar="BW,BW,...",
                    help="bandwidths of the MeanShift segmentation baseline on the continuous branch's "
                         "BRDF maps (default 0.2,0.3,0.5; 'none' skips it); needs ground-truth material ids")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
+    e.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     e.set_defaults(func=_cmd_eval)
 
     m = sub.add_parser("make-scene", help="render a bundled synthetic scene with ground truth",
@@ -328,16 +375,18 @@ def build_parser() -> argparse.ArgumentParser:
                                    "ground-truth maps and relit test views.")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
     m.add_argument("-o", "--output", help="output folder (default: data/NAME)")
-    m.add_argument("--resolution", type=int, help="image width and height in pixels (default per scene)")
-    m.add_argument("--spp", type=int, help="path-tracing samples per pixel (default: the scene's for mitsuba, "
+    m.add_argument("--resolution", type=_positive_int, help="image width and height in pixels (default per scene)")
+    m.add_argument("--spp", type=_positive_int, help="path-tracing samples per pixel (default: the scene's for mitsuba, "
                                            "128 for cycles)")
     m.add_argument("--renderer", choices=["mitsuba", "cycles"], default="mitsuba",
                    help="mitsuba (default) or cycles: Blender Cycles through bpy in .venv-cycles (`make cycles`); "
                         "same output layout, plus relit views under Blender's eight studio-light probes")
-    m.add_argument("--n-train", type=int, help="number of training views")
-    m.add_argument("--n-test", type=int, help="number of test views")
+    m.add_argument("--n-train", type=_positive_int, help="number of training views")
+    m.add_argument("--n-test", type=_positive_int, help="number of test views")
     m.add_argument("--seed", type=int, default=0, help="random seed")
     m.add_argument("--list", action="store_true", help="list the bundled scenes")
+    m.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     m.set_defaults(func=_cmd_make_scene)
     return p
 
@@ -345,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        from vq_mitsuba.backend import set_threads
+
+        set_threads(args.threads)
         return args.func(args)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

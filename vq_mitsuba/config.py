@@ -6,6 +6,7 @@ Every field's comment is its documentation (`vq-mitsuba fit --help-config` print
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -227,9 +228,12 @@ def _coerce(value, typ, key: str, source):
     try:
         if typ is int and isinstance(value, float) and not value.is_integer():
             raise ValueError
-        return typ(value)
-    except (TypeError, ValueError):
+        out = typ(value)
+    except (TypeError, ValueError, OverflowError):
         raise InputError(source, f"'{key}' expects {typ.__name__}, got '{value}'") from None
+    if typ is float and not math.isfinite(out):
+        raise InputError(source, f"'{key}' must be a finite number, got {value}")
+    return out
 
 
 def _apply(cfg, data: dict, source, prefix: str = "") -> None:
@@ -262,10 +266,52 @@ def read_config_file(path: str | Path) -> dict:
     return data
 
 
+# Value ranges of numeric keys. Every other numeric key must be >= 0 (weights, seeds, time limits,
+# counts that may be zero); a key named in none of these tables and in ANY_SIGN may be negative.
+POSITIVE = {
+    "field.pe_freqs", "field.hidden", "field.latent", "field.decoder_hidden", "envmap.height", "envmap.init_scale",
+    "envmap.lr", "loss.gamma", "vq.num_codes", "vq.rank_pixels", "train.iterations", "train.batch_rays", "train.spp",
+    "train.lr", "train.lr_decay", "train.checkpoint_every", "train.log_every", "render.spp", "render.aa",
+    "render.chunk", "neus.lr", "neus.lr_sdf_mlp", "neus.lr_variance", "neus.lr_decay", "neus.init_radius",
+    "neus.occupancy_every", "neus.checkpoint_every", "texel.resolution", "texel.envmap_height",
+    "texel.env_init_scale", "texel.spp", "texel.max_depth", "texel.views_per_step", "texel.lr_texture",
+    "texel.lr_envmap", "texel.lr_decay", "texel.gamma",
+}
+UNIT_INTERVAL = {
+    "field.roughness_min", "field.pe_anneal", "vq.warmup_frac", "vq.decay", "vq.dropout_max", "vq.min_share",
+    "train.alpha_threshold", "train.lr_decay", "neus.lr_decay", "neus.hull_threshold", "neus.hull_min_views",
+    "neus.coarse_to_fine", "neus.min_component", "texel.lr_decay", "texel.init_basecolor", "texel.init_metallic",
+    "texel.init_roughness", "texel.roughness_min",
+}
+ANY_SIGN = {"neus.init_variance"}
+SQUARE = {"train.pixel_jitter": "0: pixel centre", "render.aa": "primary rays per pixel on a grid"}
+
+
+def _numeric_keys(cfg, prefix: str = ""):
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _numeric_keys(value, f"{prefix}{f.name}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            yield f"{prefix}{f.name}", value
+
+
 def _check_ranges(cfg: Config, source) -> None:
     """Values that parse but make no sense; `source` is the layer that set them (file or --set)."""
     def fail(message: str):
         raise InputError(source, message)
+
+    for key, value in _numeric_keys(cfg):
+        if key in POSITIVE and not value > 0:
+            fail(f"{key} must be > 0, got {value}")
+        if key in UNIT_INTERVAL and not 0.0 <= value <= 1.0:
+            fail(f"{key} must be in [0, 1], got {value}")
+        if key not in ANY_SIGN and value < 0:
+            fail(f"{key} must be >= 0, got {value}")
+        if key in SQUARE and value > 0 and round(value ** 0.5) ** 2 != value:
+            fail(f"{key} must be a square number ({SQUARE[key]}), got {value}")
+    if cfg.field.roughness_min >= 1.0:
+        fail(f"field.roughness_min must be below 1, got {cfg.field.roughness_min}")
 
     if not 0.0 <= cfg.field.metallic_init < 1.0:
         fail(f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")

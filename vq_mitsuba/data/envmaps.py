@@ -272,8 +272,12 @@ def blender_probes() -> dict[str, Path]:
 # Files and Mitsuba
 # --------------------------------------------------------------------------------------------
 def load_envmap(path: str | Path) -> np.ndarray:
-    """Read a lat-long EXR/HDR as float32 (H, W, 3); raises InputError naming a bad file."""
+    """Read a lat-long EXR/HDR as float32 (H, W, 3); raises InputError naming a bad file: not HDR,
+    not 2:1, smaller than 4 x 2 texels, negative or non-finite texels, or no light at all."""
     path = Path(path)
+    if path.suffix.lower() not in (".exr", ".hdr"):
+        raise InputError(path, "an environment map holds HDR radiance: give an .exr or .hdr lat-long image "
+                               f"(not '{path.suffix}')")
     if path.suffix.lower() == ".hdr":
         if not path.is_file():
             raise InputError(path, "environment map not found")
@@ -288,8 +292,14 @@ def load_envmap(path: str | Path) -> np.ndarray:
         rgb = clamp_tiny_negatives(rgb, path)
     else:
         rgb, _ = read_image(path)
-    if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 2:
-        raise InputError(path, f"environment map must be an (H, W, 3) image, got shape {rgb.shape}")
+    if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 4:
+        raise InputError(path, f"environment map must be an (H, W, 3) image of at least 4 x 2 texels, got shape "
+                               f"{rgb.shape}")
+    if rgb.shape[1] != 2 * rgb.shape[0]:
+        raise InputError(path, f"a lat-long environment map is twice as wide as high, got {rgb.shape[1]} x "
+                               f"{rgb.shape[0]} texels")
+    if not float(rgb.max()) > 0.0:
+        raise InputError(path, "environment map is black everywhere: it gives no light")
     return np.ascontiguousarray(rgb, dtype=np.float32)
 
 

@@ -21,6 +21,26 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
+def _read_8_or_16_bit(path: Path) -> np.ndarray:
+    """PNG / JPEG pixels as stored: uint8, or uint16 for 16-bit PNGs (which Pillow would cut to 8 bits)."""
+    import imageio.v3 as iio  # ships with scikit-image
+
+    with open(path, "rb") as f:
+        head = f.read(26)
+    png = head[:8] == b"\x89PNG\r\n\x1a\n"
+    if path.suffix.lower() == ".png" and not png or path.suffix.lower() != ".png" and head[:2] != b"\xff\xd8":
+        raise InputError(path, f"not a {path.suffix[1:].upper()} image (the file does not start like one; "
+                               "truncated, or another kind of file renamed?)")
+    if png and len(head) > 24 and head[24] == 16:
+        import mitsuba as mi
+
+        from vq_mitsuba.backend import init_mitsuba
+
+        init_mitsuba()
+        return np.array(mi.Bitmap(str(path)))
+    return np.asarray(iio.imread(path))
+
+
 def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read an image as linear float32 RGB (H, W, 3) and its alpha (H, W) or None.
 
@@ -34,9 +54,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         if suffix == ".exr":
             data = read_exr(path)
         elif suffix in (".png", ".jpg", ".jpeg"):
-            import imageio.v3 as iio  # ships with scikit-image
-
-            raw = np.asarray(iio.imread(path))
+            raw = _read_8_or_16_bit(path)
             scale = 65535.0 if raw.dtype == np.uint16 else 255.0
             data = raw.astype(np.float32) / scale
             if data.ndim == 2:

@@ -32,7 +32,7 @@ import torch
 import yaml
 
 from vq_mitsuba.config import Config, load_config, save_config
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 
@@ -51,6 +51,23 @@ def save_torch(obj, path: Path) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
+
+
+FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed")
+
+
+def nonfinite_tensors(state: dict) -> list[str]:
+    """Names of the fitted tensors (networks, envmap) in a state that hold NaN or Inf."""
+    bad = []
+    for part in FITTED_PARTS:
+        tensors = state.get(part)
+        if tensors is None:
+            continue
+        items = tensors.items() if isinstance(tensors, dict) else [("", tensors)]
+        for name, t in items:
+            if torch.is_tensor(t) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                bad.append(f"{part}.{name}" if name else part)
+    return bad
 
 
 class RunDir:
@@ -208,13 +225,26 @@ class RunDir:
 
     # --- network states -----------------------------------------------------------------------
     def save_state(self, state: dict, path: Path | None = None) -> None:
-        save_torch(state, path or self.checkpoint_path)
+        """Write a state atomically, only when every fitted tensor in it is finite."""
+        path = path or self.checkpoint_path
+        bad = nonfinite_tensors(state)
+        if bad:
+            raise NumericalError(self.dir, f"{path.name} not written: non-finite values in {', '.join(bad[:5])}; "
+                                           "the previous checkpoint is kept")
+        save_torch(state, path)
 
     def load_state(self, path: str | Path | None = None, device=None) -> dict:
         path = Path(path) if path is not None else self.checkpoint_path
         if not path.is_file():
             raise InputError(path, "checkpoint missing: the run did not finish its first checkpoint")
-        return torch.load(path, map_location=device, weights_only=False)
+        try:
+            state = torch.load(path, map_location=device, weights_only=False)
+        except Exception as exc:  # a torn or foreign file
+            raise InputError(path, f"not a readable checkpoint ({type(exc).__name__}: {exc})") from None
+        bad = nonfinite_tensors(state) if isinstance(state, dict) else ["(not a state dictionary)"]
+        if bad:
+            raise InputError(path, f"holds non-finite values in {', '.join(bad[:5])}: refusing to load it")
+        return state
 
     def snapshot_path(self, elapsed_s: float, step: int) -> Path:
         (self.dir / self.SNAPSHOTS).mkdir(exist_ok=True)

@@ -14,10 +14,12 @@ import torch
 
 from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER, Camera, camera_rays, pixel_jitter
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
+from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.fitted import FittedModel
 from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
+ENV_PEAK_RANGE = (1e-30, 1e30)  # brightest envmap texel a render accepts (float32 sums stay finite)
 
 
 def world_rotation(src: str, dst: str) -> np.ndarray:
@@ -51,6 +53,11 @@ class Renderer:
                  exposure_ev: float = 0.0):
         self.fitted = fitted
         env = fitted.envmap if envmap is None else envmap
+        peak = float(np.max(env)) * 2.0 ** exposure_ev
+        if not ENV_PEAK_RANGE[0] <= peak <= ENV_PEAK_RANGE[1]:
+            raise InputError(None, f"the lighting's brightest texel would be {peak:.3g} at exposure {exposure_ev:+g} EV: "
+                                   f"outside {ENV_PEAK_RANGE[0]:g}..{ENV_PEAK_RANGE[1]:g}, where the renders could "
+                                   "not be finite; choose another --exposure or envmap")
         self.envmap = np.ascontiguousarray(env * (2.0 ** exposure_ev), dtype=np.float32)
         to_world = rotate_about_up(fitted.envmap_to_world, env_rotate_deg)
         self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
@@ -195,6 +202,14 @@ def segmentation_overlay(rgb_linear: np.ndarray, alpha: np.ndarray, material: np
     return np.clip(np.where(on, (1 - opacity) * over_white + opacity * tint, over_white), 0, 1)
 
 
+def check_finite(images: dict, view: str) -> None:
+    """Raise NumericalError when a rendered image holds NaN or Inf (nothing of the view is written)."""
+    bad = [k for k, v in images.items() if isinstance(v, np.ndarray) and v.dtype.kind == "f" and not np.isfinite(v).all()]
+    if bad:
+        raise NumericalError(None, f"view {view}: the render holds non-finite values in {', '.join(bad)}; "
+                                   "nothing of this view was written")
+
+
 def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     """The per-view files of INTERFACE.md."""
     a = images["alpha"]
@@ -222,6 +237,7 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
     for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp)
+        check_finite(images, cam.name)
         if cameras_world != fitted.world:  # normals in the cameras' world
             images["normal"] = images["normal"] @ world_rotation(fitted.world, cameras_world).T
         write_view(out_dir, cam.name, images)
