@@ -153,3 +153,32 @@ def test_a_file_that_is_not_an_image_is_named_as_such(tmp_path):
     (tmp_path / "x.png").write_text("not a picture")
     with pytest.raises(InputError, match="not a PNG image"):
         read_image(tmp_path / "x.png")
+
+
+def test_all_broken_images_of_a_capture_are_reported_together(tmp_path):
+    from vq_mitsuba.data.captures import load_capture
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    (tmp_path / "cap" / "images" / "view_01.exr").write_text("garbage")
+    (tmp_path / "cap" / "images" / "view_03.exr").unlink()
+    with pytest.raises(InputError) as info:
+        load_capture(capture)
+    text = str(info.value)
+    assert "2 problems" in text and "view_01.exr" in text and "view_03" in text
+
+
+def test_fit_never_writes_over_a_users_folder(tmp_path, capsys):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "loss.png").write_bytes(b"my own picture")
+    assert cli.main(["fit", str(capture), "-o", str(mine), "--quiet"]) == 2
+    assert "no vq-mitsuba run" in capsys.readouterr().err
+    assert (mine / "loss.png").read_bytes() == b"my own picture" and len(list(mine.iterdir())) == 1
+
+
+def test_eval_names_a_missing_dataset_folder(three_materials, tmp_path, capsys):
+    _, run = three_materials
+    missing = tmp_path / "no_such_dataset"
+    assert cli.main(["eval", str(run.dir), "--gt", str(missing), "--quiet"]) == 2
+    assert f"{missing}: dataset folder not found" in capsys.readouterr().err

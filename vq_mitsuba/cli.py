@@ -42,6 +42,7 @@ def _cmd_fit(args) -> int:
         return _help_config()
     run_dir = _run_dir(args, "fit")
     _output_folder(run_dir)
+    _run_folder(run_dir)
     cfg = _config(args, run_dir)  # bad keys and values fail before any work
     mesh_path = args.mesh
     if args.geometry == "neus" and args.mesh is not None:
@@ -73,6 +74,7 @@ def _cmd_geometry(args) -> int:
         return _help_config()
     run_dir = _run_dir(args, "geometry")
     _output_folder(run_dir)
+    _run_folder(run_dir)
     cfg = _config(args)
     info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
                         gt_mesh=args.gt_mesh)
@@ -222,6 +224,16 @@ def _output_folder(path: str | None) -> None:
     """-o names a folder: refuse an existing file before any work."""
     if path is not None and Path(path).exists() and not Path(path).is_dir():
         raise InputError(path, "is a file; -o names an output folder")
+
+
+RUN_FILES = ("run.json", "config.yaml", "checkpoint.pt", "geometry.json", "neus.pt")
+
+
+def _run_folder(path: Path) -> None:
+    """A fit writes into a new folder, an empty one, or a run's own: never over a user's other files."""
+    path = Path(path)
+    if path.is_dir() and any(path.iterdir()) and not any((path / f).is_file() for f in RUN_FILES):
+        raise InputError(path, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
 
 
 def _bandwidths(text: str) -> tuple[float, ...]:

@@ -142,6 +142,14 @@ def _find_image(stem: Path) -> Path | None:
     return None
 
 
+def raise_all(problems: list[InputError], capture: Path) -> None:
+    """Report every problem found in a capture at once (one InputError; nothing if none)."""
+    if len(problems) == 1:
+        raise problems[0]
+    if problems:
+        raise InputError(capture, f"{len(problems)} problems in this capture:\n  " + "\n  ".join(map(str, problems)))
+
+
 def _stack_images(entries: list[tuple[Path, np.ndarray, np.ndarray | None]]):
     """(images, alpha, has_alpha) from (path, rgb, alpha) triples of one size."""
     with_alpha = [a is not None for _, _, a in entries]
@@ -313,20 +321,24 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
             raise InputError(xml, f"sensor '{cam.name}' film is {cam.width}x{cam.height} but sensor "
                                   f"'{cameras[0].name}' film is {cameras[0].width}x{cameras[0].height}; "
                                   "all sensors of a capture must share one film size")
-    entries = []
+    entries, problems = [], []
     for cam in cameras:
-        stem = xml.parent / "images" / cam.name
-        img_path = _find_image(stem)
-        if img_path is None:
-            raise InputError(stem.parent / (stem.name + ".exr"),
-                             f"no reference image for sensor '{cam.name}' in {xml.name} "
-                             f"(expected images/{cam.name}.exr or images/{cam.name}.png)")
-        rgb, alpha = read_image(img_path)
-        h, w = rgb.shape[:2]
-        if (w, h) != (cam.width, cam.height):
-            raise InputError(img_path, f"image size {w}x{h} differs from the film size "
-                                       f"{cam.width}x{cam.height} of sensor '{cam.name}' in {xml.name}")
-        entries.append((img_path, rgb, alpha))
+        try:
+            stem = xml.parent / "images" / cam.name
+            img_path = _find_image(stem)
+            if img_path is None:
+                raise InputError(stem.parent / (stem.name + ".exr"),
+                                 f"no reference image for sensor '{cam.name}' in {xml.name} "
+                                 f"(expected images/{cam.name}.exr or images/{cam.name}.png)")
+            rgb, alpha = read_image(img_path)
+            h, w = rgb.shape[:2]
+            if (w, h) != (cam.width, cam.height):
+                raise InputError(img_path, f"image size {w}x{h} differs from the film size "
+                                           f"{cam.width}x{cam.height} of sensor '{cam.name}' in {xml.name}")
+            entries.append((img_path, rgb, alpha))
+        except InputError as exc:
+            problems.append(exc)
+    raise_all(problems, xml)
     images, alpha, has_alpha = _stack_images(entries)
 
     # Known geometry.
@@ -501,17 +513,21 @@ def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
     matrices = _frame_matrices(path, frames)
     names = _frame_names(frames)
 
-    entries, first = [], None
+    entries, first, problems = [], None, []
     for i, frame in enumerate(frames):
-        img_path = _frame_image(path, i, frame)
-        rgb, alpha = read_image(img_path)
-        h, w = rgb.shape[:2]
-        if first is None:
-            first = (img_path, w, h)
-        elif (w, h) != first[1:]:
-            raise InputError(img_path, f"image size {w}x{h} differs from {first[0].name} "
-                                       f"({first[1]}x{first[2]}); all frames must share one size")
-        entries.append((img_path, rgb, alpha))
+        try:
+            img_path = _frame_image(path, i, frame)
+            rgb, alpha = read_image(img_path)
+            h, w = rgb.shape[:2]
+            if first is None:
+                first = (img_path, w, h)
+            elif (w, h) != first[1:]:
+                raise InputError(img_path, f"image size {w}x{h} differs from {first[0].name} "
+                                           f"({first[1]}x{first[2]}); all frames must share one size")
+            entries.append((img_path, rgb, alpha))
+        except InputError as exc:
+            problems.append(exc)
+    raise_all(problems, path)
     images, alpha, has_alpha = _stack_images(entries)
     width, height = first[1], first[2]
     cameras = [nerf_to_camera(n, m, angle, width, height) for n, m in zip(names, matrices)]

@@ -327,7 +327,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     run.write_mesh(capture.mesh)
     trainer = Trainer(capture, run, cfg)
     stats = trainer.pool_stats
-    if stats["geometry_coverage"] < 0.9:
+    if stats["geometry_coverage"] < 0.9 and not capture.has_alpha:
+        print(f"warning: the images have no alpha, so every pixel counts as the object's, and "
+              f"{100 * (1 - stats['geometry_coverage']):.1f}% of them (the background) miss the mesh and are not "
+              "fitted; with alpha masks (RGBA PNG or EXR) the fit also knows the object's outline")
+    elif stats["geometry_coverage"] < 0.9:
         print(f"warning: only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
               "the geometry may not match the images (units, world axes?)")
     run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,

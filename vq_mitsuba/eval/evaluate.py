@@ -48,6 +48,8 @@ DEFAULT_AA = None  # primary rays per pixel: None takes the run's render.aa
 def dataset_root(path: str | Path) -> Path:
     """The dataset folder for a folder or any file inside it (scene.json, scene.xml, transforms json)."""
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "dataset folder not found")
     root = path if path.is_dir() else path.parent
     for name in ("scene.json", "transforms_test.json"):
         if not (root / name).is_file():
@@ -183,7 +185,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
 
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
-    from vq_mitsuba.render.views import convert_world
+    from vq_mitsuba.render.views import check_finite, convert_world
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
@@ -213,6 +215,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     preds = []
     for i, cam in enumerate(views):
         out = renderer.render(cam, spp=spp, aa=aa, seed=i)
+        check_finite(out, cam.name)  # no score of a NaN image is written
         if run_world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
             out["normal"] = out["normal"] @ MITSUBA_TO_BLENDER.T
         preds.append(out)
@@ -339,15 +342,18 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
 def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) -> list[np.ndarray]:
     """The rgb image of one view under each renderer's lighting. Renderers of a fitted run
     (`render.views.Renderer`) share one pass: the rays and the material field are evaluated once."""
-    from vq_mitsuba.render.views import Renderer
+    from vq_mitsuba.render.views import Renderer, check_finite
 
     if not renderers:
         return []
     first, *rest = renderers
     if all(isinstance(r, Renderer) for r in renderers):  # `Renderer.render` checks they share one run
         out = first.render(camera, spp=spp, aa=aa, seed=seed, relight=rest)
-        return [out["rgb"], *out.get("relit", [])]
-    return [r.render(camera, spp=spp, aa=aa, seed=seed)["rgb"] for r in renderers]
+        images = [out["rgb"], *out.get("relit", [])]
+    else:
+        images = [r.render(camera, spp=spp, aa=aa, seed=seed)["rgb"] for r in renderers]
+    check_finite({f"relit {i}": im for i, im in enumerate(images)}, camera.name)
+    return images
 
 
 def coverage_scores(alpha: np.ndarray, basecolor: np.ndarray, gt_basecolor: np.ndarray, mask: np.ndarray) -> dict:
