@@ -182,3 +182,35 @@ def test_eval_names_a_missing_dataset_folder(three_materials, tmp_path, capsys):
     missing = tmp_path / "no_such_dataset"
     assert cli.main(["eval", str(run.dir), "--gt", str(missing), "--quiet"]) == 2
     assert f"{missing}: dataset folder not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("checkpoint_every, kill_after_s", [(1, 7.0), (25, 9.0)])
+def test_a_killed_fit_resumes_from_an_intact_checkpoint(tmp_path, checkpoint_every, kill_after_s):
+    """kill -9 in the middle of a fit (with checkpoint_every=1, most likely during a checkpoint
+    write); `fit --resume` then loads an intact checkpoint and finishes the run."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    run = tmp_path / "run"
+    settings = ["--set", "train.iterations=100000", "--set", f"train.checkpoint_every={checkpoint_every}",
+                "--set", "train.batch_rays=256", "--set", "vq.enabled=false", "--quiet"]
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "fit", str(capture), "-o", str(run), *settings],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not (run / "checkpoint.pt").is_file() and time.time() < deadline:
+        time.sleep(0.2)
+    time.sleep(kill_after_s - 6.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert (run / "checkpoint.pt").is_file()
+    step = RunDir(run).load_state()["step"]  # intact: loads, finite
+    assert step >= 1
+    done = step + 30
+    code = cli.main(["fit", str(capture), "-o", str(run), "--resume", *settings[:-1],
+                     "--set", f"train.iterations={done}", "--quiet"])
+    assert code == 0
+    assert json.loads((run / "fit.json").read_text())["iterations"] == done
