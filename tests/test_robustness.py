@@ -214,3 +214,15 @@ def test_a_killed_fit_resumes_from_an_intact_checkpoint(tmp_path, checkpoint_eve
                      "--set", f"train.iterations={done}", "--quiet"])
     assert code == 0
     assert json.loads((run / "fit.json").read_text())["iterations"] == done
+
+
+def test_resume_refuses_another_capture(tmp_path, capsys):
+    first = write_sphere_capture(tmp_path / "a", size=16, n_views=4, spp=8)
+    other = write_sphere_capture(tmp_path / "b", size=16, n_views=4, spp=8, base_color=(0.2, 0.3, 0.8))
+    run = tmp_path / "run"
+    quick = ["--set", "train.iterations=20", "--set", "train.batch_rays=128", "--set", "vq.enabled=false", "--quiet"]
+    assert cli.main(["fit", str(first), "-o", str(run), *quick]) == 0
+    before = (run / "run.json").read_text()
+    assert cli.main(["fit", str(other), "-o", str(run), "--resume", *quick]) == 2
+    assert "was fitted to" in capsys.readouterr().err
+    assert (run / "run.json").read_text() == before
