@@ -347,7 +347,7 @@ def test_json_size_mismatch(tmp_path):
 
 def test_unreadable_image(tmp_path):
     path = make_json_capture(tmp_path)
-    (tmp_path / "train" / "r_1.png").write_bytes(b"\x89PNG garbage garbage garbage")
+    (tmp_path / "train" / "r_1.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage garbage garbage")
     _expect(lambda: load_capture(path), "r_1.png", "cannot read image")
 
 

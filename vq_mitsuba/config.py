@@ -273,7 +273,7 @@ POSITIVE = {
     "envmap.lr", "loss.gamma", "vq.num_codes", "vq.rank_pixels", "train.iterations", "train.batch_rays", "train.spp",
     "train.lr", "train.lr_decay", "train.checkpoint_every", "train.log_every", "render.spp", "render.aa",
     "render.chunk", "neus.lr", "neus.lr_sdf_mlp", "neus.lr_variance", "neus.lr_decay", "neus.init_radius",
-    "neus.occupancy_every", "neus.checkpoint_every", "texel.resolution", "texel.envmap_height",
+    "texel.resolution", "texel.envmap_height",
     "texel.env_init_scale", "texel.spp", "texel.max_depth", "texel.views_per_step", "texel.lr_texture",
     "texel.lr_envmap", "texel.lr_decay", "texel.gamma",
 }
