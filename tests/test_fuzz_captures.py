@@ -3,6 +3,7 @@ channel layouts. A capture either loads with finite images in [0, 1]-ish ranges,
 with an InputError naming a file; no other exception (no traceback) ever reaches the user."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -12,7 +13,9 @@ from hypothesis import strategies as st
 from vq_mitsuba.data.captures import load_capture
 from vq_mitsuba.errors import InputError
 
-FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+# benchmarks/stress.py raises the number of examples through VQM_FUZZ_EXAMPLES.
+FUZZ = settings(max_examples=int(os.environ.get("VQM_FUZZ_EXAMPLES", "60")), deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers(-5, 5) | st.floats(allow_nan=True, allow_infinity=True)
