@@ -226,3 +226,15 @@ def test_resume_refuses_another_capture(tmp_path, capsys):
     assert cli.main(["fit", str(other), "-o", str(run), "--resume", *quick]) == 2
     assert "was fitted to" in capsys.readouterr().err
     assert (run / "run.json").read_text() == before
+
+
+def test_resume_refuses_another_mesh(tmp_path, capsys):
+    import trimesh
+
+    capture = write_sphere_capture(tmp_path / "a", size=16, n_views=4, spp=8)
+    run = tmp_path / "run"
+    quick = ["--set", "train.iterations=20", "--set", "train.batch_rays=128", "--set", "vq.enabled=false", "--quiet"]
+    assert cli.main(["fit", str(capture), "-o", str(run), *quick]) == 0
+    trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(tmp_path / "a" / "sphere.ply")
+    assert cli.main(["fit", str(capture), "-o", str(run), "--resume", *quick]) == 2
+    assert "another mesh" in capsys.readouterr().err

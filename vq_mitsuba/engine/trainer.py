@@ -322,6 +322,13 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         if Path(info["capture"]) != Path(capture.source).resolve():
             raise InputError(run.dir, f"was fitted to {info['capture']}, not {Path(capture.source).resolve()}; "
                                       "resume it with that capture, or choose another -o")
+        if (run / RunDir.MESH).is_file():
+            old, new = np.asarray(run.mesh().vertices), np.asarray(capture.mesh.vertices)
+            scale = float(np.abs(new).max()) if new.size else 1.0
+            if old.shape != new.shape or not np.allclose(old, new, atol=1e-5 * max(scale, 1e-6)):
+                raise InputError(run.dir, f"was fitted on another mesh than the one given now ({len(old)} vertices "
+                                          f"in {RunDir.MESH}, {len(new)} now); resume with the run's geometry, "
+                                          "or choose another -o")
     run.create()
     run.write_config(cfg)
     run.write_mesh(capture.mesh)
