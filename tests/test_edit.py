@@ -233,3 +233,11 @@ def test_edit_command_line(three_materials, tmp_path, capsys):
         assert not target.exists()
     assert cli.main(["edit", str(run.dir), "--material", "1", "--set", "metallic=1", "-o", str(run.dir)]) == 2
     assert "holds a fitted run" in capsys.readouterr().err
+
+
+def test_box_with_negative_corners_on_the_command_line(three_materials, tmp_path):
+    _, run = three_materials
+    out = tmp_path / "neg_box"
+    assert cli.main(["edit", str(run.dir), "--box", "-2,-2,-2,2,0,2", "--set", "roughness=0.5", "-o", str(out)]) == 0
+    box = json.loads((out / "edits.json").read_text())["edits"][0]["select"]["boxes"][0]
+    assert box == [[-2.0, -2.0, -2.0], [2.0, 0.0, 2.0]]

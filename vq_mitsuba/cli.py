@@ -142,7 +142,8 @@ def _cmd_edit(args) -> int:
                       args.preset, label=_edit_label(args))
     out = edit_run(run, args.output, edit)
     sel = edit.selection
-    what = (f"materials {', '.join(map(str, sel.materials))}" if sel.materials else "every material") + \
+    what = (f"material{'s' if len(sel.materials) > 1 else ''} {', '.join(map(str, sel.materials))}"
+            if sel.materials else "every material") + \
         (f" inside {len(sel.boxes)} box(es)" if sel.boxes else "")
     print(f"edited {what}: {len(edit.changes)} change(s); {len(out.edits())} edit(s) in {out.dir / RunDir.EDITS}")
     print(f"render it with: vq-mitsuba render {out.dir} --cameras CAMERAS")
@@ -403,8 +404,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _join_negative_lists(argv: list[str]) -> list[str]:
+    """`--box -1,0,-1,1,1,1` as `--box=-1,0,...`: argparse would take a value starting with '-' for an option."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--box" and i + 1 < len(argv) and argv[i + 1].startswith("-") and "," in argv[i + 1]:
+            out.append(f"--box={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
         from vq_mitsuba.backend import set_threads
 
