@@ -256,8 +256,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "to posed images, then render novel views, material maps and relighting.",
     )
     sub = p.add_subparsers(dest="command", required=True)
+    # Options every command takes.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--threads", type=_positive_int, metavar="N",
+                        help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
 
-    f = sub.add_parser("fit", help="decompose a capture into materials and lighting (VQ-NeRF)",
+    f = sub.add_parser("fit", parents=[common], help="decompose a capture into materials and lighting (VQ-NeRF)",
                        description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the "
                                    "continuous and discrete material branches, the lighting if unknown, and the "
                                    "ranked materials. Writes RUN_DIR (docs/run_dir.md): config.yaml, checkpoint.pt, "
@@ -278,11 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "reconstruct from the images (needs alpha masks); given: never reconstruct")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.add_argument("--help-config", action="store_true", help="list every config key and preset")
-    f.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     f.set_defaults(func=_cmd_fit)
 
-    g = sub.add_parser("geometry", help="reconstruct a mesh from posed images with alpha masks (NeuS)",
+    g = sub.add_parser("geometry", parents=[common],
+                       help="reconstruct a mesh from posed images with alpha masks (NeuS)",
                        description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. "
                                    "Writes RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and "
                                    "the NeuS checkpoint neus.pt. Known geometry in the capture is ignored.")
@@ -296,11 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--resume", action="store_true", help="continue from RUN_DIR/neus.pt")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.add_argument("--help-config", action="store_true", help="list every config key and preset")
-    g.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     g.set_defaults(func=_cmd_geometry)
 
-    r = sub.add_parser("render", help="render novel views, material maps and relighting of a fitted run",
+    r = sub.add_parser("render", parents=[common],
+                       help="render novel views, material maps and relighting of a fitted run",
                        description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, "
                                    "NAME_metallic.exr, NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png, and with "
                                    "the discrete branch NAME_material.png (ids) and NAME_segmentation.png (overlay).")
@@ -314,11 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=_positive_int, help="samples per pixel (default: render.spp of the run's config)")
     r.add_argument("-o", "--output", help="output folder (default: RUN_DIR/renders)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
-    r.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     r.set_defaults(func=_cmd_render)
 
-    d = sub.add_parser("edit", help="select materials of a fitted run and change them (writes a new run)",
+    d = sub.add_parser("edit", parents=[common],
+                       help="select materials of a fitted run and change them (writes a new run)",
                        description="Select surface points by ranked material, by the material under a pixel, "
                                    "and / or by a world-space box (material and box selections intersect), and "
                                    "change their BRDF. Writes NEW_RUN with run.json naming RUN_DIR's fitted run and "
@@ -339,11 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--hue-shift", type=_finite(1e6), metavar="DEG", help="rotate the basecolor's hue by DEG degrees")
     d.add_argument("--preset", metavar="NAME", help="a named material of the library (see --list-presets)")
     d.add_argument("--list-presets", action="store_true", help="list the library's materials")
-    d.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     d.set_defaults(func=_cmd_edit)
 
-    x = sub.add_parser("export", help="take a fitted or edited run to Blender, three.js or Mitsuba",
+    x = sub.add_parser("export", parents=[common], help="take a fitted or edited run to Blender, three.js or Mitsuba",
                        description="UV-unwrap the mesh, bake basecolor, metallic, roughness and the material ids "
                                    "into textures, and write a glTF binary (.glb, metallic-roughness PBR), OBJ+MTL "
                                    "(PBR keys) or a Mitsuba scene XML (mesh, principled with textures, envmap, the "
@@ -357,11 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bake the continuous field (texture detail) or the discrete materials (flat per material)")
     x.add_argument("--envmap", help="export this lat-long HDR image as the lighting instead of the fitted one")
     x.add_argument("--quiet", action="store_true", help="no progress bar")
-    x.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     x.set_defaults(func=_cmd_export)
 
-    e = sub.add_parser("eval", help="score a fitted run against a synthetic dataset's ground truth",
+    e = sub.add_parser("eval", parents=[common], help="score a fitted run against a synthetic dataset's ground truth",
                        description="Render the dataset's test views (transforms_test.json) and compare inside "
                                    "the ground-truth foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after "
                                    "per-channel scale alignment, metallic/roughness PSNR, and relighting PSNR/SSIM "
@@ -378,11 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="bandwidths of the MeanShift segmentation baseline on the continuous branch's "
                         "BRDF maps (default 0.2,0.3,0.5; 'none' skips it); needs ground-truth material ids")
     e.add_argument("--quiet", action="store_true", help="no progress bar")
-    e.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     e.set_defaults(func=_cmd_eval)
 
-    m = sub.add_parser("make-scene", help="render a bundled synthetic scene with ground truth",
+    m = sub.add_parser("make-scene", parents=[common], help="render a bundled synthetic scene with ground truth",
                        description="Render a bundled scene with Mitsuba's path tracer (or Blender Cycles with "
                                    "--renderer cycles): training and test views in both capture formats, "
                                    "ground-truth maps and relit test views.")
@@ -398,8 +393,6 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--n-test", type=_positive_int, help="number of test views")
     m.add_argument("--seed", type=int, default=0, help="random seed")
     m.add_argument("--list", action="store_true", help="list the bundled scenes")
-    m.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
     m.set_defaults(func=_cmd_make_scene)
     return p
 
