@@ -46,6 +46,20 @@ def write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
+def read_json(path: Path, missing: str) -> dict:
+    """A JSON object from `path`; InputError naming the file when it is missing (`missing` says
+    what that means), not JSON, or not an object."""
+    if not path.is_file():
+        raise InputError(path, missing)
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object")
+    return data
+
+
 def save_torch(obj, path: Path) -> None:
     """torch.save atomically."""
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -111,12 +125,7 @@ class RunDir:
 
     def info(self) -> dict:
         path = self.dir / self.INFO
-        if not path.is_file():
-            raise InputError(path, "not a fitted run directory (run.json missing); run `vq-mitsuba fit` first")
-        try:
-            info = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(path, f"not valid JSON ({exc})") from None
+        info = read_json(path, "not a fitted run directory (run.json missing); run `vq-mitsuba fit` first")
         version = info.get("format")
         if version != FORMAT_VERSION:
             raise InputError(path, f"run-directory format {version!r} is not the format {FORMAT_VERSION} this "
@@ -144,13 +153,8 @@ class RunDir:
         path = self.dir / self.EDITS
         if not self.is_edit():
             return []
-        if not path.is_file():
-            raise InputError(path, "missing: an edited run stores its edit list here")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(path, f"not valid JSON ({exc})") from None
-        entries = data.get("edits") if isinstance(data, dict) else None
+        data = read_json(path, "missing: an edited run stores its edit list here")
+        entries = data.get("edits")
         if not isinstance(entries, list):
             raise InputError(path, "expected {\"edits\": [...]}")
         return [Edit.from_dict(e, path, i) for i, e in enumerate(entries)]

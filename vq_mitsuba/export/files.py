@@ -41,14 +41,11 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def texture_images(baked: BakedMesh) -> dict[str, np.ndarray]:
-    """8-bit images: basecolor (sRGB), metallic, roughness (linear grey), glTF's combined
-    metallic-roughness (R unused, G roughness, B metallic) and, with a discrete branch, the ids."""
+    """8-bit images: basecolor (sRGB), metallic, roughness (linear grey) and glTF's combined
+    metallic-roughness (R unused, G roughness, B metallic)."""
     mr = np.stack([np.zeros_like(baked.roughness), baked.roughness, baked.metallic], -1)
-    out = {"basecolor": srgb8(baked.basecolor), "metallic": unit8(baked.metallic),
-           "roughness": unit8(baked.roughness), "metallic_roughness": unit8(mr)}
-    if baked.material is not None:
-        out["material_id"] = baked.material
-    return out
+    return {"basecolor": srgb8(baked.basecolor), "metallic": unit8(baked.metallic),
+            "roughness": unit8(baked.roughness), "metallic_roughness": unit8(mr)}
 
 
 def sample_latlong(env: np.ndarray, dirs_blender_convention: np.ndarray) -> np.ndarray:

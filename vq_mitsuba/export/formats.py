@@ -49,33 +49,28 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
     name = _name(run)
     t0 = time.perf_counter()
     if fmt == "gltf":
-        from vq_mitsuba.export.files import blender_envmap, write_envmap
         from vq_mitsuba.export.gltf import write_glb
 
         files = [write_glb(out / f"{name}.glb", baked, fitted.world, name)]
-        if baked.material is not None:
-            import imageio.v3 as iio
-
-            iio.imwrite(out / f"{name}_material_id.png", baked.material)
-            files.append(out / f"{name}_material_id.png")
-        files += write_envmap(out / "envmap", blender_envmap(fitted, envmap))
     elif fmt == "obj":
-        from vq_mitsuba.export.files import blender_envmap, write_envmap
         from vq_mitsuba.export.obj import write_obj
 
         files = write_obj(out / f"{name}.obj", baked, fitted.world, name)
-        files += write_envmap(out / "envmap", blender_envmap(fitted, envmap))
     else:
         from vq_mitsuba.export.mitsuba_xml import write_mitsuba
 
         env = fitted.envmap if envmap is None else envmap
         files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,
                               2 + fitted.cfg.train.bounces, name)
-        if baked.material is not None:
-            import imageio.v3 as iio
+    if fmt != "mitsuba":  # Y-up formats: the lighting in Blender's convention (the XML holds its own frame)
+        from vq_mitsuba.export.files import blender_envmap, write_envmap
 
-            iio.imwrite(out / f"{name}_material_id.png", baked.material)
-            files.append(out / f"{name}_material_id.png")
+        files += write_envmap(out / "envmap", blender_envmap(fitted, envmap))
+    if baked.material is not None:
+        import imageio.v3 as iio
+
+        iio.imwrite(out / f"{name}_material_id.png", baked.material)
+        files.append(out / f"{name}_material_id.png")
     summary = {
         "run": str(run.dir.resolve()), "format": fmt, "branch": branch, "texture_size": int(texture_size),
         "envmap": str(Path(envmap_path).resolve()) if envmap_path else "fitted",

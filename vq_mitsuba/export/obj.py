@@ -20,10 +20,9 @@ def write_obj(path: Path, baked: BakedMesh, world: str, name: str = "object") ->
     n = baked.normals.astype(np.float64) @ rot.T
     images = texture_images(baked)
     written = []
-    for key in ("basecolor", "metallic", "roughness", "material_id"):
-        if key in images:
-            iio.imwrite(out / f"{name}_{key}.png", images[key])
-            written.append(out / f"{name}_{key}.png")
+    for key in ("basecolor", "metallic", "roughness"):
+        iio.imwrite(out / f"{name}_{key}.png", images[key])
+        written.append(out / f"{name}_{key}.png")
     mtl = path.with_suffix(".mtl")
     mtl.write_text(
         f"# vq-mitsuba: PBR material (basecolor sRGB; roughness and metallic linear)\n"
