@@ -62,6 +62,17 @@ def _touching_spheres(env, size=40):
     return scene, _two_spheres_camera(size)
 
 
+def test_camera_rays_of_chosen_pixels_are_those_of_the_whole_image():
+    from vq_mitsuba.data.cameras import Camera, look_at
+
+    cam = Camera("c", look_at([0.3, 2.0, 1.5], [0, 0, 0], [0, 1, 0]), 35.0, 7, 5)
+    jitter = np.random.default_rng(1).random((35, 2))
+    o_all, d_all = camera_rays(cam, jitter)
+    pick = np.array([0, 6, 17, 34, 17])
+    o, d = camera_rays(cam, jitter[pick], pixels=pick)
+    assert np.array_equal(o, o_all[pick]) and np.allclose(d, d_all[pick], atol=1e-7)
+
+
 def test_envmap_padding_matches_mitsuba_layout():
     env = _env(4)
     emitter = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(env)})

@@ -114,13 +114,9 @@ def material_under_pixel(fitted: FittedModel, camera: Camera, x: int, y: int) ->
                                "(fitted with --preset continuous?): use --box")
     if not (0 <= x < camera.width and 0 <= y < camera.height):
         raise InputError(None, f"--pick {camera.name}:{x},{y}: pixel outside the {camera.width}x{camera.height} view")
-    one = Camera(camera.name, camera.to_world, camera.fov_x_deg, camera.width, camera.height)
-    n = camera.width * camera.height
-    index = y * camera.width + x
     rng = np.random.default_rng(0)
-    rays = [camera_rays(one, pixel_jitter(n, a, 16, rng)) for a in range(16)]
-    origins = np.stack([r[0][index] for r in rays])
-    directions = np.stack([r[1][index] for r in rays])
+    jitter = np.concatenate([pixel_jitter(1, a, 16, rng) for a in range(16)])
+    origins, directions = camera_rays(camera, jitter, pixels=np.full(16, y * camera.width + x))
     scene = scene_for_mesh(fitted.mesh, fitted.envmap, fitted.envmap_to_world)
     hits = scene.trace(origins, directions)
     if int(hits.valid.sum()) * 2 < len(origins):

@@ -103,10 +103,16 @@ def pixel_jitter(n_pixels: int, index: int, count: int, rng: np.random.Generator
     return (cell + rng.random((n_pixels, 2))) / side
 
 
-def camera_rays(camera: Camera, jitter: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through pixels (row-major, y down). jitter: (H*W, 2) offsets in [0,1)."""
+def camera_rays(camera: Camera, jitter: np.ndarray | None = None,
+                pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through pixels (row-major, y down): every pixel, or the flat pixel indices
+    `pixels` (N,). jitter: (number of rays, 2) offsets in [0,1)."""
     h, w = camera.height, camera.width
-    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    if pixels is None:
+        ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    else:
+        ys, xs = np.divmod(np.asarray(pixels, dtype=np.int64), w)
+        ys, xs = ys.astype(np.float64), xs.astype(np.float64)
     if jitter is None:
         px, py = xs.ravel() + 0.5, ys.ravel() + 0.5
     else:
