@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: all setup llvm demo test test-slow bench clean cycles gltf-validator
+.PHONY: all setup llvm demo test test-slow bench clean cycles gltf-validator chromium
 
 all: setup
 
@@ -66,8 +66,17 @@ $(NODE_DIR)/.installed:
 
 gltf-validator: $(NODE_DIR)/.installed
 
+# Headless Chromium (Debian's packages) drives the editor page in the tests through Selenium.
+chromium:
+	@if command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; then \
+	  echo "Chromium and chromedriver: found"; \
+	else \
+	  echo "Installing chromium and chromium-driver (for the editor's browser test)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium chromium-driver; \
+	fi
+
 # The Cycles ground-truth path is part of the product: its environment is set up too, so its tests run.
-test: setup cycles gltf-validator
+test: setup cycles gltf-validator chromium
 	$(PY) -m pytest -q -rs
 
 test-slow: setup

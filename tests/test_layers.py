@@ -9,7 +9,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
 # Each layer may import its own and the lower ones. geometry (NeuS) sits beside models; synthetic
 # (the make-scene datasets) and cli sit on top. Base modules (config, errors, backend) are below all.
-LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models", "geometry"}, {"render"}, {"engine"}, {"eval", "edit", "export"},
+LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models", "geometry"}, {"render"}, {"engine"}, {"eval", "edit", "export"}, {"ui"},
           {"synthetic"}, {"cli"}]
 
 

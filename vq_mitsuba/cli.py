@@ -162,6 +162,17 @@ def _cmd_export(args) -> int:
     return 0
 
 
+def _cmd_ui(args) -> int:
+    from vq_mitsuba.ui.server import serve
+
+    if not 0 <= args.port <= 65535:
+        raise InputError(None, f"--port {args.port}: a port is 0..65535 (0: any free port)")
+    if args.envmaps is not None and not Path(args.envmaps).is_dir():
+        raise InputError(Path(args.envmaps), "is not a folder (--envmaps names a folder of .exr / .hdr files)")
+    serve(args.run_dir, host=args.host, port=args.port, envmap_dir=args.envmaps, size=args.size)
+    return 0
+
+
 def _cmd_eval(args) -> int:
     from vq_mitsuba.eval.evaluate import evaluate, format_table
 
@@ -357,6 +368,20 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--envmap", help="export this lat-long HDR image as the lighting instead of the fitted one")
     x.add_argument("--quiet", action="store_true", help="no progress bar")
     x.set_defaults(func=_cmd_export)
+
+    u = sub.add_parser("ui", parents=[common], help="edit a fitted run's materials in the browser",
+                       description="Start a local web server with an editor page: click a material, change its "
+                                   "basecolor, metallic and roughness or give it a preset, relight, undo, save the "
+                                   "edit list as a new run beside RUN_DIR and export it. Reach it from another "
+                                   "machine through an SSH tunnel (docs: README).")
+    u.add_argument("run_dir", help="a fitted or edited run directory")
+    u.add_argument("--port", type=int, default=8080, help="TCP port to listen on (0: any free port)")
+    u.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on; anything but 127.0.0.1 lets other machines open the editor")
+    u.add_argument("--envmaps", metavar="DIR",
+                   help="folder of .exr / .hdr envmaps to relight with (default: envmaps/ beside the capture)")
+    u.add_argument("--size", type=_positive_int, default=256, metavar="PX", help="long side of the rendered view in pixels")
+    u.set_defaults(func=_cmd_ui)
 
     e = sub.add_parser("eval", parents=[common], help="score a fitted run against a synthetic dataset's ground truth",
                        description="Render the dataset's test views (transforms_test.json) and compare inside "

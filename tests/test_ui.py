@@ -1,0 +1,319 @@
+"""`vq-mitsuba ui`: the editor's state, its server's rules, and the page in a real browser."""
+
+import http.client
+import io
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tiny_scene import THREE_MATERIALS, three_material_ids
+
+SIZE = 96  # the editor's view size in these tests (long side, px)
+
+
+@pytest.fixture(scope="module")
+def editor(three_materials):
+    """A running editor (session + server on a free loopback port) of the three-sphere run."""
+    from vq_mitsuba.ui.server import make_server
+    from vq_mitsuba.ui.session import EditorSession
+
+    _, run = three_materials
+    session = EditorSession(run.dir, size=SIZE)
+    server = make_server(session, port=0)
+    session.start()
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield session, server
+    server.shutdown()
+    server.server_close()
+    session.stop()
+
+
+def _get(server, path):
+    conn = http.client.HTTPConnection(*server.server_address[:2], timeout=30)
+    conn.request("GET", path)  # sent as written: no client-side normalisation of ../
+    r = conn.getresponse()
+    return r.status, r.read()
+
+
+def _post(server, action, body, raw=None):
+    conn = http.client.HTTPConnection(*server.server_address[:2], timeout=60)
+    data = raw if raw is not None else json.dumps(body).encode()
+    conn.request("POST", f"/api/{action}", body=data, headers={"Content-Type": "application/json"})
+    r = conn.getresponse()
+    body = r.read()
+    return r.status, json.loads(body) if r.getheader("Content-Type") == "application/json" else {"text": body}
+
+
+def _sphere_pixel(session, k):
+    """The pixel (x, y) of the current view at the centre of ground-truth sphere k."""
+    centre = np.array(THREE_MATERIALS[k][0])
+    toward_camera = session.camera.origin - centre
+    surface = centre + 0.3 * toward_camera / np.linalg.norm(toward_camera)
+    x, y = session.camera.project(surface[None])[0]
+    return int(x), int(y)
+
+
+def _wait_refined(session, version=None, timeout=120):
+    from vq_mitsuba.ui.session import PREVIEW, REFINE
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        f = session.wait_frame(-1, -1, timeout=1)
+        if f is not None and f.spp >= PREVIEW[0] + 8 * REFINE[0] and (version is None or f.version >= version):
+            return f
+        time.sleep(0.1)
+    raise AssertionError("no refined frame")
+
+
+# --- the server: what it serves and what it refuses ---------------------------------------------------
+def test_server_serves_the_page_and_the_runs_files_only(editor, tmp_path):
+    session, server = editor
+    assert _get(server, "/")[0] == 200 and b"app.js" in _get(server, "/")[1]
+    status, body = _get(server, "/run/materials.json")
+    assert status == 200 and json.loads(body)["num_materials"] == session.num_materials
+    other = tmp_path / "other_run"
+    other.mkdir()
+    (other / "run.json").write_text("{}")
+    for path in ["/run/../run.json", "/run/%2e%2e/run.json", "/run/..%2frun.json", "/run//etc/passwd",
+                 "/run/%2Fetc%2Fpasswd", f"/run/{other / 'run.json'}", "/run/../other_run/run.json",
+                 "/../../etc/passwd", "/static/../server.py", "/ui/server.py", "/run/", "/run/.",
+                 "/run/C:%5Cwindows", "/etc/passwd"]:
+        assert _get(server, path)[0] == 404, path
+    # a link inside the run that leads out of it is refused too
+    (session.run.dir / "link.json").symlink_to(other / "run.json")
+    try:
+        assert _get(server, "/run/link.json")[0] == 404
+    finally:
+        (session.run.dir / "link.json").unlink()
+
+
+def test_server_binds_to_loopback_unless_a_host_is_given(editor):
+    import inspect
+
+    from vq_mitsuba.cli import build_parser
+    from vq_mitsuba.ui.server import make_server, serve
+
+    _, server = editor
+    assert server.server_address[0] == "127.0.0.1"
+    assert inspect.signature(make_server).parameters["host"].default == "127.0.0.1"
+    assert inspect.signature(serve).parameters["host"].default == "127.0.0.1"
+    assert build_parser().parse_args(["ui", "somerun"]).host == "127.0.0.1"
+
+
+def test_bad_requests_are_refused_with_a_reason(editor):
+    session, server = editor
+    _wait_refined(session)
+    status, body = _post(server, "select", None, raw=b"{not json")
+    assert status == 400 and "JSON" in body["error"]
+    status, body = _post(server, "select", {"pixel": [0, 0]})  # a corner: background
+    assert status == 400 and "background" in body["error"]
+    status, body = _post(server, "select", {"pixel": [SIZE + 5, 3]})
+    assert status == 400 and "outside" in body["error"]
+    status, body = _post(server, "select", {"materials": [99]})
+    assert status == 400 and "materials 1.." in body["error"]
+    assert _post(server, "select", {"materials": []})[0] == 200
+    status, body = _post(server, "edit", {"changes": [{"key": "roughness", "value": 0.5}]})
+    assert status == 400 and "select" in body["error"]
+    assert _post(server, "select", {"materials": [1]})[0] == 200
+    status, body = _post(server, "edit", {"changes": [{"key": "roughness", "value": 7}]})
+    assert status == 400 and "roughness" in body["error"]
+    status, body = _post(server, "edit", {"changes": [{"key": "basecolor", "value": "#12345"}]})
+    assert status == 400 and "#RRGGBB" in body["error"]
+    for name in ["../escape", "/tmp/x", "", ".."]:
+        status, body = _post(server, "save", {"name": name})
+        assert status == 400, name
+    status, body = _post(server, "lighting", {"envmap": "../../secret.exr"})
+    assert status == 400 and "no envmap" in body["error"]
+    assert _post(server, "no-such-action", {})[0] == 404
+    assert session.edits() == []  # nothing was recorded by the refused requests
+
+
+# --- the session: edits, undo / redo, orbit --------------------------------------------------------
+def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
+    session, _ = editor
+    session.select(materials=[1])
+    for v in (0.2, 0.3, 0.4):
+        session.edit([{"key": "roughness", "value": v}], live=True)
+    session.edit([{"key": "roughness", "value": 0.45}], live=False)  # the slider is released
+    assert [e.changes[0].value for e in session.edits()] == [0.45]
+    session.edit([{"key": "roughness", "value": 0.6}], live=True)  # a new drag: a new entry
+    session.edit([{"key": "basecolor", "value": "#ff0000"}])
+    assert len(session.edits()) == 3 and session.edits()[2].changes[0].value == pytest.approx((1.0, 0.0, 0.0))
+    assert session.edits()[0].label == "--material 1 --set roughness=0.45"
+    session.undo()
+    session.undo()
+    assert [e.changes[0].value for e in session.edits()] == [0.45]
+    session.redo()
+    assert len(session.edits()) == 2
+    session.edit(preset="gold")  # a new edit after an undo drops what could be redone
+    assert len(session.edits()) == 3 and session.edits()[-1].label == "--material 1 --preset gold"
+    with pytest.raises(Exception, match="nothing to redo"):
+        session.redo()
+    while session.state()["can_undo"]:
+        session.undo()
+    assert session.edits() == []
+
+
+def test_orbit_turns_about_the_object_and_stops_short_of_the_poles():
+    from vq_mitsuba.data.cameras import look_at
+    from vq_mitsuba.ui.session import orbit
+
+    centre, up = np.array([0.1, 0.2, 0.3]), np.array([0.0, 1.0, 0.0])
+    cam = look_at([2.0, 1.0, 2.5], centre, up)
+    turned = orbit(cam, centre, up, 37.0, 12.0)
+    assert np.linalg.norm(turned[:3, 3] - centre) == pytest.approx(np.linalg.norm(cam[:3, 3] - centre))
+    forward = turned[:3, 2]
+    assert forward @ (centre - turned[:3, 3]) / np.linalg.norm(centre - turned[:3, 3]) == pytest.approx(1.0)
+    assert np.allclose(orbit(orbit(cam, centre, up, 50.0, 0.0), centre, up, -50.0, 0.0), cam)
+    elevation = lambda m: np.degrees(np.arcsin(-m[:3, 2] @ up))  # noqa: E731  (> 0: looking down)
+    assert elevation(orbit(cam, centre, up, 0.0, 10.0)) == pytest.approx(elevation(cam) + 10.0)
+    for pitch, stop in ((400.0, 85.0), (-400.0, -85.0)):  # dragging far past a pole stops 5 degrees short
+        assert elevation(orbit(cam, centre, up, 0.0, pitch)) == pytest.approx(stop)
+    closer = orbit(cam, centre, up, 0.0, 0.0, zoom=0.5)
+    assert np.linalg.norm(closer[:3, 3] - centre) == pytest.approx(0.5 * np.linalg.norm(cam[:3, 3] - centre))
+
+
+def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_materials, tmp_path):
+    from vq_mitsuba.cli import main
+    from vq_mitsuba.data.imageio import read_exr
+    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.render.views import render_views
+
+    capture, run = three_materials
+    session, server = editor
+    session.select(materials=[2])
+    session.edit([{"key": "basecolor", "value": "#20c040"}, {"key": "roughness", "value": 0.2}])
+    name = f"saved-{tmp_path.name}"
+    status, body = _post(server, "save", {"name": name})
+    assert status == 200
+    saved = RunDir(body["path"])
+    assert saved.dir.parent == run.dir.resolve().parent and saved.is_edit()
+    assert [e.to_dict() for e in saved.edits()] == [e.to_dict() for e in session.edits()]
+    # `vq-mitsuba render` of the saved run against the editor's own fitted model with its edits
+    assert main(["render", str(saved.dir), "--cameras", str(capture), "-o", str(tmp_path / "cli"), "--spp", "16",
+                 "--quiet"]) == 0
+    fitted = run.load()
+    fitted.edits = session.edits()
+    cams = run.cameras()["train"][:2]
+    render_views(fitted, cams, fitted.world, tmp_path / "ours", spp=16, progress=False)
+    for cam in cams:
+        a, b = read_exr(tmp_path / "cli" / f"{cam.name}_rgb.exr"), read_exr(tmp_path / "ours" / f"{cam.name}_rgb.exr")
+        assert np.array_equal(a, b)
+    # a second save under the name of a fitted run is refused
+    assert _post(server, "save", {"name": run.dir.name})[0] == 400
+    # export from the page: saved again, then baked and written on the render thread
+    status, body = _post(server, "export", {"name": name, "format": "gltf", "texture_size": 64})
+    assert status == 200
+    deadline = time.monotonic() + 180
+    while session.state()["job"]["state"] == "running" and time.monotonic() < deadline:
+        time.sleep(0.5)
+    job = session.state()["job"]
+    assert job["state"] == "done", job
+    assert list(Path(job["path"]).glob("*.glb"))
+    session.undo()
+    shutil.rmtree(saved.dir)
+
+
+# --- the page in a real browser ----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium driven by Selenium (Debian's chromium and chromium-driver, `make chromium`)."""
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[dev]')")
+    chromium, driver_path = shutil.which("chromium"), shutil.which("chromedriver")
+    if not chromium or not driver_path:
+        pytest.skip("Chromium or chromedriver is not installed (make chromium)")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = chromium
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1200,900", "--force-device-scale-factor=1"):
+        opts.add_argument(arg)
+    try:
+        driver = webdriver.Chrome(options=opts, service=webdriver.ChromeService(executable_path=driver_path))
+    except Exception as exc:  # e.g. no display libraries in a container
+        pytest.skip(f"Chromium cannot run here: {exc}")
+    yield driver
+    driver.quit()
+
+
+def _frame_image(driver) -> np.ndarray:
+    """The view as the browser shows it (a screenshot of the image element), at the frame's own size."""
+    import imageio.v3 as iio
+
+    img = driver.find_element("id", "frame")
+    shot = iio.imread(io.BytesIO(img.screenshot_as_png))[..., :3].astype(np.float64)
+    w = int(driver.execute_script("return arguments[0].naturalWidth", img))
+    scale = shot.shape[1] // w
+    return shot[scale // 2::scale, scale // 2::scale][: shot.shape[0] // scale, :w]
+
+
+def _wait_page(driver, condition, timeout=120):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = driver.execute_script(condition)
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"the page never reached: {condition}")
+
+
+def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser):
+    from selenium.webdriver import ActionChains
+
+    from vq_mitsuba.data.cameras import camera_rays
+    from vq_mitsuba.edit import material_under_pixel
+    from vq_mitsuba.render.shading import scene_for_mesh
+
+    session, server = editor
+    session.select(materials=[])
+    refined = session.state()["refine_spp"]
+    host, port = server.server_address[:2]
+    browser.get(f"http://{host}:{port}/")
+    wait_refined = ("const i = document.getElementById('frame'); "
+                    f"return +i.dataset.spp >= {refined} && +i.dataset.version >= arguments[0] && i.complete;")
+    _wait_page(browser, wait_refined.replace("arguments[0]", "0"))
+
+    sphere = 0  # the rough red sphere
+    x, y = _sphere_pixel(session, sphere)
+    img = browser.find_element("id", "frame")
+    scale = img.size["width"] / SIZE
+    ActionChains(browser).move_to_element_with_offset(
+        img, int((x + 0.5) * scale - img.size["width"] / 2), int((y + 0.5) * scale - img.size["height"] / 2)).click().perform()
+    k = int(_wait_page(browser, "return document.getElementById('frame').dataset.selected"))
+    # the page picked what `vq-mitsuba edit --pick` picks, and that material is the red sphere's
+    assert k == material_under_pixel(session.fitted, session.camera, x, y)
+    version = session.frame.version
+    _wait_page(browser, wait_refined.replace("arguments[0]", str(version)))
+    region = session.last_images["material"] == k
+    hits = session.last_images["alpha"] > 0.5
+    before = _frame_image(browser)
+
+    browser.execute_script("const c = document.getElementById('basecolor'); c.value = '#2040ff'; "
+                           "c.dispatchEvent(new Event('input')); c.dispatchEvent(new Event('change'));")
+    _wait_page(browser, "return document.querySelectorAll('#edits li').length === 1")
+    assert browser.find_element("id", "edits").text.startswith(f"--material {k} --set basecolor=")
+    _wait_page(browser, wait_refined.replace("arguments[0]", str(session.frame.version + 1)))
+    after = _frame_image(browser)
+
+    changed = np.abs(after - before).max(-1) > 12
+    grown = region.copy()  # the region grown by one pixel (edges mix two materials)
+    grown[1:] |= region[:-1]; grown[:-1] |= region[1:]; grown[:, 1:] |= region[:, :-1]; grown[:, :-1] |= region[:, 1:]
+    inner = region.copy()  # the region less its outline (drawn alike before and after)
+    inner[1:] &= region[:-1]; inner[:-1] &= region[1:]; inner[:, 1:] &= region[:, :-1]; inner[:, :-1] &= region[:, 1:]
+    assert inner.sum() > 30
+    assert changed[inner].mean() > 0.95, "the selected material did not change"
+    # outside it only what mirrors it may change: the gold sphere's reflection, under 3 % of the other pixels
+    assert changed[hits & ~grown].mean() < 0.03
+    chroma = lambda rgb: rgb / np.maximum(rgb.sum(-1, keepdims=True), 1)  # noqa: E731
+    target = chroma(np.array([0x20, 0x40, 0xff], float))
+    assert np.linalg.norm(chroma(after[region]).mean(0) - target) < 0.5 * np.linalg.norm(chroma(before[region]).mean(0) - target)
+    # and the clicked point is on the red sphere in the ground truth
+    o, d = camera_rays(session.camera, pixels=np.array([y * session.camera.width + x]))
+    hit = scene_for_mesh(session.fitted.mesh, session.fitted.envmap, session.fitted.envmap_to_world).trace(o, d)
+    assert three_material_ids(hit.position.cpu().numpy())[0] == sphere + 1
+    session.undo()

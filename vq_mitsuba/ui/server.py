@@ -1,0 +1,177 @@
+"""`vq-mitsuba ui`: a local web server for the editor page of one run.
+
+Serves its own page (`ui/static`), the run's own files under /run/, and a small JSON API over an
+`EditorSession`. Binds to 127.0.0.1 unless a host is given. Nothing outside the page and the run
+folder (and, for an edited run, the fitted run it edits) can be read, whatever the request says.
+"""
+
+from __future__ import annotations
+
+import json
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import parse_qs, unquote, urlsplit
+
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.ui.session import EditorSession
+
+DEFAULT_HOST = "127.0.0.1"
+STATIC = Path(__file__).resolve().parent / "static"
+PAGES = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("index.html", "text/html; charset=utf-8"),
+         "/app.js": ("app.js", "text/javascript; charset=utf-8"), "/style.css": ("style.css", "text/css; charset=utf-8")}
+TYPES = {".png": "image/png", ".json": "application/json", ".exr": "image/x-exr", ".yaml": "text/plain; charset=utf-8",
+         ".ply": "application/octet-stream", ".glb": "model/gltf-binary", ".txt": "text/plain; charset=utf-8"}
+MAX_BODY = 1 << 16
+
+
+def run_file(roots: list[Path], rel: str) -> Path | None:
+    """The file `rel` (a URL path below /run/, still quoted) inside one of `roots`, or None when it
+    is not a plain relative path to a file there."""
+    rel = unquote(rel)
+    parts = rel.split("/")
+    if not rel or rel.startswith("/") or "\\" in rel or "\0" in rel or any(p in ("", ".", "..") for p in parts):
+        return None
+    for root in roots:
+        base = root.resolve()
+        path = (base / rel).resolve()
+        if path.is_relative_to(base) and path.is_file():
+            return path
+    return None
+
+
+class _Handler(BaseHTTPRequestHandler):
+    session: EditorSession
+    roots: list[Path]
+    server_version = "vq-mitsuba"
+
+    def log_message(self, format, *args):  # quiet: the terminal shows the address and errors only
+        pass
+
+    def _send(self, status: int, body: bytes, ctype: str, headers: dict | None = None) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        for k, v in (headers or {}).items():
+            self.send_header(k, str(v))
+        self.end_headers()
+        try:
+            self.wfile.write(body)
+        except (BrokenPipeError, ConnectionResetError):  # the page went away (reload, closed tab)
+            pass
+
+    def _json(self, data, status: int = 200) -> None:
+        self._send(status, json.dumps(data).encode(), "application/json")
+
+    def _not_found(self) -> None:
+        self._send(HTTPStatus.NOT_FOUND, b"not found", "text/plain; charset=utf-8")
+
+    def do_GET(self):
+        url = urlsplit(self.path)
+        path = url.path
+        if path in PAGES:
+            name, ctype = PAGES[path]
+            return self._send(200, (STATIC / name).read_bytes(), ctype)
+        if path == "/api/state":
+            return self._json(self.session.state())
+        if path == "/api/frame":
+            q = parse_qs(url.query)
+            try:
+                version, spp = int(q.get("version", ["-1"])[0]), int(q.get("spp", ["-1"])[0])
+            except ValueError:
+                return self._json({"error": "version and spp are integers"}, 400)
+            frame = self.session.wait_frame(version, spp)
+            if frame is None:
+                return self._send(204, b"", "text/plain")
+            return self._send(200, frame.png, "image/png", {"X-Frame-Version": frame.version, "X-Frame-Spp": frame.spp,
+                                                             "X-Frame-Seconds": f"{frame.change_s:.3f}"})
+        if path.startswith("/run/"):
+            file = run_file(self.roots, path[len("/run/"):])
+            if file is None:
+                return self._not_found()
+            return self._send(200, file.read_bytes(), TYPES.get(file.suffix.lower(), "application/octet-stream"))
+        return self._not_found()
+
+    def do_POST(self):
+        path = urlsplit(self.path).path
+        action = path[len("/api/"):] if path.startswith("/api/") else None
+        handler = ACTIONS.get(action)
+        if handler is None:
+            return self._not_found()
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+            if length > MAX_BODY:
+                raise InputError(None, "request too large")
+            raw = self.rfile.read(length) if length else b"{}"
+            try:
+                body = json.loads(raw or b"{}")
+            except json.JSONDecodeError:
+                raise InputError(None, "the request body is not JSON") from None
+            if not isinstance(body, dict):
+                raise InputError(None, "the request body is not a JSON object")
+            result = handler(self.session, body)
+        except InputError as exc:
+            return self._json({"error": str(exc)}, 400)
+        except (KeyError, TypeError, ValueError) as exc:
+            return self._json({"error": f"bad request: {exc}"}, 400)
+        self._json({"ok": True, **(result or {}), "state": self.session.state()})
+
+
+def _select(s: EditorSession, b: dict) -> dict:
+    pixel = b.get("pixel")
+    sel = s.select(materials=b.get("materials"), box=b.get("box"), pixel=tuple(pixel) if pixel is not None else None,
+                   add=bool(b.get("add", False)))
+    return {"selection": sel.to_dict()}
+
+
+def _save(s: EditorSession, b: dict) -> dict:
+    return {"path": str(s.save(str(b.get("name", ""))).dir)}
+
+
+ACTIONS = {
+    "view": lambda s, b: s.set_view(str(b["name"])),
+    "orbit": lambda s, b: s.orbit_view(float(b.get("yaw", 0)), float(b.get("pitch", 0)), float(b.get("zoom", 1))),
+    "mode": lambda s, b: s.set_mode(str(b["mode"])),
+    "lighting": lambda s, b: s.set_lighting(str(b.get("envmap", "fitted")), float(b.get("rotate", 0)),
+                                            float(b.get("exposure", 0))),
+    "select": _select,
+    "edit": lambda s, b: {"label": s.edit(b.get("changes"), b.get("preset"), bool(b.get("live", False))).label},
+    "undo": lambda s, b: s.undo(),
+    "redo": lambda s, b: s.redo(),
+    "save": _save,
+    "export": lambda s, b: s.export(str(b.get("name", "")), str(b.get("format", "")), int(b.get("texture_size", 1024))),
+}
+
+
+def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 8080) -> ThreadingHTTPServer:
+    """An HTTP server for `session` bound to host:port (port 0: any free port)."""
+    roots = [session.run.dir]
+    if session.run.is_edit():
+        roots.append(session.run.source().dir)
+    handler = type("Handler", (_Handler,), {"session": session, "roots": roots})
+    try:
+        server = ThreadingHTTPServer((host, int(port)), handler)
+    except OSError as exc:
+        raise InputError(None, f"cannot listen on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
+    server.daemon_threads = True
+    return server
+
+
+def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envmap_dir: str | Path | None = None,
+          size: int = 256) -> None:
+    """Run the editor until Ctrl-C."""
+    session = EditorSession(run_dir, envmap_dir=envmap_dir, size=size)
+    server = make_server(session, host, port)
+    session.start()
+    bound_host, bound_port = server.server_address[:2]
+    print(f"vq-mitsuba editor for {session.run.dir} at http://{bound_host}:{bound_port}/  (Ctrl-C stops)", flush=True)
+    if bound_host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"listening on {bound_host}: anyone who can reach this machine can open the editor", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("stopping the editor", flush=True)
+    finally:
+        server.server_close()
+        session.stop()
