@@ -134,6 +134,26 @@ def test_bad_requests_are_refused_with_a_reason(editor):
     assert session.edits() == []  # nothing was recorded by the refused requests
 
 
+def test_relighting_from_the_envmap_folder(editor, tmp_path):
+    from vq_mitsuba.data.imageio import write_exr
+
+    session, server = editor
+    folder = tmp_path / "envmaps"
+    folder.mkdir()
+    write_exr(folder / "bright.exr", np.full((16, 32, 3), 4.0, np.float32))
+    (folder / "notes.txt").write_text("not an envmap")
+    session.envmap_dir = folder
+    assert _get(server, "/api/state")[0] == 200 and session.state()["envmaps"] == ["fitted", "bright.exr"]
+    base = _wait_refined(session).version
+    fitted = session.last_images["rgb"].mean()
+    status, _ = _post(server, "lighting", {"envmap": "bright.exr", "rotate": 30, "exposure": 1})
+    assert status == 200
+    _wait_refined(session, base + 1)
+    assert session.last_images["rgb"].mean() > 2 * fitted
+    assert _post(server, "lighting", {"envmap": "fitted", "rotate": 0, "exposure": 100})[0] == 400
+    assert _post(server, "lighting", {"envmap": "fitted"})[0] == 200
+
+
 # --- the session: edits, undo / redo, orbit --------------------------------------------------------
 def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
     session, _ = editor

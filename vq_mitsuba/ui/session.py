@@ -372,6 +372,8 @@ class EditorSession:
     def pixel_material(self, x: int, y: int) -> int:
         """The material id (1..M) the shown frame gives pixel (x, y): the majority of its primary rays."""
         with self._cond:
+            # the frame must show the current view: after an orbit, wait for its first frame
+            self._cond.wait_for(lambda: self._accum_version == self.version or self._stop, timeout=FRAME_TIMEOUT_S)
             images = self.last_images
             if self.num_materials is None:
                 raise InputError(None, "this run has no discrete branch: select with a box")
@@ -419,10 +421,12 @@ class EditorSession:
         """Add an edit of the selection. `live`: a slider being dragged; the next change of the same
         keys on the same selection replaces this entry instead of adding one."""
         parsed = preset_changes(preset) if preset else []
+        as_typed = {}
         for c in changes or []:
             try:
                 value = c["value"]
                 if isinstance(value, str) and c.get("key") == "basecolor":  # "#RRGGBB" from a colour picker
+                    as_typed["basecolor"] = value.strip()
                     value = parse_basecolor(value)
                 value = tuple(float(v) for v in value) if isinstance(value, (list, tuple)) else float(value)
                 parsed.append(check_change(Change(str(c.get("op", "set")), str(c["key"]), value)))
@@ -435,7 +439,7 @@ class EditorSession:
             if not (sel.materials or sel.boxes):
                 raise InputError(None, "select a material (click it) or a box first")
             edit = Edit(sel, parsed)
-            edit.label = _label(edit, preset)
+            edit.label = _label(edit, preset, as_typed)
             current = self.history[self.position]
             same = (self.live and current and current[-1].selection == sel
                     and {c.key for c in current[-1].changes} == {c.key for c in parsed})
@@ -513,8 +517,9 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
-def _label(edit: Edit, preset: str | None = None) -> str:
-    """The edit as `vq-mitsuba edit` arguments, e.g. "--material 2 --set roughness=0.3"."""
+def _label(edit: Edit, preset: str | None = None, as_typed: dict | None = None) -> str:
+    """The edit as `vq-mitsuba edit` arguments, e.g. "--material 2 --set roughness=0.3" (values in
+    `as_typed`, e.g. a colour as "#RRGGBB", as the user gave them)."""
     parts = [f"--material {k}" for k in edit.selection.materials]
     parts += ["--box " + ",".join(_fmt(v) for v in lo + hi) for lo, hi in edit.selection.boxes]
     if preset:
@@ -522,5 +527,6 @@ def _label(edit: Edit, preset: str | None = None) -> str:
     else:
         for c in edit.changes:
             value = ",".join(_fmt(v) for v in c.value) if isinstance(c.value, tuple) else _fmt(c.value)
+            value = (as_typed or {}).get(c.key, value) if c.op == "set" else value
             parts.append(f"--{c.op.replace('_', '-')} {c.key}={value}" if c.op != "hue_shift" else f"--hue-shift {value}")
     return " ".join(parts)
