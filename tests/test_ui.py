@@ -71,6 +71,20 @@ def _wait_refined(session, version=None, timeout=120):
     raise AssertionError("no refined frame")
 
 
+def _wait_idle(session, timeout=180):
+    """Until the render thread has refined the current state to the end and waits: the test may
+    then render in its own thread (the editor renders on one thread only)."""
+    from vq_mitsuba.ui.session import MAX_SPP
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        f = session.frame
+        if f is not None and f.version == session.version and f.spp >= MAX_SPP:
+            return
+        time.sleep(0.2)
+    raise AssertionError("the editor never finished refining")
+
+
 # --- the server: what it serves and what it refuses ---------------------------------------------------
 def test_server_serves_the_page_and_the_runs_files_only(editor, tmp_path):
     session, server = editor
@@ -154,6 +168,51 @@ def test_relighting_from_the_envmap_folder(editor, tmp_path):
     assert _post(server, "lighting", {"envmap": "fitted"})[0] == 200
 
 
+def test_every_display_mode_draws_its_map(editor):
+    import imageio.v3 as iio
+
+    session, server = editor
+    _wait_refined(session)
+    pictures = {}
+    for mode in session.state()["modes"]:
+        assert _post(server, "mode", {"mode": mode})[0] == 200
+        status, png = _get(server, "/api/frame?version=-1&spp=-1")
+        assert status == 200
+        pictures[mode] = iio.imread(io.BytesIO(png))
+    assert set(pictures) == {"render", "segmentation", "basecolor", "metallic", "roughness", "normal"}
+    hits = session.last_images["alpha"] > 0.5
+    for a in pictures:
+        for b in pictures:
+            if a < b:
+                assert np.abs(pictures[a][hits].astype(int) - pictures[b][hits]).mean() > 2, (a, b)
+    assert _post(server, "mode", {"mode": "depth"})[0] == 400
+    assert _post(server, "mode", {"mode": "render"})[0] == 200
+
+
+def test_the_command_prints_its_address_and_stops_on_ctrl_c(three_materials):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    _, run = three_materials
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "ui", str(run.dir), "--port", "0", "--size", "32"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "http://127.0.0.1:" in line, line
+        port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        conn.request("GET", "/")
+        assert conn.getresponse().status == 200
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0
+        assert "stopping" in proc.stdout.read()
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+
+
 # --- the session: edits, undo / redo, orbit --------------------------------------------------------
 def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
     session, _ = editor
@@ -215,6 +274,7 @@ def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_
     saved = RunDir(body["path"])
     assert saved.dir.parent == run.dir.resolve().parent and saved.is_edit()
     assert [e.to_dict() for e in saved.edits()] == [e.to_dict() for e in session.edits()]
+    _wait_idle(session)
     # `vq-mitsuba render` of the saved run against the editor's own fitted model with its edits
     assert main(["render", str(saved.dir), "--cameras", str(capture), "-o", str(tmp_path / "cli"), "--spp", "16",
                  "--quiet"]) == 0
@@ -312,12 +372,13 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     region = session.last_images["material"] == k
     hits = session.last_images["alpha"] > 0.5
     before = _frame_image(browser)
+    shown = int(browser.execute_script("return document.getElementById('frame').dataset.version"))
 
     browser.execute_script("const c = document.getElementById('basecolor'); c.value = '#2040ff'; "
                            "c.dispatchEvent(new Event('input')); c.dispatchEvent(new Event('change'));")
     _wait_page(browser, "return document.querySelectorAll('#edits li').length === 1")
     assert browser.find_element("id", "edits").text.startswith(f"--material {k} --set basecolor=")
-    _wait_page(browser, wait_refined.replace("arguments[0]", str(session.frame.version + 1)))
+    _wait_page(browser, wait_refined.replace("arguments[0]", str(shown + 1)))
     after = _frame_image(browser)
 
     changed = np.abs(after - before).max(-1) > 12
