@@ -21,13 +21,15 @@ def _render_view(scene, cam, spp: int, seed: int, out: Path) -> str:
     """Render `cam` with Mitsuba into OUT/images/NAME.exr; returns the camera's <sensor> XML."""
     import mitsuba as mi
 
+    from vq_mitsuba.data.cameras import principal_xml
     from vq_mitsuba.data.imageio import write_exr
 
     img = np.array(mi.render(scene, sensor=mi.load_dict(cam.to_mitsuba_dict(spp)), seed=seed))
     write_exr(out / "images" / f"{cam.name}.exr", img)
     m = " ".join(f"{x:.9g}" for x in cam.to_world.ravel())
     return (f'  <sensor type="perspective" id="{cam.name}">\n'
-            f'    <float name="fov" value="{cam.fov_x_deg:g}"/>\n    <string name="fov_axis" value="x"/>\n'
+            f'    <float name="fov" value="{cam.fov_x_deg!r}"/>\n    <string name="fov_axis" value="x"/>\n'
+            + principal_xml(cam, "    ") +
             f'    <transform name="to_world"><matrix value="{m}"/></transform>\n'
             f'    <film type="hdrfilm"><integer name="width" value="{cam.width}"/>'
             f'<integer name="height" value="{cam.height}"/></film>\n  </sensor>')
@@ -81,9 +83,11 @@ THREE_MATERIALS = [  # (centre, basecolor, metallic, roughness): three spheres t
 ]
 
 
-def write_three_material_capture(out: Path, size: int = 32, n_views: int = 10, spp: int = 32) -> Path:
+def write_three_material_capture(out: Path, size: int | tuple[int, int] = 32, n_views: int = 10, spp: int = 32,
+                                 principal_shift: tuple[float, float] | None = None) -> Path:
     """Three spheres (radius 0.3) of three materials under a known envmap, rendered with Mitsuba's
-    path tracer; returns the XML path. Ground-truth ids: `three_material_ids`."""
+    path tracer; returns the XML path. Ground-truth ids: `three_material_ids`. `size`: square, or
+    (width, height); `principal_shift`: the principal point's offset from the centre in pixels."""
     import mitsuba as mi
     import trimesh
 
@@ -110,7 +114,9 @@ def write_three_material_capture(out: Path, size: int = 32, n_views: int = 10, s
     for i in range(n_views):
         a = 2 * np.pi * i / n_views
         origin = 2.4 * np.array([np.sin(a), 0.55 + 0.25 * np.cos(3 * a), np.cos(a)])
-        cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0.2], [0, 1, 0]), 45.0, size, size)
+        w, h = (size, size) if isinstance(size, int) else size
+        principal = None if principal_shift is None else (w / 2 + principal_shift[0], h / 2 + principal_shift[1])
+        cam = Camera(f"view_{i:02d}", look_at(origin, [0, 0, 0.2], [0, 1, 0]), 45.0, w, h, principal=principal)
         sensors.append(_render_view(scene, cam, spp, i, out))
     (out / "scene.xml").write_text('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n" + "\n".join(xml_shapes)
                                    + '\n  <emitter type="envmap"><string name="filename" value="env.exr"/></emitter>\n'

@@ -31,7 +31,11 @@ def _config(args, run_dir: Path | None = None):
     from vq_mitsuba.engine.run_dir import RunDir
 
     base = RunDir(run_dir).saved_config() if (args.resume and run_dir is not None) else None
-    return load_config(args.config, args.set, base=base, preset=args.preset)
+    flags = [f"capture.{key}={value}" for key, value in (("downscale", getattr(args, "downscale", None)),
+                                                         ("background_color", getattr(args, "background_color", None)),
+                                                         ("holdout", getattr(args, "holdout", None)))
+             if value is not None]
+    return load_config(args.config, flags + list(args.set), base=base, preset=args.preset)
 
 
 def _cmd_fit(args) -> int:
@@ -55,7 +59,8 @@ def _cmd_fit(args) -> int:
             if run.has_checkpoint() and not args.resume:
                 raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
             reused = args.resume and (run / RunDir.MESH).is_file()
-            mesh_path = ensure_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet)
+            mesh_path = ensure_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
+                                        capture_cfg=cfg.capture)
             print(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh_path}")
     summary = fit(args.capture, run_dir, cfg, mesh_path=mesh_path, resume=args.resume, progress=not args.quiet)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
@@ -77,7 +82,7 @@ def _cmd_geometry(args) -> int:
     _run_folder(run_dir)
     cfg = _config(args)
     info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                        gt_mesh=args.gt_mesh)
+                        gt_mesh=args.gt_mesh, capture_cfg=cfg.capture)
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
@@ -174,8 +179,15 @@ def _cmd_ui(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from vq_mitsuba.eval.evaluate import evaluate, format_table
+    from vq_mitsuba.eval.evaluate import evaluate, evaluate_holdout, format_table
 
+    if args.gt is None:  # a real capture: the held-out views
+        metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output)
+        print(f"held-out views ({len(metrics['views'])}): novel view PSNR {metrics['novel_view']['psnr']:.2f} dB, "
+              f"SSIM {metrics['novel_view']['ssim']:.4f} (inside the masks)")
+        out = args.output or str(Path(args.run_dir) / "metrics.json")
+        print(f"metrics written to {out}")
+        return 0
     metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
                        progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
     print(format_table(metrics))
@@ -272,14 +284,23 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--threads", type=_positive_int, metavar="N",
                         help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
 
-    f = sub.add_parser("fit", parents=[common], help="decompose a capture into materials and lighting (VQ-NeRF)",
+    photos = argparse.ArgumentParser(add_help=False)  # how the capture's images are read (config section capture)
+    photos.add_argument("--downscale", type=_positive_int, metavar="N",
+                        help="divide the photos' width and height by N (capture.downscale)")
+    photos.add_argument("--background-color", metavar="R,G,B",
+                        help="key out a plain backdrop of this sRGB colour (0..1) as the mask (capture.background_color)")
+    photos.add_argument("--holdout", type=_positive_int, metavar="K",
+                        help="keep every K-th view out of training; `eval RUN_DIR` scores them (capture.holdout)")
+
+    f = sub.add_parser("fit", parents=[common, photos], help="decompose a capture into materials and lighting (VQ-NeRF)",
                        description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the "
                                    "continuous and discrete material branches, the lighting if unknown, and the "
                                    "ranked materials. Writes RUN_DIR (docs/run_dir.md): config.yaml, checkpoint.pt, "
                                    "mesh.ply, envmap.exr, materials.json, materials_err.png, materials_sheet.png, "
                                    "loss.png, fit.json.")
     f.add_argument("capture", nargs="?", help="Mitsuba scene XML (sensors + images/<id>.exr|png), a "
-                                              "transforms_*.json (NeRF-synthetic), or the folder holding one")
+                                              "transforms_*.json (NeRF-synthetic), a NeuS/IDR cameras_sphere.npz, "
+                                              "a COLMAP folder (sparse/0, images/), or the folder holding one")
     f.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
     f.add_argument("--preset", metavar="NAME", help="named preset configs/NAME.yaml, e.g. continuous (see --help-config)")
     f.add_argument("--config", help="a YAML config file, applied after --preset")
@@ -295,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--help-config", action="store_true", help="list every config key and preset")
     f.set_defaults(func=_cmd_fit)
 
-    g = sub.add_parser("geometry", parents=[common],
+    g = sub.add_parser("geometry", parents=[common, photos],
                        help="reconstruct a mesh from posed images with alpha masks (NeuS)",
                        description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. "
                                    "Writes RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and "
@@ -389,9 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "per-channel scale alignment, metallic/roughness PSNR, and relighting PSNR/SSIM "
                                    "under each held-aside envmap (albedo-scale and image-scale variants).")
     e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
-    e.add_argument("--gt", required=True, metavar="DATASET",
+    e.add_argument("--gt", metavar="DATASET",
                    help="dataset folder written by `vq-mitsuba make-scene` (scene.json, transforms_test.json, "
-                        "images/, gt/, relit/, envmaps/)")
+                        "images/, gt/, relit/, envmaps/); without it, the run's held-out views (fit --holdout K)")
     e.add_argument("-o", "--output", help="metrics JSON path (default: RUN_DIR/metrics.json)")
     e.add_argument("--spp", type=_positive_int, help="render samples per pixel (default: render.spp of the run's config)")
     e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",

@@ -159,6 +159,16 @@ class NeuSConfig:
 
 
 @dataclass
+class CaptureConfig:
+    """How a capture's images are read: their size, the mask, the views kept out of training."""
+
+    downscale: int = 1  # divide the image width and height by this, averaging blocks of pixels
+    background_color: str = ""  # R,G,B (sRGB, 0..1) of a plain backdrop, keyed out as the mask ("": none)
+    background_tolerance: float = 0.08  # sRGB distance from background_color still counted as backdrop
+    holdout: int = 0  # keep every K-th view out of training, for `eval` to score (0: none)
+
+
+@dataclass
 class TexelConfig:
     """The per-texel baseline (`vq_mitsuba.eval.texel`): principled textures on a UV atlas."""
 
@@ -194,6 +204,7 @@ class Config:
     neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
     ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)
     texel: TexelConfig = dataclasses.field(default_factory=TexelConfig)
+    capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
 
 
 PRESETS_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -275,13 +286,13 @@ POSITIVE = {
     "render.chunk", "neus.lr", "neus.lr_sdf_mlp", "neus.lr_variance", "neus.lr_decay", "neus.init_radius",
     "texel.resolution", "texel.envmap_height",
     "texel.env_init_scale", "texel.spp", "texel.max_depth", "texel.views_per_step", "texel.lr_texture",
-    "texel.lr_envmap", "texel.lr_decay", "texel.gamma",
+    "texel.lr_envmap", "texel.lr_decay", "texel.gamma", "capture.downscale",
 }
 UNIT_INTERVAL = {
     "field.roughness_min", "field.pe_anneal", "vq.warmup_frac", "vq.decay", "vq.dropout_max", "vq.min_share",
     "train.alpha_threshold", "train.lr_decay", "neus.lr_decay", "neus.hull_threshold", "neus.hull_min_views",
     "neus.coarse_to_fine", "neus.min_component", "texel.lr_decay", "texel.init_basecolor", "texel.init_metallic",
-    "texel.init_roughness", "texel.roughness_min",
+    "texel.init_roughness", "texel.roughness_min", "capture.background_tolerance",
 }
 ANY_SIGN = {"neus.init_variance"}
 SQUARE = {"train.pixel_jitter": "0: pixel centre", "render.aa": "primary rays per pixel on a grid"}
@@ -326,6 +337,22 @@ def _check_ranges(cfg: Config, source) -> None:
     if cfg.vq.num_codes < 1:
         fail(f"vq.num_codes must be >= 1, got {cfg.vq.num_codes}")
     check_neus(cfg.neus, source)
+    if cfg.capture.background_color:
+        background_rgb(cfg.capture, source)
+
+
+def background_rgb(c: CaptureConfig, source=None) -> tuple[float, float, float] | None:
+    """capture.background_color as three sRGB values in [0, 1], or None when not set."""
+    if not c.background_color.strip():
+        return None
+    try:
+        rgb = tuple(float(v) for v in c.background_color.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise InputError(source, f"capture.background_color must be R,G,B with values in 0..1, got "
+                                 f"'{c.background_color}'")
+    return rgb
 
 
 def check_neus(n: NeuSConfig, source=None) -> None:

@@ -7,7 +7,7 @@ Blender frame (OpenGL axes: -Z forward, +Y up, +X right) converts by flipping X 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,13 +22,19 @@ OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 
 @dataclass
 class Camera:
-    """A pinhole camera: `to_world` maps Mitsuba camera space (+Z forward, +Y up, +X left)."""
+    """A pinhole camera: `to_world` maps Mitsuba camera space (+Z forward, +Y up, +X left).
+
+    The focal length along x follows from `fov_x_deg` and `width`; photographed captures may have
+    a different focal length along y (`focal_y_ratio` = fy / fx) and a principal point off the
+    image centre (`principal`, pixels, x right and y down, pixel centres at +0.5)."""
 
     name: str
     to_world: np.ndarray  # (4, 4) float64
     fov_x_deg: float  # horizontal field of view
     width: int
     height: int
+    focal_y_ratio: float = 1.0  # fy / fx
+    principal: tuple[float, float] | None = None  # (cx, cy) in pixels; None: the image centre
 
     @property
     def origin(self) -> np.ndarray:
@@ -37,21 +43,47 @@ class Camera:
     def focal_px(self) -> float:
         return 0.5 * self.width / math.tan(0.5 * math.radians(self.fov_x_deg))
 
+    def intrinsics(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) in pixels."""
+        fx = self.focal_px()
+        cx, cy = self.principal if self.principal is not None else (0.5 * self.width, 0.5 * self.height)
+        return fx, fx * self.focal_y_ratio, float(cx), float(cy)
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera with an image of width x height pixels (the field of view kept)."""
+        principal = None
+        if self.principal is not None:
+            principal = (self.principal[0] * width / self.width, self.principal[1] * height / self.height)
+        ratio = self.focal_y_ratio * (height / self.height) / (width / self.width)
+        return replace(self, width=int(width), height=int(height), principal=principal, focal_y_ratio=ratio)
+
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """Pixel coordinates (x right, y down; pixel centres at +0.5) of world points (N, 3)."""
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         inv = np.linalg.inv(self.to_world)
         local = pts @ inv[:3, :3].T + inv[:3, 3]
-        f = self.focal_px()
+        fx, fy, cx, cy = self.intrinsics()
         # +X is left in Mitsuba camera space, so image x grows towards -X.
-        x = 0.5 * self.width - f * local[:, 0] / local[:, 2]
-        y = 0.5 * self.height - f * local[:, 1] / local[:, 2]
+        x = cx - fx * local[:, 0] / local[:, 2]
+        y = cy - fy * local[:, 1] / local[:, 2]
         return np.stack([x, y], -1)
+
+    def principal_offset(self) -> tuple[float, float]:
+        """Mitsuba's principal_point_offset_x / _y: the principal point's offset from the image centre
+        as a fraction of the width / height, positive towards the left / top."""
+        _, _, cx, cy = self.intrinsics()
+        return (0.5 * self.width - cx) / self.width, (0.5 * self.height - cy) / self.height
 
     def to_mitsuba_dict(self, spp: int = 1) -> dict:
         import mitsuba as mi
 
+        if abs(self.focal_y_ratio - 1.0) > 1e-9:
+            raise ValueError(f"camera {self.name}: Mitsuba's perspective sensor has one focal length (fy / fx = "
+                             f"{self.focal_y_ratio:g})")
+        ox, oy = self.principal_offset()
         return {
+            "principal_point_offset_x": float(ox),
+            "principal_point_offset_y": float(oy),
             "type": "perspective",
             "fov": float(self.fov_x_deg),
             "fov_axis": "x",
@@ -67,6 +99,15 @@ class Camera:
             },
             "sampler": {"type": "independent", "sample_count": int(spp)},
         }
+
+
+def principal_xml(camera: Camera, indent: str) -> str:
+    """The perspective sensor's principal point offsets as Mitsuba XML lines ("" when centred)."""
+    if camera.principal is None:
+        return ""
+    ox, oy = camera.principal_offset()
+    return (f'{indent}<float name="principal_point_offset_x" value="{ox:.9g}"/>\n'
+            f'{indent}<float name="principal_point_offset_y" value="{oy:.9g}"/>\n')
 
 
 def nerf_to_camera(name: str, transform_matrix, camera_angle_x: float, width: int, height: int) -> Camera:
@@ -117,9 +158,9 @@ def camera_rays(camera: Camera, jitter: np.ndarray | None = None,
         px, py = xs.ravel() + 0.5, ys.ravel() + 0.5
     else:
         px, py = xs.ravel() + jitter[:, 0], ys.ravel() + jitter[:, 1]
-    f = camera.focal_px()
+    fx, fy, cx, cy = camera.intrinsics()
     # Inverse of Camera.project: +X is left in Mitsuba camera space.
-    local = np.stack([(0.5 * w - px) / f, (0.5 * h - py) / f, np.ones_like(px)], -1)
+    local = np.stack([(cx - px) / fx, (cy - py) / fy, np.ones_like(px)], -1)
     d = local @ camera.to_world[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(camera.origin, d.shape)

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vq_mitsuba.config import CaptureConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from vq_mitsuba.data.imageio import read_image
@@ -56,44 +57,140 @@ class Capture:
 # Public entry points
 
 
-def load_capture(path: str | Path, mesh: str | Path | None = None) -> Capture:
-    """Load and validate a capture (scene XML, transforms json, or a folder holding one)."""
+def load_capture(path: str | Path, mesh: str | Path | None = None, options: CaptureConfig | None = None,
+                 split: str = "all", cache_dir: str | Path | None = None) -> Capture:
+    """Load and validate a capture (scene XML, transforms json, NeuS/IDR cameras_sphere.npz, a COLMAP
+    folder, or a folder holding one). `options` (config section `capture`) sets the downscale, the
+    background keying and the held-out views; `split` is "all", "train" (without the held-out
+    views) or "holdout". Undistorted COLMAP images are cached in `cache_dir` when given."""
+    options = options or CaptureConfig()
     source = resolve_capture_path(path)
-    if source.suffix.lower() == ".xml":
-        return _load_xml_capture(source, mesh)
-    return _load_json_capture(source, mesh)
+    kind = capture_kind(source)
+    if kind == "xml":
+        capture = _load_xml_capture(source, mesh)
+    elif kind == "json":
+        capture = _load_json_capture(source, mesh)
+    else:
+        from vq_mitsuba.data.photo_captures import load_photo_capture
+
+        capture = load_photo_capture(source, kind, mesh, cache_dir)
+    return finish_capture(capture, options, split)
 
 
-def load_cameras(path: str | Path) -> tuple[list[Camera], str, Path]:
+def load_cameras(path: str | Path, options: CaptureConfig | None = None,
+                 split: str = "all") -> tuple[list[Camera], str, Path]:
     """Cameras only (no images needed), for rendering novel views: (cameras, world, source)."""
+    options = options or CaptureConfig()
     source = resolve_capture_path(path)
-    if source.suffix.lower() == ".xml":
+    kind = capture_kind(source)
+    if kind == "xml":
         root, defaults = _parse_xml(source)
         scene = _load_mitsuba_sensors_only(source, root)
-        return _xml_cameras(source, root, defaults, scene), "mitsuba", source
-    data = _read_json(source)
-    angle, frames = _json_header(source, data)
-    width, height = _json_image_size(source, data, frames)
-    cameras = [
-        nerf_to_camera(name, matrix, angle, width, height)
-        for name, matrix in zip(_frame_names(frames), _frame_matrices(source, frames))
-    ]
-    return cameras, "blender", source
+        cameras, world = _xml_cameras(source, root, defaults, scene), "mitsuba"
+    elif kind == "json":
+        data = _read_json(source)
+        angle, frames = _json_header(source, data)
+        width, height = _json_image_size(source, data, frames)
+        cameras = [
+            nerf_to_camera(name, matrix, angle, width, height)
+            for name, matrix in zip(_frame_names(frames), _frame_matrices(source, frames))
+        ]
+        world = "blender"
+    else:
+        from vq_mitsuba.data.photo_captures import photo_cameras
+
+        cameras, world = photo_cameras(source, kind), "mitsuba"
+    cameras = [downscaled_camera(c, options.downscale) for c in cameras]
+    return [cameras[i] for i in split_indices(len(cameras), options.holdout, split)], world, source
+
+
+def capture_kind(source: Path) -> str:
+    """"xml", "json", "idr" (cameras_sphere.npz) or "colmap" (a folder with a sparse model)."""
+    if source.is_dir():
+        return "colmap"
+    return {".xml": "xml", ".json": "json", ".npz": "idr"}[source.suffix.lower()]
 
 
 def resolve_capture_path(path: str | Path) -> Path:
-    """The capture file for `path`: the file itself, or a folder's transforms_train.json / scene.xml."""
+    """The capture for `path`: the file itself, a folder's transforms_train.json / scene.xml /
+    cameras_sphere.npz, or the folder itself when it holds a COLMAP sparse model."""
+    from vq_mitsuba.data.photo_formats import colmap_model_dir
+
     path = Path(path)
     if path.is_dir():
-        for name in ("transforms_train.json", "scene.xml"):
+        for name in ("transforms_train.json", "scene.xml", "cameras_sphere.npz"):
             if (path / name).is_file():
                 return path / name
-        raise InputError(path, "capture folder holds neither transforms_train.json nor scene.xml")
+        if colmap_model_dir(path) is not None:
+            return path
+        raise InputError(path, "capture folder holds no transforms_train.json, scene.xml, cameras_sphere.npz "
+                               "(NeuS/IDR) or COLMAP model (sparse/0/cameras.bin or .txt)")
     if not path.exists():
         raise InputError(path, "capture file not found")
-    if path.suffix.lower() not in (".xml", ".json"):
-        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml or a transforms_*.json)")
+    if path.suffix.lower() not in (".xml", ".json", ".npz"):
+        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml, a transforms_*.json, a "
+                               "NeuS/IDR cameras_sphere.npz or a COLMAP folder)")
     return path
+
+
+def split_indices(count: int, holdout: int, split: str) -> list[int]:
+    """The views of a split: with holdout K, every K-th view (K-1, 2K-1, ...) is held out."""
+    if split not in ("all", "train", "holdout"):
+        raise ValueError(f"unknown split {split!r}")
+    held = {i for i in range(count) if holdout > 0 and i % holdout == holdout - 1}
+    if split == "all":
+        return list(range(count))
+    return [i for i in range(count) if (i in held) == (split == "holdout")]
+
+
+def downscaled_camera(camera: Camera, factor: int) -> Camera:
+    """The camera of the image downscaled by an integer factor (cropped to a multiple of it)."""
+    if factor <= 1:
+        return camera
+    from vq_mitsuba.data.photo_formats import camera_from_intrinsics
+
+    fx, fy, cx, cy = camera.intrinsics()
+    return camera_from_intrinsics(camera.name, camera.to_world, fx / factor, fy / factor, cx / factor, cy / factor,
+                                  camera.width // factor, camera.height // factor)
+
+
+def finish_capture(capture: Capture, options: CaptureConfig, split: str = "all") -> Capture:
+    """Apply background keying, the downscale and the split to a loaded capture."""
+    from vq_mitsuba.config import background_rgb
+
+    images, alpha, has_alpha = capture.images, capture.alpha, capture.has_alpha
+    key = background_rgb(options)
+    if key is not None:
+        if has_alpha:
+            raise InputError(capture.source, "capture.background_color keys out a backdrop, but this capture "
+                                             "already has masks (alpha or a mask folder): drop one")
+        from vq_mitsuba.data.imageio import linear_to_srgb
+
+        dist = np.linalg.norm(linear_to_srgb(np.clip(images, 0, 1)) - np.asarray(key, np.float32), axis=-1)
+        tol = options.background_tolerance
+        alpha = np.clip((dist - tol) / max(tol, 1e-6), 0.0, 1.0).astype(np.float32)
+        has_alpha = True
+        if not (alpha > 0.5).any():
+            raise InputError(capture.source, f"every pixel lies within {tol} of the background colour {key}: "
+                                             "nothing left to fit (check capture.background_color)")
+    cameras = capture.cameras
+    f = int(options.downscale)
+    if f > 1:
+        n, h, w = images.shape[:3]
+        if h // f < 4 or w // f < 4:
+            raise InputError(capture.source, f"--downscale {f} leaves {w // f}x{h // f} pixels of {w}x{h} images")
+        hc, wc = h // f * f, w // f * f
+        images = images[:, :hc, :wc].reshape(n, hc // f, f, wc // f, f, 3).mean((2, 4), dtype=np.float32)
+        alpha = alpha[:, :hc, :wc].reshape(n, hc // f, f, wc // f, f).mean((2, 4), dtype=np.float32)
+        cameras = [downscaled_camera(c, f) for c in cameras]
+    keep = split_indices(len(cameras), options.holdout, split)
+    if not keep:
+        raise InputError(capture.source, f"capture.holdout {options.holdout} leaves no {split} view of {len(cameras)}")
+    if options.holdout > 0 and split == "train" and len(keep) == len(cameras):
+        raise InputError(capture.source, f"capture.holdout {options.holdout} holds out none of {len(cameras)} views")
+    return Capture(capture.source, [cameras[i] for i in keep], np.ascontiguousarray(images[keep]),
+                   np.ascontiguousarray(alpha[keep]), has_alpha, capture.mesh, capture.envmap,
+                   capture.envmap_to_world, capture.world)
 
 
 def load_mesh(path: str | Path):
@@ -262,14 +359,13 @@ def _xml_cameras(xml: Path, root: ET.Element, defaults: dict[str, str], scene) -
         size, crop = [int(v) for v in film.size()], [int(v) for v in film.crop_size()]
         if size != crop:
             raise InputError(xml, f"sensor '{sid}': film crop windows are not supported")
-        for key in ("principal_point_offset_x", "principal_point_offset_y"):
-            if abs(float(np.ravel(np.array(params[key]))[0])) > 1e-7:
-                raise InputError(xml, f"sensor '{sid}': principal point offsets are not supported")
+        ox, oy = (float(np.ravel(np.array(params[f"principal_point_offset_{a}"]))[0]) for a in "xy")
+        principal = None if max(abs(ox), abs(oy)) < 1e-9 else ((0.5 - ox) * size[0], (0.5 - oy) * size[1])
         fov_x = float(np.ravel(np.array(params["x_fov"]))[0])
         to_world = _matrix(params["to_world"])
         if not (np.all(np.isfinite(to_world)) and abs(np.linalg.det(to_world[:3, :3])) > 1e-12):
             raise InputError(xml, f"sensor '{sid}': degenerate to_world transform")
-        cameras.append(Camera(sid, to_world, fov_x, size[0], size[1]))
+        cameras.append(Camera(sid, to_world, fov_x, size[0], size[1], principal=principal))
     return cameras
 
 

@@ -147,3 +147,41 @@ def write_png(path: str | Path, image: np.ndarray, alpha: np.ndarray | None = No
         out = np.concatenate([out, a[..., None]], -1)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(path, out)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A mask image (PNG/JPEG grey, RGB or RGBA; EXR) as (H, W) float32 in [0, 1], read as data
+    (no sRGB decoding): the brightest colour channel, times alpha when there is one."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "mask file not found")
+    try:
+        if path.suffix.lower() == ".exr":
+            data = read_exr(path)
+        else:
+            raw = _read_8_or_16_bit(path)
+            data = raw.astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)
+    except Exception as exc:
+        raise InputError(path, f"cannot read mask ({type(exc).__name__}: {exc})") from exc
+    if data.ndim == 2:
+        data = data[..., None]
+    colour = data[..., :3] if data.shape[-1] >= 3 else data[..., :1]
+    mask = colour.max(-1) * (data[..., 3] if data.shape[-1] == 4 else 1.0)
+    if not np.all(np.isfinite(mask)):
+        raise InputError(path, "mask contains non-finite values")
+    return np.clip(mask, 0.0, 1.0).astype(np.float32)
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file, reading only what its format needs."""
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        data = read_exr(path)
+        return int(data.shape[1]), int(data.shape[0])
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except Exception as exc:
+        raise InputError(path, f"cannot read image ({type(exc).__name__}: {exc})") from exc

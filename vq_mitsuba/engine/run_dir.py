@@ -180,12 +180,14 @@ class RunDir:
 
         info = self.source().info()
         capture = Path(info["capture"])
+        options = self.source().config().capture
         splits = {"train": capture}
-        splits.update({s: capture.parent / f"transforms_{s}.json" for s in ("test", "val")})
+        if not capture.is_dir():
+            splits.update({s: capture.parent / f"transforms_{s}.json" for s in ("test", "val")})
         out = {}
         for split, path in splits.items():
-            if path.is_file() and (split == "train" or path != capture):
-                cameras, world, _ = load_cameras(path)
+            if path.exists() and (split == "train" or path != capture):
+                cameras, world, _ = load_cameras(path, options if split == "train" else None)
                 out[split] = [convert_world(c, world, info["world"]) for c in cameras]
         if "train" not in out:
             raise InputError(capture, f"the capture of the run {self.dir} is not there any more")

@@ -20,6 +20,7 @@ import torch
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture, load_capture
+from vq_mitsuba.geometry.pipeline import UNDISTORTED
 from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
@@ -312,7 +313,9 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         # material fit from the beginning, keeping what the folder already holds (mesh.ply).
         print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
         resume = False
-    capture = load_capture(capture_path, mesh=mesh_path)  # every input check happens here, first
+    # every input check happens here, first
+    capture = load_capture(capture_path, mesh=mesh_path, options=cfg.capture, split="train",
+                           cache_dir=run.dir / UNDISTORTED)
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
                          "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from masked images "

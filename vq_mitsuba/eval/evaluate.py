@@ -504,3 +504,42 @@ def format_table(metrics: dict) -> str:
                 lines.append(f"MeanShift baseline (bandwidth {bw}): micro-F1 {v['micro_f1']:.3f}, "
                              f"macro-F1 {v['macro_f1']:.3f}; clusters {v['num_materials_found']}")
     return "\n".join(lines)
+
+
+def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool = True,
+                     output: str | Path | None = None) -> dict:
+    """Score a run fitted with capture.holdout K on the views it kept out of training: novel-view
+    PSNR / SSIM (sRGB) inside each view's mask, its own images being the reference. For captures
+    without ground-truth maps; writes RUN_DIR/metrics.json (or `output`)."""
+    from tqdm import tqdm
+
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.geometry.pipeline import UNDISTORTED
+    from vq_mitsuba.render.views import Renderer, check_finite
+
+    run = RunDir(run_dir)
+    cfg = run.source().config()
+    if cfg.capture.holdout <= 0:
+        raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
+                                  "of a real capture, or give --gt DATASET for a synthetic one")
+    info = run.source().info()
+    held = load_capture(info["capture"], options=cfg.capture, split="holdout", cache_dir=run.source().dir / UNDISTORTED)
+    fitted = run.load()
+    renderer = Renderer(fitted)
+    spp = spp or cfg.render.spp
+    rows = []
+    for cam, image, alpha in tqdm(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
+                                  disable=not progress, dynamic_ncols=True):
+        out = renderer.render(cam, spp=spp)
+        check_finite(out, cam.name)
+        mask = alpha > 0.5
+        pred = out["rgb"] / np.maximum(out["alpha"], 1e-6)[..., None]  # straight colour, as the photo's
+        rows.append({"view": cam.name, **M.image_metrics(pred, image, mask),
+                     "coverage_iou": float((mask & (out["alpha"] > 0.5)).sum() / max((mask | (out["alpha"] > 0.5)).sum(), 1))})
+    metrics = {"run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
+               "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
+               "coverage_iou": _mean(r["coverage_iou"] for r in rows), "views": rows}
+    out_path = Path(output) if output is not None else run.dir / RunDir.METRICS
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(metrics, indent=2))
+    return metrics

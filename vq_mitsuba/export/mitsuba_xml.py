@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.imageio import write_exr
 from vq_mitsuba.export.bake import BakedMesh
 
@@ -44,6 +44,7 @@ def sensor_xml(camera: Camera, spp: int) -> str:
     return (f'  <sensor type="perspective" id="{camera.name}">\n'
             f'    <float name="fov" value="{camera.fov_x_deg:.9g}"/>\n'
             f'    <string name="fov_axis" value="x"/>\n'
+            + principal_xml(camera, "    ") +
             f'    <transform name="to_world"><matrix value="{_matrix(camera.to_world)}"/></transform>\n'
             f'    <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>\n'
             f'    <film type="hdrfilm"><integer name="width" value="{camera.width}"/>'

@@ -32,6 +32,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.config import check_neus as validate
@@ -58,18 +59,6 @@ class _threads:
 
 # --------------------------------------------------------------------------------------------
 # Cameras, rays and the visual hull
-
-
-def camera_rays(cam) -> tuple[np.ndarray, np.ndarray]:
-    """World-space origins and unit directions (H*W, 3) through the pixel centres of a Mitsuba camera."""
-    f = cam.focal_px()
-    ys, xs = np.meshgrid(np.arange(cam.height) + 0.5, np.arange(cam.width) + 0.5, indexing="ij")
-    # Mitsuba camera space: +X left, +Y up, +Z forward (see Camera.project).
-    local = np.stack([(0.5 * cam.width - xs) / f, (0.5 * cam.height - ys) / f, np.ones_like(xs)], -1).reshape(-1, 3)
-    d = local @ cam.to_world[:3, :3].T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(cam.to_world[:3, 3], d.shape)
-    return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
 
 
 def _look_center(cameras) -> np.ndarray:
@@ -103,10 +92,10 @@ def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
         inv = torch.tensor(np.linalg.inv(cam.to_world), dtype=torch.float32)
         local = pts[alive] @ inv[:3, :3].T + inv[:3, 3]
         z = local[:, 2]
-        f = cam.focal_px()
+        fx, fy, cx, cy = cam.intrinsics()
         zc = z.clamp(min=1e-9)
-        x = 0.5 * cam.width - f * local[:, 0] / zc
-        y = 0.5 * cam.height - f * local[:, 1] / zc
+        x = cx - fx * local[:, 0] / zc  # as Camera.project
+        y = cy - fy * local[:, 1] / zc
         inside = (z > 1e-6) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
         fg = mask[y.clamp(0, cam.height - 1).long(), x.clamp(0, cam.width - 1).long()]
         seen[alive] += inside.int()

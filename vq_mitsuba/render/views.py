@@ -6,6 +6,7 @@ Works on a `FittedModel` (`vq_mitsuba.engine.run_dir.RunDir.load`); nothing here
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -35,7 +36,7 @@ def convert_world(camera: Camera, src: str, dst: str) -> Camera:
         return camera
     rot = np.eye(4)
     rot[:3, :3] = world_rotation(src, dst)
-    return Camera(camera.name, rot @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
+    return replace(camera, to_world=rot @ camera.to_world)
 
 
 def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:

@@ -29,13 +29,14 @@ import json
 import math
 import re
 import time
+from dataclasses import replace
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from vq_mitsuba.data import envmaps
-from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at, principal_xml
 from vq_mitsuba.data.imageio import write_exr, write_png
 from vq_mitsuba.errors import InputError
 
@@ -220,7 +221,7 @@ def to_mitsuba_world(camera: Camera) -> Camera:
     """The same camera in Mitsuba world (Y up): to_world left-multiplied by R^-1."""
     m = np.eye(4)
     m[:3, :3] = R_BLENDER_FROM_MITSUBA.T
-    return Camera(camera.name, m @ camera.to_world, camera.fov_x_deg, camera.width, camera.height)
+    return replace(camera, to_world=m @ camera.to_world)
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,6 +252,7 @@ def _sensor_xml(cam: Camera, spp: int) -> str:
         f'    <sensor type="perspective" id={quoteattr(cam.name)}>',
         f'        <float name="fov" value="{_fmt(cam.fov_x_deg)}"/>',
         '        <string name="fov_axis" value="x"/>',
+        *([principal_xml(cam, "        ").rstrip("\n")] if cam.principal is not None else []),
         '        <float name="near_clip" value="0.001"/>',
         '        <float name="far_clip" value="10000"/>',
         f'        <transform name="to_world"><matrix value="{m}"/></transform>',

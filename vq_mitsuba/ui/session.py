@@ -123,7 +123,7 @@ class EditorSession:
         bounds = np.asarray(self.fitted.mesh.bounds, np.float64)
         self.bounds = bounds
         self.center = bounds.mean(0)
-        self.up = np.array([0.0, 1.0, 0.0]) if self.fitted.world == "mitsuba" else np.array([0.0, 0.0, 1.0])
+        self.up = np.asarray(self.fitted.envmap_to_world, np.float64)[:3, 1]  # the lighting's up axis
         self.envmap_dir = Path(envmap_dir) if envmap_dir is not None else self._default_envmap_dir()
         self.lighting = Lighting()
         self.mode = "render"
@@ -155,8 +155,7 @@ class EditorSession:
     def _display_camera(self, camera: Camera) -> Camera:
         """The camera at the editor's resolution: its long side `size` pixels, same aspect and field."""
         scale = self.size / max(camera.width, camera.height)
-        return Camera(camera.name, np.array(camera.to_world, np.float64), camera.fov_x_deg,
-                      max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
+        return camera.scaled(max(1, round(camera.width * scale)), max(1, round(camera.height * scale)))
 
     def envmaps(self) -> list[str]:
         if self.envmap_dir is None:
@@ -343,7 +342,7 @@ class EditorSession:
             raise InputError(None, f"orbit: yaw and pitch must be finite and zoom within 0.2..5, got {values}")
         with self._cond:
             to_world = orbit(self.camera.to_world, self.center, self.up, yaw_deg, pitch_deg, zoom)
-            self.camera = Camera("orbit", to_world, self.camera.fov_x_deg, self.camera.width, self.camera.height)
+            self.camera = replace(self.camera, name="orbit", to_world=to_world)
             self.view_name = "orbit"
             self._changed()
 

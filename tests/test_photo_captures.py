@@ -1,0 +1,219 @@
+"""Photographed captures: COLMAP and NeuS/IDR loaders, lens distortion, off-centre and non-square
+cameras, downscale, background keying, held-out views."""
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from vq_mitsuba.data.cameras import Camera, camera_rays, look_at
+from vq_mitsuba.errors import InputError
+
+
+def _cameras(n=5, width=40, height=28):
+    """Off-centre, non-square cameras around the origin."""
+    out = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = 2.5 * np.array([np.sin(a), 0.5, np.cos(a)])
+        out.append(Camera(f"v{i}", look_at(eye, [0, 0, 0], [0, 1, 0]), 42.0, width, height,
+                          principal=(width * 0.5 + 2.3 - i, height * 0.5 - 1.7 + 0.5 * i)))
+    return out
+
+
+def test_camera_rays_of_an_off_centre_non_square_camera_are_mitsubas():
+    import drjit as dr
+    import mitsuba as mi
+
+    from vq_mitsuba.backend import init_mitsuba
+
+    init_mitsuba()
+    cam = _cameras(1)[0]
+    sensor = mi.load_dict(cam.to_mitsuba_dict())
+    h, w = cam.height, cam.width
+    ys, xs = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    film_uv = mi.Point2f(mi.Float((xs / w).ravel()), mi.Float((ys / h).ravel()))
+    rays, _ = sensor.sample_ray(0.0, 0.5, film_uv, mi.Point2f(0.5, 0.5))
+    d_mi = np.stack([np.array(rays.d.x), np.array(rays.d.y), np.array(rays.d.z)], -1)
+    _, d_ours = camera_rays(cam)
+    assert np.linalg.norm(d_mi.astype(np.float64) - d_ours, axis=-1).max() < 1e-5  # radians, float32 rays
+    dr.eval()
+
+
+def _round_trip_pixels(cam_a, cam_b, world_to_b=np.eye(4)):
+    """Max pixel distance between where cam_a and cam_b (its copy, in the frame world_to_b) see
+    points along cam_a's rays."""
+    o, d = camera_rays(cam_a)
+    pts = o + 1.7 * d
+    pts_b = pts @ world_to_b[:3, :3].T + world_to_b[:3, 3]
+    return float(np.abs(cam_a.project(pts) - cam_b.project(pts_b)).max())
+
+
+def test_neus_and_colmap_files_give_the_same_rays(tmp_path):
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.data.photo_formats import Lens, read_colmap, write_colmap, write_idr
+    from vq_mitsuba.synthetic.photo_formats import _moved, colmap_similarity
+
+    cams = _cameras()
+    cams[1] = Camera("v1", cams[1].to_world, 42.0, 40, 28, focal_y_ratio=1.07, principal=(18.2, 15.9))  # fx != fy
+    # NeuS / IDR
+    (tmp_path / "neus" / "image").mkdir(parents=True)
+    write_idr(tmp_path / "neus" / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
+    from vq_mitsuba.data.imageio import write_png
+
+    for i in range(len(cams)):
+        write_png(tmp_path / "neus" / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
+    loaded, world, _ = load_cameras(tmp_path / "neus")
+    assert world == "mitsuba" and len(loaded) == len(cams)
+    for a, b in zip(cams, loaded):
+        assert _round_trip_pixels(a, b) < 0.05
+    # COLMAP binary and text, in a similarity frame
+    sim = colmap_similarity()
+    moved = [_moved(c, sim) for c in cams]
+    for binary in (True, False):
+        folder = tmp_path / f"colmap_{binary}"
+        (folder / "images").mkdir(parents=True)
+        write_colmap(folder / "sparse" / "0", moved, [f"{c.name}.png" for c in cams], binary=binary)
+        loaded, _, _ = load_cameras(folder)
+        assert [c.name for c in loaded] == [c.name for c in cams]
+        for a, b in zip(cams, loaded):
+            assert _round_trip_pixels(a, b, sim) < 0.05
+    # the lens models' parameters come back as written
+    lens = Lens("OPENCV", 40, 28, 30.0, 31.0, 20.5, 13.2, -0.1, 0.02, 0.001, -0.002)
+    write_colmap(tmp_path / "m", cams[:1], ["a.png"], lens_of=lambda c: lens, binary=True)
+    lenses, images = read_colmap(tmp_path / "m")
+    assert lenses[1] == lens and images[0].name == "a.png"
+
+
+def test_opencv_distortion_inverts_to_a_twentieth_of_a_pixel():
+    from vq_mitsuba.data.photo_formats import Lens, distort_image, undistort_image
+
+    lens = Lens("OPENCV", 60, 44, 40.0, 41.0, 31.3, 20.8, -0.12, 0.03, 0.002, -0.0015)
+    ys, xs = np.meshgrid(np.arange(44) + 0.5, np.arange(60) + 0.5, indexing="ij")
+    u, v = lens.pixel_to_normalised(xs, ys)
+    back = lens.normalised_to_pixel(*lens.undistort(*lens.distort(u, v)))
+    assert max(np.abs(back[0] - xs).max(), np.abs(back[1] - ys).max()) < 0.05
+    # a smooth image distorted then undistorted comes back inside the frame
+    img = np.stack([np.sin(xs / 9.0) * 0.4 + 0.5, np.cos(ys / 7.0) * 0.4 + 0.5, (xs + ys) / 110.0], -1)
+    again, inside = undistort_image(distort_image(img, lens), lens)
+    core = inside.astype(bool)
+    core[:4], core[-4:], core[:, :4], core[:, -4:] = False, False, False, False
+    assert np.abs(again - img)[core].max() < 0.02
+
+
+def _tiny_capture(tmp_path):
+    """The three-sphere scene rendered with off-centre, non-square cameras, as a Mitsuba capture."""
+    from tiny_scene import write_three_material_capture
+
+    return write_three_material_capture(tmp_path / "xml", size=(40, 30), n_views=6, spp=16, principal_shift=(2.5, -1.5))
+
+
+def test_one_scene_through_every_format_gives_the_same_rays_and_pixels(tmp_path):
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.synthetic.photo_formats import colmap_similarity, write_photo_formats
+
+    xml = _tiny_capture(tmp_path)
+    ref = load_capture(xml)
+    assert ref.cameras[0].principal is not None and ref.width != ref.height
+    folders = write_photo_formats(ref, tmp_path / "formats")
+    sim = colmap_similarity()
+    for name, folder in folders.items():
+        cap = load_capture(folder, cache_dir=tmp_path / f"cache_{name}")
+        assert cap.has_alpha and cap.images.shape == ref.images.shape
+        frame = sim if name.startswith("colmap") else np.eye(4)
+        for a, b in zip(ref.cameras, cap.cameras):
+            assert _round_trip_pixels(a, b, frame) < 0.05, name
+        # the same pixels (8-bit PNG; the distorted copy is resampled twice, compared inside its frame)
+        err = np.abs(cap.images - ref.images).mean(-1)
+        inner = (cap.alpha > 0.99) & (ref.alpha > 0.99)
+        inner[:, :3], inner[:, -3:], inner[:, :, :3], inner[:, :, -3:] = False, False, False, False
+        assert np.median(err[inner]) < (0.03 if name == "colmap_opencv" else 0.01), name
+        # the envmap's up follows the cameras' up
+        up = np.asarray(cap.envmap_to_world)[:3, 1]
+        assert up @ (frame[:3, :3] @ [0, 1, 0]) / np.linalg.norm(frame[:3, :3] @ [0, 1, 0]) > 0.9
+    # the undistorted photos are cached: a second load reads them back
+    cache = tmp_path / "cache_colmap_opencv"
+    assert len(list(cache.glob("*.npz"))) == len(ref.cameras)
+    again = load_capture(folders["colmap_opencv"], cache_dir=cache)
+    assert np.allclose(again.images, load_capture(folders["colmap_opencv"]).images, atol=2e-3)
+
+
+def test_downscale_keying_and_holdout(tmp_path):
+    from vq_mitsuba.config import CaptureConfig
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import write_idr
+
+    cams = _cameras(6, 40, 28)
+    folder = tmp_path / "idr"
+    for i in range(6):  # a grey backdrop (sRGB 0.5) with a bright square
+        img = np.full((28, 40, 3), 0.2140, np.float32)  # linear of sRGB 0.5
+        img[8:20, 10:30] = 0.9
+        write_png(folder / "image" / f"{i:03d}.png", img)
+    write_idr(folder / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
+    plain = load_capture(folder)
+    assert not plain.has_alpha
+    keyed = load_capture(folder, options=CaptureConfig(background_color="0.5,0.5,0.5"))
+    assert keyed.has_alpha and keyed.alpha[0, 14, 20] == 1.0 and keyed.alpha[0, 2, 2] == 0.0
+    half = load_capture(folder, options=CaptureConfig(downscale=2))
+    assert half.images.shape[1:3] == (14, 20)
+    pts = camera_rays(cams[0])[0][:1] + 2.0 * camera_rays(cams[0])[1][::97]
+    assert np.abs(half.cameras[0].project(pts) - cams[0].project(pts) / 2).max() < 1e-6
+    train = load_capture(folder, options=CaptureConfig(holdout=3), split="train")
+    held = load_capture(folder, options=CaptureConfig(holdout=3), split="holdout")
+    assert [c.name for c in held.cameras] == ["002", "005"] and len(train.cameras) == 4
+    with pytest.raises(InputError, match="background"):
+        load_capture(folder, options=CaptureConfig(background_color="0.9,0.9"))
+
+
+def test_bad_photo_captures_are_named(tmp_path):
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import write_colmap, write_idr
+
+    cams = _cameras(3)
+    idr = tmp_path / "idr"
+    for i in range(3):
+        write_png(idr / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
+    write_idr(idr / "cameras_sphere.npz", cams[:2], np.zeros(3), 1.0)
+    with pytest.raises(InputError, match="world_mat_2"):
+        load_capture(idr)
+    write_idr(idr / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
+    write_png(idr / "mask" / "000.png", np.ones((28, 40)), srgb=False)
+    with pytest.raises(InputError, match="1 masks for 3 images"):
+        load_capture(idr)
+    col = tmp_path / "colmap"
+    write_colmap(col / "sparse" / "0", cams, ["a.png", "b.png", "c.png"], binary=True)
+    with pytest.raises(InputError, match="images"):
+        load_capture(col)
+    for name in ("a.png", "b.png"):
+        write_png(col / "images" / name, np.full((28, 40, 3), 0.5))
+    write_png(col / "images" / "c.png", np.full((20, 40, 3), 0.5))
+    with pytest.raises(InputError, match="c.png.*40x20 but its camera says 40x28"):
+        load_capture(col)
+    with open(col / "sparse" / "0" / "cameras.bin", "r+b") as f:  # camera 1 becomes FULL_OPENCV (id 6)
+        f.seek(8 + 4)
+        f.write(struct.pack("<i", 6))
+    with pytest.raises(InputError, match="FULL_OPENCV is not supported"):
+        load_capture(col)
+    with open(col / "sparse" / "0" / "cameras.bin", "r+b") as f:  # back to PINHOLE
+        f.seek(8 + 4)
+        f.write(struct.pack("<i", 1))
+    (col / "sparse" / "0" / "images.bin").write_bytes(b"\x05\x00")
+    with pytest.raises(InputError, match="cannot read the COLMAP binary model"):
+        load_capture(col)
+
+
+def test_fit_with_holdout_scores_the_held_out_views(tmp_path, three_materials):
+    from vq_mitsuba.cli import main
+
+    capture, _ = three_materials
+    run = tmp_path / "run"
+    assert main(["fit", str(capture), "-o", str(run), "--holdout", "4", "--quiet",
+                 "--set", "train.iterations=120", "--set", "vq.enabled=false"]) == 0
+    assert json.loads((run / "run.json").read_text())["n_views"] == 8  # 10 views, 2 held out
+    assert main(["eval", str(run), "--spp", "16", "--quiet"]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert [v["view"] for v in metrics["views"]] == ["view_03", "view_07"]
+    assert 15.0 < metrics["novel_view"]["psnr"] < 60.0 and metrics["coverage_iou"] > 0.9

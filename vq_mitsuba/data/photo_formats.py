@@ -1,0 +1,404 @@
+"""Camera files of photographed captures: COLMAP sparse models (binary and text) and the NeuS/IDR
+`cameras_sphere.npz`, read into Mitsuba-convention `Camera`s, and written (for test data).
+
+COLMAP and IDR use OpenCV camera axes (+X right, +Y down, +Z forward); a Mitsuba camera has +X
+left and +Y up, so camera-to-world matrices differ by diag(-1, -1, 1). COLMAP puts pixel centres
+at +0.5 as we do; IDR intrinsics put them at integer coordinates (NeuS casts rays through
+integer pixel positions), so their principal point is shifted by half a pixel on reading.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.errors import InputError
+
+OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+# COLMAP camera models we read: id -> (name, parameter names)
+MODELS = {
+    0: ("SIMPLE_PINHOLE", ("f", "cx", "cy")),
+    1: ("PINHOLE", ("fx", "fy", "cx", "cy")),
+    2: ("SIMPLE_RADIAL", ("f", "cx", "cy", "k")),
+    3: ("RADIAL", ("f", "cx", "cy", "k1", "k2")),
+    4: ("OPENCV", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")),
+}
+MODEL_IDS = {name: i for i, (name, _) in MODELS.items()}
+OTHER_MODELS = {5: "OPENCV_FISHEYE", 6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE",
+                10: "THIN_PRISM_FISHEYE"}
+
+
+def camera_from_intrinsics(name: str, to_world: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                           width: int, height: int) -> Camera:
+    """A Camera from pixel intrinsics (pixel centres at +0.5)."""
+    fov_x = math.degrees(2.0 * math.atan(0.5 * width / fx))
+    centred = abs(cx - 0.5 * width) < 1e-9 and abs(cy - 0.5 * height) < 1e-9
+    return Camera(name, np.asarray(to_world, np.float64), fov_x, int(width), int(height), focal_y_ratio=fy / fx,
+                  principal=None if centred else (float(cx), float(cy)))
+
+
+# --------------------------------------------------------------------------------------------
+# Lens distortion (COLMAP's models, on normalised image coordinates)
+
+@dataclass
+class Lens:
+    """One COLMAP camera: pinhole intrinsics plus radial / tangential distortion."""
+
+    model: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    @property
+    def distorted(self) -> bool:
+        return any(abs(v) > 0 for v in (self.k1, self.k2, self.p1, self.p2))
+
+    def params(self) -> list[float]:
+        values = {"f": self.fx, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "k": self.k1,
+                  "k1": self.k1, "k2": self.k2, "p1": self.p1, "p2": self.p2}
+        return [values[n] for n in MODELS[MODEL_IDS[self.model]][1]]
+
+    @staticmethod
+    def from_params(model: str, width: int, height: int, params) -> Lens:
+        names = MODELS[MODEL_IDS[model]][1]
+        v = dict(zip(names, (float(p) for p in params)))
+        fx = v.get("fx", v.get("f"))
+        fy = v.get("fy", v.get("f"))
+        return Lens(model, int(width), int(height), fx, fy, v["cx"], v["cy"], v.get("k1", v.get("k", 0.0)),
+                    v.get("k2", 0.0), v.get("p1", 0.0), v.get("p2", 0.0))
+
+    def distort(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised undistorted coordinates -> distorted ones."""
+        r2 = u * u + v * v
+        radial = self.k1 * r2 + self.k2 * r2 * r2
+        du = u * radial + 2 * self.p1 * u * v + self.p2 * (r2 + 2 * u * u)
+        dv = v * radial + 2 * self.p2 * u * v + self.p1 * (r2 + 2 * v * v)
+        return u + du, v + dv
+
+    def undistort(self, ud: np.ndarray, vd: np.ndarray, iterations: int = 40) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse of `distort` (Newton's method with a numerical Jacobian, as COLMAP does)."""
+        u, v = ud.copy(), vd.copy()
+        eps = 1e-9
+        for _ in range(iterations):
+            fu, fv = self.distort(u, v)
+            ru, rv = fu - ud, fv - vd
+            a, c = ((x - y) / eps for x, y in zip(self.distort(u + eps, v), (fu, fv)))
+            b, d = ((x - y) / eps for x, y in zip(self.distort(u, v + eps), (fu, fv)))
+            det = a * d - b * c
+            det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+            u, v = u - (d * ru - b * rv) / det, v - (-c * ru + a * rv) / det
+        return u, v
+
+    def pixel_to_normalised(self, x, y):
+        return (np.asarray(x, np.float64) - self.cx) / self.fx, (np.asarray(y, np.float64) - self.cy) / self.fy
+
+    def normalised_to_pixel(self, u, v):
+        return u * self.fx + self.cx, v * self.fy + self.cy
+
+
+def resample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of `image` (H, W, C) at pixel positions x, y (pixel centres at +0.5), and a
+    mask of the positions that lie inside the image."""
+    from scipy.ndimage import map_coordinates
+
+    h, w = image.shape[:2]
+    inside = (x >= 0) & (x <= w) & (y >= 0) & (y <= h)
+    coords = np.stack([np.clip(y - 0.5, 0, h - 1), np.clip(x - 0.5, 0, w - 1)])
+    out = np.stack([map_coordinates(image[..., c], coords, order=1, mode="nearest") for c in range(image.shape[-1])], -1)
+    return out.astype(np.float32), inside
+
+
+def undistort_image(image: np.ndarray, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """The image (H, W, C) as the pinhole camera of the same intrinsics sees it, and (H, W) the
+    share of it that the distorted image covers (1 inside, 0 where no source pixel exists)."""
+    ys, xs = np.meshgrid(np.arange(lens.height) + 0.5, np.arange(lens.width) + 0.5, indexing="ij")
+    ud, vd = lens.distort(*lens.pixel_to_normalised(xs, ys))
+    sx, sy = lens.normalised_to_pixel(ud, vd)
+    out, inside = resample(image, sx, sy)
+    return out, inside.astype(np.float32)
+
+
+def distort_image(image: np.ndarray, lens: Lens) -> np.ndarray:
+    """Inverse of `undistort_image`: what the distorted lens records of a pinhole image."""
+    ys, xs = np.meshgrid(np.arange(lens.height) + 0.5, np.arange(lens.width) + 0.5, indexing="ij")
+    u, v = lens.undistort(*lens.pixel_to_normalised(xs, ys))
+    sx, sy = lens.normalised_to_pixel(u, v)
+    out, _ = resample(image, sx, sy)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# COLMAP sparse models
+
+@dataclass
+class ColmapImage:
+    name: str
+    camera_id: int
+    qvec: np.ndarray  # (w, x, y, z): world-to-camera rotation
+    tvec: np.ndarray  # world-to-camera translation
+
+
+def qvec_to_matrix(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def matrix_to_qvec(r: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(r).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def colmap_model_dir(folder: Path) -> Path | None:
+    """The folder holding cameras.bin/.txt and images.bin/.txt: `sparse/0`, `sparse`, or the folder."""
+    for candidate in (folder / "sparse" / "0", folder / "sparse", folder):
+        if any((candidate / f"cameras.{e}").is_file() for e in ("bin", "txt")):
+            return candidate
+    return None
+
+
+def read_colmap(model: Path) -> tuple[dict[int, Lens], list[ColmapImage]]:
+    """Cameras and registered images of a sparse model (binary preferred over text)."""
+    binary = (model / "cameras.bin").is_file()
+    try:
+        if binary:
+            lenses, images = _read_cameras_bin(model / "cameras.bin"), _read_images_bin(model / "images.bin")
+        else:
+            lenses, images = _read_cameras_txt(model / "cameras.txt"), _read_images_txt(model / "images.txt")
+    except InputError:
+        raise
+    except FileNotFoundError as exc:
+        raise InputError(Path(exc.filename), "missing: a COLMAP model needs cameras and images files") from None
+    except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
+        which = "binary" if binary else "text"
+        raise InputError(model, f"cannot read the COLMAP {which} model ({type(exc).__name__}: {exc})") from None
+    for img in images:
+        if img.camera_id not in lenses:
+            raise InputError(model / ("images.bin" if binary else "images.txt"),
+                             f"image {img.name} refers to camera {img.camera_id}, which cameras lists not")
+    if not images:
+        raise InputError(model, "the COLMAP model registers no images")
+    return lenses, sorted(images, key=lambda i: i.name)
+
+
+def _model(path: Path, model_id_or_name) -> str:
+    if isinstance(model_id_or_name, int) or str(model_id_or_name).isdigit():
+        mid = int(model_id_or_name)
+        if mid in MODELS:
+            return MODELS[mid][0]
+        name = OTHER_MODELS.get(mid, f"model id {mid}")
+    else:
+        name = str(model_id_or_name)
+        if name in MODEL_IDS:
+            return name
+    raise InputError(path, f"camera model {name} is not supported (use {', '.join(MODEL_IDS)}; COLMAP's "
+                           "image_undistorter turns any model into PINHOLE)")
+
+
+def _read_cameras_txt(path: Path) -> dict[int, Lens]:
+    out = {}
+    for line in path.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        cid, model, w, h = int(parts[0]), _model(path, parts[1]), int(parts[2]), int(parts[3])
+        params = [float(p) for p in parts[4:]]
+        if len(params) != len(MODELS[MODEL_IDS[model]][1]):
+            raise InputError(path, f"camera {cid}: {model} has {len(MODELS[MODEL_IDS[model]][1])} parameters, "
+                                   f"got {len(params)}")
+        out[cid] = Lens.from_params(model, w, h, params)
+    return out
+
+
+def _read_images_txt(path: Path) -> list[ColmapImage]:
+    lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    out = []
+    i = 0
+    while i < len(lines):
+        if not lines[i].strip():
+            i += 1
+            continue
+        parts = lines[i].split()
+        if len(parts) < 10:
+            raise InputError(path, f"line '{lines[i][:60]}' is not IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
+        out.append(ColmapImage(" ".join(parts[9:]), int(parts[8]), np.array(parts[1:5], np.float64),
+                               np.array(parts[5:8], np.float64)))
+        i += 2  # the next line lists the image's 2D points (possibly empty)
+    return out
+
+
+def _read(f, fmt):
+    size = struct.calcsize(fmt)
+    data = f.read(size)
+    if len(data) != size:
+        raise ValueError("file ends early")
+    return struct.unpack(fmt, data)
+
+
+def _read_cameras_bin(path: Path) -> dict[int, Lens]:
+    out = {}
+    with open(path, "rb") as f:
+        (n,) = _read(f, "<Q")
+        for _ in range(n):
+            cid, mid, w, h = _read(f, "<iiQQ")
+            model = _model(path, mid)
+            params = _read(f, "<" + "d" * len(MODELS[mid][1]))
+            out[cid] = Lens.from_params(model, w, h, params)
+    return out
+
+
+def _read_images_bin(path: Path) -> list[ColmapImage]:
+    out = []
+    with open(path, "rb") as f:
+        (n,) = _read(f, "<Q")
+        for _ in range(n):
+            values = _read(f, "<idddddddi")
+            name = b""
+            while (c := f.read(1)) not in (b"\x00", b""):
+                name += c
+            (npts,) = _read(f, "<Q")
+            f.seek(24 * npts, 1)
+            out.append(ColmapImage(name.decode(), values[8], np.array(values[1:5]), np.array(values[5:8])))
+    return out
+
+
+def colmap_camera(img: ColmapImage, lens: Lens) -> Camera:
+    """The pinhole (undistorted) Mitsuba camera of one registered image."""
+    r = qvec_to_matrix(img.qvec)
+    c2w = np.eye(4)
+    c2w[:3, :3] = r.T
+    c2w[:3, 3] = -r.T @ img.tvec
+    return camera_from_intrinsics(Path(img.name).stem, c2w @ OPENCV_TO_MITSUBA, lens.fx, lens.fy, lens.cx, lens.cy,
+                                  lens.width, lens.height)
+
+
+def write_colmap(model: Path, cameras: list[Camera], names: list[str], lens_of=None, binary: bool = True,
+                 points: np.ndarray | None = None) -> None:
+    """Write a sparse model: one camera entry per view (`lens_of(camera)` gives its Lens, default
+    PINHOLE from the camera), images named `names`, optional 3D points (N, 3)."""
+    model.mkdir(parents=True, exist_ok=True)
+    lenses = []
+    for cam in cameras:
+        if lens_of is not None:
+            lenses.append(lens_of(cam))
+        else:
+            fx, fy, cx, cy = cam.intrinsics()
+            lenses.append(Lens("PINHOLE", cam.width, cam.height, fx, fy, cx, cy))
+    poses = []
+    for cam in cameras:
+        c2w = cam.to_world @ OPENCV_TO_MITSUBA  # OpenCV camera-to-world
+        r = c2w[:3, :3].T
+        poses.append((matrix_to_qvec(r), -r @ c2w[:3, 3]))
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64)
+    if binary:
+        with open(model / "cameras.bin", "wb") as f:
+            f.write(struct.pack("<Q", len(lenses)))
+            for i, lens in enumerate(lenses):
+                f.write(struct.pack("<iiQQ", i + 1, MODEL_IDS[lens.model], lens.width, lens.height))
+                f.write(struct.pack("<" + "d" * len(lens.params()), *lens.params()))
+        with open(model / "images.bin", "wb") as f:
+            f.write(struct.pack("<Q", len(names)))
+            for i, (name, (q, t)) in enumerate(zip(names, poses)):
+                f.write(struct.pack("<idddddddi", i + 1, *q, *t, i + 1))
+                f.write(name.encode() + b"\x00")
+                f.write(struct.pack("<Q", 0))
+        with open(model / "points3D.bin", "wb") as f:
+            f.write(struct.pack("<Q", len(pts)))
+            for i, p in enumerate(pts):
+                f.write(struct.pack("<QdddBBBdQ", i + 1, *p, 128, 128, 128, 0.0, 0))
+    else:
+        (model / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(
+            f"{i + 1} {lens.model} {lens.width} {lens.height} " + " ".join(f"{p:.17g}" for p in lens.params()) + "\n"
+            for i, lens in enumerate(lenses)))
+        (model / "images.txt").write_text("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n" + "".join(
+            f"{i + 1} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {i + 1} {name}\n\n"
+            for i, (name, (q, t)) in enumerate(zip(names, poses))))
+        (model / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n" + "".join(
+            f"{i + 1} {p[0]:.17g} {p[1]:.17g} {p[2]:.17g} 128 128 128 0\n" for i, p in enumerate(pts)))
+
+
+# --------------------------------------------------------------------------------------------
+# NeuS / IDR: cameras_sphere.npz
+
+def read_idr(path: Path, count: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """(K 3x3 with pixel centres at +0.5, camera-to-world in OpenCV axes) of views 0..count-1, and
+    their scale matrices (normalised -> world)."""
+    try:
+        data = np.load(path)
+    except Exception as exc:
+        raise InputError(path, f"cannot read ({type(exc).__name__}: {exc})") from None
+    views, scales = [], []
+    for i in range(count):
+        if f"world_mat_{i}" not in data:
+            raise InputError(path, f"has no world_mat_{i}, but the capture has {count} images")
+        p = np.asarray(data[f"world_mat_{i}"], np.float64)[:3, :4]
+        scale = np.asarray(data[f"scale_mat_{i}"], np.float64) if f"scale_mat_{i}" in data else np.eye(4)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(scale))):
+            raise InputError(path, f"world_mat_{i} or scale_mat_{i} holds non-finite values")
+        views.append(_decompose(path, i, p))
+        scales.append(scale)
+    return views, scales
+
+
+def _decompose(path: Path, i: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.linalg import rq
+
+    m = p[:, :3]
+    if abs(np.linalg.det(m)) < 1e-12:
+        raise InputError(path, f"world_mat_{i} is singular: not a projection matrix")
+    k, r = rq(m)
+    fix = np.diag(np.sign(np.diag(k)))  # a positive diagonal for K
+    k, r = k @ fix, fix @ r
+    t = np.linalg.solve(k, p[:, 3])
+    if np.linalg.det(r) < 0:  # P is known up to its sign
+        r, t = -r, -t
+    k = k / k[2, 2]
+    if abs(k[0, 1]) > 1e-6 * k[0, 0]:
+        raise InputError(path, f"world_mat_{i}: skewed pixels (K[0,1] = {k[0, 1]:.3g}) are not supported")
+    k = k.copy()
+    k[0, 2] += 0.5  # IDR's pixel centres sit at integer coordinates
+    k[1, 2] += 0.5
+    c2w = np.eye(4)
+    c2w[:3, :3] = r.T
+    c2w[:3, 3] = -r.T @ t
+    return k, c2w
+
+
+def idr_camera(name: str, k: np.ndarray, c2w_opencv: np.ndarray, width: int, height: int) -> Camera:
+    return camera_from_intrinsics(name, c2w_opencv @ OPENCV_TO_MITSUBA, k[0, 0], k[1, 1], k[0, 2], k[1, 2],
+                                  width, height)
+
+
+def write_idr(path: Path, cameras: list[Camera], centre: np.ndarray, radius: float) -> None:
+    """cameras_sphere.npz: world_mat_i = K [R | t] (IDR's pixel convention) and scale_mat_i taking
+    the unit sphere to the sphere (centre, radius) that holds the object."""
+    out = {}
+    scale = np.diag([radius, radius, radius, 1.0])
+    scale[:3, 3] = centre
+    for i, cam in enumerate(cameras):
+        fx, fy, cx, cy = cam.intrinsics()
+        k = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+        c2w = cam.to_world @ OPENCV_TO_MITSUBA
+        w2c = np.linalg.inv(c2w)
+        p = np.eye(4)
+        p[:3, :4] = k @ w2c[:3, :4]
+        out[f"world_mat_{i}"] = p
+        out[f"scale_mat_{i}"] = scale
+    np.savez(path, **out)
