@@ -210,15 +210,27 @@ def _cmd_make_scene(args) -> int:
     kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
                                 ("n_test", args.n_test)) if v is not None}
     if args.renderer == "cycles":
+        if args.photo_formats or isinstance(args.resolution, tuple):
+            raise InputError(None, "--photo-formats and a WxH --resolution are made with --renderer mitsuba")
         from vq_mitsuba.synthetic import cycles
 
         cycles.check_environment()  # before any work: names the missing interpreter and `make cycles`
         cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
     else:
-        synthetic.make_scene(args.name, out, seed=args.seed, **kwargs)
+        synthetic.make_scene(args.name, out, seed=args.seed, photo_formats=args.photo_formats, **kwargs)
     print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ "
           "(scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
     return 0
+
+
+def _resolution(text: str):
+    """N (an int) or WxH (a tuple)."""
+    parts = text.lower().split("x")
+    if len(parts) == 1:
+        return _positive_int(parts[0])
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"'{text}' is neither N nor WxH")
+    return _positive_int(parts[0]), _positive_int(parts[1])
 
 
 def _positive_int(text: str) -> int:
@@ -429,7 +441,11 @@ def build_parser() -> argparse.ArgumentParser:
                                    "ground-truth maps and relit test views.")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
     m.add_argument("-o", "--output", help="output folder (default: data/NAME)")
-    m.add_argument("--resolution", type=_positive_int, help="image width and height in pixels (default per scene)")
+    m.add_argument("--resolution", type=_resolution, metavar="N|WxH",
+                   help="image size in pixels: N for N x N, or W x H (default per scene)")
+    m.add_argument("--photo-formats", action="store_true",
+                   help="also write the training views as a NeuS/IDR capture (neus/) and COLMAP captures "
+                        "(colmap/: binary, pinhole; colmap_opencv/: text, distorted OPENCV lens)")
     m.add_argument("--spp", type=_positive_int, help="path-tracing samples per pixel (default: the scene's for mitsuba, "
                                            "128 for cycles)")
     m.add_argument("--renderer", choices=["mitsuba", "cycles"], default="mitsuba",

@@ -17,3 +17,11 @@ class InputError(Exception):
 class NumericalError(InputError):
     """A fit that cannot go on (losses or gradients not finite step after step); `path` is the
     run directory, whose checkpoint holds the last finite state."""
+
+
+def raise_all(problems: list[InputError], capture: str | Path) -> None:
+    """Report every problem found in a capture at once (one InputError; nothing if none)."""
+    if len(problems) == 1:
+        raise problems[0]
+    if problems:
+        raise InputError(capture, f"{len(problems)} problems in this capture:\n  " + "\n  ".join(map(str, problems)))

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vq_mitsuba.config import CaptureConfig
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, raise_all
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from vq_mitsuba.data.imageio import read_image
 
@@ -71,9 +71,12 @@ def load_capture(path: str | Path, mesh: str | Path | None = None, options: Capt
     elif kind == "json":
         capture = _load_json_capture(source, mesh)
     else:
-        from vq_mitsuba.data.photo_captures import load_photo_capture
+        from vq_mitsuba.data.photo_captures import load_photo_views
 
-        capture = load_photo_capture(source, kind, mesh, cache_dir)
+        cameras, images, alpha, has_alpha, folder, env_to_world = load_photo_views(source, kind, cache_dir)
+        mesh_file = mesh if mesh is not None else (folder / "mesh.ply" if (folder / "mesh.ply").is_file() else None)
+        capture = Capture(source, cameras, images, alpha, has_alpha, load_mesh(mesh_file) if mesh_file else None,
+                          None, env_to_world, "mitsuba")
     return finish_capture(capture, options, split)
 
 
@@ -237,14 +240,6 @@ def _find_image(stem: Path) -> Path | None:
         if candidate.is_file():
             return candidate
     return None
-
-
-def raise_all(problems: list[InputError], capture: Path) -> None:
-    """Report every problem found in a capture at once (one InputError; nothing if none)."""
-    if len(problems) == 1:
-        raise problems[0]
-    if problems:
-        raise InputError(capture, f"{len(problems)} problems in this capture:\n  " + "\n  ".join(map(str, problems)))
 
 
 def _stack_images(entries: list[tuple[Path, np.ndarray, np.ndarray | None]]):

@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.data.captures import Capture, load_mesh, raise_all
 from vq_mitsuba.data.imageio import read_image, read_mask
 from vq_mitsuba.data.photo_formats import (Lens, colmap_camera, colmap_model_dir, idr_camera, read_colmap, read_idr,
                                            undistort_image)
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, raise_all
 
 PHOTO_EXTS = (".png", ".jpg", ".jpeg", ".exr")
 
@@ -109,7 +108,9 @@ def _undistorted(path: Path, rgb: np.ndarray, alpha: np.ndarray, lens: Lens, cac
     return out_rgb, out_alpha
 
 
-def load_photo_capture(source: Path, kind: str, mesh_arg, cache_dir) -> Capture:
+def load_photo_views(source: Path, kind: str, cache_dir):
+    """(cameras, images (N, H, W, 3) linear, alpha (N, H, W), has_alpha, capture folder,
+    envmap-to-world) of a photographed capture; every unreadable file is reported at once."""
     if kind == "idr":
         cameras, paths, masks = _idr_views(source)
         lenses = [None] * len(paths)
@@ -146,6 +147,4 @@ def load_photo_capture(source: Path, kind: str, mesh_arg, cache_dir) -> Capture:
     if len({im.shape for im in images}) > 1:
         raise InputError(source, "the photos differ in size; vq-mitsuba needs one size for all views "
                                  "(COLMAP's image_undistorter can write them so)")
-    mesh = load_mesh(mesh_arg) if mesh_arg is not None else \
-        (load_mesh(folder / "mesh.ply") if (folder / "mesh.ply").is_file() else None)
-    return Capture(source, cameras, np.stack(images), np.stack(alphas), has_alpha, mesh, None, _up(cameras), "mitsuba")
+    return cameras, np.stack(images), np.stack(alphas), has_alpha, folder, _up(cameras)

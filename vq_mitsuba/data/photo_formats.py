@@ -88,7 +88,7 @@ class Lens:
         dv = v * radial + 2 * self.p2 * u * v + self.p1 * (r2 + 2 * v * v)
         return u + du, v + dv
 
-    def undistort(self, ud: np.ndarray, vd: np.ndarray, iterations: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    def undistort(self, ud: np.ndarray, vd: np.ndarray, iterations: int = 12) -> tuple[np.ndarray, np.ndarray]:
         """Inverse of `distort` (Newton's method with a numerical Jacobian, as COLMAP does)."""
         u, v = ud.copy(), vd.copy()
         eps = 1e-9

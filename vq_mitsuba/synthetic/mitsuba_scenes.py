@@ -186,12 +186,13 @@ def _mi_mesh(name: str, v: np.ndarray, f: np.ndarray, n: np.ndarray, colors: np.
 # --------------------------------------------------------------------------------------------
 # Cameras
 # --------------------------------------------------------------------------------------------
-def make_cameras(center, radius: float, n_train: int, n_test: int, resolution: int,
+def make_cameras(center, radius: float, n_train: int, n_test: int, resolution: int | tuple[int, int],
                  fov_x_deg: float = FOV_X_DEG, seed: int = 0) -> tuple[list[Camera], list[Camera], float]:
     """Blender-world cameras: train on a Fibonacci sphere band (elevation about -20..67 deg),
     test on a ring at 25 deg elevation at azimuths between the train ones. Returns (train, test, distance)."""
     center = np.asarray(center, dtype=np.float64)
-    half = math.radians(fov_x_deg) / 2.0
+    width, height = (resolution, resolution) if isinstance(resolution, int) else resolution
+    half = math.atan(math.tan(math.radians(fov_x_deg) / 2.0) * min(1.0, height / width))  # the narrower side
     dist = radius / math.sin(math.atan(FILL * math.tan(half)))
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0.0, 2.0 * math.pi)
@@ -200,7 +201,7 @@ def make_cameras(center, radius: float, n_train: int, n_test: int, resolution: i
     up = np.array([0.0, 0.0, 1.0])
 
     def cam(name, d):
-        return Camera(name, look_at(center + dist * d, center, up), fov_x_deg, resolution, resolution)
+        return Camera(name, look_at(center + dist * d, center, up), fov_x_deg, width, height)
 
     train = []
     for i in range(n_train):
@@ -471,23 +472,25 @@ def write_gt(stem: Path, gt: dict) -> None:
     write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
 
 
-def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
+def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = None, n_train: int | None = None,
                n_test: int | None = None, spp: int | None = None, seed: int = 0,
-               progress: bool = True) -> Path:
+               progress: bool = True, photo_formats: bool = False) -> Path:
     """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
     relit test views). None for resolution / n_train / n_test / spp takes the scene's default
-    (scenes/<name>.yaml). Returns out_dir."""
+    (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
+    training views as NeuS/IDR (neus/) and COLMAP (colmap/, colmap_opencv/) captures. Returns out_dir."""
     import mitsuba as mi
     from tqdm.auto import tqdm
 
     _ensure_variant()
     t_start = time.time()
     spec = load_scene_spec(name)
-    res = int(resolution or spec.get("resolution", 128))
+    res = resolution or spec.get("resolution", 128)
+    res = (int(res), int(res)) if isinstance(res, (int, float)) else (int(res[0]), int(res[1]))
     n_train = int(spec.get("n_train", 64) if n_train is None else n_train)
     n_test = int(spec.get("n_test", 16) if n_test is None else n_test)
     spp = int(spp or spec.get("spp", 256))
-    if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
+    if min(res) < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
     out = Path(out_dir)
     if (out / "scene.json").is_file():  # an earlier make_scene output: drop its stale views
@@ -598,7 +601,7 @@ def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int |
     meta = {
         "name": name,
         "description": spec.get("description", ""),
-        "resolution": [res, res],
+        "resolution": list(res),
         "n_train": n_train,
         "n_test": n_test,
         "spp": spp_used,
@@ -614,4 +617,9 @@ def make_scene(name: str, out_dir, resolution: int | None = None, n_train: int |
         "versions": _versions(),
     }
     (out / "scene.json").write_text(json.dumps(meta, indent=2))
+    if photo_formats:
+        from vq_mitsuba.data.captures import load_capture
+        from vq_mitsuba.synthetic.photo_formats import write_photo_formats
+
+        write_photo_formats(load_capture(out / "scene.xml"), out)
     return out
