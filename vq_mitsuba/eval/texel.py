@@ -98,6 +98,12 @@ def _set_camera(params, camera: Camera) -> None:
 
     params["sensor.to_world"] = mi.ScalarTransform4f(np.asarray(camera.to_world, dtype=np.float64).tolist())
     params["sensor.x_fov"] = float(camera.fov_x_deg)
+    if abs(camera.focal_y_ratio - 1.0) > 1e-9:
+        raise ValueError(f"camera {camera.name}: the per-texel baseline renders with Mitsuba's perspective sensor, "
+                         "which has one focal length")
+    ox, oy = camera.principal_offset()
+    params["sensor.principal_point_offset_x"] = float(ox)
+    params["sensor.principal_point_offset_y"] = float(oy)
 
 
 def _padding_index(height: int, width: int):
