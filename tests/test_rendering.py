@@ -471,3 +471,29 @@ def test_renderer_matches_mitsuba_per_pixel(tmp_path, two_spheres):
     assert same.sum() == 0, np.argwhere(same)[:10]
     rougher = _welch_rejections(ours(rough + 0.15, range(10)), ref)
     assert rougher.sum() >= 10  # the highlight pixels
+
+
+def test_render_under_several_envmaps_in_one_pass_matches_one_at_a_time(three_materials, tmp_path):
+    from vq_mitsuba.cli import main
+    from vq_mitsuba.data.imageio import read_exr, write_exr
+
+    capture, run = three_materials
+    envs = []
+    for name, colour in (("warm", (3.0, 1.5, 0.5)), ("cool", (0.4, 0.9, 2.5))):
+        env = np.ones((16, 32, 3), np.float32) * np.asarray(colour, np.float32)
+        env[:4] *= 4.0  # a brighter sky band
+        write_exr(tmp_path / f"{name}.exr", env)
+        envs.append(tmp_path / f"{name}.exr")
+    args = ["--cameras", str(capture), "--spp", "16", "--quiet"]
+    assert main(["render", str(run.dir), *args, "--envmap", str(envs[0]), "--envmap", str(envs[1]),
+                 "-o", str(tmp_path / "both")]) == 0
+    for env in envs:
+        assert main(["render", str(run.dir), *args, "--envmap", str(env), "-o", str(tmp_path / env.stem)]) == 0
+    for view in ("view_00", "view_05"):
+        assert np.array_equal(read_exr(tmp_path / "both" / f"{view}_rgb.exr"), read_exr(tmp_path / "warm" / f"{view}_rgb.exr"))
+        assert np.array_equal(read_exr(tmp_path / "both" / "cool" / f"{view}_rgb.exr"),
+                              read_exr(tmp_path / "cool" / f"{view}_rgb.exr"))
+        assert not np.array_equal(read_exr(tmp_path / "both" / f"{view}_rgb.exr"),
+                                  read_exr(tmp_path / "both" / "cool" / f"{view}_rgb.exr"))
+    assert main(["render", str(run.dir), *args, "--envmap", str(envs[0]), "--envmap", str(envs[0]),
+                 "-o", str(tmp_path / "same")]) == 2  # two lightings, one folder name

@@ -107,14 +107,20 @@ def _cmd_render(args) -> int:
     run = RunDir(args.run_dir)
     fitted = run.load()
     cameras, world, _ = load_cameras(args.cameras)  # input checks before any rendering
-    envmap = load_envmap(args.envmap) if args.envmap is not None else None
+    envmaps = [load_envmap(p) for p in args.envmap]
+    names = [Path(p).stem for p in args.envmap]
+    if len(set(names)) < len(names):
+        raise InputError(None, f"--envmap: two lightings share a file name ({', '.join(names)}); their "
+                               "views would go to the same folder")
     out = Path(args.output) if args.output else run.dir / "renders"
     out.mkdir(parents=True, exist_ok=True)
-    render_views(fitted, cameras, world, out, envmap=envmap, env_rotate_deg=args.env_rotate,
-                 exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet)
+    render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None, env_rotate_deg=args.env_rotate,
+                 exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
+                 more_envmaps=list(zip(names[1:], envmaps[1:])))
     (out / "render.json").write_text(json.dumps({
         "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
-        "envmap": str(Path(args.envmap).resolve()) if args.envmap else "fitted",
+        "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
+        "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
         "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
     }, indent=2))
     print(f"rendered views in {out}/")
@@ -352,8 +358,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the discrete branch NAME_material.png (ids) and NAME_segmentation.png (overlay).")
     r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
-    r.add_argument("--envmap", help="relight with this lat-long HDR image (EXR), in the capture's world "
-                                    "convention (Blender's for NeRF/Blender captures)")
+    r.add_argument("--envmap", action="append", default=[],
+                   help="relight with this lat-long HDR image (EXR), in the capture's world convention (Blender's "
+                        "for NeRF/Blender captures); repeatable: the first lighting's views go to OUT, each "
+                        "further one's to OUT/<file name>, rendered in one pass")
     r.add_argument("--env-rotate", type=_finite(1e6), default=0.0, metavar="DEG",
                    help="rotate the lighting about the up axis by DEG degrees")
     r.add_argument("--exposure", type=_finite(64), default=0.0, metavar="EV", help="scale the lighting by 2^EV")

@@ -231,14 +231,25 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
 
 def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: str, out_dir: Path,
                  envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
-                 spp: int | None = None, progress: bool = True) -> None:
-    """Render every camera (given in world `cameras_world`) and write the per-view files."""
+                 spp: int | None = None, progress: bool = True,
+                 more_envmaps: Sequence[tuple[str, np.ndarray]] = ()) -> None:
+    """Render every camera (given in world `cameras_world`) and write the per-view files.
+
+    `more_envmaps`: (name, envmap) pairs of further lightings. Then the views under `envmap` go to
+    OUT_DIR and those under each further lighting to OUT_DIR/NAME, the same files; one pass per
+    view traces the rays and evaluates the material field for all of them, and each lighting's
+    images are those a render under it alone gives (same seed)."""
     from tqdm import tqdm
 
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
+    others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
     for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
-        images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp)
+        images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
+        relit = images.pop("relit", [])
         check_finite(images, cam.name)
+        check_finite({f"{name} rgb": im for (name, _), im in zip(more_envmaps, relit)}, cam.name)
         if cameras_world != fitted.world:  # normals in the cameras' world
             images["normal"] = images["normal"] @ world_rotation(fitted.world, cameras_world).T
         write_view(out_dir, cam.name, images)
+        for (name, _), rgb in zip(more_envmaps, relit):
+            write_view(out_dir / name, cam.name, dict(images, rgb=rgb))
