@@ -293,13 +293,16 @@ class ShadingScene:
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
-              reduce: bool = True, material_fn=None, groups: int = 1) -> torch.Tensor:
+              reduce: bool = True, material_fn=None, groups: int = 1, bounce_memo: dict | None = None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
         With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
         samples that hit the object are lit by that point's direct radiance (one bounce).
         `groups` independent stratified sample sets per point (see `stratified_samples`).
+        `bounce_memo`: a dict shared by calls that shade the same points with the same samples
+        under other lightings (same geometry, generators seeded alike): the bounce rays, which do
+        not depend on the lighting, are traced by the first call only.
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them.
@@ -312,14 +315,17 @@ class ShadingScene:
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
         if material_fn is not None:
-            with torch.no_grad():
-                out = self._bounce(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(),
-                                   m.detach(), r.detach(), [u[i] for i in range(5)])
-            hit = torch.nonzero(out[0] > 0.5)[:, 0]
+            if bounce_memo is not None and "hit" in bounce_memo:
+                hit, p2, n2, wi2 = (bounce_memo[k] for k in ("hit", "p2", "n2", "wi2"))
+            else:
+                with torch.no_grad():
+                    out = self._bounce(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(),
+                                       m.detach(), r.detach(), [u[i] for i in range(5)])
+                hit = torch.nonzero(out[0] > 0.5)[:, 0]
+                p2, n2, wi2 = (torch.stack(out[a:a + 3], -1)[hit] for a in (1, 4, 7))
+                if bounce_memo is not None:
+                    bounce_memo.update(hit=hit, p2=p2, n2=n2, wi2=wi2)
             if len(hit) > 0:
-                p2 = torch.stack(out[1:4], -1)[hit]
-                n2 = torch.stack(out[4:7], -1)[hit]
-                wi2 = torch.stack(out[7:10], -1)[hit]
                 mat2 = material_fn(p2)
                 li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
                                                      mat2["roughness"], env_linear, 1, generator))
