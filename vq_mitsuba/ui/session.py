@@ -109,11 +109,12 @@ class EditorSession:
     """The editor's state for one run, and the thread that renders it."""
 
     def __init__(self, run_dir: str | Path, envmap_dir: str | Path | None = None, size: int = 256,
-                 progress=None):
+                 max_spp: int = MAX_SPP):
         self.run = RunDir(run_dir)
         self.fitted = self.run.load()
         self.num_materials = self.fitted.num_materials
         self.size = int(size)
+        self.max_spp = int(max_spp)  # refining stops here
         views = self.run.cameras()
         self.views = {c.name: c for split in views.values() for c in split}
         self.view_splits = {c.name: split for split, cams in views.items() for c in cams}
@@ -196,7 +197,7 @@ class EditorSession:
         while True:
             with self._cond:
                 while not self._stop and not self._jobs and self._accum_version == self.version \
-                        and self._accum is not None and self._accum.weight >= MAX_SPP:
+                        and self._accum is not None and self._accum.weight >= self.max_spp:
                     self._cond.wait()
                 if self._stop:
                     return
@@ -220,7 +221,7 @@ class EditorSession:
                 with self._cond:
                     self.last_error = f"render failed: {exc}"
                     self.message = self.last_error
-                    self._accum, self._accum_version = _Accum(weight=MAX_SPP), version
+                    self._accum, self._accum_version = _Accum(weight=self.max_spp), version
                     self._cond.notify_all()
                 continue
             with self._cond:
@@ -312,7 +313,7 @@ class EditorSession:
                 "can_undo": self.position > 0, "can_redo": self.position < len(self.history) - 1,
                 "save_name": f"{self.run.dir.resolve().name}-edited",
                 "job": self.job, "message": self.message,
-                "refine_spp": REFINE[0] * 8 + PREVIEW[0], "max_spp": MAX_SPP,
+                "refine_spp": REFINE[0] * 8 + PREVIEW[0], "max_spp": self.max_spp,
             }
 
     def _materials(self) -> list[dict]:
