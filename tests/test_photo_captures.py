@@ -255,3 +255,17 @@ def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
     for name in ("colmap", "colmap_opencv"):
         between = float(np.median(np.abs(aligned[name] - aligned["neus"])))
         assert between < max(errors["neus"], errors[name], 0.02), (name, between, errors)
+
+
+def test_reconstruction_without_masks_says_what_is_needed(tmp_path, capsys):
+    from vq_mitsuba.cli import main
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import write_idr
+
+    cams = _cameras(3)
+    for i in range(3):
+        write_png(tmp_path / "idr" / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
+    write_idr(tmp_path / "idr" / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
+    assert main(["fit", str(tmp_path / "idr"), "-o", str(tmp_path / "run"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "needs masks" in err and "--background-color" in err and "mask/" in err

@@ -301,8 +301,10 @@ class NeuS:
         if len(capture.cameras) == 0:
             raise InputError(capture.source, "the capture has no images")
         if not capture.has_alpha:
-            raise InputError(capture.source, "reconstructing geometry (NeuS) needs alpha masks: the images have no "
-                                             "alpha channel (give RGBA PNG/EXR images, or pass known geometry with --mesh)")
+            raise InputError(capture.source, "reconstructing geometry (NeuS) needs masks: the images have no alpha "
+                                             "channel and there is no mask folder (give RGBA PNG/EXR images, masks/ "
+                                             "for COLMAP or mask/ for NeuS/IDR, --background-color R,G,B for a plain "
+                                             "backdrop, or known geometry with --mesh)")
         alpha = torch.from_numpy(np.ascontiguousarray(capture.alpha))
         if float(alpha.max()) <= cfg.hull_threshold:
             raise InputError(capture.source, "the alpha masks are empty: no foreground pixel in any image")
