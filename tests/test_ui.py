@@ -200,8 +200,11 @@ def test_the_command_prints_its_address_and_stops_on_ctrl_c(three_materials):
     proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "ui", str(run.dir), "--port", "0", "--size", "32"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        line = proc.stdout.readline()
-        assert "http://127.0.0.1:" in line, line
+        lines = [proc.stdout.readline()]
+        while "http://" not in lines[-1] and lines[-1] and len(lines) < 50:  # warnings may come first
+            lines.append(proc.stdout.readline())
+        line = lines[-1]
+        assert "http://127.0.0.1:" in line, lines
         port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
         conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
         conn.request("GET", "/")
