@@ -15,10 +15,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import statistics
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -55,46 +53,28 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "ui"))
     args = p.parse_args()
 
-    from selenium import webdriver
     from selenium.webdriver import ActionChains
 
     from bench_geometry import commit, machine, versions
-    from vq_mitsuba.ui.server import make_server
-    from vq_mitsuba.ui.session import EditorSession
+    from vq_mitsuba.ui.browser import REFINED, click_pixel, headless_chromium, page_url, start_editor, \
+        stop_editor, wait_page
 
-    session = EditorSession(args.run_dir, size=args.size)
-    server = make_server(session, port=0)
-    session.start()
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = shutil.which("chromium")
-    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1200,900", "--force-device-scale-factor=1"):
-        opts.add_argument(a)
-    driver = webdriver.Chrome(options=opts, service=webdriver.ChromeService(executable_path=shutil.which("chromedriver")))
+    session, server = start_editor(args.run_dir, size=args.size)
+    driver = headless_chromium()
     refine = session.state()["refine_spp"]
 
-    def wait(script, timeout=120):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            value = driver.execute_script(script)
-            if value:
-                return value
-            time.sleep(0.02)
-        raise SystemExit(f"the page never reached: {script}")
+    def wait(script):
+        return wait_page(driver, script, poll=0.02)
 
-    refined_now = f"const i = document.getElementById('frame'); return +i.dataset.spp >= {refine} && i.complete"
+    refined_now = REFINED.format(spp=refine)
     results: dict[str, dict] = {}
     try:
-        host, port = server.server_address[:2]
-        driver.get(f"http://{host}:{port}/")
+        driver.get(page_url(server))
         wait(refined_now)
         img = driver.find_element("id", "frame")
         alpha = session.last_images["alpha"]
         ys, xs = (alpha > 0.5).nonzero()
-        x, y = int(xs.mean()), int(ys.mean())  # the object's centre pixel
-        scale = img.size["width"] / session.camera.width
-        ActionChains(driver).move_to_element_with_offset(
-            img, int((x + 0.5) * scale - img.size["width"] / 2), int((y + 0.5) * scale - img.size["height"] / 2)).click().perform()
+        click_pixel(driver, session.camera, int(xs.mean()), int(ys.mean()))  # the object's centre pixel
         wait("return document.getElementById('frame').dataset.selected")
         wait(refined_now)
         driver.execute_script(OBSERVE)
@@ -125,8 +105,7 @@ def main() -> None:
                   f"{statistics.median(refined):6.2f} s   (median of {args.repeats})", flush=True)
     finally:
         driver.quit()
-        server.shutdown()
-        session.stop()
+        stop_editor(session, server)
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -8,8 +8,6 @@ screenshot of the page.
 """
 
 import argparse
-import shutil
-import threading
 import time
 from pathlib import Path
 
@@ -22,53 +20,29 @@ def main() -> None:
     p.add_argument("-o", "--output", default="docs/ui.png")
     args = p.parse_args()
 
-    from selenium import webdriver
-    from selenium.webdriver import ActionChains
+    from vq_mitsuba.ui.browser import REFINED, click_pixel, headless_chromium, page_url, start_editor, \
+        stop_editor, wait_page
 
-    from vq_mitsuba.ui.server import make_server
-    from vq_mitsuba.ui.session import EditorSession
-
-    session = EditorSession(args.run_dir)
-    server = make_server(session, port=0)
-    session.start()
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = shutil.which("chromium")
-    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1000,900", "--force-device-scale-factor=1"):
-        opts.add_argument(a)
-    driver = webdriver.Chrome(options=opts, service=webdriver.ChromeService(executable_path=shutil.which("chromedriver")))
-    refined = session.state()["refine_spp"]
-
-    def wait(script):
-        for _ in range(1200):
-            if driver.execute_script(script):
-                return
-            time.sleep(0.1)
-        raise SystemExit(f"the page never reached: {script}")
-
-    done = f"const i = document.getElementById('frame'); return +i.dataset.spp >= {refined} && i.complete"
+    session, server = start_editor(args.run_dir)
+    driver = headless_chromium(1000, 900)
+    done = REFINED.format(spp=session.state()["refine_spp"])
     try:
-        host, port = server.server_address[:2]
-        driver.get(f"http://{host}:{port}/")
-        wait(done)
+        driver.get(page_url(server))
+        wait_page(driver, done)
         x, y = (int(v) for v in args.pixel.split(","))
-        img = driver.find_element("id", "frame")
-        scale = img.size["width"] / session.camera.width
-        ActionChains(driver).move_to_element_with_offset(
-            img, int((x + 0.5) * scale - img.size["width"] / 2), int((y + 0.5) * scale - img.size["height"] / 2)).click().perform()
-        wait("return document.getElementById('frame').dataset.selected")
+        click_pixel(driver, session.camera, x, y)
+        wait_page(driver, "return document.getElementById('frame').dataset.selected")
         driver.execute_script(f"const c = document.getElementById('basecolor'); c.value = '{args.colour}'; "
                               "c.dispatchEvent(new Event('input')); c.dispatchEvent(new Event('change'));")
-        wait("return document.querySelectorAll('#edits li').length === 1")
+        wait_page(driver, "return document.querySelectorAll('#edits li').length === 1")
         time.sleep(0.5)
-        wait(done)
+        wait_page(driver, done)
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
         driver.save_screenshot(args.output)
         print(f"wrote {args.output}")
     finally:
         driver.quit()
-        server.shutdown()
-        session.stop()
+        stop_editor(session, server)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,6 @@ import http.client
 import io
 import json
 import shutil
-import threading
 import time
 from pathlib import Path
 
@@ -19,22 +18,14 @@ SIZE = 96  # the editor's view size in these tests (long side, px)
 @pytest.fixture(scope="module")
 def editor(three_materials):
     """A running editor (session + server on a free loopback port) of the three-sphere run."""
-    from vq_mitsuba.ui.server import make_server
-    from vq_mitsuba.ui.session import EditorSession
-
+    from vq_mitsuba.ui.browser import start_editor, stop_editor
     from vq_mitsuba.ui.session import PREVIEW, REFINE
 
     _, run = three_materials
     # refining stops at the refined frame: screenshots taken apart in time show equal samples
-    session = EditorSession(run.dir, size=SIZE, max_spp=PREVIEW[0] + 8 * REFINE[0])
-    server = make_server(session, port=0)
-    session.start()
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
+    session, server = start_editor(run.dir, size=SIZE, max_spp=PREVIEW[0] + 8 * REFINE[0])
     yield session, server
-    server.shutdown()
-    server.server_close()
-    session.stop()
+    stop_editor(session, server)
 
 
 def _get(server, path):
@@ -308,17 +299,13 @@ def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_
 @pytest.fixture(scope="module")
 def browser():
     """Headless Chromium driven by Selenium (Debian's chromium and chromium-driver, `make chromium`)."""
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[dev]')")
-    chromium, driver_path = shutil.which("chromium"), shutil.which("chromedriver")
-    if not chromium or not driver_path:
-        pytest.skip("Chromium or chromedriver is not installed (make chromium)")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = chromium
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1200,900", "--force-device-scale-factor=1"):
-        opts.add_argument(arg)
+    pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[dev]')")
+    from vq_mitsuba.ui.browser import headless_chromium
+
     try:
-        driver = webdriver.Chrome(options=opts, service=webdriver.ChromeService(executable_path=driver_path))
+        driver = headless_chromium()
+    except RuntimeError as exc:  # not installed
+        pytest.skip(str(exc))
     except Exception as exc:  # e.g. no display libraries in a container
         pytest.skip(f"Chromium cannot run here: {exc}")
     yield driver
@@ -336,22 +323,11 @@ def _frame_image(driver) -> np.ndarray:
     return shot[scale // 2::scale, scale // 2::scale][: shot.shape[0] // scale, :w]
 
 
-def _wait_page(driver, condition, timeout=120):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = driver.execute_script(condition)
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"the page never reached: {condition}")
-
-
 def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser):
-    from selenium.webdriver import ActionChains
-
     from vq_mitsuba.data.cameras import camera_rays
     from vq_mitsuba.edit import material_under_pixel
     from vq_mitsuba.render.shading import scene_for_mesh
+    from vq_mitsuba.ui.browser import click_pixel, page_url, wait_page
 
     session, server = editor
     # direct light only: a pixel outside material K can then change only if the edit leaked there
@@ -361,23 +337,19 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     session.select(materials=[])
     session.set_view(session.view_name)  # render again from scratch
     refined = session.state()["refine_spp"]
-    host, port = server.server_address[:2]
-    browser.get(f"http://{host}:{port}/")
+    browser.get(page_url(server))
     wait_refined = ("const i = document.getElementById('frame'); "
                     f"return +i.dataset.spp >= {refined} && +i.dataset.version >= arguments[0] && i.complete;")
-    _wait_page(browser, wait_refined.replace("arguments[0]", "0"))
+    wait_page(browser, wait_refined.replace("arguments[0]", "0"))
 
     sphere = 0  # the rough red sphere
     x, y = _sphere_pixel(session, sphere)
-    img = browser.find_element("id", "frame")
-    scale = img.size["width"] / SIZE
-    ActionChains(browser).move_to_element_with_offset(
-        img, int((x + 0.5) * scale - img.size["width"] / 2), int((y + 0.5) * scale - img.size["height"] / 2)).click().perform()
-    k = int(_wait_page(browser, "return document.getElementById('frame').dataset.selected"))
+    click_pixel(browser, session.camera, x, y)
+    k = int(wait_page(browser, "return document.getElementById('frame').dataset.selected"))
     # the page picked what `vq-mitsuba edit --pick` picks, and that material is the red sphere's
     assert k == material_under_pixel(session.fitted, session.camera, x, y)
     version = session.frame.version
-    _wait_page(browser, wait_refined.replace("arguments[0]", str(version)))
+    wait_page(browser, wait_refined.replace("arguments[0]", str(version)))
     region = session.last_images["material"] == k
     hits = session.last_images["alpha"] > 0.5
     before = _frame_image(browser)
@@ -385,9 +357,9 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
 
     browser.execute_script("const c = document.getElementById('basecolor'); c.value = '#2040ff'; "
                            "c.dispatchEvent(new Event('input')); c.dispatchEvent(new Event('change'));")
-    _wait_page(browser, "return document.querySelectorAll('#edits li').length === 1")
+    wait_page(browser, "return document.querySelectorAll('#edits li').length === 1")
     assert browser.find_element("id", "edits").text.startswith(f"--material {k} --set basecolor=")
-    _wait_page(browser, wait_refined.replace("arguments[0]", str(shown + 1)))
+    wait_page(browser, wait_refined.replace("arguments[0]", str(shown + 1)))
     after = _frame_image(browser)
 
     changed = np.abs(after - before).max(-1) > 12

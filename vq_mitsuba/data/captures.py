@@ -191,9 +191,10 @@ def finish_capture(capture: Capture, options: CaptureConfig, split: str = "all")
         raise InputError(capture.source, f"capture.holdout {options.holdout} leaves no {split} view of {len(cameras)}")
     if options.holdout > 0 and split == "train" and len(keep) == len(cameras):
         raise InputError(capture.source, f"capture.holdout {options.holdout} holds out none of {len(cameras)} views")
-    return Capture(capture.source, [cameras[i] for i in keep], np.ascontiguousarray(images[keep]),
-                   np.ascontiguousarray(alpha[keep]), has_alpha, capture.mesh, capture.envmap,
-                   capture.envmap_to_world, capture.world)
+    if len(keep) < len(cameras):  # a copy only when views are left out
+        cameras, images, alpha = [cameras[i] for i in keep], images[keep], alpha[keep]
+    return Capture(capture.source, cameras, np.ascontiguousarray(images), np.ascontiguousarray(alpha), has_alpha,
+                   capture.mesh, capture.envmap, capture.envmap_to_world, capture.world)
 
 
 def load_mesh(path: str | Path):

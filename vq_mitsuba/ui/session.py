@@ -113,6 +113,7 @@ class EditorSession:
         self.run = RunDir(run_dir)
         self.fitted = self.run.load()
         self.num_materials = self.fitted.num_materials
+        self.materials = self._materials()  # the ranked materials as the page lists them
         self.size = int(size)
         self.max_spp = int(max_spp)  # refining stops here
         views = self.run.cameras()
@@ -180,6 +181,17 @@ class EditorSession:
         """Call with the lock held after anything that changes what is drawn."""
         self.version += 1
         self.changed_at = time.perf_counter()
+        self._cond.notify_all()
+
+    def _redraw(self) -> None:
+        """Call with the lock held after a change of the display mode or the selection: the shown
+        frame's images drawn again as a new version, at once; refining goes on from them."""
+        if self.frame is None or self.last_images is None:
+            return
+        self.version += 1
+        self.frame = replace(self.frame, version=self.version,
+                             png=encode_png(self.compose(self.last_images, self.mode, self.selection)))
+        self._accum_version = self.version
         self._cond.notify_all()
 
     def _renderer(self, lighting: Lighting) -> Renderer:
@@ -296,7 +308,7 @@ class EditorSession:
     def state(self) -> dict:
         with self._cond:
             names = list(self.views)
-            materials = self._materials()
+            materials = self.materials
             edits = self.history[self.position]
             return {
                 "run": self.run.dir.name, "world": self.fitted.world,
@@ -352,13 +364,7 @@ class EditorSession:
             raise InputError(None, f"display mode '{mode}' is not one of {', '.join(MODES)}")
         with self._cond:
             self.mode = mode
-            if self.frame is not None and self.last_images is not None:  # redraw at once, no new render
-                self.frame = replace(self.frame, png=encode_png(self.compose(self.last_images, mode, self.selection)),
-                                     spp=self.frame.spp)
-                self.version += 1
-                self.frame = replace(self.frame, version=self.version)
-                self._accum_version = self.version
-                self._cond.notify_all()
+            self._redraw()
 
     def set_lighting(self, envmap: str, rotate_deg: float, exposure_ev: float) -> None:
         if envmap not in self.envmaps():
@@ -409,12 +415,7 @@ class EditorSession:
                 ids = list(self.selection.materials) + ids
             self.selection = Selection(tuple(dict.fromkeys(ids)), boxes)
             self.live = False
-            if self.frame is not None and self.last_images is not None:  # outline the selection at once
-                self.version += 1
-                self.frame = replace(self.frame, version=self.version,
-                                     png=encode_png(self.compose(self.last_images, self.mode, self.selection)))
-                self._accum_version = self.version
-                self._cond.notify_all()
+            self._redraw()  # outline the selection at once
             return self.selection
 
     def edit(self, changes: list[dict] | None = None, preset: str | None = None, live: bool = False) -> Edit:
