@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from vq_mitsuba.config import FieldConfig
+from vq_mitsuba.config import FieldConfig, load_config
 from vq_mitsuba.models.fields import ContinuousMaterial
 
 
@@ -75,3 +75,42 @@ def test_configuration_doc_is_generated_from_the_config():
     keys = [line for line in describe() if line.startswith("  ")]
     assert all(line.split(": ", 1)[1].strip() for line in keys)  # every key says what it does, on one line
     assert all("\n" not in line for line in keys)
+
+
+def test_envmap_resize_interpolates_a_smooth_light_and_wraps_in_longitude():
+    """Doubling the rows of a smooth lat-long log-radiance matches the function at the new texel
+    centres, also in the columns beside the seam (longitude wraps around)."""
+    import math
+
+    from vq_mitsuba.models.fields import EnvironmentMap
+
+    def light(h):
+        v = (torch.arange(h) + 0.5) / h * math.pi
+        u = (torch.arange(2 * h) + 0.5) / (2 * h) * 2 * math.pi
+        return (0.5 * torch.cos(v)[:, None] + torch.sin(u)[None, :] + 0.3 * torch.cos(2 * u)[None, :])[..., None] \
+            * torch.tensor([1.0, 0.5, -0.2])
+
+    env = EnvironmentMap(32, 1.0)
+    with torch.no_grad():
+        env.log_radiance.copy_(light(32))
+    env.resize(64)
+    got, want = env.log_radiance.detach(), light(64)
+    assert got.shape == (64, 128, 3) and isinstance(env.log_radiance, torch.nn.Parameter)
+    rows = slice(1, -1)  # the pole rows are clamped, not extrapolated
+    assert float((got - want)[rows].abs().max()) < 0.01
+    assert float((got - want)[rows][:, [0, 1, -2, -1]].abs().max()) < 0.01  # the seam
+    with pytest.raises(ValueError):
+        env.resize(96)
+
+
+def test_envmap_rows_double_over_the_annealing_share():
+    from vq_mitsuba.engine.trainer import envmap_height_at
+
+    def ladder(height, anneal=0.5):
+        cfg = load_config(None, [f"envmap.height={height}", f"field.pe_anneal={anneal}"])
+        return [envmap_height_at(cfg, p) for p in (0.0, 0.17, 0.34, 0.5, 1.0)]
+
+    assert ladder(128) == [32, 64, 128, 128, 128]
+    assert ladder(64) == [32, 32, 64, 64, 64]
+    assert ladder(32) == [32] * 5 and ladder(16) == [16] * 5 and ladder(48) == [48] * 5
+    assert ladder(128, anneal=0) == [128] * 5

@@ -227,7 +227,8 @@ def test_the_discrete_loss_leaves_the_light_to_the_continuous_branch(tmp_path):
     after one step; with the discrete loss allowed to train the light, the envmap moves."""
     base = ["--quiet", "--set", "vq.enabled=true", "--set", "vq.warmup_frac=0", "--set", "ablation.separate=true",
             "--set", "loss.w_rec_c=0", "--set", "loss.w_chr=0", "--set", "loss.w_lam=0",
-            "--set", "envmap.tv_weight=0", "--set", "train.bounces=1", "--set", "train.bounce_after=0",
+            "--set", "envmap.tv_weight=0", "--set", "envmap.height=32", "--set", "train.bounces=1",
+            "--set", "train.bounce_after=0",
             "--set", "train.batch_rays=128"]
 
     capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=16, known_envmap=False)
@@ -271,3 +272,21 @@ def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monke
     assert len(calls) == 12
     assert sum(calls) == with_bounce
     assert calls == sorted(calls)  # once on, it stays on
+
+
+def test_resume_after_the_envmap_grew(tmp_path):
+    """The learned envmap grows during the fit; a run checkpointed after that resumes at its size
+    and keeps growing to envmap.height."""
+    from vq_mitsuba.engine.run_dir import RunDir
+
+    base = ["--quiet", "--set", "envmap.height=64", "--set", "field.pe_anneal=0.5", "--set", "train.batch_rays=128",
+            "--set", "vq.enabled=false", "--set", "train.checkpoint_every=2"]
+    capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=16, known_envmap=False)
+    run = tmp_path / "run"
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=4"]) == 0
+    grown = torch.load(run / "checkpoint.pt", weights_only=False)["envmap"]["log_radiance"]
+    assert grown.shape == (64, 128, 3)  # 32 rows for the first half of the annealing share, then 64
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=6", "--resume"]) == 0
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 6 and state["envmap"]["log_radiance"].shape == (64, 128, 3)
+    assert RunDir(run).load().envmap.shape == (64, 128, 3)

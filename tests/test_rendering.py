@@ -264,37 +264,39 @@ def test_one_bounce_matches_mitsuba_path_depth_3():
     assert one_bounce.mean() > 1.03 * direct.mean()  # the bounce matters in this scene
 
 
-def test_bounce_gradient_matches_finite_differences():
-    """The light bounced off the object carries gradients back to the material it bounced off
-    (the bounce radiance enters the shading as differentiable per-lane inputs): autograd agrees
-    with central differences of the same estimator (same random numbers)."""
+def test_bounce_light_changes_the_image_but_trains_nothing():
+    """The light bounced off the object is incoming light for the step: the image depends on the
+    material it bounced off (central differences of the same estimator are positive), but no
+    gradient flows into that material, and the primary material's gradient is unchanged."""
     env = torch.tensor(_env())
     scene, cam = _touching_spheres(env.numpy(), size=32)
     hits = scene.trace(*camera_rays(cam))
     v = hits.valid
     m = int(v.sum())
-    base = torch.full((m, 3), 0.6)
 
-    def loss(tint):
+    def loss(tint, base, bounce=True):
         def material(points):
             k = points.shape[0]
             return {"basecolor": tint.expand(k, 3), "metallic": torch.full((k,), 0.0),
                     "roughness": torch.full((k,), 0.7)}
         gen = torch.Generator().manual_seed(3)
-        rgb = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], base, torch.full((m,), 0.0),
-                          torch.full((m,), 0.3), env, spp=64, generator=gen, material_fn=material)
+        rgb = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], base.expand(m, 3), torch.full((m,), 0.0),
+                          torch.full((m,), 0.3), env, spp=64, generator=gen, material_fn=material if bounce else None)
         return (rgb * torch.tensor([1.0, 2.0, 3.0])).sum()
 
     tint = torch.tensor([0.5, 0.4, 0.3], requires_grad=True)
-    loss(tint).backward()
-    assert (tint.grad > 0).all()
+    base = torch.tensor([0.6, 0.6, 0.6], requires_grad=True)
+    loss(tint, base).backward()
+    assert tint.grad is None and (base.grad > 0).all()
     eps = 1e-2
     with torch.no_grad():
         for c in range(3):
             d = torch.zeros(3)
             d[c] = eps
-            fd = (loss(tint.detach() + d) - loss(tint.detach() - d)).item() / (2 * eps)
-            assert tint.grad[c].item() == pytest.approx(fd, rel=0.02), c
+            fd = (loss(tint.detach() + d, base) - loss(tint.detach() - d, base)).item() / (2 * eps)
+            assert fd > 0, c
+            fd_base = (loss(tint, base + d) - loss(tint, base - d)).item() / (2 * eps)
+            assert base.grad[c].item() == pytest.approx(fd_base, rel=0.02), c
 
 
 def test_stratified_samples_cover_each_stratum_once_per_group():
@@ -497,3 +499,37 @@ def test_render_under_several_envmaps_in_one_pass_matches_one_at_a_time(three_ma
                                   read_exr(tmp_path / "both" / "cool" / f"{view}_rgb.exr"))
     assert main(["render", str(run.dir), *args, "--envmap", str(envs[0]), "--envmap", str(envs[0]),
                  "-o", str(tmp_path / "same")]) == 2  # two lightings, one folder name
+
+
+def test_fixed_light_points_shade_alike_but_do_not_train_the_light():
+    """Two copies of the same points in one call, the second with `fixed_light`: the radiance is
+    that of the call without it (same samples), and the envmap gets exactly the gradient of the
+    first copy alone."""
+    env0 = _env()
+    scene, cam = _touching_spheres(env0)
+    hits = scene.trace(*camera_rays(cam))
+    v = torch.nonzero(hits.valid)[:, 0][::3]
+    n = len(v)
+
+    def material(points):
+        m = points.shape[0]
+        return {"basecolor": torch.full((m, 3), 0.4), "metallic": torch.full((m,), 0.2),
+                "roughness": torch.full((m,), 0.4)}
+
+    def run(fixed, rows):
+        env = torch.tensor(env0, requires_grad=True)
+        p, nrm, wi = (t[v].repeat(2, 1) for t in (hits.position, hits.normal, hits.wi))
+        base = torch.full((2 * n, 3), 0.5, requires_grad=True)
+        rgb = scene.shade(p, nrm, wi, base, torch.full((2 * n,), 0.3), torch.full((2 * n,), 0.3), env, 16,
+                          generator=torch.Generator().manual_seed(3), material_fn=material, fixed_light=fixed)
+        rgb[rows].sum().backward()
+        return rgb.detach(), env.grad.clone(), base.grad.clone()
+
+    free, g_env_first, g_base_first = run(None, slice(0, n))
+    assert g_env_first.abs().sum() > 0
+    both, g_env, g_base = run(torch.arange(2 * n) >= n, slice(None))
+    assert torch.equal(both, free)
+    assert torch.allclose(g_env, g_env_first, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(g_base[:n], g_base_first[:n]) and (g_base[n:].abs().sum(1) > 0).any()
+    _, g_env_none, _ = run(torch.ones(2 * n, dtype=torch.bool), slice(None))
+    assert float(g_env_none.abs().max()) == 0.0

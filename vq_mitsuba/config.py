@@ -21,7 +21,7 @@ class FieldConfig:
     """The material field: encoder MLP with positional encoding, latent z, BRDF decoders."""
 
     pe_freqs: int = 8  # positional-encoding frequencies of the surface point
-    hidden: int = 128  # width of the encoder's 7 FC layers
+    hidden: int = 64  # width of the encoder's 7 FC layers
     latent: int = 16  # dimension of the latent z
     decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
     roughness_min: float = 0.02  # lower end of the roughness output range [roughness_min, 1]
@@ -33,7 +33,7 @@ class FieldConfig:
 class EnvmapConfig:
     """The learned lat-long environment map (used only when the capture's lighting is unknown)."""
 
-    height: int = 32  # rows of the learned envmap (width is twice this)
+    height: int = 128  # rows of the learned envmap at the end of the fit (width is twice this); it grows from 32
     init_scale: float = 2.0  # initial radiance as a multiple of the mean foreground pixel value
     lr: float = 0.02  # Adam learning rate of the log-radiance texels
     tv_weight: float = 1e-4  # weight of the smoothness term on neighbouring log-radiance texels

@@ -39,20 +39,22 @@ def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitte
     rng = np.random.default_rng(seed)
     parts, n_alpha, n_hit = [], 0, 0
     for v, cam in enumerate(capture.cameras):
-        opaque_np = capture.alpha[v].reshape(-1) >= alpha_threshold
-        rgb = torch.as_tensor(capture.images[v].reshape(-1, 3))
-        n_alpha += int(opaque_np.sum())
+        opaque = np.flatnonzero(capture.alpha[v].reshape(-1) >= alpha_threshold)  # only these are traced
+        rgb = torch.as_tensor(capture.images[v].reshape(-1, 3)[opaque])
+        n_alpha += len(opaque)
         for k in range(max(jitter, 1)):
+            # the jitter is drawn for every pixel, so a pixel's offsets do not depend on the mask
             offsets = pixel_jitter(cam.width * cam.height, k, jitter, rng) if jitter > 0 else None
-            o, d = camera_rays(cam, offsets)
+            o, d = camera_rays(cam, None if offsets is None else offsets[opaque], pixels=opaque)
             hits = scene.trace(o, d)
-            keep = hits.valid & torch.as_tensor(opaque_np, device=hits.valid.device)
+            keep = hits.valid
             if k == 0:
                 n_hit += int(keep.sum())
             n_keep = int(keep.sum())
+            keep_cpu = keep.cpu()
             parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb.to(keep.device)[keep],
                           torch.full((n_keep,), v, dtype=torch.int64),
-                          torch.nonzero(keep)[:, 0].cpu(), torch.full((n_keep,), k, dtype=torch.int64)))
+                          torch.as_tensor(opaque)[keep_cpu], torch.full((n_keep,), k, dtype=torch.int64)))
     cat = [torch.cat(x) for x in zip(*parts)]
     pool = PixelPool(*cat)
     stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit,

@@ -35,6 +35,7 @@ from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
 KMEANS_LATENTS = 20000  # latents clustered to start the codebook
+ENVMAP_START_HEIGHT = 32  # rows of the learned envmap at the start of a fit
 
 
 def parse_snapshot_times(text: str) -> list[float]:
@@ -48,12 +49,18 @@ def parse_snapshot_times(text: str) -> list[float]:
     return times
 
 
-def _without_gradients(model):
-    """model as a material function whose outputs carry no gradient back into it."""
-    def material(points):
-        with torch.no_grad():
-            return model(points)
-    return material
+def envmap_height_at(cfg: Config, progress: float) -> int:
+    """Rows of the learned envmap at this training progress: envmap.height halved while it stays
+    at least 32 rows at the start, doubled at even steps over the first field.pe_anneal share of
+    training (the sharp light is fitted after the coarse light and materials, as the encoding's
+    frequencies open)."""
+    ladder = [cfg.envmap.height]
+    while ladder[0] % 2 == 0 and ladder[0] // 2 >= ENVMAP_START_HEIGHT:
+        ladder.insert(0, ladder[0] // 2)
+    anneal = cfg.field.pe_anneal
+    if anneal <= 0:
+        return ladder[-1]
+    return ladder[min(len(ladder) - 1, int(progress / anneal * len(ladder)))]
 
 
 class Trainer:
@@ -69,7 +76,8 @@ class Trainer:
             else float(np.mean(capture.images))
         self.learn_env = capture.envmap is None
         if self.learn_env:
-            self.env_module = EnvironmentMap(cfg.envmap.height, cfg.envmap.init_scale * max(mean_fg, 1e-3)).to(device)
+            self.env_module = EnvironmentMap(envmap_height_at(cfg, 0.0), cfg.envmap.init_scale * max(mean_fg, 1e-3))
+            self.env_module.to(device)
             env_init = self.env_module().detach().cpu().numpy()
         else:
             self.fixed_env = torch.as_tensor(capture.envmap, device=device)
@@ -100,6 +108,21 @@ class Trainer:
     def envmap(self) -> torch.Tensor:
         return self.env_module() if self.learn_env else self.fixed_env
 
+    def set_envmap_height(self, height: int, resample: bool = True) -> None:
+        """Grow the learned envmap to `height` rows (resampled, or a blank parameter of that shape
+        that a checkpoint fills); its Adam state restarts."""
+        env = self.env_module
+        old = env.log_radiance
+        if old.shape[0] == height:
+            return
+        if resample:
+            env.resize(height)
+        else:
+            env.log_radiance = torch.nn.Parameter(torch.zeros(height, 2 * height, 3, device=old.device))
+        group = self.optim.param_groups[-1]
+        group["params"] = [env.log_radiance]
+        self.optim.state.pop(old, None)
+
     def fitted_state(self, elapsed: float) -> dict:
         """What rendering and scoring need."""
         return {"model": self.model.state_dict(),
@@ -122,6 +145,7 @@ class Trainer:
         if self.discrete is not None:
             self.discrete.load_state_dict(state["discrete"])
         if self.learn_env:
+            self.set_envmap_height(state["envmap"]["log_radiance"].shape[0], resample=False)
             self.env_module.load_state_dict(state["envmap"])
         self.optim.load_state_dict(state["optim"])
         self.gen.set_state(state["generator"])
@@ -139,13 +163,14 @@ class Trainer:
         self.discrete.warm_start(self.model.decoder, z_warm)
         self.discrete.initialised.fill_(True)
 
-    def _render(self, idx, material: dict, env, bounce_fn):
+    def _render(self, idx, material: dict, env, bounce_fn, fixed_light=None):
         """Per-pixel Monte Carlo samples (B, spp, 3) of the pixels `idx` with `material`'s BRDF,
         in two independent halves for the decorrelated loss."""
         p = self.pool
         return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material["basecolor"],
                                 material["metallic"], material["roughness"], env, self.cfg.train.spp,
-                                generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2)
+                                generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2,
+                                fixed_light=fixed_light)
 
     def _lambertian(self, out: dict, s: StepSchedule) -> torch.Tensor:
         """Eq. (9), L_lam, with the metallic barrier early in training."""
@@ -160,25 +185,29 @@ class Trainer:
         out = self.model(pool.position[idx])
         env = self.envmap()
         target = pool.rgb[idx]
-        samples = self._render(idx, out, env, self.model if bounce else None)
+        bounce_fn = self.model if bounce else None
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
         single = discrete_on and ab.single_branch
+        if not discrete_on:
+            samples = self._render(idx, out, env, bounce_fn)
+        else:
+            z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
+            drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
+            od = self.discrete(z, drop)
+            # Both branches are shaded in one call. The discrete branch is lit by the envmap and
+            # bounce that the continuous branch fits, without training them: a few materials
+            # cannot explain a texture, and their residual would otherwise bend the shared light
+            # (ablation.shared_light lets it).
+            n = len(idx)
+            both = {k: torch.cat([out[k], od[k]]) for k in ("basecolor", "metallic", "roughness")}
+            fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
+            samples_both = self._render(torch.cat([idx, idx]), both, env, bounce_fn, fixed)
+            samples, samples_d = samples_both[:n], samples_both[n:]
         terms = {
             "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target, gamma),
             "lam_c": s.w_lam * self._lambertian(out, s),
         }
         if discrete_on:
-            z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
-            drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
-            od = self.discrete(z, drop)
-            # The discrete branch is lit by the envmap and bounce that the continuous branch fits,
-            # without training them: a few materials cannot explain a texture, and their residual
-            # would otherwise bend the shared light (ablation.shared_light lets it).
-            shared = ab.shared_light
-            bounce_fn = None
-            if bounce:
-                bounce_fn = self.model if shared else _without_gradients(self.model)
-            samples_d = self._render(idx, od, env if shared else env.detach(), bounce_fn)
             terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
                                                                                            out["basecolor"])
@@ -204,6 +233,8 @@ class Trainer:
         if s.discrete and not bool(self.discrete.initialised):
             self.start_discrete()
         self.model.set_progress(s.progress, self.cfg.field.pe_anneal)
+        if self.learn_env:
+            self.set_envmap_height(envmap_height_at(self.cfg, s.progress))
         idx = torch.randint(0, len(self.pool), (self.batch,), generator=self.gen, device=self.device)
         bounce = self.cfg.train.bounces > 0 and self.step >= self.cfg.train.bounce_after
         terms, rgb = self.loss_terms(idx, s, bounce)
@@ -300,6 +331,7 @@ class Trainer:
 def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
         resume: bool = False, progress: bool = True) -> dict:
     """`vq-mitsuba fit` on known geometry: returns the summary written to RUN_DIR/fit.json."""
+    t_start = time.perf_counter()
     run = RunDir(run_dir)
     parse_snapshot_times(cfg.train.snapshot_s)
     if (run / RunDir.INFO).is_file() and run.is_edit():
@@ -351,6 +383,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         trainer.resume()
         if trainer.step >= cfg.train.iterations:
             print(f"{run.dir}: already fitted ({trainer.step} of {cfg.train.iterations} iterations); nothing to do")
+    startup = time.perf_counter() - t_start
     summary = trainer.train(progress)
+    summary["startup_s"] = startup
     trainer.finish(summary)
     return summary

@@ -131,6 +131,22 @@ class EnvironmentMap(nn.Module):
     def forward(self) -> torch.Tensor:
         return torch.exp(self.log_radiance)
 
+    @torch.no_grad()
+    def resize(self, height: int) -> None:
+        """Resample the log-radiance to `height` rows (bilinear, longitude wrapping around) as a
+        new parameter: the coarse-to-fine schedule refines a light found at a coarse size."""
+        x = self.log_radiance.permute(2, 0, 1)[None]  # (1, 3, H, W)
+        h, w = x.shape[-2:]
+        if height % h:
+            raise ValueError(f"the envmap grows by whole factors: {h} rows cannot become {height}")
+        pad = torch.cat([x[..., -1:], x, x[..., :1]], -1)  # one wrapped column each side
+        scale = height / h
+        y = torch.nn.functional.interpolate(pad, size=(height, round((w + 2) * scale)), mode="bilinear",
+                                            align_corners=False)
+        cut = height // h
+        y = y[..., cut:cut + 2 * height]
+        self.log_radiance = nn.Parameter(y[0].permute(1, 2, 0).contiguous())
+
     def smoothness(self) -> torch.Tensor:
         """Mean squared difference of neighbouring log-radiance texels (longitude wraps around)."""
         x = self.log_radiance

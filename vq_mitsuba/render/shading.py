@@ -9,8 +9,9 @@ small texture plugin (`vqm_lanes`) returns those per-lane values when `principle
 Each lane takes one emitter sample (`scene.sample_emitter_direction`, importance-sampled from
 the envmap, shadow ray tested) and one BSDF sample, combined with the power heuristic. When the
 BSDF sample hits the object itself, the radiance arriving along it can be supplied by the
-caller (`shade(..., bounces=1)` shades that second hit with the same fields, direct light only),
-so one interreflection is simulated; deeper paths are not (biased dark in deep concavities).
+caller (`shade(..., material_fn=...)` shades that second hit with the same fields, direct light
+only, as incoming light that is not differentiated), so one interreflection is simulated; deeper
+paths are not (biased dark in deep concavities).
 Sampled directions carry no gradient (as in Mitsuba's `prb`: BSDF values are differentiated,
 sampling is detached).
 """
@@ -244,7 +245,7 @@ class ShadingScene:
             return out
 
         @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, u):
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, u, fixed):
             # `lanes` holds the differentiable per-lane inputs interleaved (basecolor r, g, b,
             # metallic, roughness, bounce radiance r, g, b): one gradient array, so the backward
             # pass is one kernel instead of one per input, each tracing the shading again.
@@ -260,6 +261,9 @@ class ShadingScene:
 
             # Emitter sampling with a shadow ray.
             ds, em_weight = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), True)
+            # Lanes lit by a fixed light pass no gradient to the envmap.
+            fixed = f(fixed) > 0.5
+            em_weight = dr.select(fixed, dr.detach(em_weight), em_weight)
             wo = si.to_local(ds.d)
             f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo)
             # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
@@ -280,6 +284,7 @@ class ShadingScene:
                 hit_obj = si_next.is_valid() & (bs.pdf > 0)
             f_bs = bsdf.eval(ctx, si, bs.wo)
             le = emitter.eval(si_next, miss)
+            le = dr.select(fixed, dr.detach(le), le)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
             li_obj = mi.Color3f(*li)
@@ -293,7 +298,8 @@ class ShadingScene:
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
-              reduce: bool = True, material_fn=None, groups: int = 1, bounce_memo: dict | None = None) -> torch.Tensor:
+              reduce: bool = True, material_fn=None, groups: int = 1, bounce_memo: dict | None = None,
+              fixed_light: torch.Tensor | None = None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
@@ -305,7 +311,10 @@ class ShadingScene:
         not depend on the lighting, are traced by the first call only.
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
-        gradients; the result is differentiable with respect to all of them.
+        gradients; the result is differentiable with respect to all of them, except that points
+        where `fixed_light` (N,) is true pass no gradient to the envmap (several materials are
+        shaded in one call, some of them lit by a light they do not train). The bounce light
+        carries no gradient: neither into `material_fn` nor into the envmap through it.
         """
         n = hits_position.shape[0]
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()  # noqa: E731
@@ -314,6 +323,7 @@ class ShadingScene:
         u = stratified_samples(n, spp, groups, generator, p.device)
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
+        fixed = torch.zeros(n * spp, device=p.device) if fixed_light is None else rep(fixed_light.float())
         if material_fn is not None:
             if bounce_memo is not None and "hit" in bounce_memo:
                 hit, p2, n2, wi2 = (bounce_memo[k] for k in ("hit", "p2", "n2", "wi2"))
@@ -326,11 +336,14 @@ class ShadingScene:
                 if bounce_memo is not None:
                     bounce_memo.update(hit=hit, p2=p2, n2=n2, wi2=wi2)
             if len(hit) > 0:
-                mat2 = material_fn(p2)
-                li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
-                                                     mat2["roughness"], env_linear, 1, generator))
+                # The bounce light is incoming light for this step, not trained through: its
+                # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
+                with torch.no_grad():
+                    mat2 = material_fn(p2)
+                    li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
+                                                         mat2["roughness"], env_linear, 1, generator))
         lanes = torch.cat([bc, m[:, None], r[:, None], li], 1).reshape(-1)
-        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), [u[i] for i in range(5)])
+        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), [u[i] for i in range(5)], fixed)
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
 
