@@ -3,6 +3,7 @@
 
     python benchmarks/bench_fit_speed.py DATA --variant NAME[:KEY=VALUE,...] ... [--eval-spp 64]
         [--out benchmarks/out/fit_speed] [--seed 0] [--warmup]
+    python benchmarks/bench_fit_speed.py --plot A/fit_speed.json B/fit_speed.json --out DIR
 
 DATA is a dataset written by `vq-mitsuba make-scene NAME --renderer cycles` (e.g. `balls
 --resolution 200 --n-train 100 --n-test 20`). Each variant runs `vq-mitsuba fit
@@ -14,7 +15,9 @@ Each run is then scored by `vq_mitsuba.eval.evaluate` on the test views (novel v
 material, basecolor, roughness, relighting, segmentation, M). `--warmup` first runs a 30-step
 fit so that the first variant does not pay Dr.Jit's one-off kernel compilation.
 
-Writes OUT/fit_speed.json and prints one row per variant.
+Writes OUT/fit_speed.json (rows of earlier variants of other names are kept) and OUT/fit_speed.png
+(novel view, basecolor and relighting PSNR against wall time) and prints one row per variant;
+`--plot A.json B.json` only draws and prints the rows of several such files together.
 """
 
 from __future__ import annotations
@@ -71,18 +74,53 @@ def run_variant(data: Path, name: str, overrides: list[str], args, out: Path) ->
     return row
 
 
+def plot(rows: list[dict], path: Path) -> None:
+    """Novel view, basecolor and relighting PSNR against the fit's wall time, one point per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [("novel_psnr", "novel view PSNR (dB)"), ("basecolor_psnr", "basecolor PSNR (dB)"),
+            ("relit_psnr", "relighting PSNR (dB)")]
+    fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4))
+    for ax, (key, label) in zip(axes, keys):
+        for r in rows:
+            if r.get(key) is None:
+                continue
+            ax.scatter(r["wall_s"], r[key], s=18)
+            ax.annotate(r["variant"], (r["wall_s"], r[key]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xlabel("fit wall time, start-up included (s)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("data", type=Path, help="dataset folder (transforms_train.json, mesh.ply, test views)")
+    ap.add_argument("data", type=Path, nargs="?", help="dataset folder (transforms_train.json, mesh.ply, test views)")
     ap.add_argument("--variant", action="append", default=[],
                     help="NAME or NAME:KEY=VALUE,KEY=VALUE (config overrides); repeatable; default: defaults")
     ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
     ap.add_argument("--seed", type=int, default=0, help="train.seed of every variant")
     ap.add_argument("--warmup", action="store_true", help="a 30-step fit first, not timed")
+    ap.add_argument("--plot", type=Path, nargs="+", metavar="JSON",
+                    help="no fit: draw OUT/fit_speed.png from the rows of these fit_speed.json files")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "fit_speed", help="output folder")
     args = ap.parse_args(argv)
-    variants = [parse_variant(v) for v in (args.variant or ["defaults"])]
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.plot:
+        rows = [r for p in args.plot for r in json.loads(p.read_text())["rows"]]
+        plot(rows, args.out / "fit_speed.png")
+        for r in rows:
+            print(f"[{r['variant']}] " + "  ".join(f"{label} {_fmt(r.get(key), spec)}" for key, label, spec in COLUMNS))
+        print(f"wrote {args.out / 'fit_speed.png'}")
+        return 0
+    if args.data is None:
+        ap.error("DATA is needed to fit (only --plot does without)")
+    variants = [parse_variant(v) for v in (args.variant or ["defaults"])]
     if args.warmup:
         warm = args.out / "runs" / "_warmup"
         shutil.rmtree(warm, ignore_errors=True)
@@ -102,7 +140,8 @@ def main(argv=None) -> int:
     keep = [r for r in old if r["variant"] not in {r2["variant"] for r2 in rows}]
     result["rows"] = keep + rows
     path.write_text(json.dumps(json_safe(result), indent=1))
-    print(f"wrote {path}")
+    plot(result["rows"], args.out / "fit_speed.png")
+    print(f"wrote {path} and {args.out / 'fit_speed.png'}")
     return 0
 
 
