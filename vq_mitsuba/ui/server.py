@@ -8,6 +8,7 @@ folder (and, for an edited run, the fitted run it edits) can be read, whatever t
 from __future__ import annotations
 
 import json
+import os
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -174,4 +175,9 @@ def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envma
         print("stopping the editor", flush=True)
     finally:
         server.server_close()
-        session.stop()
+        if not session.stop():
+            # The render thread is inside Dr.Jit (a long kernel compilation, an export): the
+            # interpreter's shutdown could wait forever on locks held by that frozen daemon thread.
+            print("the render thread did not stop within 30 s (an export in progress is left unfinished); "
+                  "exiting without it", flush=True)
+            os._exit(0)
