@@ -8,7 +8,8 @@ folder (and, for an edited run, the fitted run it edits) can be read, whatever t
 from __future__ import annotations
 
 import json
-import os
+import signal
+import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -162,6 +163,9 @@ def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 80
 def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envmap_dir: str | Path | None = None,
           size: int = 256) -> None:
     """Run the editor until Ctrl-C."""
+    if threading.current_thread() is threading.main_thread():
+        # A process started in the background of a non-interactive shell inherits SIGINT ignored.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     session = EditorSession(run_dir, envmap_dir=envmap_dir, size=size)
     server = make_server(session, host, port)
     session.start()
@@ -175,9 +179,4 @@ def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envma
         print("stopping the editor", flush=True)
     finally:
         server.server_close()
-        if not session.stop():
-            # The render thread is inside Dr.Jit (a long kernel compilation, an export): the
-            # interpreter's shutdown could wait forever on locks held by that frozen daemon thread.
-            print("the render thread did not stop within 30 s (an export in progress is left unfinished); "
-                  "exiting without it", flush=True)
-            os._exit(0)
+        session.stop()

@@ -170,16 +170,12 @@ class EditorSession:
         self._thread = threading.Thread(target=self._loop, name="vq-mitsuba-ui-render", daemon=True)
         self._thread.start()
 
-    def stop(self, timeout: float = 30.0) -> bool:
-        """Stop the render thread after its current pass; False when it is still running after
-        `timeout` seconds (e.g. inside a long kernel compilation)."""
+    def stop(self) -> None:
         with self._cond:
             self._stop = True
             self._cond.notify_all()
         if self._thread is not None:
-            self._thread.join(timeout=timeout)
-            return not self._thread.is_alive()
-        return True
+            self._thread.join(timeout=30)
 
     def _changed(self) -> None:
         """Call with the lock held after anything that changes what is drawn."""
