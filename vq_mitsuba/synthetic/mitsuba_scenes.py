@@ -126,7 +126,68 @@ def eval_base_color(base_color, points) -> np.ndarray:
         s = np.prod(np.sin(math.pi * freq * points), axis=1)
         w = _smoothstep(-soft, soft, s)[:, None]
         return (1.0 - w) * colors[0] + w * colors[1 % len(colors)]
-    raise InputError(None, f"unknown base_color pattern '{pattern}' (use stripes or checker)")
+    if pattern == "waves":  # wood-like grain: bands along `axis`, bent by a sine along `bend_axis`
+        axis = np.asarray(base_color.get("axis", [1.0, 0.0, 0.0]), dtype=np.float64)
+        bend = np.asarray(base_color.get("bend_axis", [0.0, 1.0, 0.0]), dtype=np.float64)
+        amp, bend_freq = float(base_color.get("bend", 0.6)), float(base_color.get("bend_frequency", 1.5))
+        t = freq * (points @ (axis / np.linalg.norm(axis)))
+        t = t + amp * np.sin(2 * math.pi * bend_freq * (points @ (bend / np.linalg.norm(bend))))
+        w = (0.5 + 0.5 * np.sin(2 * math.pi * t)) ** (1.0 / max(soft, 1e-3))
+        return (1.0 - w[:, None]) * colors[0] + w[:, None] * colors[1 % len(colors)]
+    if pattern == "noise":  # value noise on a lattice of `frequency` cells per unit, two octaves
+        seed = int(base_color.get("seed", 0))
+        w = 0.65 * _value_noise(points * freq, seed) + 0.35 * _value_noise(points * 2.7 * freq, seed + 1)
+        w = _smoothstep(0.5 - soft, 0.5 + soft, w)[:, None]
+        return (1.0 - w) * colors[0] + w * colors[1 % len(colors)]
+    raise InputError(None, f"unknown base_color pattern '{pattern}' (use stripes, checker, waves or noise)")
+
+
+def _value_noise(p: np.ndarray, seed: int) -> np.ndarray:
+    """Trilinearly interpolated random values in [0, 1] on the integer lattice (smoothstep weights)."""
+    cell = np.floor(p)
+    f = p - cell
+    f = f * f * (3.0 - 2.0 * f)
+    cell = cell.astype(np.int64)
+
+    def rand(c):
+        h = (c[:, 0] * 73856093) ^ (c[:, 1] * 19349663) ^ (c[:, 2] * 83492791) ^ (seed * 2654435761)
+        h = (h ^ (h >> 13)) * 1274126177
+        return ((h ^ (h >> 16)) & 0xFFFF) / 65535.0
+
+    out = np.zeros(len(p))
+    for corner in range(8):
+        d = np.array([(corner >> a) & 1 for a in range(3)])
+        weight = np.prod(np.where(d == 1, f, 1.0 - f), axis=1)
+        out += weight * rand(cell + d)
+    return out
+
+
+def _box(extents: np.ndarray, max_edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box centred at the origin, each face a regular grid of cells at most `max_edge` wide
+    (dense enough for a per-vertex colour pattern), vertices not shared across faces: flat normals."""
+    verts, faces, normals = [], [], []
+    for axis in range(3):
+        u_ax, v_ax = [a for a in range(3) if a != axis]
+        for sign in (-1.0, 1.0):
+            nu = max(2, int(np.ceil(extents[u_ax] / max_edge)) + 1)
+            nv = max(2, int(np.ceil(extents[v_ax] / max_edge)) + 1)
+            uu, vv = np.meshgrid(np.linspace(-0.5, 0.5, nu), np.linspace(-0.5, 0.5, nv), indexing="ij")
+            p = np.zeros((nu * nv, 3))
+            p[:, u_ax], p[:, v_ax] = uu.ravel() * extents[u_ax], vv.ravel() * extents[v_ax]
+            p[:, axis] = 0.5 * sign * extents[axis]
+            idx = np.arange(nu * nv).reshape(nu, nv)
+            a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+            tri = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+            normal = np.zeros(3)
+            normal[axis] = sign
+            # counter-clockwise seen from outside: flip where the grid's winding points inwards
+            e = np.cross(p[tri[0, 1]] - p[tri[0, 0]], p[tri[0, 2]] - p[tri[0, 0]])
+            if e @ normal < 0:
+                tri = tri[:, ::-1]
+            faces.append(tri + sum(len(x) for x in verts))
+            verts.append(p)
+            normals.append(np.tile(normal, (len(p), 1)))
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(normals)
 
 
 def _euler_xyz(deg) -> np.ndarray:
@@ -158,9 +219,12 @@ def build_shape(shape: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                                         count=[64, 64])
         mesh.merge_vertices()
         v, n = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals, dtype=np.float64)
+    elif kind == "box":
+        v, f, n = _box(np.asarray(shape.get("extents", [1.0, 1.0, 1.0]), dtype=np.float64),
+                       float(shape.get("max_edge", 0.02)))
     else:
-        raise InputError(None, f"shape {shape.get('name')}: unknown type '{kind}' (icosphere, torus, capsule)")
-    f = np.asarray(mesh.faces, dtype=np.int64)
+        raise InputError(None, f"shape {shape.get('name')}: unknown type '{kind}' (icosphere, torus, capsule, box)")
+    f = np.asarray(mesh.faces if kind != "box" else f, dtype=np.int64)
     v = v * float(shape.get("scale", 1.0))
     rot = _euler_xyz(shape.get("rotation_deg", [0.0, 0.0, 0.0]))
     v = v @ rot.T + np.asarray(shape.get("center", [0.0, 0.0, 0.0]), dtype=np.float64)
@@ -556,7 +620,9 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
                            "bsdf": {"type": "ref", "id": "mat_" + s["material"]}}
 
     def scene_with(env: np.ndarray):
-        return mi.load_dict(dict(base, envmap=envmaps.to_mitsuba_dict(env, blender_world=False)))
+        # optimize=False: Mitsuba would merge the meshes that share a BSDF into one shape without
+        # an id, and the ground-truth maps look shapes up by id.
+        return mi.load_dict(dict(base, envmap=envmaps.to_mitsuba_dict(env, blender_world=False)), optimize=False)
 
     def make_sensor(cam: Camera):
         d = cam.to_mitsuba_dict(spp)
