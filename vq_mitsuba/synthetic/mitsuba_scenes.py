@@ -124,22 +124,24 @@ def eval_base_color(base_color, points) -> np.ndarray:
         return (1.0 - w) * colors[i0] + w * colors[i1]
     if pattern == "checker":
         s = np.prod(np.sin(math.pi * freq * points), axis=1)
-        w = _smoothstep(-soft, soft, s)[:, None]
-        return (1.0 - w) * colors[0] + w * colors[1 % len(colors)]
+        return _blend(colors, _smoothstep(-soft, soft, s))
     if pattern == "waves":  # wood-like grain: bands along `axis`, bent by a sine along `bend_axis`
         axis = np.asarray(base_color.get("axis", [1.0, 0.0, 0.0]), dtype=np.float64)
         bend = np.asarray(base_color.get("bend_axis", [0.0, 1.0, 0.0]), dtype=np.float64)
         amp, bend_freq = float(base_color.get("bend", 0.6)), float(base_color.get("bend_frequency", 1.5))
         t = freq * (points @ (axis / np.linalg.norm(axis)))
         t = t + amp * np.sin(2 * math.pi * bend_freq * (points @ (bend / np.linalg.norm(bend))))
-        w = (0.5 + 0.5 * np.sin(2 * math.pi * t)) ** (1.0 / max(soft, 1e-3))
-        return (1.0 - w[:, None]) * colors[0] + w[:, None] * colors[1 % len(colors)]
+        return _blend(colors, (0.5 + 0.5 * np.sin(2 * math.pi * t)) ** (1.0 / max(soft, 1e-3)))
     if pattern == "noise":  # value noise on a lattice of `frequency` cells per unit, two octaves
         seed = int(base_color.get("seed", 0))
         w = 0.65 * _value_noise(points * freq, seed) + 0.35 * _value_noise(points * 2.7 * freq, seed + 1)
-        w = _smoothstep(0.5 - soft, 0.5 + soft, w)[:, None]
-        return (1.0 - w) * colors[0] + w * colors[1 % len(colors)]
+        return _blend(colors, _smoothstep(0.5 - soft, 0.5 + soft, w))
     raise InputError(None, f"unknown base_color pattern '{pattern}' (use stripes, checker, waves or noise)")
+
+
+def _blend(colors: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The first colour where w = 0, the second (the first again if there is one) where w = 1."""
+    return (1.0 - w[:, None]) * colors[0] + w[:, None] * colors[1 % len(colors)]
 
 
 def _value_noise(p: np.ndarray, seed: int) -> np.ndarray:
@@ -198,6 +200,12 @@ def _euler_xyz(deg) -> np.ndarray:
     return rz @ ry @ rx  # rotate about X, then Y, then Z (Blender's default XYZ Euler)
 
 
+def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, vertex normals) of a trimesh mesh."""
+    return (np.asarray(mesh.vertices, dtype=np.float64), mesh.faces,
+            np.asarray(mesh.vertex_normals, dtype=np.float64))
+
+
 def build_shape(shape: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(vertices, faces, vertex normals) of a shape in Blender world."""
     import trimesh
@@ -206,25 +214,25 @@ def build_shape(shape: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if kind == "icosphere":
         r = float(shape.get("radius", 0.5))
         mesh = trimesh.creation.icosphere(subdivisions=int(shape.get("subdivisions", 4)), radius=r)
-        v = np.asarray(mesh.vertices, dtype=np.float64)
+        v, f = np.asarray(mesh.vertices, dtype=np.float64), mesh.faces
         n = v / np.linalg.norm(v, axis=1, keepdims=True)  # exact sphere normals
         v = n * r
     elif kind == "torus":
         mesh = trimesh.creation.torus(float(shape.get("major_radius", 0.3)), float(shape.get("minor_radius", 0.1)),
                                       major_sections=int(shape.get("major_sections", 128)),
                                       minor_sections=int(shape.get("minor_sections", 48)))
-        v, n = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals, dtype=np.float64)
+        v, f, n = _mesh_arrays(mesh)
     elif kind == "capsule":
         mesh = trimesh.creation.capsule(height=float(shape.get("height", 0.5)), radius=float(shape.get("radius", 0.15)),
                                         count=[64, 64])
         mesh.merge_vertices()
-        v, n = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals, dtype=np.float64)
+        v, f, n = _mesh_arrays(mesh)
     elif kind == "box":
         v, f, n = _box(np.asarray(shape.get("extents", [1.0, 1.0, 1.0]), dtype=np.float64),
                        float(shape.get("max_edge", 0.02)))
     else:
         raise InputError(None, f"shape {shape.get('name')}: unknown type '{kind}' (icosphere, torus, capsule, box)")
-    f = np.asarray(mesh.faces if kind != "box" else f, dtype=np.int64)
+    f = np.asarray(f, dtype=np.int64)
     v = v * float(shape.get("scale", 1.0))
     rot = _euler_xyz(shape.get("rotation_deg", [0.0, 0.0, 0.0]))
     v = v @ rot.T + np.asarray(shape.get("center", [0.0, 0.0, 0.0]), dtype=np.float64)
