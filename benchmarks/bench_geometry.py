@@ -10,7 +10,8 @@ its transforms_train.json (images and alpha masks only; Blender world) into
 benchmarks/out/geometry/NAME, with a time limit on training. Every --checkpoint-every seconds of
 training a mesh is extracted (128^3, outside the timed training) and scored; the final mesh is
 scored against the dataset's mesh.ply: Chamfer distance as a fraction of the bounding-box
-diagonal, normal consistency, F-scores, and NeuS novel-view PSNR (sRGB, black background) on
+diagonal, normal consistency, F-scores, the shading-normal error per object (over the surface and
+in the test views, as `normal_errors.py`), and NeuS novel-view PSNR (sRGB, black background) on
 the first test views. Results: JSON + markdown in benchmarks/out/geometry/geometry_<commit>.{json,md}
 (copy them into a study folder of benchmarks/results/ to keep them).
 
@@ -39,6 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from normal_errors import table  # noqa: E402
 
 
 def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_root: Path | None = None) -> Path:
@@ -174,6 +176,7 @@ def reused_scene(name: str, args) -> dict:
 
 
 def run_scene(name: str, args, overrides: list[str]) -> dict:
+    from normal_errors import score
     from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.geometry.mesh import mesh_metrics
     from vq_mitsuba.geometry.neus import reconstruct
@@ -210,6 +213,9 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     neus = info.pop("_neus")
     # The hull-initialised start (step 0) and the final state belong on the curve too.
     final = mesh_metrics(load_mesh(run_dir / "mesh.ply"), gt)
+    normals = score(run_dir / "mesh.ply", data, "test")
+    final["shading_normal_deg_by_object"] = normals["surface"].get("shading_normal_deg_by_object", {})
+    final["in_view"] = normals["view"]
     secs = info["seconds"]
     views = novel_view_psnr(neus, data, args.test_views) if args.test_views > 0 else {}
     result = {
@@ -257,6 +263,11 @@ def write_markdown(report: dict, path: Path) -> None:
                      f"{f.get('shading_normal_deg_p90', float('nan')):.2f} | {f['f_score@0.01']:.3f} | "
                      f"{v.get('psnr', float('nan')):.2f} | {v.get('psnr_foreground', float('nan')):.2f} | "
                      f"{la['start'][0]:.1f} / {la['end'][0]:.1f} | {rate} |")
+    for r in report["scenes"]:
+        if "in_view" in r["final"]:
+            lines += ["", f"Shading-normal error of the {r['scene']} mesh, per object (degrees; surface: samples "
+                      "over the surface; in view: pixels of the test views):", "",
+                      table([{"mesh": r["run"] + "/mesh.ply", "surface": r["final"], "view": r["final"]["in_view"]}])]
     lines += ["", "Time against Chamfer (training seconds; meshes at 128^3 for the checkpoints, "
                   f"{report['mesh_resolution']}^3 for the final row):", ""]
     for r in report["scenes"]:

@@ -92,9 +92,9 @@ def smooth_vertex_normals(mesh, iterations: int):
     return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), vertex_normals=normals, process=False)
 
 
-def _sample(mesh, n: int, seed: int):
+def _sample(mesh, n: int, seed: int, faces: bool = False):
     """n surface points: positions, face normals, and shading normals (the vertex normals
-    interpolated barycentrically, as the renderer shades)."""
+    interpolated barycentrically, as the renderer shades); with faces=True also the face index of each."""
     import trimesh
 
     pts, face_idx = trimesh.sample.sample_surface(mesh, n, seed=seed)
@@ -102,10 +102,31 @@ def _sample(mesh, n: int, seed: int):
     bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.triangles)[face_idx], pts)
     shading = np.einsum("nk,nkd->nd", bary, np.asarray(mesh.vertex_normals)[np.asarray(mesh.faces)[face_idx]])
     shading /= np.maximum(np.linalg.norm(shading, axis=1, keepdims=True), 1e-12)
+    if faces:
+        return pts, np.asarray(mesh.face_normals)[face_idx], shading, np.asarray(face_idx)
     return pts, np.asarray(mesh.face_normals)[face_idx], shading
 
 
-def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0) -> dict:
+def angle_stats(deg: np.ndarray) -> dict:
+    """Mean, median and 90th percentile of angles in degrees (NaN when there are none), and their count."""
+    deg = np.asarray(deg, dtype=np.float64)
+    if deg.size == 0:
+        return {"mean": float("nan"), "median": float("nan"), "p90": float("nan"), "count": 0}
+    return {"mean": float(deg.mean()), "median": float(np.median(deg)), "p90": float(np.percentile(deg, 90)),
+            "count": int(deg.size)}
+
+
+def per_label(deg: np.ndarray, labels: np.ndarray, names: list[str]) -> dict:
+    """angle_stats of the angles of each label (labels index into names; names may repeat, to group labels)."""
+    out = {}
+    for name in dict.fromkeys(names):
+        ids = [i for i, n in enumerate(names) if n == name]
+        out[name] = angle_stats(deg[np.isin(labels, ids)])
+    return out
+
+
+def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0, gt_face_labels: np.ndarray | None = None,
+                 label_names: list[str] | None = None) -> dict:
     """Chamfer distance and normal consistency between two meshes, from surface samples.
 
     chamfer: mean of the two mean nearest-neighbour distances (pred->gt, gt->pred);
@@ -114,12 +135,15 @@ def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0) -> dict:
     averaged over both directions (1 = identical orientation); f_score at 0.5% / 1% of the diagonal;
     shading_normal_deg_median / _p90: angle between the shading normals (interpolated vertex
     normals, what the material stage shades with) of each predicted sample and its nearest
+    ground-truth sample (also their mean). With gt_face_labels (an object index per ground-truth
+    face) and label_names (a name per index; equal names are one object), `shading_normal_deg_by_object`
+    gives those statistics per object, each predicted sample counted for the object of its nearest
     ground-truth sample.
     """
     from scipy.spatial import cKDTree
 
     pa, na, sa = _sample(pred, n_points, seed)
-    pb, nb, sb = _sample(gt, n_points, seed + 1)
+    pb, nb, sb, fb = _sample(gt, n_points, seed + 1, faces=True)
     da, ia = cKDTree(pb).query(pa, workers=-1)  # pred -> gt
     db, ib = cKDTree(pa).query(pb, workers=-1)  # gt -> pred
     diag = float(np.linalg.norm(np.ptp(np.asarray(gt.vertices), axis=0)))
@@ -131,10 +155,16 @@ def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0) -> dict:
         "accuracy_rel": float(da.mean() / diag),  # pred -> gt
         "completeness_rel": float(db.mean() / diag),  # gt -> pred
         "normal_consistency": float(nc),
+        "shading_normal_deg_mean": float(shading_deg.mean()),
         "shading_normal_deg_median": float(np.median(shading_deg)),
         "shading_normal_deg_p90": float(np.percentile(shading_deg, 90)),
         "bbox_diagonal": diag,
     }
+    if gt_face_labels is not None:
+        labels = np.asarray(gt_face_labels)
+        if len(labels) != len(gt.faces) or label_names is None or labels.max() >= len(label_names):
+            raise ValueError("gt_face_labels needs one label per ground-truth face, each indexing label_names")
+        out["shading_normal_deg_by_object"] = per_label(shading_deg, labels[fb][ia], list(label_names))
     for frac in (0.005, 0.01):
         tau = frac * diag
         prec, rec = float((da < tau).mean()), float((db < tau).mean())
