@@ -149,6 +149,32 @@ def test_normal_smoothing_removes_bumps_keeps_positions_and_survives_ply(tmp_pat
     assert np.allclose(back.vertex_normals, smoothed.vertex_normals, atol=1e-6)
 
 
+def test_normal_smoothing_within_an_angle_keeps_creases():
+    # A box whose faces are fine grids (vertices shared along the edges, as marching cubes makes
+    # them) with bumpy normals: averaging within 15 degrees flattens the faces but does not bend
+    # the normals next to an edge towards the other face, as plain averaging does.
+    box = trimesh.creation.box((1.0, 1.0, 1.0)).subdivide().subdivide().subdivide().subdivide()
+    box.merge_vertices()
+    rng = np.random.default_rng(0)
+    v = np.asarray(box.vertices)
+    true_n = np.zeros_like(v)
+    axis = np.argmax(np.abs(v), axis=1)  # the face a vertex belongs to (off the edges)
+    true_n[np.arange(len(v)), axis] = np.sign(v[np.arange(len(v)), axis])
+    off_edge = np.sort(np.abs(v), axis=1)[:, 1] < 0.5 - 0.1  # at least 3 edges of the grid from a crease
+    bumpy = np.asarray(box.vertex_normals) + 0.08 * rng.standard_normal(v.shape)
+    bumpy /= np.linalg.norm(bumpy, axis=1, keepdims=True)
+    mesh = trimesh.Trimesh(v, box.faces, vertex_normals=bumpy, process=False)
+
+    def err_deg(m):
+        return np.degrees(np.arccos(np.clip(np.sum(np.asarray(m.vertex_normals)[off_edge] * true_n[off_edge], 1), -1, 1)))
+
+    plain = err_deg(smooth_vertex_normals(mesh, 40))
+    crease = err_deg(smooth_vertex_normals(mesh, 40, max_angle_deg=15.0))
+    assert np.median(err_deg(mesh)) > 3.0
+    assert np.median(crease) < 1.0
+    assert np.percentile(crease, 90) < 0.5 * np.percentile(plain, 90)
+
+
 def test_mesh_metrics_measure_distance_and_normals():
     a = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
     same = mesh_metrics(a, a, n_points=20000)

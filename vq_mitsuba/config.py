@@ -152,7 +152,8 @@ class NeuSConfig:
     min_component: float = 0.05  # connected pieces smaller than this share of the largest are dropped
     keep_largest: bool = False  # keep only the largest connected component
     smooth_iterations: int = 0  # Taubin smoothing steps after marching cubes
-    normal_smoothing: int = 20  # vertex-normal averaging steps over edge neighbours (positions kept)
+    normal_smoothing: int = 40  # vertex-normal averaging steps over edge neighbours (positions kept)
+    normal_smoothing_angle: float = 15.0  # neighbours whose normals differ by more (degrees) are not averaged
     max_faces: int = 200000  # quadric decimation to this many faces (0: none)
     checkpoint_every: int = 500  # steps between NeuS checkpoints
     threads: int = 1  # torch CPU threads for NeuS (0: torch's default)

@@ -70,12 +70,14 @@ def clean_mesh(mesh, min_component: float = 0.05, keep_largest: bool = False, sm
     return out
 
 
-def smooth_vertex_normals(mesh, iterations: int):
+def smooth_vertex_normals(mesh, iterations: int, max_angle_deg: float = 180.0):
     """The mesh with the same vertices and faces and smoothed vertex normals: each step replaces a
-    vertex's normal by the renormalised mean of its own and its edge neighbours' normals, so n steps
-    average over about sqrt(n) edges. The positions do not move (unlike Taubin smoothing), so the
-    silhouette and the surface points stay where NeuS put them; only the shading normals lose the
-    bumps of the SDF grid. The normals are stored in the mesh and written to PLY."""
+    vertex's normal by the renormalised mean of its own and those of its edge neighbours whose
+    normals differ from it by less than max_angle_deg, so n steps average over about sqrt(n) edges
+    within a smooth part and not across a crease (a small angle keeps a box's edges sharp while the
+    bumps of the SDF grid on its faces are averaged away). The positions do not move (unlike Taubin
+    smoothing), so the silhouette and the surface points stay where NeuS put them. The normals are
+    stored in the mesh and written to PLY."""
     import scipy.sparse as sp
     import trimesh
 
@@ -83,9 +85,11 @@ def smooth_vertex_normals(mesh, iterations: int):
     if iterations > 0 and len(mesh.faces):
         n_v = len(mesh.vertices)
         e = np.asarray(mesh.edges_unique)
-        adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                            shape=(n_v, n_v)).tocsr() + sp.identity(n_v, format="csr")
+        rows, cols = np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]]
+        cos_min = np.cos(np.radians(min(max(max_angle_deg, 0.0), 180.0)))
         for _ in range(int(iterations)):
+            w = (np.sum(normals[e[:, 0]] * normals[e[:, 1]], 1) >= cos_min).astype(np.float64)
+            adj = sp.coo_matrix((np.r_[w, w], (rows, cols)), shape=(n_v, n_v)).tocsr() + sp.identity(n_v, format="csr")
             nxt = adj @ normals
             length = np.linalg.norm(nxt, axis=1, keepdims=True)
             normals = np.where(length > 1e-12, nxt / np.maximum(length, 1e-12), normals)

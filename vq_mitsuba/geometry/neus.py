@@ -520,7 +520,7 @@ class NeuS:
             c = self.cfg
             mesh = clean_mesh(mesh, c.min_component, c.keep_largest, c.smooth_iterations, c.max_faces)
             if c.normal_smoothing > 0:
-                mesh = smooth_vertex_normals(mesh, c.normal_smoothing)
+                mesh = smooth_vertex_normals(mesh, c.normal_smoothing, c.normal_smoothing_angle)
         return mesh
 
 
