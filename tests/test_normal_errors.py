@@ -61,6 +61,8 @@ def test_in_view_error_counts_only_pixels_both_meshes_cover():
     assert view["by_object"]["b"]["count"] < 0.5 * full["by_object"]["b"]["count"]
     with pytest.raises(ValueError):
         view_normal_errors(small, gt, cameras(), labels[:-1], ["a", "b"])
+    with pytest.raises(ValueError):
+        mesh_metrics(small, gt, n_points=2000, gt_face_labels=labels, label_names=["a"])
 
 
 def test_scene_object_labels_group_numbered_shapes_of_one_material(tmp_path):

@@ -13,7 +13,7 @@ import numpy as np
 
 from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.data.cameras import camera_rays
-from vq_mitsuba.geometry.mesh import angle_stats, per_label
+from vq_mitsuba.geometry.mesh import angle_stats, check_face_labels, per_label
 
 
 def _scene(mesh):
@@ -61,9 +61,7 @@ def view_normal_errors(pred, gt, cameras, gt_face_labels: np.ndarray | None = No
     out = angle_stats(deg)
     out["coverage"] = float(len(deg) / max(gt_pixels, 1))
     if gt_face_labels is not None:
-        face_labels = np.asarray(gt_face_labels)
-        if len(face_labels) != len(gt.faces) or label_names is None or face_labels.max() >= len(label_names):
-            raise ValueError("gt_face_labels needs one label per ground-truth face, each indexing label_names")
+        face_labels = check_face_labels(gt, gt_face_labels, label_names)
         out["by_object"] = per_label(deg, face_labels[np.concatenate(labels)], list(label_names))
     return out
 

@@ -120,6 +120,14 @@ def angle_stats(deg: np.ndarray) -> dict:
             "count": int(deg.size)}
 
 
+def check_face_labels(mesh, face_labels, names) -> np.ndarray:
+    """face_labels as an array after checking it holds one label per face of mesh, each an index into names."""
+    labels = np.asarray(face_labels)
+    if len(labels) != len(mesh.faces) or names is None or labels.min() < 0 or labels.max() >= len(names):
+        raise ValueError("gt_face_labels needs one label per ground-truth face, each indexing label_names")
+    return labels
+
+
 def per_label(deg: np.ndarray, labels: np.ndarray, names: list[str]) -> dict:
     """angle_stats of the angles of each label (labels index into names; names may repeat, to group labels)."""
     out = {}
@@ -165,9 +173,7 @@ def mesh_metrics(pred, gt, n_points: int = 100000, seed: int = 0, gt_face_labels
         "bbox_diagonal": diag,
     }
     if gt_face_labels is not None:
-        labels = np.asarray(gt_face_labels)
-        if len(labels) != len(gt.faces) or label_names is None or labels.max() >= len(label_names):
-            raise ValueError("gt_face_labels needs one label per ground-truth face, each indexing label_names")
+        labels = check_face_labels(gt, gt_face_labels, label_names)
         out["shading_normal_deg_by_object"] = per_label(shading_deg, labels[fb][ia], list(label_names))
     for frac in (0.005, 0.01):
         tau = frac * diag
