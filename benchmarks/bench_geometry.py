@@ -212,10 +212,8 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
                        callback_every_s=args.checkpoint_every)
     neus = info.pop("_neus")
     # The hull-initialised start (step 0) and the final state belong on the curve too.
-    final = mesh_metrics(load_mesh(run_dir / "mesh.ply"), gt)
-    normals = score(run_dir / "mesh.ply", data, "test")
-    final["shading_normal_deg_by_object"] = normals["surface"].get("shading_normal_deg_by_object", {})
-    final["in_view"] = normals["view"]
+    normals = score(run_dir / "mesh.ply", data, "test", gt=gt)  # mesh_metrics, per object too, and in view
+    final = {**normals["surface"], "in_view": normals["view"]}
     secs = info["seconds"]
     views = novel_view_psnr(neus, data, args.test_views) if args.test_views > 0 else {}
     result = {

@@ -21,12 +21,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def score(mesh_path: Path, dataset: Path, views: str) -> dict:
+def score(mesh_path: Path, dataset: Path, views: str, gt=None) -> dict:
+    """Both measures for one mesh (`gt`: the dataset's mesh.ply when already loaded)."""
     from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.eval.normals import scene_object_labels, view_normal_errors
     from vq_mitsuba.geometry.mesh import mesh_metrics
 
-    gt = load_mesh(dataset / "mesh.ply")
+    gt = load_mesh(dataset / "mesh.ply") if gt is None else gt
     pred = load_mesh(mesh_path)
     labels = scene_object_labels(dataset)
     lab, names = labels if labels else (None, None)

@@ -119,7 +119,7 @@ class Trainer:
             env.resize(height)
         else:
             env.log_radiance = torch.nn.Parameter(torch.zeros(height, 2 * height, 3, device=old.device))
-        group = self.optim.param_groups[-1]
+        group = next(g for g in self.optim.param_groups if any(q is old for q in g["params"]))
         group["params"] = [env.log_radiance]
         self.optim.state.pop(old, None)
 

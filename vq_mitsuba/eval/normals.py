@@ -9,6 +9,10 @@ surface seen in many views counts more.
 
 from __future__ import annotations
 
+import json
+import re
+from pathlib import Path
+
 import numpy as np
 
 from vq_mitsuba.backend import init_mitsuba
@@ -70,10 +74,6 @@ def scene_object_labels(dataset) -> tuple[np.ndarray, list[str]] | None:
     """(object index per face of DATASET/mesh.ply, object names) of a bundled synthetic dataset, from
     its scene.json (the mesh is its shapes in order); shapes named NAME_<k> of one material count
     as one object NAME. None when the dataset does not list its shapes."""
-    import json
-    import re
-    from pathlib import Path
-
     meta = Path(dataset) / "scene.json"
     if not meta.is_file():
         return None
