@@ -124,7 +124,7 @@ def main() -> None:
 
     from bench_geometry import commit, machine, versions
 
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.eval import metrics as M
     from vq_mitsuba.export.formats import export_run
     from vq_mitsuba.render.views import Renderer

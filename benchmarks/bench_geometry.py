@@ -208,9 +208,9 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
               f"NC {m['normal_consistency']:.4f} (scored in {time.perf_counter() - t:.0f} s)", flush=True)
 
     print(f"[{name}] NeuS on {data}/transforms_train.json, training limit {args.time_limit:g} s", flush=True)
-    info = reconstruct(capture, run_dir, cfg, progress=not args.quiet, callback=checkpoint,
-                       callback_every_s=args.checkpoint_every)
-    neus = info.pop("_neus")
+    result = reconstruct(capture, run_dir, cfg, progress=not args.quiet, callback=checkpoint,
+                         callback_every_s=args.checkpoint_every)
+    info, neus = result.summary, result.neus
     # The hull-initialised start (step 0) and the final state belong on the curve too.
     normals = score(run_dir / "mesh.ply", data, "test", gt=gt)  # mesh_metrics, per object too, and in view
     final = {**normals["surface"], "in_view": normals["view"]}

@@ -39,7 +39,7 @@ def main() -> None:
     from bench_geometry import commit, machine, versions
     from vq_mitsuba.data.envmaps import load_envmap
     from vq_mitsuba.data.imageio import read_exr
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.render.views import render_views
 
     run = RunDir(args.run_dir)

@@ -55,7 +55,7 @@ def main() -> int:
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.eval.evaluate import RunPredictor, dataset_root, load_ground_truth
     from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
-    from vq_mitsuba.render.views import convert_world
+    from vq_mitsuba.data.cameras import convert_world
 
     root = dataset_root(args.dataset)
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")

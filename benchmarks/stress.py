@@ -29,7 +29,7 @@ QUICK = ["--set", "train.batch_rays=256", "--set", "vq.enabled=false", "--quiet"
 
 def kill_and_resume(capture: Path, tmp: Path, rng: np.random.Generator, i: int) -> dict:
     from vq_mitsuba import cli
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.errors import InputError
 
     every = int(rng.choice([1, 5, 20]))
@@ -62,7 +62,7 @@ def kill_and_resume(capture: Path, tmp: Path, rng: np.random.Generator, i: int) 
 def lighting_extremes(capture: Path, tmp: Path) -> dict:
     from vq_mitsuba import cli
     from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.errors import InputError
     from vq_mitsuba.render.views import Renderer
 

@@ -42,7 +42,7 @@ def main() -> None:
     from vq_mitsuba.data.cameras import Camera
     from vq_mitsuba.data.imageio import read_image
     from vq_mitsuba.edit import build_edit, edit_run
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.render.views import Renderer, segmentation_overlay
 
     run = RunDir(args.run)

@@ -16,7 +16,7 @@ def three_materials(tmp_path_factory):
     """(capture XML, RunDir) of the three-sphere capture fitted with the defaults (both branches)."""
     from tiny_scene import write_three_material_capture
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.engine.trainer import fit
 
     out = tmp_path_factory.mktemp("three")

@@ -11,7 +11,7 @@ from tiny_scene import THREE_MATERIALS, three_material_ids
 from vq_mitsuba import cli
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.edit import build_edit, edit_run
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.models.edits import (Change, Edit, Selection, apply_edits, check_change, hsv_to_rgb, hue_shift,
                                      material_library, rgb_to_hsv)

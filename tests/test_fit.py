@@ -97,7 +97,7 @@ def test_resume_without_checkpoint_starts_the_fit(sphere_capture, tmp_path, caps
 
 def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
     """train.snapshot_s keeps the state at those fit seconds; RunDir.load reads a snapshot as the run."""
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
 
     run = tmp_path / "run"
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.snapshot_s=1e-6,1e-5"])
@@ -127,7 +127,8 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     monkeypatch.setattr(fit_module.time, "perf_counter", lambda: 0.01 * next(ticks))
     run = tmp_path / "run"
     cfg = load_config(None, ["train.iterations=100000", "train.batch_rays=64", "train.time_limit_s=2",
-                             "train.lr=0.002", "train.lr_decay=0.01", "field.pe_anneal=0.5", "vq.enabled=false"])
+                             "train.lr=0.002", "train.lr_end_exponential=0.01", "field.pe_anneal=0.5",
+                             "vq.enabled=false"])
     summary = fit(sphere_capture, run, cfg, progress=False)
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     assert 10 < summary["iterations"] < 100000  # stopped by the clock
@@ -136,7 +137,8 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     factor = 0.01 ** ((state["step"] - 1) / 100000)
     assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(0.002 * factor, rel=1e-9)
     # Without a time limit the schedule follows the iterations.
-    cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01", "train.lr_decay=0.1"])
+    cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01",
+                             "train.lr_end_exponential=0.1"])
     fit(sphere_capture, tmp_path / "r2", cfg, progress=False)
     lr_end = torch.load(tmp_path / "r2" / "checkpoint.pt", weights_only=False)["optim"]["param_groups"][0]["lr"]
     assert lr_end == pytest.approx(0.01 * 0.1 ** 0.75)
@@ -148,7 +150,7 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
                                n_views=12, spp=64)
     cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8"], preset="continuous")
     fit(xml, tmp_path / "run", cfg, progress=False)
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
 
     fitted = RunDir(tmp_path / "run").load()
     pts = torch.tensor(np.asarray(fitted.mesh.vertices), dtype=torch.float32)
@@ -277,7 +279,7 @@ def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monke
 def test_resume_after_the_envmap_grew(tmp_path):
     """The learned envmap grows during the fit; a run checkpointed after that resumes at its size
     and keeps growing to envmap.height."""
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
 
     base = ["--quiet", "--set", "envmap.height=64", "--set", "field.pe_anneal=0.5", "--set", "train.batch_rays=128",
             "--set", "vq.enabled=false", "--set", "train.checkpoint_every=2"]

@@ -216,7 +216,9 @@ def test_neus_moves_a_wrong_sphere_to_the_true_surface():
 
 def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
     capture = sphere_capture(n_views=8, size=24)
-    info = reconstruct(capture, tmp_path, small_cfg(iterations=4, checkpoint_every=2), progress=False)
+    result = reconstruct(capture, tmp_path, small_cfg(iterations=4, checkpoint_every=2), progress=False)
+    info = result.summary
+    assert len(result.mesh.faces) == info["mesh"]["faces"] and result.neus.cfg.iterations == 4
     for name in ("mesh.ply", "geometry.json", "geometry_loss.png", "neus.pt"):
         assert (tmp_path / name).is_file(), name
     mesh = trimesh.load(tmp_path / "mesh.ply", force="mesh")
@@ -227,7 +229,7 @@ def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
     assert data["iterations"] == 4 and data["mesh"]["faces"] == len(mesh.faces)
     assert info["seconds"]["train"] > 0
     again = reconstruct(capture, tmp_path, small_cfg(iterations=6), resume=True, progress=False)
-    assert again["iterations"] == 6
+    assert again.summary["iterations"] == 6
     # Resuming under other network shapes is refused by name, and the checkpoint is kept.
     other = not small_cfg().reflect
     with pytest.raises(InputError, match=f"neus.reflect={not other} \\(now {other}\\)") as err:

@@ -1,5 +1,5 @@
-"""The package's layers import one way: data -> models -> render -> engine -> eval -> cli, and
-rendering a finished run imports no training code."""
+"""The package's layers import one way: data -> models -> run -> geometry -> render -> engine ->
+eval -> cli, and rendering a finished run imports no training code."""
 
 import ast
 import subprocess
@@ -7,10 +7,11 @@ import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
-# Each layer may import its own and the lower ones. geometry (NeuS) sits beside models; synthetic
-# (the make-scene datasets) and cli sit on top. Base modules (config, errors, backend) are below all.
-LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models", "geometry"}, {"render"}, {"engine"}, {"eval", "edit", "export"}, {"ui"},
-          {"synthetic"}, {"cli"}]
+# Each layer may import its own and the lower ones. `run` (the run folder and the loop skeleton) sits
+# below every stage that writes a run, the geometry stage included; synthetic (the make-scene
+# datasets) and cli sit on top. Base modules (config, errors, backend) are below all.
+LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models"}, {"run"}, {"geometry"}, {"render"}, {"engine"},
+          {"eval", "edit", "export"}, {"ui"}, {"synthetic"}, {"cli"}]
 
 
 def _layer(module: str) -> int:
@@ -66,5 +67,22 @@ def test_render_command_imports_no_training_code(tmp_path):
             "print(sorted(m for m in sys.modules if m.startswith('vq_mitsuba')))")
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True)
     loaded = eval(out.stdout.strip().splitlines()[-1])
-    assert "vq_mitsuba.engine.run_dir" in loaded and "vq_mitsuba.render.views" in loaded
-    assert not [m for m in loaded if m.startswith("vq_mitsuba.engine.") and m != "vq_mitsuba.engine.run_dir"]
+    assert "vq_mitsuba.run.run_dir" in loaded and "vq_mitsuba.render.views" in loaded
+    assert not [m for m in loaded if m.startswith(("vq_mitsuba.engine", "vq_mitsuba.geometry.neus"))], loaded
+
+
+def test_only_run_dir_names_run_files():
+    """Every JSON and torch file of a run folder is named once, in RunDir: no other module spells one
+    out. (mesh.ply is also a capture's file name, so the capture loaders may say it.)"""
+    from vq_mitsuba.run.run_dir import RunDir
+
+    names = {v for k, v in vars(RunDir).items() if k.isupper() and isinstance(v, str) and v.endswith((".json", ".pt"))}
+    assert {"run.json", "checkpoint.pt", "neus.pt", "geometry.json", "metrics.json"} <= names
+    found = []
+    for path in PACKAGE.rglob("*.py"):
+        if path.name == "run_dir.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names:
+                found.append((str(path.relative_to(PACKAGE)), node.lineno, node.value))
+    assert not found, found

@@ -6,7 +6,7 @@ import torch
 
 from tiny_scene import three_material_ids
 from vq_mitsuba.data.captures import load_capture
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.eval.metrics import segmentation_scores
 from vq_mitsuba.render.views import Renderer
 

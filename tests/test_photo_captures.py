@@ -224,7 +224,7 @@ def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
     points agrees (the three copies differ in coordinates, lens and resampling only)."""
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.synthetic.photo_formats import colmap_similarity, write_photo_formats
 
     import torch

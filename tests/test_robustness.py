@@ -9,7 +9,7 @@ from tiny_scene import write_sphere_capture
 from vq_mitsuba import cli
 from vq_mitsuba.config import load_config
 from vq_mitsuba.data.imageio import read_image, write_exr
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError, NumericalError
 
 

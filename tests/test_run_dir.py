@@ -8,7 +8,7 @@ import torch
 import trimesh
 
 from vq_mitsuba.config import load_config
-from vq_mitsuba.engine.run_dir import FORMAT_VERSION, RunDir
+from vq_mitsuba.run.run_dir import FORMAT_VERSION, RunDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.models.fields import ContinuousMaterial, EnvironmentMap
 from vq_mitsuba.models.vq import DiscreteBranch

@@ -256,7 +256,7 @@ def test_orbit_turns_about_the_object_and_stops_short_of_the_poles():
 def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_materials, tmp_path):
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.imageio import read_exr
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.render.views import render_views
 
     capture, run = three_materials

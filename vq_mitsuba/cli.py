@@ -28,7 +28,7 @@ def _help_config() -> int:
 def _config(args, run_dir: Path | None = None):
     """Defaults <- the run's saved config (on --resume) <- --preset <- --config <- --set."""
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
 
     base = RunDir(run_dir).saved_config() if (args.resume and run_dir is not None) else None
     flags = [f"capture.{key}={value}" for key, value in (("downscale", getattr(args, "downscale", None)),
@@ -39,7 +39,7 @@ def _config(args, run_dir: Path | None = None):
 
 
 def _cmd_fit(args) -> int:
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.engine.trainer import fit
 
     if args.help_config:
@@ -82,7 +82,7 @@ def _cmd_geometry(args) -> int:
     _run_folder(run_dir)
     cfg = _config(args)
     info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                        gt_mesh=args.gt_mesh, capture_cfg=cfg.capture)
+                        gt_mesh=args.gt_mesh, capture_cfg=cfg.capture).summary
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
@@ -100,7 +100,7 @@ def _cmd_render(args) -> int:
 
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.render.views import render_views
 
     _output_folder(args.output)
@@ -137,7 +137,7 @@ def _edit_label(args) -> str:
 
 def _cmd_edit(args) -> int:
     from vq_mitsuba.edit import build_edit, edit_run
-    from vq_mitsuba.engine.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.models.edits import material_library
 
     if args.list_presets:
@@ -186,21 +186,17 @@ def _cmd_ui(args) -> int:
 
 def _cmd_eval(args) -> int:
     from vq_mitsuba.eval.evaluate import evaluate, evaluate_holdout, format_table
+    from vq_mitsuba.run.run_dir import RunDir
 
     if args.gt is None:  # a real capture: the held-out views
         metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output)
         print(f"held-out views ({len(metrics['views'])}): novel view PSNR {metrics['novel_view']['psnr']:.2f} dB, "
               f"SSIM {metrics['novel_view']['ssim']:.4f} (inside the masks)")
-        out = args.output or str(Path(args.run_dir) / "metrics.json")
-        print(f"metrics written to {out}")
-        return 0
-    metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
-                       progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
-    print(format_table(metrics))
-    from vq_mitsuba.engine.run_dir import RunDir
-
-    out = args.output or str(RunDir(args.run_dir) / RunDir.METRICS)
-    print(f"metrics written to {out}")
+    else:
+        metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
+                           progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
+        print(format_table(metrics))
+    print(f"metrics written to {args.output or RunDir(args.run_dir) / RunDir.METRICS}")
     return 0
 
 
@@ -268,13 +264,12 @@ def _output_folder(path: str | None) -> None:
         raise InputError(path, "is a file; -o names an output folder")
 
 
-RUN_FILES = ("run.json", "config.yaml", "checkpoint.pt", "geometry.json", "neus.pt")
-
-
 def _run_folder(path: Path) -> None:
     """A fit writes into a new folder, an empty one, or a run's own: never over a user's other files."""
+    from vq_mitsuba.run.run_dir import RunDir
+
     path = Path(path)
-    if path.is_dir() and any(path.iterdir()) and not any((path / f).is_file() for f in RUN_FILES):
+    if path.is_dir() and any(path.iterdir()) and not RunDir(path).holds_run_files():
         raise InputError(path, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
 
 

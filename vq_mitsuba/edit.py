@@ -1,6 +1,6 @@
 """`vq-mitsuba edit`: select materials of a fitted run and change them, writing a new run.
 
-Reads the fitted run through `engine.run_dir` only. The new run holds the edit list
+Reads the fitted run through `run.run_dir` only. The new run holds the edit list
 (`models.edits.Edit`), applied wherever the run's fields are read (render, export, eval).
 """
 
@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.models.edits import Change, Edit, Selection, check_change, preset_changes
 from vq_mitsuba.models.fitted import FittedModel

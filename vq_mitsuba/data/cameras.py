@@ -165,3 +165,19 @@ def camera_rays(camera: Camera, jitter: np.ndarray | None = None,
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     o = np.broadcast_to(camera.origin, d.shape)
     return np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32)
+
+
+def world_rotation(src: str, dst: str) -> np.ndarray:
+    """The (3, 3) rotation taking world `src` to world `dst` ("mitsuba" Y-up / "blender" Z-up)."""
+    if src == dst:
+        return np.eye(3)
+    return MITSUBA_TO_BLENDER if (src, dst) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
+
+
+def convert_world(camera: Camera, src: str, dst: str) -> Camera:
+    """Express a camera given in world `src` in world `dst`."""
+    if src == dst:
+        return camera
+    rot = np.eye(4)
+    rot[:3, :3] = world_rotation(src, dst)
+    return replace(camera, to_world=rot @ camera.to_world)

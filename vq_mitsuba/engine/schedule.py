@@ -32,7 +32,7 @@ def schedule_at(cfg: Config, step: int, elapsed_s: float) -> StepSchedule:
     return StepSchedule(
         done=done,
         progress=progress,
-        lr_factor=cfg.train.lr_decay ** done,
+        lr_factor=cfg.train.lr_end_exponential ** done,
         w_lam=cfg.loss.w_lam * cfg.loss.lam_decay ** progress,
         w_lam_d=cfg.loss.w_lam * cfg.vq.lam_decay ** progress,
         metallic_barrier=progress < cfg.loss.metallic_barrier_until,

@@ -20,11 +20,10 @@ import torch
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture, load_capture
-from vq_mitsuba.geometry.pipeline import UNDISTORTED
 from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models import losses
@@ -317,14 +316,15 @@ class Trainer:
             info = rank_materials(self.scene, self.model, self.discrete, self.pool, env, self.cfg)
             self.checkpoint(summary["seconds"])  # with the ranked codebook and M
             run.write_materials(info)
-            plot_err_k(info["err_k"], info["num_materials"], info["epsilon"], run / RunDir.ERR_PLOT)
-            write_material_sheet(info["materials"], env.cpu().numpy(), self.capture.envmap_to_world,
-                                 run / RunDir.SHEET)
+            run.write_file(RunDir.ERR_PLOT, lambda path: plot_err_k(info["err_k"], info["num_materials"],
+                                                                     info["epsilon"], path))
+            run.write_file(RunDir.SHEET, lambda path: write_material_sheet(
+                info["materials"], env.cpu().numpy(), self.capture.envmap_to_world, path))
         elif self.cfg.vq.enabled:
             print("warning: the fit ended before the discrete branch started (vq.warmup_frac); "
                   "no materials.json was written")
         run.write_envmap(env.cpu().numpy())
-        plot_history(self.history, run / RunDir.LOSS_PLOT)
+        run.write_file(RunDir.LOSS_PLOT, lambda path: plot_history(self.history, path))
         run.write_fit_summary(summary)
 
 
@@ -334,7 +334,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     t_start = time.perf_counter()
     run = RunDir(run_dir)
     parse_snapshot_times(cfg.train.snapshot_s)
-    if (run / RunDir.INFO).is_file() and run.is_edit():
+    if run.is_run() and run.is_edit():
         raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
     if run.has_checkpoint() and not resume:
         raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
@@ -347,7 +347,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         resume = False
     # every input check happens here, first
     capture = load_capture(capture_path, mesh=mesh_path, options=cfg.capture, split="train",
-                           cache_dir=run.dir / UNDISTORTED)
+                           cache_dir=run.undistorted_dir)
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
                          "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from masked images "
@@ -357,7 +357,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         if Path(info["capture"]) != Path(capture.source).resolve():
             raise InputError(run.dir, f"was fitted to {info['capture']}, not {Path(capture.source).resolve()}; "
                                       "resume it with that capture, or choose another -o")
-        if (run / RunDir.MESH).is_file():
+        if run.has_mesh():
             old, new = np.asarray(run.mesh().vertices), np.asarray(capture.mesh.vertices)
             scale = float(np.abs(new).max()) if new.size else 1.0
             if old.shape != new.shape or not np.allclose(old, new, atol=1e-5 * max(scale, 1e-6)):

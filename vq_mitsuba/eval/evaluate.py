@@ -34,7 +34,7 @@ import numpy as np
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
 from vq_mitsuba.data.imageio import read_exr, read_image
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
@@ -185,7 +185,8 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
 
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
-    from vq_mitsuba.render.views import check_finite, convert_world
+    from vq_mitsuba.data.cameras import convert_world
+    from vq_mitsuba.render.views import check_finite
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
@@ -335,7 +336,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     if output is not None:
         out_path = Path(output)
         out_path.parent.mkdir(parents=True, exist_ok=True)
-        out_path.write_text(json.dumps(json_safe(result), indent=2))
+        write_json(out_path, json_safe(result))
     return result
 
 
@@ -514,7 +515,6 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     from tqdm import tqdm
 
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.pipeline import UNDISTORTED
     from vq_mitsuba.render.views import Renderer, check_finite
 
     run = RunDir(run_dir)
@@ -523,7 +523,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
         raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
                                   "of a real capture, or give --gt DATASET for a synthetic one")
     info = run.source().info()
-    held = load_capture(info["capture"], options=cfg.capture, split="holdout", cache_dir=run.source().dir / UNDISTORTED)
+    held = load_capture(info["capture"], options=cfg.capture, split="holdout", cache_dir=run.undistorted_dir)
     fitted = run.load()
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp
@@ -539,7 +539,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     metrics = {"run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
                "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
                "coverage_iou": _mean(r["coverage_iou"] for r in rows), "views": rows}
-    out_path = Path(output) if output is not None else run.dir / RunDir.METRICS
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(metrics, indent=2))
+    if output is not None:
+        Path(output).parent.mkdir(parents=True, exist_ok=True)
+    run.write_metrics(metrics, output)
     return metrics

@@ -19,19 +19,46 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.config import TexelConfig
+from vq_mitsuba.config import setting
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.uv import uv_unwrap
+from vq_mitsuba.run.run_dir import write_atomic, write_json
 
 SNAPSHOT_FORMAT = 1
+TEXEL_SUMMARY = "texel_fit.json"  # the baseline's summary, beside its snapshots
+
+
+@dataclass
+class TexelConfig:
+    """The per-texel baseline: principled textures on a UV atlas (fit_texel's settings; not part of a run's Config)."""
+
+    resolution: int = setting(256, "texels per side of each material texture", ">0")
+    uv_padding: int = setting(2, "texels between charts in the UV atlas")
+    envmap_height: int = setting(32, "rows of the learned lat-long envmap (width is twice this)", ">0")
+    env_init_scale: float = setting(2.0, "initial radiance as a multiple of the mean foreground pixel value", ">0")
+    spp: int = setting(16, "samples per pixel of each training render", ">0")
+    max_depth: int = setting(3, "path length of the integrator (3: direct light plus one bounce)", ">0")
+    views_per_step: int = setting(1, "random whole training views rendered per Adam step", ">0")
+    lr_texture: float = setting(0.05, "Adam learning rate of the texels", ">0")
+    lr_envmap: float = setting(0.03, "Adam learning rate of the envmap's log radiance", ">0")
+    lr_end_exponential: float = setting(
+        0.1, "learning-rate factor reached at the time limit or last step (exponential in the share done)", "(0,1]")
+    gamma: float = setting(2.2, "the loss compares x^(1/gamma)", ">0")
+    tv_weight: float = setting(1.0, "weight of the mean squared difference of neighbouring texels")
+    env_tv_weight: float = setting(1e-4, "weight of the smoothness of the envmap's log radiance")
+    init_basecolor: float = setting(0.5, "initial basecolor texels", "[0,1]")
+    init_metallic: float = setting(0.1, "initial metallic texels", "[0,1]")
+    init_roughness: float = setting(0.5, "initial roughness texels", "[0,1]")
+    roughness_min: float = setting(0.02, "roughness texels are clamped to [roughness_min, 1]", "[0,1]")
+    iterations: int = setting(0, "stop after this many steps (0: only the time limit)")
+    seed: int = setting(0, "seed of the view order and the Monte Carlo samples")
 
 
 TEXTURES = ("basecolor", "metallic", "roughness")
@@ -249,9 +276,7 @@ def _snapshot_path(out_dir: Path, seconds: float) -> Path:
 
 
 def _write_snapshot(path: Path, arrays: dict, meta: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
-    os.replace(tmp, path)
+    write_atomic(path, lambda tmp: np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays))
 
 
 def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | None = None,
@@ -314,7 +339,7 @@ def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | 
     while True:
         frac = max(elapsed / time_limit_s if time_limit_s > 0 else 0.0,
                    step / cfg.iterations if cfg.iterations > 0 else 0.0)
-        decay = cfg.lr_decay ** min(frac, 1.0)
+        decay = cfg.lr_end_exponential ** min(frac, 1.0)
         opt.set_learning_rate({k: v * decay for k, v in lrs.items()})
         views = rng.choice(n_views, size=per_step, replace=False)
         rec = ts.loss(opt, views, seed=step * per_step)
@@ -354,7 +379,7 @@ def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | 
     summary = {"snapshots": snaps, "iterations": step, "seconds": elapsed, "setup_seconds": setup_seconds,
                "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
                "loss_first": loss_first, "loss_last": loss_ema}
-    (out_dir / "texel_fit.json").write_text(json.dumps(summary, indent=2))
+    write_json(out_dir / TEXEL_SUMMARY, summary)
     return summary
 
 

@@ -1,6 +1,6 @@
 """`vq-mitsuba export`: a fitted (or edited) run as a glTF binary, OBJ+MTL or a Mitsuba scene.
 
-Reads the run through `engine.run_dir`; the material fields (with the run's edits) are baked into
+Reads the run through `run.run_dir`; the material fields (with the run's edits) are baked into
 textures on a UV atlas (`export.bake`). Each format is one writer module.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.engine.run_dir import RunDir, write_json
+from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
 
 FORMATS = ("gltf", "obj", "mitsuba")

@@ -20,11 +20,9 @@ What makes it fast enough for two CPU cores:
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +33,9 @@ import torch.nn.functional as F
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig
-from vq_mitsuba.config import check_neus as validate
+from vq_mitsuba.run.run_dir import RunDir, save_torch
+from vq_mitsuba.config import check as validate
 
-CHECKPOINT = "neus.pt"
 
 
 class _threads:
@@ -539,13 +537,7 @@ def _progress(cfg: NeuSConfig, step: int, elapsed: float) -> float:
 def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
     warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
     cos = 0.5 * (1.0 + math.cos(math.pi * prog))
-    return warm * (cfg.lr_decay + (1.0 - cfg.lr_decay) * cos)
-
-
-def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    return warm * (cfg.lr_end_cosine + (1.0 - cfg.lr_end_cosine) * cos)
 
 
 # Keys that shape the networks: a checkpoint resumes only under the same values. A checkpoint
@@ -566,16 +558,16 @@ def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
                          "the same values (--set neus.KEY=VALUE), or start over without --resume")
 
 
-def train(neus: NeuS, run_dir: Path | None = None, resume: bool = False, progress: bool = True,
+def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress: bool = True,
           callback=None, callback_every_s: float = 0.0) -> dict:
     """Optimise the NeuS model; returns a summary. `callback(neus, step, train_seconds)` is called
     every `callback_every_s` seconds of training (its own time is not counted)."""
 
     with _threads(neus.cfg.threads):
-        return _train(neus, run_dir, resume, progress, callback, callback_every_s)
+        return _train(neus, run, resume, progress, callback, callback_every_s)
 
 
-def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) -> dict:
+def _train(neus: NeuS, run: RunDir | None, resume, progress, callback, callback_every_s) -> dict:
     from tqdm import tqdm
 
     cfg = neus.cfg
@@ -588,7 +580,7 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     step, elapsed, history = 0, 0.0, []
-    ckpt = run_dir / CHECKPOINT if run_dir is not None else None
+    ckpt = run.neus_checkpoint_path if run is not None else None
     if resume and ckpt is not None and ckpt.is_file():
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         _check_architecture(ckpt, state.get("config") or {}, cfg)
@@ -600,7 +592,7 @@ def _train(neus: NeuS, run_dir, resume, progress, callback, callback_every_s) ->
 
     def save():
         if ckpt is not None:
-            _atomic_save({"model": model.state_dict(), "optim": optim.state_dict(), "generator": gen.get_state(),
+            save_torch({"model": model.state_dict(), "optim": optim.state_dict(), "generator": gen.get_state(),
                           "torch_rng": torch.get_rng_state(), "step": step, "elapsed": elapsed,
                           "history": history, "config": asdict(cfg)}, ckpt)
 
@@ -708,29 +700,39 @@ def _plot_history(history: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def reconstruct(capture, run_dir: str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
-                progress: bool = True, callback=None, callback_every_s: float = 0.0) -> dict:
-    """NeuS on a loaded capture, then mesh export: writes RUN_DIR/mesh.ply, geometry.json,
-    geometry_loss.png (and the NeuS checkpoint neus.pt). Returns the geometry.json summary."""
+@dataclass
+class Reconstruction:
+    """What the geometry stage made: the exported mesh, the trained NeuS model and its summary
+    (the content of geometry.json)."""
+
+    mesh: object  # trimesh.Trimesh, in the capture's world
+    neus: NeuS
+    summary: dict
+
+
+def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
+                progress: bool = True, callback=None, callback_every_s: float = 0.0) -> Reconstruction:
+    """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
+    geometry_loss.png (and the NeuS checkpoint neus.pt)."""
     cfg = cfg or NeuSConfig()
+    run = run if isinstance(run, RunDir) else RunDir(run)
     with _threads(cfg.threads):
-        return _reconstruct(capture, Path(run_dir), cfg, resume, progress, callback, callback_every_s)
+        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s)
 
 
-def _reconstruct(capture, run_dir: Path, cfg: NeuSConfig, resume, progress, callback, callback_every_s) -> dict:
+def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s) -> Reconstruction:
     t0 = time.perf_counter()
     neus = NeuS(capture, cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run.create()
     setup_s = time.perf_counter() - t0
-    summary = train(neus, run_dir, resume=resume, progress=progress, callback=callback,
+    summary = train(neus, run, resume=resume, progress=progress, callback=callback,
                     callback_every_s=callback_every_s)
     t1 = time.perf_counter()
     mesh = neus.extract_mesh()
     export_s = time.perf_counter() - t1
-    tmp = run_dir / "mesh.tmp.ply"
-    mesh.export(tmp)
-    os.replace(tmp, run_dir / "mesh.ply")
-    _plot_history(summary["history"], run_dir / "geometry_loss.png")
+    run.write_mesh(mesh)
+    if summary["history"]:
+        run.write_file(run.GEOMETRY_PLOT, lambda path: _plot_history(summary["history"], path))
     last = summary["history"][-1] if summary["history"] else {}
     info = {
         "capture": str(Path(capture.source).resolve()),
@@ -752,6 +754,5 @@ def _reconstruct(capture, run_dir: Path, cfg: NeuSConfig, resume, progress, call
         "config": asdict(cfg),
         "torch_threads": torch.get_num_threads(),
     }
-    (run_dir / "geometry.json").write_text(json.dumps(info, indent=2))
-    info["_neus"] = neus
-    return info
+    run.write_geometry_summary(info)
+    return Reconstruction(mesh, neus, info)

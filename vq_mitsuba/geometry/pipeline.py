@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from vq_mitsuba.config import CaptureConfig, NeuSConfig
-
-UNDISTORTED = "undistorted"  # a run's cache of undistorted photos (COLMAP captures with lens distortion)
+from vq_mitsuba.run.run_dir import RunDir
 
 
 def capture_has_geometry(path: str | Path) -> bool:
@@ -26,32 +24,30 @@ def capture_has_geometry(path: str | Path) -> bool:
     return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
-def run_geometry(capture_path, run_dir, cfg: NeuSConfig, resume: bool = False, progress: bool = True,
-                 gt_mesh=None, capture_cfg: CaptureConfig | None = None) -> dict:
-    """Load the capture, run NeuS + mesh export into run_dir; score against gt_mesh if given."""
+def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
+                 progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None):
+    """Load the capture, run NeuS + mesh export into the run; score against gt_mesh if given.
+    Returns the `Reconstruction` (its summary is the run's geometry.json)."""
     from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.geometry.neus import reconstruct
 
+    run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
-    capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=Path(run_dir) / UNDISTORTED)
-    info = reconstruct(capture, run_dir, cfg, resume=resume, progress=progress)
-    info.pop("_neus", None)
+    capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
+    result = reconstruct(capture, run, cfg, resume=resume, progress=progress)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 
-        mesh = load_mesh(Path(run_dir) / "mesh.ply")
-        info["metrics"] = mesh_metrics(mesh, gt)
-        info["gt_mesh"] = str(Path(gt_mesh).resolve())
-        (Path(run_dir) / "geometry.json").write_text(json.dumps(info, indent=2))
-    return info
+        result.summary["metrics"] = mesh_metrics(result.mesh, gt)
+        result.summary["gt_mesh"] = str(Path(gt_mesh).resolve())
+        run.write_geometry_summary(result.summary)
+    return result
 
 
-def ensure_geometry(capture_path, run_dir, cfg: NeuSConfig, resume: bool = False, progress: bool = True,
-                    capture_cfg: CaptureConfig | None = None) -> Path:
-    """RUN_DIR/mesh.ply from NeuS, reusing an existing one on resume; returns its path."""
-    run_dir = Path(run_dir)
-    mesh = run_dir / "mesh.ply"
-    if resume and mesh.is_file():
-        return mesh
-    run_geometry(capture_path, run_dir, cfg, resume=resume, progress=progress, capture_cfg=capture_cfg)
-    return mesh
+def ensure_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
+                    progress: bool = True, capture_cfg: CaptureConfig | None = None) -> Path:
+    """The run's mesh.ply from NeuS, reusing an existing one on resume; returns its path."""
+    run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
+    if not (resume and run.has_mesh()):
+        run_geometry(capture_path, run, cfg, resume=resume, progress=progress, capture_cfg=capture_cfg)
+    return run / RunDir.MESH

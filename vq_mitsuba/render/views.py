@@ -1,19 +1,18 @@
 """Views of a fitted scene: novel views, material maps, segmentation and relighting.
 
-Works on a `FittedModel` (`vq_mitsuba.engine.run_dir.RunDir.load`); nothing here trains.
+Works on a `FittedModel` (`vq_mitsuba.run.run_dir.RunDir.load`); nothing here trains.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
 
-from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER, Camera, camera_rays, pixel_jitter
+from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.fitted import FittedModel
@@ -21,22 +20,6 @@ from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
 ENV_PEAK_RANGE = (1e-30, 1e30)  # brightest envmap texel a render accepts (float32 sums stay finite)
-
-
-def world_rotation(src: str, dst: str) -> np.ndarray:
-    """The (3, 3) rotation taking world `src` to world `dst` ("mitsuba" Y-up / "blender" Z-up)."""
-    if src == dst:
-        return np.eye(3)
-    return MITSUBA_TO_BLENDER if (src, dst) == ("mitsuba", "blender") else MITSUBA_TO_BLENDER.T
-
-
-def convert_world(camera: Camera, src: str, dst: str) -> Camera:
-    """Express a camera given in world `src` in world `dst`."""
-    if src == dst:
-        return camera
-    rot = np.eye(4)
-    rot[:3, :3] = world_rotation(src, dst)
-    return replace(camera, to_world=rot @ camera.to_world)
 
 
 def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """What the browser editor holds: the view, the lighting, the selection and the edit history of
 one run, and a render thread that draws a quick preview after every change and then refines it.
 
-Reads the run through `engine.run_dir`; edits are `models.edits.Edit`s, saved as `vq-mitsuba
+Reads the run through `run.run_dir`; edits are `models.edits.Edit`s, saved as `vq-mitsuba
 edit` saves them, so a run saved here renders the same with `vq-mitsuba render`. Everything that
 touches torch or Mitsuba runs on the render thread (one at a time); requests only change state.
 """
@@ -20,7 +20,7 @@ import numpy as np
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
-from vq_mitsuba.engine.run_dir import RunDir
+from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.models.edits import Change, Edit, Selection, check_change, material_library, preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay

@@ -6,6 +6,9 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     config.yaml          the fully resolved configuration
     checkpoint.pt        networks, envmap and optimiser state (`fit --resume` continues from it)
     mesh.ply             the geometry used (given, or reconstructed by NeuS beside geometry.json)
+    neus.pt              the NeuS checkpoint (`--resume` of the geometry stage continues from it)
+    geometry.json        the geometry stage's summary; geometry_loss.png its training curves
+    undistorted/         the capture's photos undistorted once (lens-distorted COLMAP captures)
     envmap.exr           the learned (or given) lighting, lat-long
     materials.json       the ranked codebook: M, each material's BRDF and pixel share, err_k
     materials_err.png    err_k against k with M marked
@@ -17,6 +20,9 @@ A run directory holds (docs/run_dir.md describes each file and its format):
 An edited run (`vq-mitsuba edit`) holds only run.json, naming the fitted run it edits
 (`edit_of`), and edits.json, its edit list; everything else is read from the fitted run.
 
+Every file is written through `write_atomic` (a crash leaves the old file or the new one, never
+half of one). What a RunDir parses (run.json, config.yaml) is parsed once per RunDir and kept.
+
 Reading a finished run needs no training code: `RunDir(path).load()` builds the networks from
 the checkpoint and returns a `FittedModel`.
 """
@@ -26,6 +32,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -39,11 +46,24 @@ from vq_mitsuba.models.fitted import FittedModel, material_networks
 FORMAT_VERSION = 1
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write JSON atomically (a crash leaves the old file or the new one, never half of one)."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
+    """Call `write(tmp)` on a temporary file beside `path`, then move it into place: a crash
+    leaves the old file or the new one, never half of one. The temporary name keeps the suffix,
+    so writers that choose the format from it (PLY, NPZ, EXR) still can."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def write_json(path: str | Path, data: dict) -> Path:
+    """Write JSON atomically."""
+    return write_atomic(path, lambda tmp: tmp.write_text(json.dumps(data, indent=2)))
 
 
 def read_json(path: Path, missing: str) -> dict:
@@ -60,11 +80,9 @@ def read_json(path: Path, missing: str) -> dict:
     return data
 
 
-def save_torch(obj, path: Path) -> None:
+def save_torch(obj, path: str | Path) -> Path:
     """torch.save atomically."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    return write_atomic(path, lambda tmp: torch.save(obj, tmp))
 
 
 FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed")
@@ -89,6 +107,10 @@ class RunDir:
     CONFIG = "config.yaml"
     CHECKPOINT = "checkpoint.pt"
     MESH = "mesh.ply"
+    NEUS_CHECKPOINT = "neus.pt"
+    GEOMETRY = "geometry.json"
+    GEOMETRY_PLOT = "geometry_loss.png"
+    UNDISTORTED = "undistorted"
     ENVMAP = "envmap.exr"
     MATERIALS = "materials.json"
     ERR_PLOT = "materials_err.png"
@@ -96,12 +118,16 @@ class RunDir:
     LOSS_PLOT = "loss.png"
     FIT = "fit.json"
     METRICS = "metrics.json"
-    GEOMETRY = "geometry.json"
     SNAPSHOTS = "snapshots"
     EDITS = "edits.json"
+    # Files only a run of vq-mitsuba holds: a folder with one of them is a run (maybe unfinished).
+    MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT)
 
     def __init__(self, path: str | Path):
         self.dir = Path(path)
+        self._info: dict | None = None
+        self._config: Config | None = None
+        self._source: RunDir | None = None
 
     def __truediv__(self, name: str) -> Path:
         return self.dir / name
@@ -113,28 +139,54 @@ class RunDir:
     def checkpoint_path(self) -> Path:
         return self.dir / self.CHECKPOINT
 
+    @property
+    def undistorted_dir(self) -> Path:
+        """The cache of undistorted photos (shared by the fit and by `eval` of an edit)."""
+        return self.source().dir / self.UNDISTORTED if self.is_run() else self.dir / self.UNDISTORTED
+
     def has_checkpoint(self) -> bool:
         return self.checkpoint_path.is_file()
+
+    def is_run(self) -> bool:
+        """run.json is there: the folder holds a fitted (or edited) run."""
+        return (self.dir / self.INFO).is_file()
+
+    def holds_run_files(self) -> bool:
+        """Any file that only a run writes is there (a run, or one interrupted early)."""
+        return any((self.dir / name).is_file() for name in self.MARKERS)
 
     def create(self) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
 
+    def write_file(self, name: str, write: Callable[[Path], None]) -> Path:
+        """Any other file of the run (a plot, a picture), written atomically by `write(path)`."""
+        return write_atomic(self.dir / name, write)
+
     # --- run.json: what was fitted, with the format version ---------------------------------
     def write_info(self, info: dict) -> None:
-        write_json(self.dir / self.INFO, {"format": FORMAT_VERSION, **info})
+        info = {"format": FORMAT_VERSION, **info}
+        write_json(self.dir / self.INFO, info)
+        self._info, self._source = info, None
 
     def info(self) -> dict:
-        path = self.dir / self.INFO
-        info = read_json(path, "not a fitted run directory (run.json missing); run `vq-mitsuba fit` first")
-        version = info.get("format")
-        if version != FORMAT_VERSION:
-            raise InputError(path, f"run-directory format {version!r} is not the format {FORMAT_VERSION} this "
-                                   "version of vq-mitsuba reads; fit the capture again")
-        return info
+        if self._info is None:
+            path = self.dir / self.INFO
+            info = read_json(path, "not a fitted run directory (run.json missing); run `vq-mitsuba fit` first")
+            version = info.get("format")
+            if version != FORMAT_VERSION:
+                raise InputError(path, f"run-directory format {version!r} is not the format {FORMAT_VERSION} this "
+                                       "version of vq-mitsuba reads; fit the capture again")
+            self._info = info
+        return self._info
 
     # --- edited runs ---------------------------------------------------------------------------
     def source(self) -> RunDir:
         """The fitted run this run edits, or the run itself when it is not an edit."""
+        if self._source is None:
+            self._source = self._find_source()
+        return self._source
+
+    def _find_source(self) -> RunDir:
         info = self.info()
         if "edit_of" not in info:
             return self
@@ -175,8 +227,8 @@ class RunDir:
     def cameras(self) -> dict[str, list]:
         """The capture's views in the run's world: {"train": [...], and "test" / "val" where a
         transforms_test.json / transforms_val.json lies beside the capture}."""
+        from vq_mitsuba.data.cameras import convert_world
         from vq_mitsuba.data.captures import load_cameras
-        from vq_mitsuba.render.views import convert_world
 
         info = self.source().info()
         capture = Path(info["capture"])
@@ -195,7 +247,8 @@ class RunDir:
 
     # --- configuration ------------------------------------------------------------------------
     def write_config(self, cfg: Config) -> None:
-        save_config(cfg, self.dir / self.CONFIG)
+        write_atomic(self.dir / self.CONFIG, lambda tmp: save_config(cfg, tmp))
+        self._config = None
 
     def saved_config(self) -> dict | None:
         """config.yaml as a mapping (None when there is none): the base a resumed fit starts from."""
@@ -210,14 +263,19 @@ class RunDir:
     def config(self) -> Config:
         if self.is_edit():
             return self.source().config()
-        base = self.saved_config()
-        if base is None:
-            raise InputError(self.dir / self.CONFIG, "missing: the run directory is incomplete")
-        return load_config(base=base)
+        if self._config is None:
+            base = self.saved_config()
+            if base is None:
+                raise InputError(self.dir / self.CONFIG, "missing: the run directory is incomplete")
+            self._config = load_config(base=base)
+        return self._config
 
     # --- geometry and lighting ---------------------------------------------------------------
     def write_mesh(self, mesh) -> None:
-        mesh.export(self.dir / self.MESH)
+        write_atomic(self.dir / self.MESH, mesh.export)
+
+    def has_mesh(self) -> bool:
+        return (self.dir / self.MESH).is_file()
 
     def mesh(self):
         from vq_mitsuba.data.captures import load_mesh
@@ -227,7 +285,17 @@ class RunDir:
     def write_envmap(self, envmap: np.ndarray) -> None:
         from vq_mitsuba.data.imageio import write_exr
 
-        write_exr(self.dir / self.ENVMAP, envmap)
+        write_atomic(self.dir / self.ENVMAP, lambda tmp: write_exr(tmp, envmap))
+
+    def write_geometry_summary(self, summary: dict) -> None:
+        write_json(self.dir / self.GEOMETRY, summary)
+
+    def geometry_summary(self) -> dict | None:
+        return self._read_json(self.GEOMETRY)
+
+    @property
+    def neus_checkpoint_path(self) -> Path:
+        return self.dir / self.NEUS_CHECKPOINT
 
     # --- network states -----------------------------------------------------------------------
     def save_state(self, state: dict, path: Path | None = None) -> None:
@@ -259,7 +327,7 @@ class RunDir:
     # --- summaries ----------------------------------------------------------------------------
     def _read_json(self, name: str) -> dict | None:
         path = self.dir / name
-        return json.loads(path.read_text()) if path.is_file() else None
+        return read_json(path, "missing") if path.is_file() else None
 
     def write_materials(self, materials: dict) -> None:
         write_json(self.dir / self.MATERIALS, materials)
@@ -273,6 +341,10 @@ class RunDir:
 
     def fit_summary(self) -> dict:
         return self._read_json(self.FIT) or {}
+
+    def write_metrics(self, metrics: dict, path: str | Path | None = None) -> Path:
+        """metrics.json of `vq-mitsuba eval` (or the file `path` a user named instead)."""
+        return write_json(Path(path) if path is not None else self.dir / self.METRICS, metrics)
 
     # --- the fitted scene ---------------------------------------------------------------------
     def load(self, checkpoint: str | Path | None = None) -> FittedModel:
