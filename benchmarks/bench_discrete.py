@@ -16,21 +16,19 @@ new / old ratios against an earlier JSON. Single runs.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import shutil
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
+from bench_scenes import _fmt, ensure_dataset, scene_config
+from provenance import command_line, describe, provenance, write_result
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
+from vq_mitsuba.engine.trainer import fit
 
-from bench_scenes import _fmt, ensure_dataset, machine_info, scene_config  # noqa: E402
-from vq_mitsuba.synthetic import mitsuba_scenes as synthetic  # noqa: E402
-from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
-from vq_mitsuba.engine.trainer import fit  # noqa: E402
+REPO = Path(__file__).resolve().parent.parent
 
 # name -> (overrides, what it tests). "vq" is the full method with this project's defaults.
 VARIANTS = {
@@ -104,7 +102,7 @@ def markdown(result: dict) -> str:
                 lines.append(f"| {r['scene']} | {r['variant']} | {bw} | {v['micro_f1']:.3f} | {v['macro_f1']:.3f} | "
                              f"{v['num_materials_found']} |")
     lines += ["", "Variants: " + "; ".join(f"`{k}`: {VARIANTS[k][1]}" for k in result["settings"]["variants"]),
-              "", "Machine: " + ", ".join(f"{k} {v}" for k, v in result["machine"].items()), "",
+              "", "Machine: " + describe(result), "",
               f"Command: `{result['command']}`", ""]
     return "\n".join(lines)
 
@@ -139,7 +137,7 @@ def main(argv=None) -> int:
     p.add_argument("--compare", help="previous bench_discrete.json (default: OUT/bench_discrete.json)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
-    args.command = " ".join(["bench_discrete.py"] + (sys.argv[1:] if argv is None else list(argv)))
+    args.command = command_line(argv, __file__)
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -161,15 +159,13 @@ def main(argv=None) -> int:
 
 def write_results(args, rows: list[dict], json_path: Path, out: Path) -> dict:
     result = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": args.command,
+        **provenance(args.command),
         "settings": {"scenes": args.scenes, "variants": args.variants, "resolution": args.resolution,
                      "iterations": args.iterations, "time_limit_s": args.time_limit, "eval_spp": args.spp,
                      "overrides": args.set},
-        "machine": machine_info(),
         "rows": rows,
     }
-    json_path.write_text(json.dumps(json_safe(result), indent=2))
+    write_result(json_path, json_safe(result))
     (out / "bench_discrete.md").write_text(markdown(result))
     return result
 

@@ -37,8 +37,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 PLAIN = """
 import sys
@@ -122,7 +120,7 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "export"))
     args = p.parse_args()
 
-    from bench_geometry import commit, machine, versions
+    from provenance import provenance, write_result
 
     from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.eval import metrics as M
@@ -189,10 +187,8 @@ def main() -> None:
               f"{med['pad']:.1f}); plain Mitsuba vs ours at {args.spp} spp: PSNR {res['psnr_median']:.2f} dB "
               f"(noise floor {res['noise_floor_psnr_median']:.2f} dB); glTF validator: "
               f"{res['gltf_validator']['errors']} errors, {res['gltf_validator']['warnings']} warnings", flush=True)
-    record = {"command": " ".join(sys.argv), "commit": commit(), "machine": machine(), "versions": versions(),
-              "results": results}
-    name = f"export_{record['commit']}"
-    (out_dir / f"{name}.json").write_text(json.dumps(record, indent=2))
+    name = f"export_{provenance()['commit']}"
+    write_result(out_dir / f"{name}.json", {"results": results})
     lines = ["| run | faces | bake 1024² s (median) | PSNR export vs ours, dB | noise floor, dB | glTF errors |",
              "|---|---:|---:|---:|---:|---:|"]
     for r in results:

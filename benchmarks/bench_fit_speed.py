@@ -23,7 +23,6 @@ Writes OUT/fit_speed.json (rows of earlier variants of other names are kept) and
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import shutil
@@ -32,13 +31,12 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
+from bench_scenes import _fmt
+from bench_time_error import figures
+from provenance import command_line, write_result
+from vq_mitsuba.eval.evaluate import evaluate, json_safe
 
-from bench_scenes import _fmt, machine_info  # noqa: E402
-from bench_time_error import figures  # noqa: E402
-from vq_mitsuba.eval.evaluate import evaluate, json_safe  # noqa: E402
+REPO = Path(__file__).resolve().parent.parent
 
 COLUMNS = [("wall_s", "wall s", ".0f"), ("startup_s", "start-up s", ".1f"), ("loop_s", "loop s", ".0f"),
            ("iterations", "iters", "d"), ("novel_psnr", "view", ".2f"), ("basecolor_psnr", "basecolor", ".2f"),
@@ -130,16 +128,13 @@ def main(argv=None) -> int:
                         "--set", "vq.warmup_frac=0.5"], check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
         shutil.rmtree(warm)
     rows = [run_variant(args.data, name, ov, args, args.out) for name, ov in variants]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
-    result = {"command": " ".join(["python", "benchmarks/bench_fit_speed.py"] + (argv or sys.argv[1:])),
-              "commit": commit, "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": machine_info(), "data": str(args.data), "eval_spp": args.eval_spp, "rows": rows}
+    result = {"command": command_line(argv, __file__), "data": str(args.data), "eval_spp": args.eval_spp,
+              "rows": rows}
     path = args.out / "fit_speed.json"
     old = json.loads(path.read_text())["rows"] if path.is_file() else []
     keep = [r for r in old if r["variant"] not in {r2["variant"] for r2 in rows}]
     result["rows"] = keep + rows
-    path.write_text(json.dumps(json_safe(result), indent=1))
+    write_result(path, json_safe(result), indent=1)
     plot(result["rows"], args.out / "fit_speed.png")
     print(f"wrote {path} and {args.out / 'fit_speed.png'}")
     return 0

@@ -29,18 +29,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from normal_errors import table
+from provenance import describe, provenance, write_json, write_result
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from normal_errors import table  # noqa: E402
 
 
 def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_root: Path | None = None) -> Path:
@@ -88,44 +86,6 @@ def novel_view_psnr(neus, data: Path, n_views: int) -> dict:
         fg = test.alpha[k] > 0.5
         masked.append(psnr(rgb[fg], gt[fg]))
     return {"psnr": float(np.mean(full)), "psnr_foreground": float(np.mean(masked)), "views": len(full)}
-
-
-def versions() -> dict:
-    import pymeshlab  # noqa: F401
-    import skimage
-    import torch
-    import trimesh
-
-    out = {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-           "scikit-image": skimage.__version__, "trimesh": trimesh.__version__}
-    try:
-        from importlib.metadata import version
-
-        out["pymeshlab"] = version("pymeshlab")
-    except Exception:
-        pass
-    return out
-
-
-def machine() -> dict:
-    gpu = "none"
-    try:
-        import torch
-
-        if torch.cuda.is_available():
-            gpu = torch.cuda.get_device_name(0)
-    except Exception:
-        pass
-    from bench_scenes import cpu_model
-
-    return {"cores": os.cpu_count(), "cpu": cpu_model(), "gpu": gpu, "os": platform.platform()}
-
-
-def commit() -> str:
-    try:
-        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True).strip()
-    except Exception:
-        return "unknown"
 
 
 def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
@@ -230,7 +190,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
         print(f"[{name}] warning: NeuS ran {spread['min']:.1f} to {spread['max']:.1f} steps/s over "
               f"{spread['window_s']:.0f} s windows; another process probably shared the CPU, so its "
               "time and its Chamfer at the time limit are not representative", flush=True)
-    (run_dir / "bench.json").write_text(json.dumps(result, indent=2))
+    write_json(run_dir / "bench.json", result)
     if args.materials:
         result["materials"] = material_runs(name, data, run_dir / "mesh.ply", args)
     print(f"[{name}] final: Chamfer {100 * final['chamfer_rel']:.3f}% of the diagonal, NC "
@@ -242,9 +202,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
 def write_markdown(report: dict, path: Path) -> None:
     lines = [f"# Geometry benchmark (NeuS + mesh export), commit {report['commit']}", "",
              f"Command: `{report['command']}`", "",
-             f"Machine: {report['machine']['cores']} cores ({report['machine']['cpu']}), GPU: {report['machine']['gpu']}; "
-             f"torch threads {report['threads']}. Versions: "
-             + ", ".join(f"{k} {v}" for k, v in report["versions"].items()) + ".", "",
+             f"Machine: {describe(report)}; torch threads {report['threads']}.", "",
              "Targets: whole geometry stage <= 15 min on 2 cores, Chamfer <= 1% of the bounding-box diagonal.", "",
              "| scene | iterations | train s | total s | Chamfer (% diag) | normal consistency | "
              "shading normal deg (median / p90) | F@1% | novel-view PSNR (dB) | fg PSNR (dB) | load avg (start/end) | "
@@ -332,8 +290,7 @@ def main() -> int:
     from vq_mitsuba.config import load_config
 
     cfg = load_config(None, args.set).neus
-    report = {"commit": commit(), "command": " ".join([".venv/bin/python", "benchmarks/bench_geometry.py"] + sys.argv[1:]),
-              "machine": machine(), "versions": versions(), "threads": cfg.threads or torch.get_num_threads(),
+    report = {**provenance(), "threads": cfg.threads or torch.get_num_threads(),
               "time_limit_s": args.time_limit, "mesh_resolution": cfg.mesh_resolution, "overrides": args.set,
               "scenes": []}
     results = ROOT / args.results
@@ -341,7 +298,7 @@ def main() -> int:
     stem = results / f"geometry_{report['commit']}"
     for name in args.scenes:
         report["scenes"].append(run_scene(name, args, args.set))
-        stem.with_suffix(".json").write_text(json.dumps(report, indent=2))  # partial results survive a stop
+        write_result(stem.with_suffix(".json"), report)  # partial results survive a stop
         write_markdown(report, stem.with_suffix(".md"))
     print(stem.with_suffix(".md").read_text())
     return 0

@@ -21,7 +21,6 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 # torch_default: torch (and its OpenMP runtime) is loaded before vq_mitsuba can set the wait policy.
 LAUNCH = {
@@ -48,7 +47,7 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "load"))
     args = p.parse_args()
 
-    from bench_geometry import commit, machine, versions
+    from provenance import provenance, write_result
 
     results = {}
     for mode in args.modes:
@@ -70,10 +69,7 @@ def main() -> None:
         print(f"{mode:14s} busy / idle = {ratio:.2f}", flush=True)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    record = {"command": " ".join(sys.argv), "commit": commit(), "machine": machine(), "versions": versions(),
-              "seconds": args.seconds, "results": results}
-    path = out / f"load_{record['commit']}.json"
-    path.write_text(json.dumps(record, indent=2))
+    path = write_result(out / f"load_{provenance()['commit']}.json", {"seconds": args.seconds, "results": results})
     print(f"written {path}")
 
 

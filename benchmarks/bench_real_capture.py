@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -33,7 +32,7 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "real_capture"))
     args = p.parse_args()
 
-    from bench_geometry import commit, machine, versions
+    from provenance import provenance, write_result
 
     cli = str(Path(sys.executable).parent / "vq-mitsuba")
     fit = ["/usr/bin/time", "-v", cli, "fit", args.capture, "-o", args.run, "--geometry", "neus", "--quiet",
@@ -52,8 +51,7 @@ def main() -> None:
     eval_s = time.perf_counter() - t0
     metrics = json.loads((run / "metrics.json").read_text())
     record = {
-        "command": " ".join(sys.argv), "fit_command": " ".join(fit[2:]), "commit": commit(), "machine": machine(),
-        "versions": versions(), "wall_s": round(wall, 1), "peak_rss_gb": round(peak_kb / 2**20, 2),
+        "fit_command": " ".join(fit[2:]), "wall_s": round(wall, 1), "peak_rss_gb": round(peak_kb / 2**20, 2),
         "stages_s": {"neus_train": geometry["seconds"]["train"], "neus_hull": geometry["seconds"]["setup_and_hull"],
                      "mesh_export": geometry["seconds"]["mesh_export"], "materials": fitted["seconds"],
                      "other (loading, undistortion, start-up)": None},
@@ -72,8 +70,7 @@ def main() -> None:
           f"SSIM {record['holdout']['ssim']:.4f}")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"real_capture_{commit()}.json"
-    path.write_text(json.dumps(record, indent=2))
+    path = write_result(out / f"real_capture_{provenance()['commit']}.json", record)
     print(f"wrote {path}")
 
 

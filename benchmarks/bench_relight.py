@@ -13,7 +13,6 @@ the same, and writes OUT/relight_<commit>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -23,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -36,7 +34,7 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "relight"))
     args = p.parse_args()
 
-    from bench_geometry import commit, machine, versions
+    from provenance import provenance, write_result
     from vq_mitsuba.data.envmaps import load_envmap
     from vq_mitsuba.data.imageio import read_exr
     from vq_mitsuba.run.run_dir import RunDir
@@ -80,11 +78,10 @@ def main() -> None:
           f"ratio {h / s:.2f} (median of {args.repeats}); images identical")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"relight_{commit()}.json"
-    path.write_text(json.dumps({"command": " ".join(sys.argv), "commit": commit(), "machine": machine(),
-                                "versions": versions(), "views": len(cams), "lightings": [n for n, _ in envs],
-                                "size": [cams[0].width, cams[0].height], "spp": fitted.cfg.render.spp,
-                                "separate_s": separate, "shared_s": shared, "ratio": h / s}, indent=2))
+    path = write_result(out / f"relight_{provenance()['commit']}.json",
+                        {"views": len(cams), "lightings": [n for n, _ in envs],
+                         "size": [cams[0].width, cams[0].height], "spp": fitted.cfg.render.spp,
+                         "separate_s": separate, "shared_s": shared, "ratio": h / s})
     print(f"wrote {path}")
 
 

@@ -14,22 +14,19 @@ OUT/bench_scenes.md and prints the table; when an older JSON exists (OUT/bench_s
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
-import os
-import platform
 import shutil
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+from provenance import command_line, describe, provenance, write_result
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.config import load_config
+from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
+from vq_mitsuba.engine.trainer import fit
 
-from vq_mitsuba.synthetic import mitsuba_scenes as synthetic  # noqa: E402
-from vq_mitsuba.config import load_config  # noqa: E402
-from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe  # noqa: E402
-from vq_mitsuba.engine.trainer import fit  # noqa: E402
+REPO = Path(__file__).resolve().parent.parent
 
 # Headline figures: (key, label, number format). Ratios new/old are printed for these.
 FIGURES = [
@@ -42,40 +39,6 @@ FIGURES = [
     ("seg_micro_f1", "seg micro-F1", ".3f"), ("seg_macro_f1", "seg macro-F1", ".3f"),
     ("materials_found", "M found", "d"), ("materials_true", "M true", "d"),
 ]
-
-
-def cpu_model() -> str:
-    """The CPU's model name (from /proc/cpuinfo where there is one)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine_info() -> dict:
-    import drjit
-    import mitsuba
-    import numpy
-    import torch
-
-    cpu = cpu_model()
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    import subprocess
-
-    try:
-        commit = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"], capture_output=True,
-                                text=True, timeout=10).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        commit = None
-    return {
-        "commit": commit,
-        "cpu": cpu, "cores": os.cpu_count(), "gpu": gpu, "os": platform.platform(),
-        "python": platform.python_version(), "mitsuba": mitsuba.__version__, "mitsuba_variant": mitsuba.variant(),
-        "drjit": drjit.__version__, "torch": torch.__version__, "numpy": numpy.__version__,
-    }
 
 
 def scene_config(name: str, overrides: list[str], preset: str | None = None):
@@ -169,8 +132,7 @@ def markdown(result: dict) -> str:
         for env in envs:
             lines.append(f"| {s['scene']} | {env} | {_fmt(f[f'relit_{env}_albedo_scale_psnr'])} | "
                          f"{_fmt(f[f'relit_{env}_image_scale_psnr'])} |")
-    mach = result["machine"]
-    lines += ["", "Machine: " + ", ".join(f"{k} {v}" for k, v in mach.items()), "",
+    lines += ["", "Machine: " + describe(result), "",
               f"Command: `{result['command']}`", ""]
     return "\n".join(lines)
 
@@ -219,17 +181,14 @@ def main(argv=None) -> int:
 
     scenes = [run_scene(name, args, out) for name in args.scenes]
     result = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.executable).name] + sys.argv) if argv is None
-        else "bench_scenes.py " + " ".join(argv),
+        **provenance(command_line(argv, __file__)),
         "settings": {"scenes": args.scenes, "time_limit_s": args.time_limit, "iterations": args.iterations,
                      "overrides": args.set,
                      "resolution": args.resolution, "eval_spp": args.spp},
         "note": "single runs: no repeats, no error bars",
-        "machine": machine_info(),
         "scenes": scenes,
     }
-    json_path.write_text(json.dumps(json_safe(result), indent=2))
+    write_result(json_path, json_safe(result))
     md = markdown(result)
     (out / "bench_scenes.md").write_text(md)
     print()

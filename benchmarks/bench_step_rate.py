@@ -32,12 +32,11 @@ import tempfile
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
 
 def child(args) -> int:
-    """Runs inside a revision's worktree: one fit, then one JSON line on stdout."""
-    sys.path.insert(0, str(Path(args.src).resolve()))
+    """Runs inside a revision's worktree: one fit, then one JSON line on stdout. The parent puts
+    the worktree on PYTHONPATH, ahead of the installed package: its vq_mitsuba is imported (checked)."""
     import vq_mitsuba
     from vq_mitsuba.config import load_config
     from vq_mitsuba.engine.trainer import fit
@@ -100,10 +99,11 @@ def main(argv=None) -> int:
     if args.warmup >= args.iterations:
         p.error(f"--warmup ({args.warmup}) must be below --iterations ({args.iterations})")
 
-    from bench_scenes import ensure_dataset, machine_info
+    from bench_scenes import ensure_dataset
+    from provenance import command_line, describe, provenance, write_result
     from vq_mitsuba.backend import init_mitsuba
 
-    init_mitsuba()  # the variant the children pick, for the machine line
+    init_mitsuba()  # the variant the children pick, for the provenance record
 
     data = args.data or ensure_dataset(args.scene, REPO / "benchmarks" / "out" / "data" / args.scene,
                                        args.resolution, progress=True)
@@ -158,16 +158,13 @@ def main(argv=None) -> int:
         if args.eval_spp:
             rows[-1].update({f"median_{k}": statistics.median(r[k] for r in runs[ref])
                              for k in ("eval_s", "eval_novel_psnr", "eval_basecolor_psnr", "eval_relit_psnr")})
-    command = "python benchmarks/bench_step_rate.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    result = {"command": command, "machine": machine_info(), "scene": args.scene, "data": str(data),
+    command = command_line(argv, __file__)
+    result = {**provenance(command), "scene": args.scene, "data": str(data),
               "iterations": args.iterations, "warmup": args.warmup, "repeats": args.repeats,
               "eval_spp": args.eval_spp, "rows": rows}
     lines = [f"# Step rate of `fit` ({args.scene}, {args.iterations} steps, rate after step {args.warmup}, "
              f"median of {args.repeats})", "", f"`{command}`", "",
-             f"Machine: {result['machine']['cpu']}, {result['machine']['cores']} cores, GPU: "
-             f"{result['machine']['gpu'] or 'none'}; Mitsuba {result['machine']['mitsuba']} "
-             f"({result['machine']['mitsuba_variant']}), Dr.Jit {result['machine']['drjit']}, "
-             f"torch {result['machine']['torch']}", "",
+             f"Machine: {describe(result)}", "",
              "| revision | commit | steps/s (median) | ratio to first | train PSNR at the end (median) | steps/s of each run |",
              "|---|---|---:|---:|---:|---|"]
     for r in rows:
@@ -186,7 +183,7 @@ def main(argv=None) -> int:
                          f"{r['median_eval_novel_psnr']:.2f} | {r['median_eval_basecolor_psnr']:.2f} | "
                          f"{r['median_eval_relit_psnr']:.2f} | {each} |")
     text = "\n".join(lines) + "\n"
-    (args.out / "step_rate.json").write_text(json.dumps(result, indent=2))
+    write_result(args.out / "step_rate.json", result)
     (args.out / "step_rate.md").write_text(text)
     print(text)
     print(f"wrote {args.out / 'step_rate.json'} and {args.out / 'step_rate.md'}")

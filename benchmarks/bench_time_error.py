@@ -33,20 +33,18 @@ budget only.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
+from bench_scenes import _fmt, scene_config
+from provenance import command_line, describe, provenance, write_result
+from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe
+from vq_mitsuba.engine.trainer import fit
 
-from bench_scenes import _fmt, machine_info, scene_config  # noqa: E402
-from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe  # noqa: E402
-from vq_mitsuba.engine.trainer import fit  # noqa: E402
+REPO = Path(__file__).resolve().parent.parent
 
 METHODS = {
     "vqnerf": "vq-mitsuba fit with its defaults (both branches, dropout ranking)",
@@ -201,12 +199,9 @@ def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag:
 
 
 def markdown(result: dict) -> str:
-    mach = result["machine"]
     lines = [f"# Error against fit time on Cycles ground truth ({result['date']})", "",
              f"Command: `{result['command']}`", "",
-             f"Machine: {mach['cpu']}, {mach['cores']} cores, GPU: {mach['gpu'] or 'none'}; "
-             f"Mitsuba {mach['mitsuba']} ({mach['mitsuba_variant']}), Dr.Jit {mach['drjit']}, torch {mach['torch']}; "
-             f"commit {mach['commit']}", "",
+             f"Machine: {describe(result)}", "",
              f"Evaluation: {result['eval_spp']} spp, basecolor aligned per channel (lstsq), metallic and roughness "
              "unaligned, relighting mean over the held-aside envmaps. "
              f"Warm-up fit before the timed ones: {result.get('warmup_s', 0):g} s per scene and method. Methods: "
@@ -272,7 +267,8 @@ def plot(result: dict, path: Path) -> None:
 
 
 def compare(new: dict, old: dict) -> str:
-    lines = [f"new / old (old: commit {old['machine'].get('commit')}, {old['date']})"]
+    # Results before benchmarks/provenance.py keep the commit inside "machine".
+    lines = [f"new / old (old: commit {old.get('commit') or old.get('machine', {}).get('commit')}, {old.get('date')})"]
     for r in new["rows"]:
         for b in old.get("budgets", []):
             o = _at_budget(old["rows"], r["scene"], r["method"], b)
@@ -322,10 +318,9 @@ def main(argv=None) -> int:
 
     from vq_mitsuba.backend import init_mitsuba
 
-    init_mitsuba()  # the variant is part of the machine record
-    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "command": "python benchmarks/bench_time_error.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "machine": machine_info(), "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
+    init_mitsuba()  # the variant is part of the provenance record
+    result = {**provenance(command_line(argv, __file__)),
+              "scenes": args.scenes, "methods": args.methods, "budgets": budgets,
               "eval_spp": args.eval_spp, "capture": args.capture, "fit_per_budget": args.fit_per_budget,
               "warmup_s": args.warmup, "rows": []}
     if args.append and old is not None:
@@ -352,7 +347,7 @@ def main(argv=None) -> int:
                 rows = runner(budgets, "")
             result["rows"] += rows
             # Written after every method: an interrupted benchmark keeps what it measured.
-            json_path.write_text(json.dumps(json_safe(result), indent=2))
+            write_result(json_path, json_safe(result))
             (args.out / "time_error.md").write_text(markdown(result))
             plot(result, args.out / "time_error.png")
     print(markdown(result))

@@ -14,14 +14,11 @@ time is to the refined frame of the last one. Prints medians and writes OUT/ui_<
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 OBSERVE = """
 window.frames_seen = [];
@@ -55,7 +52,7 @@ def main() -> None:
 
     from selenium.webdriver import ActionChains
 
-    from bench_geometry import commit, machine, versions
+    from provenance import provenance, write_result
     from vq_mitsuba.ui.browser import REFINED, click_pixel, headless_chromium, page_url, start_editor, \
         stop_editor, wait_page
 
@@ -109,11 +106,9 @@ def main() -> None:
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    record = {"command": " ".join(sys.argv), "commit": commit(), "machine": machine(), "versions": versions(),
-              "run": str(Path(args.run_dir).resolve()), "size": [session.camera.width, session.camera.height],
+    record = {"run": str(Path(args.run_dir).resolve()), "size": [session.camera.width, session.camera.height],
               "refine_spp": refine, "results": results}
-    path = out / f"ui_{commit()}.json"
-    path.write_text(json.dumps(record, indent=2))
+    path = write_result(out / f"ui_{provenance()['commit']}.json", record)
     print(f"wrote {path}")
 
 

@@ -20,13 +20,9 @@ true mesh (`bench_geometry.py --materials` leaves both).
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

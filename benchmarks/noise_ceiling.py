@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+from provenance import command_line, write_result
 
 
 def true_scene(root: Path, meta: dict, shapes: dict, env_name: str):
@@ -84,15 +83,14 @@ def main(argv=None) -> int:
     if envs:
         print(f"relit, mean over {len(envs)} envmaps of the per-view means (as `eval`): {relit_mean:.2f} dB")
     if args.json:
-        args.json.write_text(json.dumps({
-            "command": "python benchmarks/noise_ceiling.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        write_result(args.json, {
+            "command": command_line(argv, __file__),
             "dataset": str(root), "renderer": meta.get("renderer", "mitsuba"), "dataset_spp": meta.get("spp"),
             "spp": args.spp, "views": [s.id() for s in sensors],
             "psnr": {n: {"per_view": v, "mean": float(np.mean(v)), "median": float(np.median(v))}
                      for n, v in summary.items()},
             "relit_mean": relit_mean,
-            "versions": {"mitsuba": mi.__version__, "variant": mi.variant()},
-        }, indent=1))
+        }, indent=1)
     print(f"(re-render at {args.spp} spp against the dataset's {meta.get('spp')} spp images "
           f"({meta.get('renderer', 'mitsuba')}), foreground, sRGB, no scale alignment)")
     return 0

@@ -13,12 +13,10 @@ Objects come from the dataset's scene.json.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from provenance import write_result
 
 
 def score(mesh_path: Path, dataset: Path, views: str, gt=None) -> dict:
@@ -67,7 +65,7 @@ def main() -> int:
     results = [score(m, args.dataset, args.views) for m in args.meshes]
     print(table(results))
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+        write_result(args.json, {"dataset": str(args.dataset), "views": args.views, "meshes": results})
     return 0
 
 

@@ -19,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.eval.evaluate import dataset_root, load_ground_truth
 
-from vq_mitsuba.eval import metrics as M  # noqa: E402
-from vq_mitsuba.data.imageio import read_image  # noqa: E402
-from vq_mitsuba.errors import InputError  # noqa: E402
-from vq_mitsuba.eval.evaluate import dataset_root, load_ground_truth  # noqa: E402
+REPO = Path(__file__).resolve().parent.parent
 
 PALETTE = np.array([[0, 0, 0], [0.90, 0.35, 0.20], [0.25, 0.50, 0.90], [0.30, 0.75, 0.35], [0.95, 0.80, 0.25],
                     [0.65, 0.40, 0.80], [0.40, 0.85, 0.85], [0.85, 0.45, 0.65], [0.6, 0.6, 0.6]])

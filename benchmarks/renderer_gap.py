@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+from provenance import command_line, write_result
 
 
 def main(argv=None) -> int:
@@ -75,10 +74,10 @@ def main(argv=None) -> int:
         print(f"  {rows[-1]['name']:<18} metallic {mat.get('metallic')!s:<5} roughness {mat.get('roughness')!s:<5} "
               f"{n:>7} px: {ratio[0]:.3f} {ratio[1]:.3f} {ratio[2]:.3f}")
     if args.json:
-        args.json.write_text(json.dumps({
-            "command": "python benchmarks/renderer_gap.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        write_result(args.json, {
+            "command": command_line(argv, __file__),
             "dataset": str(root), "renderer": meta.get("renderer", "mitsuba"), "views": args.views,
-            "spp": args.spp, "materials": rows}, indent=2))
+            "spp": args.spp, "materials": rows})
     return 0
 
 

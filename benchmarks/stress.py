@@ -20,11 +20,19 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 QUICK = ["--set", "train.batch_rays=256", "--set", "vq.enabled=false", "--quiet"]
+
+
+def tiny_scene():
+    """tests/tiny_scene.py, the test suite's small captures, loaded from its file (tests/ is no package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("tiny_scene", ROOT / "tests" / "tiny_scene.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def kill_and_resume(capture: Path, tmp: Path, rng: np.random.Generator, i: int) -> dict:
@@ -96,11 +104,11 @@ def main() -> None:
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "stress"))
     args = p.parse_args()
 
-    from bench_geometry import commit, machine, versions
-    from tiny_scene import write_sphere_capture
+    from provenance import provenance, write_result
 
+    write_sphere_capture = tiny_scene().write_sphere_capture
     rng = np.random.default_rng(args.seed)
-    report = {"command": " ".join(sys.argv), "commit": commit(), "machine": machine(), "versions": versions()}
+    report = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         capture = write_sphere_capture(tmp / "cap", size=16, n_views=6, spp=8)
@@ -120,8 +128,7 @@ def main() -> None:
     print(f"loader fuzz: {args.fuzz_examples} examples x 3 tests: {last}")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"stress_{report['commit']}.json"
-    path.write_text(json.dumps(report, indent=2))
+    path = write_result(out / f"stress_{provenance()['commit']}.json", report)
     print(f"written {path}")
 
 
