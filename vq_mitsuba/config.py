@@ -1,10 +1,30 @@
 """Typed configuration: one dataclass per component; YAML presets and `--set key=value` overrides.
 
-Every field's comment is its documentation (`vq-mitsuba fit --help-config` prints them).
+Each key is declared with `setting(default, help, range)`: the help (one line, what the key does)
+and the range live in the field's metadata, where the one validator (`check`), `describe()`
+(`vq-mitsuba fit --help-config`) and `markdown()` (docs/configuration.md) read them.
+
+Ranges, a small vocabulary (RANGES):
+
+    ">0"         a number above 0
+    ">=0"        a number not below 0 (the default for numbers)
+    "[0,1]"      0 <= x <= 1
+    "(0,1]"      0 < x <= 1
+    "[0,1)"      0 <= x < 1
+    "any"        any finite number (numbers), any text (strings: the default; parsed where used)
+    "square"     a square number or 0 (0, 1, 4, 9, ...)
+    "square>0"   a square number above 0 (1, 4, 9, ...)
+    ("a", "b")   a string that is one of these choices
+    None         booleans (true/false)
+
+A few checks span keys (neus.base_res / neus.max_res, capture.background_color's R,G,B): they are
+in `check` too. A saved config.yaml starts with `version:` (CONFIG_VERSION); `upgrade` brings an
+older mapping to the current names.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import typing
@@ -15,183 +35,224 @@ import yaml
 
 from vq_mitsuba.errors import InputError
 
+# The range vocabulary: token -> (test of a value, how an error message and the docs say it).
+RANGES: dict[str, tuple[typing.Callable[[float], bool], str]] = {
+    ">0": (lambda v: v > 0, "> 0"),
+    ">=0": (lambda v: v >= 0, ">= 0"),
+    "[0,1]": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "(0,1]": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "[0,1)": (lambda v: 0 <= v < 1, "in [0, 1)"),
+    "any": (lambda v: True, "any number"),
+    "square": (lambda v: v >= 0 and round(v ** 0.5) ** 2 == v, "a square number or 0"),
+    "square>0": (lambda v: v > 0 and round(v ** 0.5) ** 2 == v, "a square number > 0"),
+}
+
+
+def _default_range(default):
+    if isinstance(default, bool):
+        return None
+    if isinstance(default, str):
+        return "any"
+    return ">=0"
+
+
+def _range_error(default, range_) -> str | None:
+    """Why `range_` does not fit a key whose default is `default` (None when it does)."""
+    if isinstance(default, bool):
+        return None if range_ is None else "booleans take no range"
+    if isinstance(default, str):
+        if range_ == "any":
+            return None
+        if isinstance(range_, tuple) and range_ and all(isinstance(c, str) for c in range_):
+            return None if default in range_ else f"default {default!r} is not one of {range_}"
+        return "strings take 'any' or a tuple of choices"
+    if isinstance(default, (int, float)):
+        if range_ not in RANGES:
+            return f"unknown range {range_!r} (known: {', '.join(RANGES)})"
+        if range_.startswith("square") and not isinstance(default, int):
+            return "square ranges are for integers"
+        return None
+    return f"no range vocabulary for {type(default).__name__}"
+
+
+def setting(default, help: str, range=dataclasses.MISSING):
+    """A config key: `dataclasses.field` with its one-line help and its range in the metadata.
+
+    `range` is a RANGES token, a tuple of string choices, or None (booleans); left out, numbers are
+    ">=0", strings "any" and booleans None."""
+    if range is dataclasses.MISSING:
+        range = _default_range(default)
+    problem = _range_error(default, range)
+    if problem or not help.strip() or "\n" in help:
+        raise ValueError(f"setting({default!r}, {help!r}, {range!r}): {problem or 'help must be one line'}")
+    metadata = {"help": help, "range": range}
+    if isinstance(default, (list, dict, set)):
+        return dataclasses.field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
 
 @dataclass
 class FieldConfig:
     """The material field: encoder MLP with positional encoding, latent z, BRDF decoders."""
 
-    pe_freqs: int = 8  # positional-encoding frequencies of the surface point
-    hidden: int = 64  # width of the encoder's 7 FC layers
-    latent: int = 16  # dimension of the latent z
-    decoder_hidden: int = 64  # width of each decoder MLP (3 FC layers with a skip)
-    roughness_min: float = 0.02  # lower end of the roughness output range [roughness_min, 1]
-    pe_anneal: float = 0.5  # share of training over which the encoding frequencies open (0: all at once)
-    metallic_init: float = 0.02  # metallic output at initialisation (0: PyTorch's default, about 0.5)
+    pe_freqs: int = setting(8, "positional-encoding frequencies of the surface point", ">0")
+    hidden: int = setting(64, "width of the encoder's 7 FC layers", ">0")
+    latent: int = setting(16, "dimension of the latent z", ">0")
+    decoder_hidden: int = setting(64, "width of each decoder MLP (3 FC layers with a skip)", ">0")
+    roughness_min: float = setting(0.02, "lower end of the roughness output range [roughness_min, 1]", "[0,1)")
+    pe_anneal: float = setting(0.5, "share of training over which the encoding frequencies open (0: all at once)",
+                                    "[0,1]")
+    metallic_init: float = setting(0.02, "metallic output at initialisation (0: PyTorch's default, about 0.5)", "[0,1)")
 
 
 @dataclass
 class EnvmapConfig:
     """The learned lat-long environment map (used only when the capture's lighting is unknown)."""
 
-    height: int = 128  # rows of the learned envmap at the end of the fit (width is twice this); it grows from 32
-    init_scale: float = 2.0  # initial radiance as a multiple of the mean foreground pixel value
-    lr: float = 0.02  # Adam learning rate of the log-radiance texels
-    tv_weight: float = 1e-4  # weight of the smoothness term on neighbouring log-radiance texels
+    height: int = setting(
+        128, "rows of the learned envmap at the end of the fit (width is twice this); it grows from 32", ">0")
+    init_scale: float = setting(2.0, "initial radiance as a multiple of the mean foreground pixel value", ">0")
+    lr: float = setting(0.02, "Adam learning rate of the log-radiance texels", ">0")
+    tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
 
 
 @dataclass
 class LossConfig:
     """Loss weights of both branches (the paper's w1..w6)."""
 
-    w_rec_c: float = 0.2  # w1: L2 reconstruction of the continuous branch
-    w_rec_d: float = 1.0  # w2: L2 reconstruction of the discrete branch
-    w_chr: float = 1.0  # w3: chromaticity of the discrete against the continuous basecolor
-    w_vq: float = 1.0  # w4: VQ (commitment) loss
-    w_lam: float = 1e-4  # w5: Lambertian prior (metallic towards 0, roughness towards 1)
-    lam_metallic: float = 2.0  # weight of the Lambertian prior's metallic term relative to its roughness term
-    lam_decay: float = 0.1  # w5 at the end of training relative to its start (1: constant)
-    metallic_barrier_until: float = 0.3  # training share in (0, 1] during which the metallic prior is -log(1 - metallic)
-    w_sm: float = 0.0  # w6: colour-aware smoothness of neighbouring pixels (0: off)
-    sm_alpha: float = 60.0  # alpha of L_sm: how fast image differences switch the smoothness off
-    sm_beta: float = 0.1  # beta of L_sm: weight of metallic/roughness differences
-    gamma: float = 2.2  # reconstruction compares x^(1/gamma)
+    w_rec_c: float = setting(0.2, "w1: L2 reconstruction of the continuous branch")
+    w_rec_d: float = setting(1.0, "w2: L2 reconstruction of the discrete branch")
+    w_chr: float = setting(1.0, "w3: chromaticity of the discrete against the continuous basecolor")
+    w_vq: float = setting(1.0, "w4: VQ (commitment) loss")
+    w_lam: float = setting(1e-4, "w5: Lambertian prior (metallic towards 0, roughness towards 1)")
+    lam_metallic: float = setting(2.0, "weight of the Lambertian prior's metallic term relative to its roughness term")
+    lam_decay: float = setting(0.1, "w5 at the end of training relative to its start (1: constant)", "(0,1]")
+    metallic_barrier_until: float = setting(0.3, "training share during which the metallic prior is -log(1 - metallic)",
+                                                 "(0,1]")
+    w_sm: float = setting(0.0, "w6: colour-aware smoothness of neighbouring pixels (0: off)")
+    sm_alpha: float = setting(60.0, "alpha of L_sm: how fast image differences switch the smoothness off")
+    sm_beta: float = setting(0.1, "beta of L_sm: weight of metallic/roughness differences")
+    gamma: float = setting(2.2, "reconstruction compares x^(1/gamma)", ">0")
 
 
 @dataclass
 class VQConfig:
     """The discrete branch: codebook, codeword dropout and the choice of the material count M."""
 
-    enabled: bool = True  # train the discrete branch and rank its codewords (false: continuous branch only)
-    num_codes: int = 8  # M0: codebook size
-    warmup_frac: float = 0.3  # share of training before the codebook starts (from k-means of the latents)
-    decay: float = 0.99  # EMA decay of the codebook updates
-    commitment: float = 0.1  # lambda of the VQ loss (Eq. 8)
-    dropout_max: float = 0.7  # codeword dropout rate of the last codeword (rates rise linearly to it)
-    protected: int = 1  # first codewords that are never dropped
-    rank_eps: float = 0.002  # epsilon of the err_k rule that chooses M
-    rank_pixels: int = 4096  # training pixels on which err_k is measured
-    min_share: float = 0.005  # codewords chosen by fewer pixels than this share are not materials
-    merge_tol: float = 0.1  # codewords decoding within this BRDF distance of a higher-ranked one are duplicates (0: off)
-    joint_scale: float = 0.05  # share in (0, 1] of the discrete branch's gradient that reaches the shared encoder
-    lam_decay: float = 0.1  # Lambertian prior decay on the discrete branch (1: constant)
+    enabled: bool = setting(True, "train the discrete branch and rank its codewords (false: continuous branch only)")
+    num_codes: int = setting(8, "M0: codebook size", ">0")
+    warmup_frac: float = setting(0.3, "share of training before the codebook starts (from k-means of the latents)",
+                                      "[0,1]")
+    decay: float = setting(0.99, "EMA decay of the codebook updates", "[0,1]")
+    commitment: float = setting(0.1, "lambda of the VQ loss (Eq. 8)")
+    dropout_max: float = setting(0.7, "codeword dropout rate of the last codeword (rates rise linearly to it)", "[0,1]")
+    protected: int = setting(1, "first codewords that are never dropped")
+    rank_eps: float = setting(0.002, "epsilon of the err_k rule that chooses M")
+    rank_pixels: int = setting(4096, "training pixels on which err_k is measured", ">0")
+    min_share: float = setting(0.005, "codewords chosen by fewer pixels than this share are not materials", "[0,1]")
+    merge_tol: float = setting(
+        0.1, "codewords decoding within this BRDF distance of a higher-ranked one are duplicates (0: off)")
+    joint_scale: float = setting(0.05, "share of the discrete branch's gradient that reaches the shared encoder",
+                                       "(0,1]")
+    lam_decay: float = setting(0.1, "Lambertian prior decay on the discrete branch (1: constant)", "(0,1]")
 
 
 @dataclass
 class AblationConfig:
     """Switches of the paper's ablations; each preset configs/ablation_*.yaml sets one."""
 
-    no_ranking: bool = False  # M = vq.num_codes, no dropout ranking
-    separate: bool = False  # the discrete branch's gradients do not reach the encoder
-    single_branch: bool = False  # after the warm-up, train the discrete branch alone
-    shared_light: bool = False  # the discrete loss also trains the envmap and the bounce light
-    single_pass_ranking: bool = False  # the paper's single ranking pass (no moving of redundant codewords)
+    no_ranking: bool = setting(False, "M = vq.num_codes, no dropout ranking")
+    separate: bool = setting(False, "the discrete branch's gradients do not reach the encoder")
+    single_branch: bool = setting(False, "after the warm-up, train the discrete branch alone")
+    shared_light: bool = setting(False, "the discrete loss also trains the envmap and the bounce light")
+    single_pass_ranking: bool = setting(False, "the paper's single ranking pass (no moving of redundant codewords)")
 
 
 @dataclass
 class TrainConfig:
     """The training loop."""
 
-    iterations: int = 3000  # optimisation steps
-    batch_rays: int = 2048  # random foreground pixels per step, drawn across all training views
-    spp: int = 8  # emitter + BSDF sample pairs per pixel and step
-    lr: float = 2e-3  # Adam learning rate of the material networks
-    lr_decay: float = 0.1  # learning-rate factor reached at the last iteration (exponential decay)
-    seed: int = 0  # seed of the networks, batches and light samples
-    checkpoint_every: int = 500  # steps between checkpoints
-    log_every: int = 50  # steps between loss-curve entries
-    alpha_threshold: float = 0.99  # pixels with alpha below this are not fitted
-    pixel_jitter: int = 4  # primary hits traced per pixel, stratified (a square number; 0: pixel centre)
-    bounces: int = 1  # interreflections simulated (0: direct light only)
-    bounce_after: int = 300  # steps of direct light only before the bounce is simulated
-    time_limit_s: float = 0.0  # stop after this many seconds (0: no limit)
-    snapshot_s: str = ""  # comma-separated fit seconds at which a copy of the state is kept in snapshots/
+    iterations: int = setting(3000, "optimisation steps", ">0")
+    batch_rays: int = setting(2048, "random foreground pixels per step, drawn across all training views", ">0")
+    spp: int = setting(8, "emitter + BSDF sample pairs per pixel and step", ">0")
+    lr: float = setting(2e-3, "Adam learning rate of the material networks", ">0")
+    lr_end_exponential: float = setting(
+        0.1, "learning-rate factor reached at the last iteration (exponential in the steps done)", "(0,1]")
+    seed: int = setting(0, "seed of the networks, batches and light samples")
+    checkpoint_every: int = setting(500, "steps between checkpoints", ">0")
+    log_every: int = setting(50, "steps between loss-curve entries", ">0")
+    alpha_threshold: float = setting(0.99, "pixels with alpha below this are not fitted", "[0,1]")
+    pixel_jitter: int = setting(4, "primary hits traced per pixel, stratified (0: the pixel centre)", "square")
+    bounces: int = setting(1, "interreflections simulated (0: direct light only)")
+    bounce_after: int = setting(300, "steps of direct light only before the bounce is simulated")
+    time_limit_s: float = setting(0.0, "stop after this many seconds (0: no limit)")
+    snapshot_s: str = setting("", "comma-separated fit seconds at which a copy of the state is kept in snapshots/")
 
 
 @dataclass
 class RenderConfig:
     """Rendering views of a fitted run."""
 
-    spp: int = 256  # samples per pixel (primary rays x light samples)
-    aa: int = 16  # primary rays per pixel, stratified (a square number)
-    chunk: int = 65536  # surface points shaded per Mitsuba call
+    spp: int = setting(256, "samples per pixel (primary rays x light samples)", ">0")
+    aa: int = setting(16, "primary rays per pixel, stratified", "square>0")
+    chunk: int = setting(65536, "surface points shaded per Mitsuba call", ">0")
 
 
 @dataclass
 class NeuSConfig:
     """The geometry stage: NeuS on posed, masked images, then mesh export."""
 
-    seed: int = 0  # seed of the networks, ray batches and sample jitter
-    iterations: int = 4000  # training steps
-    time_limit_s: float = 600.0  # stop training after this many seconds (0: no limit)
-    batch_rays: int = 512  # rays per step, drawn from all views
-    n_samples: int = 24  # stratified samples per ray inside its occupied interval
-    lr: float = 1e-2  # Adam learning rate of the feature grids and the colour network
-    lr_sdf_mlp: float = 1e-3  # Adam learning rate of the SDF MLP
-    lr_variance: float = 2e-3  # Adam learning rate of the sharpness parameter
-    lr_decay: float = 0.1  # learning rate at the end relative to the start (cosine decay)
-    warmup: int = 100  # steps of linear learning-rate warm-up
-    levels: int = 4  # resolution levels of the dense feature grid
-    base_res: int = 16  # coarsest grid resolution (points per axis)
-    max_res: int = 64  # finest grid resolution
-    features: int = 2  # features per grid level
-    hidden: int = 64  # width of the SDF and colour MLPs
-    geo_features: int = 15  # SDF-network features passed to the colour network
-    reflect: bool = True  # the colour network sees the reflected view direction instead of the view direction
-    coarse_to_fine: float = 0.3  # share of training over which finer grid levels fade in
-    init: str = "hull"  # SDF initialisation: hull (smoothed visual-hull distance) or sphere
-    init_radius: float = 0.6  # radius of the sphere initialisation (normalised box units)
-    init_variance: float = 0.5  # initial log-sharpness / 10 (s = exp(10 * variance))
-    w_eikonal: float = 0.1  # eikonal loss weight
-    w_mask: float = 0.1  # mask loss weight (BCE on the accumulated opacity)
-    hull_resolution: int = 128  # visual-hull / occupancy grid resolution
-    hull_threshold: float = 0.5  # alpha above which a pixel is foreground for carving
-    hull_min_views: float = 0.75  # share of the views whose frusta must hold a voxel for it to be carved in
-    occupancy_every: int = 500  # steps between occupancy-grid refreshes from the SDF
-    march_steps: int = 128  # coarse steps per ray that find its occupied interval
-    mesh_resolution: int = 256  # marching-cubes grid resolution
-    min_component: float = 0.05  # connected pieces smaller than this share of the largest are dropped
-    keep_largest: bool = False  # keep only the largest connected component
-    smooth_iterations: int = 0  # Taubin smoothing steps after marching cubes
-    normal_smoothing: int = 40  # vertex-normal averaging steps over edge neighbours (positions kept)
-    normal_smoothing_angle: float = 15.0  # neighbours whose normals differ by more (degrees) are not averaged
-    max_faces: int = 200000  # quadric decimation to this many faces (0: none)
-    checkpoint_every: int = 500  # steps between NeuS checkpoints
-    threads: int = 1  # torch CPU threads for NeuS (0: torch's default)
+    seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
+    iterations: int = setting(4000, "training steps", ">0")
+    time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
+    batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
+    n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
+    lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", ">0")
+    lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", ">0")
+    lr_variance: float = setting(2e-3, "Adam learning rate of the sharpness parameter", ">0")
+    lr_end_cosine: float = setting(
+        0.1, "learning-rate factor reached at the end of training (cosine in the training progress)", "(0,1]")
+    warmup: int = setting(100, "steps of linear learning-rate warm-up")
+    levels: int = setting(4, "resolution levels of the dense feature grid", ">0")
+    base_res: int = setting(16, "coarsest grid resolution (points per axis)", ">0")
+    max_res: int = setting(64, "finest grid resolution", ">0")
+    features: int = setting(2, "features per grid level", ">0")
+    hidden: int = setting(64, "width of the SDF and colour MLPs", ">0")
+    geo_features: int = setting(15, "SDF-network features passed to the colour network")
+    reflect: bool = setting(True, "the colour network sees the reflected view direction instead of the view direction")
+    coarse_to_fine: float = setting(0.3, "share of training over which finer grid levels fade in", "[0,1]")
+    init: str = setting("hull", "SDF initialisation: hull (smoothed visual-hull distance) or sphere",
+                                ("hull", "sphere"))
+    init_radius: float = setting(0.6, "radius of the sphere initialisation (normalised box units)", ">0")
+    init_variance: float = setting(0.5, "initial log-sharpness / 10 (s = exp(10 * variance))", "any")
+    w_eikonal: float = setting(0.1, "eikonal loss weight")
+    w_mask: float = setting(0.1, "mask loss weight (BCE on the accumulated opacity)")
+    hull_resolution: int = setting(128, "visual-hull / occupancy grid resolution", ">0")
+    hull_threshold: float = setting(0.5, "alpha above which a pixel is foreground for carving", "[0,1]")
+    hull_min_views: float = setting(0.75, "share of the views whose frusta must hold a voxel for it to be carved in",
+                                          "[0,1]")
+    occupancy_every: int = setting(500, "steps between occupancy-grid refreshes from the SDF")
+    march_steps: int = setting(128, "coarse steps per ray that find its occupied interval", ">0")
+    mesh_resolution: int = setting(256, "marching-cubes grid resolution", ">0")
+    min_component: float = setting(0.05, "connected pieces smaller than this share of the largest are dropped", "[0,1]")
+    keep_largest: bool = setting(False, "keep only the largest connected component")
+    smooth_iterations: int = setting(0, "Taubin smoothing steps after marching cubes")
+    normal_smoothing: int = setting(40, "vertex-normal averaging steps over edge neighbours (positions kept)")
+    normal_smoothing_angle: float = setting(15.0, "neighbours whose normals differ by more (degrees) are not averaged")
+    max_faces: int = setting(200000, "quadric decimation to this many faces (0: none)")
+    checkpoint_every: int = setting(500, "steps between NeuS checkpoints")
+    threads: int = setting(1, "torch CPU threads for NeuS (0: torch's default)")
 
 
 @dataclass
 class CaptureConfig:
     """How a capture's images are read: their size, the mask, the views kept out of training."""
 
-    downscale: int = 1  # divide the image width and height by this, averaging blocks of pixels
-    background_color: str = ""  # R,G,B (sRGB, 0..1) of a plain backdrop, keyed out as the mask ("": none)
-    background_tolerance: float = 0.08  # sRGB distance from background_color still counted as backdrop
-    holdout: int = 0  # keep every K-th view out of training, for `eval` to score (0: none)
-
-
-@dataclass
-class TexelConfig:
-    """The per-texel baseline (`vq_mitsuba.eval.texel`): principled textures on a UV atlas."""
-
-    resolution: int = 256  # texels per side of each material texture
-    uv_padding: int = 2  # texels between charts in the UV atlas
-    envmap_height: int = 32  # rows of the learned lat-long envmap (width is twice this)
-    env_init_scale: float = 2.0  # initial radiance as a multiple of the mean foreground pixel value
-    spp: int = 16  # samples per pixel of each training render
-    max_depth: int = 3  # path length of the integrator (3: direct light plus one bounce)
-    views_per_step: int = 1  # random whole training views rendered per Adam step
-    lr_texture: float = 0.05  # Adam learning rate of the texels
-    lr_envmap: float = 0.03  # Adam learning rate of the envmap's log radiance
-    lr_decay: float = 0.1  # learning-rate factor reached at the time limit
-    gamma: float = 2.2  # the loss compares x^(1/gamma)
-    tv_weight: float = 1.0  # weight of the mean squared difference of neighbouring texels
-    env_tv_weight: float = 1e-4  # weight of the smoothness of the envmap's log radiance
-    init_basecolor: float = 0.5  # initial basecolor texels
-    init_metallic: float = 0.1  # initial metallic texels
-    init_roughness: float = 0.5  # initial roughness texels
-    roughness_min: float = 0.02  # roughness texels are clamped to [roughness_min, 1]
-    iterations: int = 0  # stop after this many steps (0: only the time limit)
-    seed: int = 0  # seed of the view order and the Monte Carlo samples
+    downscale: int = setting(1, "divide the image width and height by this, averaging blocks of pixels", ">0")
+    background_color: str = setting("", "R,G,B (sRGB, 0..1) of a plain backdrop, keyed out as the mask (\"\": none)")
+    background_tolerance: float = setting(0.08, "sRGB distance from background_color still counted as backdrop",
+                                                "[0,1]")
+    holdout: int = setting(0, "keep every K-th view out of training, for `eval` to score (0: none)")
 
 
 @dataclass
@@ -204,7 +265,6 @@ class Config:
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
     ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)
-    texel: TexelConfig = dataclasses.field(default_factory=TexelConfig)
     capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
 
 
@@ -253,6 +313,8 @@ def _apply(cfg, data: dict, source, prefix: str = "") -> None:
     for key, value in data.items():
         name = f"{prefix}{key}"
         if key not in hints:
+            if name in _V1_RENAMED:
+                raise InputError(source, f"'{name}' is now '{_V1_RENAMED[name]}'")
             known = ", ".join(hints)
             raise InputError(source, f"unknown config key '{name}' (known here: {known})")
         current = getattr(cfg, key)
@@ -278,68 +340,48 @@ def read_config_file(path: str | Path) -> dict:
     return data
 
 
-# Value ranges of numeric keys. Every other numeric key must be >= 0 (weights, seeds, time limits,
-# counts that may be zero); a key named in none of these tables and in ANY_SIGN may be negative.
-POSITIVE = {
-    "field.pe_freqs", "field.hidden", "field.latent", "field.decoder_hidden", "envmap.height", "envmap.init_scale",
-    "envmap.lr", "loss.gamma", "vq.num_codes", "vq.rank_pixels", "train.iterations", "train.batch_rays", "train.spp",
-    "train.lr", "train.lr_decay", "train.checkpoint_every", "train.log_every", "render.spp", "render.aa",
-    "render.chunk", "neus.lr", "neus.lr_sdf_mlp", "neus.lr_variance", "neus.lr_decay", "neus.init_radius",
-    "texel.resolution", "texel.envmap_height",
-    "texel.env_init_scale", "texel.spp", "texel.max_depth", "texel.views_per_step", "texel.lr_texture",
-    "texel.lr_envmap", "texel.lr_decay", "texel.gamma", "capture.downscale",
-}
-UNIT_INTERVAL = {
-    "field.roughness_min", "field.pe_anneal", "vq.warmup_frac", "vq.decay", "vq.dropout_max", "vq.min_share",
-    "train.alpha_threshold", "train.lr_decay", "neus.lr_decay", "neus.hull_threshold", "neus.hull_min_views",
-    "neus.coarse_to_fine", "neus.min_component", "texel.lr_decay", "texel.init_basecolor", "texel.init_metallic",
-    "texel.init_roughness", "texel.roughness_min", "capture.background_tolerance",
-}
-ANY_SIGN = {"neus.init_variance"}
-SQUARE = {"train.pixel_jitter": "0: pixel centre", "render.aa": "primary rays per pixel on a grid"}
+def _section_name(cls) -> str:
+    """`neus` for NeuSConfig: the name under which Config holds a section ("" for Config itself)."""
+    for f in dataclasses.fields(Config):
+        if f.default_factory is cls:
+            return f.name
+    return ""
 
 
-def _numeric_keys(cfg, prefix: str = ""):
+def _value_error(key: str, value, range_) -> str | None:
+    """The message for a value outside its key's range (None when it is inside)."""
+    if isinstance(value, bool) or range_ is None:
+        return None
+    if isinstance(range_, tuple):
+        if value in range_:
+            return None
+        return f"{key} must be one of {', '.join(repr(c) for c in range_)}, got {value!r}"
+    if isinstance(value, str):
+        return None  # free text, parsed where it is used
+    test, phrase = RANGES[range_]
+    return None if test(value) else f"{key} must be {phrase}, got {value}"
+
+
+def check(cfg, source=None, prefix: str | None = None) -> None:
+    """The one validator: every key of `cfg` (a Config or one section) inside the range its
+    metadata gives, then the checks that span keys. `source` is the layer that set the values (a
+    file or --set): the InputError names it."""
+    if prefix is None:
+        name = _section_name(type(cfg))
+        prefix = f"{name}." if name else ""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         if dataclasses.is_dataclass(value):
-            yield from _numeric_keys(value, f"{prefix}{f.name}.")
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            yield f"{prefix}{f.name}", value
-
-
-def _check_ranges(cfg: Config, source) -> None:
-    """Values that parse but make no sense; `source` is the layer that set them (file or --set)."""
-    def fail(message: str):
-        raise InputError(source, message)
-
-    for key, value in _numeric_keys(cfg):
-        if key in POSITIVE and not value > 0:
-            fail(f"{key} must be > 0, got {value}")
-        if key in UNIT_INTERVAL and not 0.0 <= value <= 1.0:
-            fail(f"{key} must be in [0, 1], got {value}")
-        if key not in ANY_SIGN and value < 0:
-            fail(f"{key} must be >= 0, got {value}")
-        if key in SQUARE and value > 0 and round(value ** 0.5) ** 2 != value:
-            fail(f"{key} must be a square number ({SQUARE[key]}), got {value}")
-    if cfg.field.roughness_min >= 1.0:
-        fail(f"field.roughness_min must be below 1, got {cfg.field.roughness_min}")
-
-    if not 0.0 <= cfg.field.metallic_init < 1.0:
-        fail(f"field.metallic_init must be in [0, 1) (0: default initialisation), got {cfg.field.metallic_init}")
-    for key, value, one in (("loss.lam_decay", cfg.loss.lam_decay, "a constant Lambertian prior"),
-                            ("vq.lam_decay", cfg.vq.lam_decay, "a constant Lambertian prior"),
-                            ("vq.joint_scale", cfg.vq.joint_scale, "the full joint gradient"),
-                            ("loss.metallic_barrier_until", cfg.loss.metallic_barrier_until, "the whole fit")):
-        if not 0.0 < value <= 1.0:
-            fail(f"{key} must be in (0, 1] (1: {one}), got {value}")
-    if cfg.train.bounce_after < 0:
-        fail(f"train.bounce_after must be >= 0 steps (0: bounces from the first step), got {cfg.train.bounce_after}")
-    if cfg.vq.num_codes < 1:
-        fail(f"vq.num_codes must be >= 1, got {cfg.vq.num_codes}")
-    check_neus(cfg.neus, source)
-    if cfg.capture.background_color:
-        background_rgb(cfg.capture, source)
+            check(value, source, f"{prefix}{f.name}.")
+            continue
+        message = _value_error(prefix + f.name, value, f.metadata.get("range"))
+        if message:
+            raise InputError(source, message)
+    if isinstance(cfg, NeuSConfig) and (cfg.base_res < 2 or cfg.max_res < cfg.base_res):
+        raise InputError(source, f"{prefix}base_res must be >= 2 and {prefix}max_res >= {prefix}base_res, got "
+                                 f"{prefix}base_res={cfg.base_res}, {prefix}max_res={cfg.max_res}")
+    if isinstance(cfg, CaptureConfig) and cfg.background_color:
+        background_rgb(cfg, source)
 
 
 def background_rgb(c: CaptureConfig, source=None) -> tuple[float, float, float] | None:
@@ -354,21 +396,6 @@ def background_rgb(c: CaptureConfig, source=None) -> tuple[float, float, float] 
         raise InputError(source, f"capture.background_color must be R,G,B with values in 0..1, got "
                                  f"'{c.background_color}'")
     return rgb
-
-
-def check_neus(n: NeuSConfig, source=None) -> None:
-    """The `neus` section's value ranges."""
-    if n.init not in ("hull", "sphere"):
-        raise InputError(source, f"neus.init must be 'hull' or 'sphere', got {n.init!r}")
-    for key in ("iterations", "batch_rays", "n_samples", "levels", "base_res", "max_res", "features", "hidden",
-                "hull_resolution", "march_steps", "mesh_resolution"):
-        if getattr(n, key) < 1:
-            raise InputError(source, f"neus.{key} must be positive, got {getattr(n, key)}")
-    for key in ("smooth_iterations", "normal_smoothing", "max_faces"):
-        if getattr(n, key) < 0:
-            raise InputError(source, f"neus.{key} must be >= 0, got {getattr(n, key)}")
-    if n.base_res < 2 or n.max_res < n.base_res:
-        raise InputError(source, "neus.base_res must be >= 2 and neus.max_res >= neus.base_res")
 
 
 def parse_overrides(overrides: list[str] | None) -> dict:
@@ -388,14 +415,55 @@ def parse_overrides(overrides: list[str] | None) -> dict:
     return nested
 
 
+# config.yaml's format. 2: train.lr_decay and neus.lr_decay became train.lr_end_exponential and
+# neus.lr_end_cosine, and the `texel` section left Config (it is vq_mitsuba.eval.texel.TexelConfig).
+CONFIG_VERSION = 2
+_V1_RENAMED = {"train.lr_decay": "train.lr_end_exponential", "neus.lr_decay": "neus.lr_end_cosine"}
+_V1_DROPPED = ("texel",)
+
+
+def _v1_to_v2(data: dict) -> dict:
+    out = {}
+    for name, section in data.items():
+        if name in _V1_DROPPED:
+            continue
+        if isinstance(section, dict):
+            section = {_V1_RENAMED.get(f"{name}.{key}", f"{name}.{key}").split(".", 1)[1]: value
+                       for key, value in section.items()}
+        out[name] = section
+    return out
+
+
+_UPGRADES = {1: _v1_to_v2}
+
+
+def upgrade(data: dict, source=None, default_version: int = 1) -> dict:
+    """A saved config mapping in the current format: its `version` (absent: `default_version`) is
+    removed and each step from there to CONFIG_VERSION applied."""
+    data = dict(data)
+    version = data.pop("version", default_version)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise InputError(source, f"config version must be a whole number from 1 to {CONFIG_VERSION}, got {version!r}")
+    if version > CONFIG_VERSION:
+        raise InputError(source, f"config version {version} is newer than this vq-mitsuba reads "
+                                 f"({CONFIG_VERSION}); update vq-mitsuba")
+    while version < CONFIG_VERSION:
+        data = _UPGRADES[version](data)
+        version += 1
+    return data
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None, base: dict | None = None,
                 preset: str | None = None) -> Config:
     """Defaults <- `base` (a run's saved config) <- preset configs/PRESET.yaml <- YAML file <- `key=value`
-    overrides; each layer is checked as it is applied, and an error names the layer."""
+    overrides; each layer is checked as it is applied, and an error names the layer.
+
+    `base` without a `version` is a version 1 config.yaml and is upgraded; a file with a `version`
+    (a copied config.yaml) is upgraded from it, one without is in the current format."""
     cfg = Config()
     layers: list[tuple[object, dict]] = []
     if base:
-        layers.append(("config.yaml", base))
+        layers.append(("config.yaml", upgrade(base, "config.yaml")))
     if preset is not None:
         path_p = preset_path(preset)
         layers.append((path_p, read_config_file(path_p)))
@@ -404,40 +472,51 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     if overrides:
         layers.append(("--set", parse_overrides(overrides)))
     for source, data in layers:
+        if source != "config.yaml" and "version" in data:
+            data = upgrade(data, source, CONFIG_VERSION)
         _apply(cfg, data, source)
-        _check_ranges(cfg, source)
+        check(cfg, source)
     return cfg
 
 
 def save_config(cfg: Config, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    """config.yaml: `version: CONFIG_VERSION`, then every section."""
+    Path(path).write_text(yaml.safe_dump({"version": CONFIG_VERSION, **to_dict(cfg)}, sort_keys=False))
 
 
-def _comments(cls) -> dict[str, str]:
-    """Each field's one-line description: the comment beside it in the class body."""
-    import inspect
-    import re
+def range_text(default, range_) -> str:
+    """A key's range as --help-config and docs/configuration.md show it."""
+    if range_ is None:
+        return "true/false"
+    if isinstance(range_, tuple):
+        return " or ".join(range_)
+    if isinstance(default, str):
+        return "text"
+    return {"any": "any", "square": "square number or 0", "square>0": "square number > 0"}.get(
+        range_, RANGES[range_][1].removeprefix("in "))
 
-    out = {}
-    for line in inspect.getsource(cls).splitlines():
-        m = re.match(r"\s+(\w+): [\w\[\], |]+ = .*?#\s*(.*)$", line)
-        if m:
-            out[m.group(1)] = m.group(2)
-    return out
+
+def _default(f: dataclasses.Field):
+    return f.default_factory() if f.default is dataclasses.MISSING else f.default
+
+
+def _doc(f: dataclasses.Field) -> tuple[str, str]:
+    """A key's (help, range text), from its metadata."""
+    return f.metadata.get("help", ""), range_text(_default(f), f.metadata.get("range"))
 
 
 def describe(cfg_cls=Config, prefix: str = "") -> list[str]:
-    """One line per key, `section.key = default: meaning`, for --help-config."""
+    """One line per key, `  section.key = default (range): meaning`, under a line per section, for --help-config."""
     lines = []
-    comments = _comments(cfg_cls)
     for f in dataclasses.fields(cfg_cls):
-        default = f.default_factory() if f.default is dataclasses.MISSING else f.default
+        default = _default(f)
         if dataclasses.is_dataclass(default):
             doc = (type(default).__doc__ or "").strip().splitlines()[0]
             lines.append(f"{prefix}{f.name}: {doc}")
             lines += describe(type(default), prefix + f.name + ".")
         else:
-            lines.append(f"  {prefix}{f.name} = {default!r}: {comments.get(f.name, '')}")
+            help_, shown = _doc(f)
+            lines.append(f"  {prefix}{f.name} = {default!r} ({shown}): {help_}")
     return lines
 
 
@@ -446,15 +525,21 @@ def markdown() -> str:
     lines = ["# Configuration", "",
              "Generated by `python -m vq_mitsuba.config > docs/configuration.md` from `vq_mitsuba/config.py`; "
              "`vq-mitsuba fit --help-config` prints the same. A run's config is the defaults, then "
-             "`--preset NAME` (`configs/NAME.yaml`), then `--config FILE`, then each `--set section.key=value`.",
+             "`--preset NAME` (`configs/NAME.yaml`), then `--config FILE`, then each `--set section.key=value`. "
+             "Every value is checked against its range as its layer is applied; an error names the layer.",
+             "",
+             f"A run's `config.yaml` starts with `version: {CONFIG_VERSION}`; one without a version (version 1) "
+             "is read with its old names: `" + "`, `".join(f"{old}` as `{new}" for old, new in _V1_RENAMED.items())
+             + "`, and its `texel` section ignored (the per-texel baseline's settings are `TexelConfig` in "
+             "`vq_mitsuba/eval/texel.py`).",
              ""]
     for f in dataclasses.fields(Config):
-        section = f.default_factory()
-        lines += [f"## `{f.name}`: {(type(section).__doc__ or '').strip()}", "", "| key | default | meaning |",
-                  "|---|---|---|"]
-        comments = _comments(type(section))
+        section = _default(f)
+        lines += [f"## `{f.name}`: {(type(section).__doc__ or '').strip()}", "",
+                  "| key | default | range | meaning |", "|---|---|---|---|"]
         for g in dataclasses.fields(section):
-            lines.append(f"| `{f.name}.{g.name}` | `{getattr(section, g.name)!r}` | {comments.get(g.name, '')} |")
+            help_, shown = _doc(g)
+            lines.append(f"| `{f.name}.{g.name}` | `{getattr(section, g.name)!r}` | {shown} | {help_} |")
         lines.append("")
     lines += ["## Presets", ""] + [f"- `{name}`: " + (preset_path(name).read_text().splitlines()[0].lstrip("# ")
                                                        if preset_path(name).read_text().startswith("#") else "")
