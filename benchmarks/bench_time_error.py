@@ -303,7 +303,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the vqnerf and continuous methods (repeatable)")
     ap.add_argument("--texel-set", action="append", default=[], metavar="KEY=VALUE",
-                    help="TexelConfig override for the per-texel baseline, e.g. lr_decay=1.0 (repeatable)")
+                    help="TexelConfig override for the per-texel baseline, e.g. lr_end_exponential=1.0 (repeatable)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "time_error")
     ap.add_argument("--compare", type=Path, help="an earlier time_error.json (default: the one in OUT)")
     ap.add_argument("--append", action="store_true",
