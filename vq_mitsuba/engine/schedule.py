@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vq_mitsuba.config import Config
+from vq_mitsuba.run.loop import Progress
 
 
 @dataclass(frozen=True)
@@ -18,17 +19,14 @@ class StepSchedule:
     discrete: bool  # the discrete branch trains (after its warm-up)
 
 
-def schedule_at(cfg: Config, step: int, elapsed_s: float) -> StepSchedule:
-    """The schedule of step `step` (0-based) after `elapsed_s` seconds of fitting.
+def schedule_at(cfg: Config, p: Progress) -> StepSchedule:
+    """The schedule of the step at `p` (the loop's step and time shares).
 
-    The encoding frequencies, the prior's decay and the discrete warm-up follow the progress, so a
-    fit stopped by train.time_limit_s has run its whole schedule; the learning rate follows the
-    iterations alone, so a short budget's few steps keep a large rate.
+    The encoding frequencies, the prior's decay and the discrete warm-up follow the larger share,
+    so a fit stopped by train.time_limit_s has run its whole schedule; the learning rate follows the
+    step share alone, so a short budget's few steps keep a large rate.
     """
-    done = step / max(cfg.train.iterations, 1)
-    progress = done
-    if cfg.train.time_limit_s > 0:
-        progress = min(max(done, elapsed_s / cfg.train.time_limit_s), 1.0)
+    done, progress = p.step_share, p.share
     return StepSchedule(
         done=done,
         progress=progress,

@@ -25,6 +25,7 @@ from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
+from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models import losses
 from vq_mitsuba.models.fields import EnvironmentMap
@@ -252,60 +253,49 @@ class Trainer:
 
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:
-        from tqdm import tqdm
-
+        """Run the remaining steps under train.iterations and train.time_limit_s (the loop skeleton,
+        `vq_mitsuba.run.loop`); the learning rate follows the step share, the rest of the schedule
+        the larger of the step and time shares (`schedule_at`)."""
         cfg = self.cfg
-        total = cfg.train.iterations
-        snap_times = [t for t in parse_snapshot_times(cfg.train.snapshot_s) if t > self.elapsed_before]
-        start_step = self.step
-        t0 = time.perf_counter()
-        clock = lambda: self.elapsed_before + time.perf_counter() - t0  # noqa: E731
-        bar = tqdm(total=total, initial=self.step, desc="fit", disable=not progress, dynamic_ncols=True)
-        loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
-        nonfinite_steps, nonfinite_run = 0, 0
-        while self.step < total:
-            finite, loss, mse = self.train_step(schedule_at(cfg, self.step, clock()))
-            bar.update(1)
-            if not finite:
-                nonfinite_steps += 1
-                nonfinite_run += 1
-                if nonfinite_steps == 1:
-                    print(f"warning: step {self.step}: loss or gradients not finite; the step is skipped")
-                if nonfinite_run >= MAX_NONFINITE_RUN:
-                    bar.close()
-                    self.checkpoint(clock())
-                    raise NumericalError(self.run.dir, f"steps {self.step - nonfinite_run + 1} to {self.step} all "
-                                         f"gave a non-finite loss or gradient; the checkpoint (step {self.step}) "
-                                         f"keeps the parameters of step {self.step - nonfinite_run}, the last finite "
-                                         "one; try a lower train.lr, or --resume with another train.seed")
-                continue
-            nonfinite_run = 0
-            loss_acc, mse_acc, n_acc = loss_acc + loss, mse_acc + mse, n_acc + 1
-            if self.step % cfg.train.log_every == 0 or self.step == total:
-                self.history.append({"step": self.step, "seconds": clock(), "loss": loss_acc / n_acc,
-                                     "psnr": losses.psnr(mse_acc / n_acc)})
-                bar.set_postfix(loss=f"{loss_acc / n_acc:.4g}", psnr=f"{self.history[-1]['psnr']:.2f}")
-                loss_acc, mse_acc, n_acc = 0.0, 0.0, 0
-            elapsed = clock()
-            if self.step % cfg.train.checkpoint_every == 0:
-                self.checkpoint(elapsed)
-            if snap_times and elapsed >= snap_times[0]:
-                while snap_times and elapsed >= snap_times[0]:
-                    snap_times.pop(0)
-                t_write = time.perf_counter()
-                self.snapshot(elapsed)
-                t0 += time.perf_counter() - t_write  # the fit's clock does not count the copy
-            if cfg.train.time_limit_s > 0 and elapsed >= cfg.train.time_limit_s:
-                print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
-                break
-        bar.close()
-        elapsed = clock()
-        self.checkpoint(elapsed)
-        return {"iterations": self.step, "seconds": elapsed,
-                "iterations_per_s": self.step / elapsed if elapsed > 0 else math.nan,
+        self._acc = {"loss": 0.0, "mse": 0.0, "n": 0, "nonfinite": 0, "run": 0}
+        loop = Loop("fit", Budget(cfg.train.iterations, cfg.train.time_limit_s), self._loop_step,
+                    start_step=self.step, start_seconds=self.elapsed_before,
+                    checkpoint=lambda p: self.checkpoint(p.seconds), checkpoint_every=cfg.train.checkpoint_every,
+                    snapshot=lambda p, label: self.snapshot(p.seconds),
+                    snapshot_times=parse_snapshot_times(cfg.train.snapshot_s), progress_bar=progress)
+        self._clock = loop.clock
+        result = loop.run()
+        if result.stopped_by_time:
+            print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
+        return {"iterations": self.step, "seconds": result.seconds,
+                "iterations_per_s": self.step / result.seconds if result.seconds > 0 else math.nan,
                 "final_psnr_train_batch": self.history[-1]["psnr"] if self.history else None,
-                "training_pixels": len(self.pool), "steps_this_call": self.step - start_step,
-                "nonfinite_steps_skipped": nonfinite_steps}
+                "training_pixels": len(self.pool), "steps_this_call": result.steps_this_call,
+                "nonfinite_steps_skipped": self._acc["nonfinite"]}
+
+    def _loop_step(self, p: Progress) -> dict | None:
+        """One step of the loop: the optimisation step, the non-finite guard and the loss curve."""
+        acc = self._acc
+        finite, loss, mse = self.train_step(schedule_at(self.cfg, p))
+        if not finite:
+            acc["nonfinite"] += 1
+            acc["run"] += 1
+            if acc["nonfinite"] == 1:
+                print(f"warning: step {self.step}: loss or gradients not finite; the step is skipped")
+            if acc["run"] >= MAX_NONFINITE_RUN:
+                raise NumericalError(self.run.dir, f"steps {self.step - acc['run'] + 1} to {self.step} all "
+                                     f"gave a non-finite loss or gradient; the checkpoint (step {self.step}) "
+                                     f"keeps the parameters of step {self.step - acc['run']}, the last finite "
+                                     "one; try a lower train.lr, or --resume with another train.seed")
+            return None
+        acc["run"] = 0
+        acc["loss"], acc["mse"], acc["n"] = acc["loss"] + loss, acc["mse"] + mse, acc["n"] + 1
+        if self.step % self.cfg.train.log_every == 0 or self.step == self.cfg.train.iterations:
+            self.history.append({"step": self.step, "seconds": self._clock(), "loss": acc["loss"] / acc["n"],
+                                 "psnr": losses.psnr(acc["mse"] / acc["n"])})
+            acc["loss"], acc["mse"], acc["n"] = 0.0, 0.0, 0
+            return {"loss": f"{self.history[-1]['loss']:.4g}", "psnr": f"{self.history[-1]['psnr']:.2f}"}
+        return None
 
     def finish(self, summary: dict) -> None:
         """Rank the codewords (when the discrete branch ran) and write the run's results."""
@@ -334,10 +324,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     t_start = time.perf_counter()
     run = RunDir(run_dir)
     parse_snapshot_times(cfg.train.snapshot_s)
-    if run.is_run() and run.is_edit():
-        raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
-    if run.has_checkpoint() and not resume:
-        raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
+    check_fit_target(run, resume)
     if resume and not run.has_checkpoint():
         if not run.dir.is_dir():
             raise InputError(run.dir, "no run to resume (the folder does not exist)")
@@ -388,3 +375,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     summary["startup_s"] = startup
     trainer.finish(summary)
     return summary
+
+
+def check_fit_target(run: RunDir, resume: bool) -> None:
+    """Refuse to fit into an edited run, or over a fitted one unless resuming it (before any work)."""
+    if run.is_run() and run.is_edit():
+        raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
+    if run.has_checkpoint() and not resume:
+        raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")

@@ -29,6 +29,7 @@ from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.config import setting
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.uv import uv_unwrap
+from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import write_atomic, write_json
 
 SNAPSHOT_FORMAT = 1
@@ -289,98 +290,103 @@ def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | 
 
     Returns {"snapshots": [(seconds, iterations, path), ...], "iterations", "seconds",
     "setup_seconds", "iterations_per_s", "loss_first", "loss_last"}."""
-    import drjit as dr
-    import mitsuba as mi
-    from tqdm import tqdm
-
     from vq_mitsuba.data.captures import load_capture
 
     cfg = cfg or TexelConfig()
     if time_limit_s <= 0 and cfg.iterations <= 0:
         raise InputError(None, "fit_texel needs a positive time limit or iteration count")
     t_setup = time.perf_counter()
-    capture = load_capture(capture_path, mesh=mesh_path)
-    ts = TexelScene(capture, cfg)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(cfg.seed)
-
-    opt = mi.ad.Adam(lr=cfg.lr_texture, mask_updates=True)
-    for name, value in ts.initial_values().items():
-        opt[name] = value
-    lrs = {name: cfg.lr_texture for name in TEXTURES}
-    if ts.learn_env:
-        lrs["log_env"] = cfg.lr_envmap
-    tv_idx = {name: _neighbour_index(ts.resolution, _CHANNELS[name]) for name in TEXTURES} \
-        if cfg.tv_weight > 0 else None
-    env_tv_idx = _neighbour_index_wrapped(ts.env_h) if ts.learn_env and cfg.env_tv_weight > 0 else None
-    lo = {"basecolor": 0.0, "metallic": 0.0, "roughness": cfg.roughness_min}
-    n_views = len(capture.cameras)
-    per_step = max(1, min(int(cfg.views_per_step), n_views))
+    fit = _TexelFit(load_capture(capture_path, mesh=mesh_path), Path(out_dir), cfg)
     setup_seconds = time.perf_counter() - t_setup
-    meta_base = {"format": SNAPSHOT_FORMAT, "world": capture.world, "capture": str(Path(capture.source).resolve()),
-                 "learned_envmap": ts.learn_env, "max_depth": int(cfg.max_depth), "config": asdict(cfg)}
+    loop = Loop("texel fit", Budget(cfg.iterations, time_limit_s), fit.loop_step,
+                snapshot=fit.snapshot_at,
+                snapshot_times=snapshot_s, progress_bar=progress)
+    fit.clock = loop.clock
+    result = loop.run()
+    elapsed, step = result.seconds, result.steps
+    if fit.last_snap_step != step:
+        path = str(fit.snapshot(elapsed, elapsed, step))
+        fit.snaps = [s for s in fit.snaps if s[2] != path] + [(elapsed, step, path)]
+    summary = {"snapshots": fit.snaps, "iterations": step, "seconds": elapsed, "setup_seconds": setup_seconds,
+               "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
+               "loss_first": fit.loss_first, "loss_last": fit.loss_ema}
+    write_json(fit.out_dir / TEXEL_SUMMARY, summary)
+    return summary
 
-    def snapshot(label_s: float, elapsed: float, step: int) -> Path:
-        path = _snapshot_path(out_dir, label_s)
-        _write_snapshot(path, ts.arrays(opt), {**meta_base, "seconds": elapsed, "iterations": step})
+
+class _TexelFit:
+    """The per-texel baseline's optimiser and step for the loop skeleton (`vq_mitsuba.run.loop`).
+    Its learning rate decays with the share of whichever budget runs out first (it is compared
+    with the material fit at equal time)."""
+
+    def __init__(self, capture, out_dir: Path, cfg: TexelConfig):
+        import mitsuba as mi
+
+        self.cfg, self.out_dir = cfg, out_dir
+        ts = self.ts = TexelScene(capture, cfg)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.opt = mi.ad.Adam(lr=cfg.lr_texture, mask_updates=True)
+        for name, value in ts.initial_values().items():
+            self.opt[name] = value
+        self.lrs = {name: cfg.lr_texture for name in TEXTURES}
+        if ts.learn_env:
+            self.lrs["log_env"] = cfg.lr_envmap
+        self.tv_idx = {name: _neighbour_index(ts.resolution, _CHANNELS[name]) for name in TEXTURES} \
+            if cfg.tv_weight > 0 else None
+        self.env_tv_idx = _neighbour_index_wrapped(ts.env_h) if ts.learn_env and cfg.env_tv_weight > 0 else None
+        self.lo = {"basecolor": 0.0, "metallic": 0.0, "roughness": cfg.roughness_min}
+        self.n_views = len(capture.cameras)
+        self.per_step = max(1, min(int(cfg.views_per_step), self.n_views))
+        self.meta = {"format": SNAPSHOT_FORMAT, "world": capture.world,
+                     "capture": str(Path(capture.source).resolve()), "learned_envmap": ts.learn_env,
+                     "max_depth": int(cfg.max_depth), "config": asdict(cfg)}
+        self.snaps: list[tuple[float, int, str]] = []
+        self.last_snap_step = -1
+        self.loss_ema, self.loss_first = None, None
+
+    def snapshot(self, label_s: float, elapsed: float, step: int) -> Path:
+        path = _snapshot_path(self.out_dir, label_s)
+        _write_snapshot(path, self.ts.arrays(self.opt), {**self.meta, "seconds": elapsed, "iterations": step})
         return path
 
-    def tv(x, idx):
+    def snapshot_at(self, p: Progress, label_s: float) -> None:
+        """The loop's snapshot at the requested training time `label_s`."""
+        self.snaps.append((p.seconds, p.step, str(self.snapshot(label_s, p.seconds, p.step))))
+        self.last_snap_step = p.step
+
+    @staticmethod
+    def _tv(x, idx):
+        import drjit as dr
+        import mitsuba as mi
+
         a, b = idx
         return dr.mean(dr.square(dr.gather(mi.Float, x.array, a) - dr.gather(mi.Float, x.array, b)))
 
-    pending = sorted(float(t) for t in snapshot_s if float(t) > 0)
-    snaps: list[tuple[float, int, str]] = []
-    bar = tqdm(total=cfg.iterations or None, desc="texel fit", disable=not progress, dynamic_ncols=True)
-    step, elapsed, last_snap_step = 0, 0.0, -1
-    loss_ema, loss_first = None, None
-    t0 = time.perf_counter()
-    while True:
-        frac = max(elapsed / time_limit_s if time_limit_s > 0 else 0.0,
-                   step / cfg.iterations if cfg.iterations > 0 else 0.0)
-        decay = cfg.lr_end_exponential ** min(frac, 1.0)
-        opt.set_learning_rate({k: v * decay for k, v in lrs.items()})
-        views = rng.choice(n_views, size=per_step, replace=False)
-        rec = ts.loss(opt, views, seed=step * per_step)
+    def loop_step(self, p: Progress) -> dict | None:
+        import drjit as dr
+
+        cfg, opt = self.cfg, self.opt
+        decay = cfg.lr_end_exponential ** p.share
+        opt.set_learning_rate({k: v * decay for k, v in self.lrs.items()})
+        views = self.rng.choice(self.n_views, size=self.per_step, replace=False)
+        rec = self.ts.loss(opt, views, seed=p.step * self.per_step)
         loss = rec
-        if tv_idx is not None:
+        if self.tv_idx is not None:
             for name in TEXTURES:
-                loss = loss + cfg.tv_weight * tv(opt[name], tv_idx[name])
-        if env_tv_idx is not None:
-            loss = loss + cfg.env_tv_weight * tv(opt["log_env"], env_tv_idx)
+                loss = loss + cfg.tv_weight * self._tv(opt[name], self.tv_idx[name])
+        if self.env_tv_idx is not None:
+            loss = loss + cfg.env_tv_weight * self._tv(opt["log_env"], self.env_tv_idx)
         dr.backward(loss)
         opt.step()
         for name in TEXTURES:
-            opt[name] = dr.clip(opt[name], lo[name], 1.0)
-        step += 1
+            opt[name] = dr.clip(opt[name], self.lo[name], 1.0)
         rec_value = _mean(rec)
-        loss_first = rec_value if loss_first is None else loss_first
-        loss_ema = rec_value if loss_ema is None else 0.95 * loss_ema + 0.05 * rec_value
-        elapsed = time.perf_counter() - t0
-        bar.update(1)
-        if step % 10 == 0:
-            bar.set_postfix(loss=f"{loss_ema:.4g}", s=f"{elapsed:.0f}")
-        done = (time_limit_s > 0 and elapsed >= time_limit_s) or (cfg.iterations > 0 and step >= cfg.iterations)
-        if pending and elapsed >= pending[0]:
-            label = pending[0]
-            while pending and elapsed >= pending[0]:
-                pending.pop(0)
-            t_write = time.perf_counter()
-            snaps.append((elapsed, step, str(snapshot(label, elapsed, step))))
-            last_snap_step = step
-            t0 += time.perf_counter() - t_write  # the fit's clock does not count the copy
-        if done:
-            break
-    bar.close()
-    if last_snap_step != step:
-        path = str(snapshot(elapsed, elapsed, step))
-        snaps = [s for s in snaps if s[2] != path] + [(elapsed, step, path)]
-    summary = {"snapshots": snaps, "iterations": step, "seconds": elapsed, "setup_seconds": setup_seconds,
-               "iterations_per_s": step / elapsed if elapsed > 0 else math.nan,
-               "loss_first": loss_first, "loss_last": loss_ema}
-    write_json(out_dir / TEXEL_SUMMARY, summary)
-    return summary
+        self.loss_first = rec_value if self.loss_first is None else self.loss_first
+        self.loss_ema = rec_value if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * rec_value
+        if (p.step + 1) % 10 == 0:
+            return {"loss": f"{self.loss_ema:.4g}", "s": f"{self.clock():.0f}"}
+        return None
 
 
 def _neighbour_index_wrapped(height: int):

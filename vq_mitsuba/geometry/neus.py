@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.run.loop import Budget, Clock, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 from vq_mitsuba.config import check as validate
 
@@ -526,14 +527,6 @@ class NeuS:
 # Training
 
 
-def _progress(cfg: NeuSConfig, step: int, elapsed: float) -> float:
-    """Training progress in [0, 1]: steps or seconds, whichever budget runs out first."""
-    frac = step / max(cfg.iterations, 1)
-    if cfg.time_limit_s > 0:
-        frac = max(frac, elapsed / cfg.time_limit_s)
-    return min(frac, 1.0)
-
-
 def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
     warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
     cos = 0.5 * (1.0 + math.cos(math.pi * prog))
@@ -564,90 +557,91 @@ def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress:
     every `callback_every_s` seconds of training (its own time is not counted)."""
 
     with _threads(neus.cfg.threads):
-        return _train(neus, run, resume, progress, callback, callback_every_s)
+        return _NeuSFit(neus, run).run(resume, progress, callback, callback_every_s)
 
 
-def _train(neus: NeuS, run: RunDir | None, resume, progress, callback, callback_every_s) -> dict:
-    from tqdm import tqdm
+class _NeuSFit:
+    """NeuS's step, optimiser and checkpoint for the loop skeleton (`vq_mitsuba.run.loop`). The
+    schedule (level fade-in, learning rate) follows the share of whichever budget runs out first."""
 
-    cfg = neus.cfg
-    model = neus.model
-    mlp = [p for name, p in model.sdf.named_parameters() if not name.startswith("encoding")]
-    groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()), "base_lr": cfg.lr},
-              {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
-              {"params": [model.variance], "base_lr": cfg.lr_variance}]
-    optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    step, elapsed, history = 0, 0.0, []
-    ckpt = run.neus_checkpoint_path if run is not None else None
-    if resume and ckpt is not None and ckpt.is_file():
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
-        _check_architecture(ckpt, state.get("config") or {}, cfg)
-        model.load_state_dict(state["model"])
-        optim.load_state_dict(state["optim"])
-        gen.set_state(state["generator"])
+    def __init__(self, neus: NeuS, run: RunDir | None):
+        cfg = self.cfg = neus.cfg
+        self.neus, self.model = neus, neus.model
+        model = neus.model
+        mlp = [p for name, p in model.sdf.named_parameters() if not name.startswith("encoding")]
+        groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()),
+                   "base_lr": cfg.lr},
+                  {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
+                  {"params": [model.variance], "base_lr": cfg.lr_variance}]
+        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        torch.manual_seed(cfg.seed)
+        self.step, self.elapsed, self.history = 0, 0.0, []
+        self.ckpt = run.neus_checkpoint_path if run is not None else None
+
+    def resume(self) -> None:
+        if self.ckpt is None or not self.ckpt.is_file():
+            return
+        state = torch.load(self.ckpt, map_location="cpu", weights_only=False)
+        _check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
+        self.model.load_state_dict(state["model"])
+        self.optim.load_state_dict(state["optim"])
+        self.gen.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
-        step, elapsed, history = state["step"], state["elapsed"], state["history"]
+        self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
 
-    def save():
-        if ckpt is not None:
-            save_torch({"model": model.state_dict(), "optim": optim.state_dict(), "generator": gen.get_state(),
-                          "torch_rng": torch.get_rng_state(), "step": step, "elapsed": elapsed,
-                          "history": history, "config": asdict(cfg)}, ckpt)
+    def save(self, p: Progress) -> None:
+        if self.ckpt is not None:
+            save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
+                        "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
+                        "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg)}, self.ckpt)
 
-    n_rays = len(neus.rays_o)
-    neus.refresh_occupancy(neus.level_weights(_progress(cfg, step, elapsed)))
-    bar = tqdm(total=cfg.iterations, initial=step, desc="neus", unit="it", disable=not progress, dynamic_ncols=True)
-    next_cb = (elapsed // callback_every_s + 1) * callback_every_s if callback and callback_every_s > 0 else None
-    if next_cb is not None and step == 0:
-        callback(neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
-    t_last = time.perf_counter()
-    stopped_by_time = False
-    try:
-        while step < cfg.iterations:
-            if cfg.time_limit_s > 0 and elapsed >= cfg.time_limit_s:
-                stopped_by_time = True
-                break
-            prog = _progress(cfg, step, elapsed)
-            lw = neus.level_weights(prog)
-            for group in optim.param_groups:
-                group["lr"] = group["base_lr"] * _lr_factor(cfg, step, prog)
-            idx = torch.randint(0, n_rays, (cfg.batch_rays,), generator=gen)
-            out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
-                              near=neus.ray_near[idx], far=neus.ray_far[idx])
-            target, alpha = neus.rays_rgb[idx], neus.rays_alpha[idx]
-            color_loss = (out["rgb"] - target).abs().mean()
-            acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
-            mask_loss = F.binary_cross_entropy(acc, alpha)
-            loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
-            optim.zero_grad(set_to_none=True)
-            loss.backward()
-            optim.step()
-            step += 1
-            now = time.perf_counter()
-            elapsed += now - t_last
-            t_last = now
-            mse = float(((out["rgb"].detach() - target) ** 2).mean())
-            history.append({"step": step, "seconds": round(elapsed, 3), "loss": float(loss.detach()), "color": float(color_loss.detach()),
-                            "eikonal": float(out["eikonal"].detach()), "mask": float(mask_loss.detach()),
-                            "psnr": -10.0 * math.log10(max(mse, 1e-10)), "s": float(model.inv_s().detach())})
-            bar.update(1)
-            if step % 10 == 0:
-                bar.set_postfix(loss=f"{history[-1]['loss']:.4f}", psnr=f"{history[-1]['psnr']:.1f}",
-                                s=f"{history[-1]['s']:.0f}")
-            if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
-                neus.refresh_occupancy(lw)
-            if cfg.checkpoint_every > 0 and step % cfg.checkpoint_every == 0:
-                save()
-            if next_cb is not None and elapsed >= next_cb:
-                callback(neus, step, elapsed)
-                next_cb = (elapsed // callback_every_s + 1) * callback_every_s
-            t_last = time.perf_counter()  # time spent in saving / callbacks is not training time
-    finally:
-        bar.close()
-        save()
-    return {"iterations": step, "train_seconds": elapsed, "history": history, "stopped_by_time": stopped_by_time}
+    def loop_step(self, p: Progress) -> dict | None:
+        cfg, neus = self.cfg, self.neus
+        lw = neus.level_weights(p.share)
+        for group in self.optim.param_groups:
+            group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.share)
+        idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
+        out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
+                          near=neus.ray_near[idx], far=neus.ray_far[idx])
+        target, alpha = neus.rays_rgb[idx], neus.rays_alpha[idx]
+        color_loss = (out["rgb"] - target).abs().mean()
+        acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
+        mask_loss = F.binary_cross_entropy(acc, alpha)
+        loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optim.step()
+        step = p.step + 1
+        mse = float(((out["rgb"].detach() - target) ** 2).mean())
+        self.history.append({"step": step, "seconds": round(self.loop.clock(), 3), "loss": float(loss.detach()),
+                             "color": float(color_loss.detach()), "eikonal": float(out["eikonal"].detach()),
+                             "mask": float(mask_loss.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)),
+                             "s": float(self.model.inv_s().detach())})
+        if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
+            neus.refresh_occupancy(lw)
+        if step % 10 == 0:
+            h = self.history[-1]
+            return {"loss": f"{h['loss']:.4f}", "psnr": f"{h['psnr']:.1f}", "s": f"{h['s']:.0f}"}
+        return None
+
+    def run(self, resume: bool, progress: bool, callback, callback_every_s: float) -> dict:
+        cfg = self.cfg
+        if resume:
+            self.resume()
+        budget = Budget(cfg.iterations, cfg.time_limit_s)
+        periodic = callback is not None and callback_every_s > 0
+        self.loop = Loop("neus", budget, self.loop_step, start_step=self.step, start_seconds=self.elapsed,
+                         checkpoint=self.save, checkpoint_every=cfg.checkpoint_every,
+                         snapshot=(lambda p, label: callback(self.neus, p.step, p.seconds)) if periodic else None,
+                         snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress)
+        self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
+        if periodic and self.step == 0:
+            callback(self.neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
+        self.loop.clock = Clock(self.elapsed)  # set-up work above is not training time
+        result = self.loop.run()
+        return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
+                "stopped_by_time": result.stopped_by_time}
 
 
 def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:

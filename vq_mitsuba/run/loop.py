@@ -1,0 +1,157 @@
+"""The training-loop skeleton shared by the material fit, NeuS and the per-texel baseline.
+
+A fit supplies its step; the loop owns the rest: a budget of steps and seconds, a clock that
+counts training time only (checkpoints, snapshots and other writes run with the clock paused),
+the progress bar, checkpoints every few steps and at the end, and snapshots at given training
+seconds. Each step is told its `Progress` as a step share and a time share; the fit says which of
+them drives its schedule (the material fit's learning rate follows the steps, the per-texel
+baseline's the time, NeuS the larger of the two).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+
+@dataclass(frozen=True)
+class Budget:
+    steps: int = 0  # steps to run in all (0: no step limit)
+    seconds: float = 0.0  # training seconds (0: no time limit)
+
+    def __post_init__(self):
+        if self.steps <= 0 and self.seconds <= 0:
+            raise ValueError("a training budget needs a step count or a time limit")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where a fit stands before a step."""
+
+    step: int  # steps done
+    seconds: float  # training seconds so far
+    step_share: float  # step / budget steps (0 without a step limit)
+    time_share: float  # seconds / budget seconds (0 without a time limit)
+
+    @property
+    def share(self) -> float:
+        """The share of whichever budget runs out first, in [0, 1]."""
+        return min(max(self.step_share, self.time_share), 1.0)
+
+
+class Clock:
+    """Training seconds: wall time since the start plus `seconds` before (a resumed fit's),
+    less the time spent inside `paused()`."""
+
+    def __init__(self, seconds: float = 0.0):
+        self._before = seconds
+        self._t0 = time.perf_counter()
+
+    def __call__(self) -> float:
+        return self._before + time.perf_counter() - self._t0
+
+    @contextmanager
+    def paused(self):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._t0 += time.perf_counter() - t
+
+
+@dataclass(frozen=True)
+class LoopResult:
+    steps: int  # steps done in all (a resumed fit's included)
+    seconds: float  # training seconds in all
+    steps_this_call: int
+    stopped_by_time: bool  # the time limit ended the loop before the step budget
+
+
+class Loop:
+    """Runs `step(progress)` until the budget is spent.
+
+    `step` returns None or a mapping shown beside the progress bar. `checkpoint(progress)` runs
+    every `checkpoint_every` steps, at the end, and when a step raises (so that an interrupted
+    fit resumes from where it stopped); `snapshot(progress, label_s)` runs once the clock passes
+    each of `snapshot_times` (label_s is that time) and every `snapshot_every_s` seconds."""
+
+    def __init__(self, name: str, budget: Budget, step: Callable[[Progress], dict | None], *,
+                 start_step: int = 0, start_seconds: float = 0.0,
+                 checkpoint: Callable[[Progress], None] | None = None, checkpoint_every: int = 0,
+                 snapshot: Callable[[Progress, float], None] | None = None, snapshot_times: Iterable[float] = (),
+                 snapshot_every_s: float = 0.0, progress_bar: bool = True, unit: str = "it"):
+        self.name, self.budget, self.step_fn = name, budget, step
+        self.step, self.start_step = start_step, start_step
+        self.clock = Clock(start_seconds)
+        self.checkpoint_fn, self.checkpoint_every = checkpoint, checkpoint_every
+        self.snapshot_fn = snapshot
+        self.pending = sorted(float(t) for t in snapshot_times if float(t) > start_seconds)
+        self.every_s = snapshot_every_s
+        self.next_periodic = ((start_seconds // snapshot_every_s) + 1) * snapshot_every_s if snapshot_every_s > 0 \
+            else None
+        self.progress_bar, self.unit = progress_bar, unit
+
+    def progress(self) -> Progress:
+        seconds = self.clock()
+        return Progress(self.step, seconds, self.step / self.budget.steps if self.budget.steps > 0 else 0.0,
+                        seconds / self.budget.seconds if self.budget.seconds > 0 else 0.0)
+
+    def _time_up(self) -> bool:
+        return self.budget.seconds > 0 and self.clock() >= self.budget.seconds
+
+    def _steps_left(self) -> bool:
+        return self.budget.steps <= 0 or self.step < self.budget.steps
+
+    def _writes_due(self) -> None:
+        """Checkpoint and snapshots due after a step, with the clock paused."""
+        p = self.progress()
+        with self.clock.paused():
+            if self.checkpoint_fn is not None and self.checkpoint_every > 0 and self.step % self.checkpoint_every == 0:
+                self.checkpoint_fn(p)
+            if self.snapshot_fn is None:
+                return
+            if self.pending and p.seconds >= self.pending[0]:
+                label = self.pending[0]
+                while self.pending and p.seconds >= self.pending[0]:
+                    self.pending.pop(0)
+                self.snapshot_fn(p, label)
+            if self.next_periodic is not None and p.seconds >= self.next_periodic:
+                self.snapshot_fn(p, self.next_periodic)
+                self.next_periodic = (p.seconds // self.every_s + 1) * self.every_s
+
+    def run(self) -> LoopResult:
+        from tqdm import tqdm
+
+        bar = tqdm(total=self.budget.steps or None, initial=self.step, desc=self.name, unit=self.unit,
+                   disable=not self.progress_bar, dynamic_ncols=True)
+        stopped_by_time = False
+        try:
+            while self._steps_left():
+                if self._time_up():
+                    stopped_by_time = True
+                    break
+                postfix = self.step_fn(self.progress())
+                self.step += 1
+                bar.update(1)
+                if postfix:
+                    bar.set_postfix(postfix)
+                self._writes_due()
+        except BaseException:
+            bar.close()
+            self._checkpoint_after_error()
+            raise
+        bar.close()
+        with self.clock.paused():
+            if self.checkpoint_fn is not None:
+                self.checkpoint_fn(self.progress())
+        return LoopResult(self.step, self.clock(), self.step - self.start_step, stopped_by_time)
+
+    def _checkpoint_after_error(self) -> None:
+        if self.checkpoint_fn is None:
+            return
+        try:
+            self.checkpoint_fn(self.progress())
+        except Exception as exc:  # the step's own error is the one to report
+            print(f"warning: {self.name}: no checkpoint written after the error ({exc})")
