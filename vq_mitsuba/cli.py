@@ -1,4 +1,7 @@
-"""Command line: `vq-mitsuba fit | geometry | render | edit | export | eval | make-scene` (thin: parses, then calls the library)."""
+"""Command line: `vq-mitsuba fit | geometry | render | edit | export | ui | eval | make-scene`.
+
+Thin: one parser built from shared parent parsers (each option defined once), then one library
+call per command (`fit` is `vq_mitsuba.engine.pipeline.fit_capture`) and its report."""
 
 from __future__ import annotations
 
@@ -39,30 +42,16 @@ def _config(args, run_dir: Path | None = None):
 
 
 def _cmd_fit(args) -> int:
+    from vq_mitsuba.engine.pipeline import fit_capture
     from vq_mitsuba.run.run_dir import RunDir
-    from vq_mitsuba.engine.trainer import fit
 
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "fit")
     _output_folder(run_dir)
-    _run_folder(run_dir)
     cfg = _config(args, run_dir)  # bad keys and values fail before any work
-    mesh_path = args.mesh
-    if args.geometry == "neus" and args.mesh is not None:
-        raise InputError(args.mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; drop one")
-    if args.geometry != "given" and args.mesh is None:
-        from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
-
-        if args.geometry == "neus" or not capture_has_geometry(args.capture):
-            run = RunDir(run_dir)
-            if run.has_checkpoint() and not args.resume:
-                raise InputError(run_dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
-            reused = args.resume and (run / RunDir.MESH).is_file()
-            mesh_path = ensure_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                                        capture_cfg=cfg.capture)
-            print(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh_path}")
-    summary = fit(args.capture, run_dir, cfg, mesh_path=mesh_path, resume=args.resume, progress=not args.quiet)
+    summary = fit_capture(args.capture, run_dir, cfg, geometry=args.geometry, mesh=args.mesh, resume=args.resume,
+                          progress=not args.quiet)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
           f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")
     materials = RunDir(run_dir).materials()
@@ -74,12 +63,13 @@ def _cmd_fit(args) -> int:
 
 def _cmd_geometry(args) -> int:
     from vq_mitsuba.geometry.pipeline import run_geometry
+    from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "geometry")
     _output_folder(run_dir)
-    _run_folder(run_dir)
+    RunDir(run_dir).check_not_foreign()
     cfg = _config(args)
     info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
                         gt_mesh=args.gt_mesh, capture_cfg=cfg.capture).summary
@@ -264,15 +254,6 @@ def _output_folder(path: str | None) -> None:
         raise InputError(path, "is a file; -o names an output folder")
 
 
-def _run_folder(path: Path) -> None:
-    """A fit writes into a new folder, an empty one, or a run's own: never over a user's other files."""
-    from vq_mitsuba.run.run_dir import RunDir
-
-    path = Path(path)
-    if path.is_dir() and any(path.iterdir()) and not RunDir(path).holds_run_files():
-        raise InputError(path, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
-
-
 def _bandwidths(text: str) -> tuple[float, ...]:
     if text.strip().lower() in ("", "none", "off"):
         return ()
@@ -285,95 +266,108 @@ def _bandwidths(text: str) -> tuple[float, ...]:
     return values
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="vq-mitsuba",
-        description="Neural reflectance decomposition (VQ-NeRF) on Mitsuba 3: fit materials and lighting "
-                    "to posed images, then render novel views, material maps and relighting.",
-    )
-    sub = p.add_subparsers(dest="command", required=True)
-    # Options every command takes.
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--threads", type=_positive_int, metavar="N",
-                        help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
+def _parent() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(add_help=False)
 
-    photos = argparse.ArgumentParser(add_help=False)  # how the capture's images are read (config section capture)
-    photos.add_argument("--downscale", type=_positive_int, metavar="N",
-                        help="divide the photos' width and height by N (capture.downscale)")
-    photos.add_argument("--background-color", metavar="R,G,B",
-                        help="key out a plain backdrop of this sRGB colour (0..1) as the mask (capture.background_color)")
-    photos.add_argument("--holdout", type=_positive_int, metavar="K",
-                        help="keep every K-th view out of training; `eval RUN_DIR` scores them (capture.holdout)")
 
-    f = sub.add_parser("fit", parents=[common, photos], help="decompose a capture into materials and lighting (VQ-NeRF)",
-                       description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the "
-                                   "continuous and discrete material branches, the lighting if unknown, and the "
-                                   "ranked materials. Writes RUN_DIR (docs/run_dir.md): config.yaml, checkpoint.pt, "
-                                   "mesh.ply, envmap.exr, materials.json, materials_err.png, materials_sheet.png, "
-                                   "loss.png, fit.json.")
-    f.add_argument("capture", nargs="?", help="Mitsuba scene XML (sensors + images/<id>.exr|png), a "
-                                              "transforms_*.json (NeRF-synthetic), a NeuS/IDR cameras_sphere.npz, "
-                                              "a COLMAP folder (sparse/0, images/), or the folder holding one")
-    f.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
-    f.add_argument("--preset", metavar="NAME", help="named preset configs/NAME.yaml, e.g. continuous (see --help-config)")
-    f.add_argument("--config", help="a YAML config file, applied after --preset")
-    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one config key, e.g. --set train.iterations=500 (repeatable)")
+def _output(help: str, metavar: str | None = None, required: bool = False) -> argparse.ArgumentParser:
+    """-o, the one output option; `help` says what it names for the command and its default."""
+    p = _parent()
+    p.add_argument("-o", "--output", required=required, metavar=metavar, help=help)
+    return p
+
+
+def _shared_parents() -> dict[str, argparse.ArgumentParser]:
+    """The options several commands share, each defined once (argparse parents)."""
+    threads = _parent()
+    threads.add_argument("--threads", type=_positive_int, metavar="N",
+                         help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
+    quiet = _parent()
+    quiet.add_argument("--quiet", action="store_true", help="no progress bar")
+    config = _parent()  # the config file system: docs/configuration.md
+    config.add_argument("--preset", metavar="NAME", help="apply the named preset configs/NAME.yaml (see --help-config)")
+    config.add_argument("--config", metavar="FILE", help="apply a YAML config file, after --preset")
+    config.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one config key, e.g. train.iterations=500 (repeatable)")
+    config.add_argument("--help-config", action="store_true", help="list every config key and preset")
+    capture = _parent()  # the capture, and how its images are read (config section capture)
+    capture.add_argument("capture", nargs="?", help="a scene XML, transforms_*.json, cameras_sphere.npz, COLMAP "
+                                                    "folder, or the folder holding one")
+    capture.add_argument("--downscale", type=_positive_int, metavar="N",
+                         help="divide the photos' width and height by N (capture.downscale)")
+    capture.add_argument("--background-color", metavar="R,G,B",
+                         help="key out a plain backdrop of this sRGB colour (0..1) as the mask")
+    capture.add_argument("--holdout", type=_positive_int, metavar="K",
+                         help="keep every K-th view out of training, for `eval RUN_DIR` (capture.holdout)")
+    resume = _parent()
+    resume.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    return {"threads": threads, "quiet": quiet, "config": config, "capture": capture, "resume": resume}
+
+
+RUN_DIR_OUTPUT = "run directory (default: runs/<capture folder name>)"
+
+
+def _add_fit(sub, shared) -> None:
+    f = sub.add_parser(
+        "fit", parents=[shared["threads"], _output(RUN_DIR_OUTPUT)]
+        + [shared[k] for k in ("capture", "config", "resume", "quiet")], help="decompose a capture into materials and lighting (VQ-NeRF)",
+        description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the continuous and "
+                    "discrete material branches, the lighting if unknown, and the ranked materials. Writes RUN_DIR "
+                    "(docs/run_dir.md): config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
+                    "materials_err.png, materials_sheet.png, loss.png, fit.json. --geometry auto (the default) "
+                    "uses the capture's shapes, its mesh.ply or --mesh when there are any, and otherwise "
+                    "reconstructs the mesh with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus always "
+                    "reconstructs it from the images (needs alpha masks); given never does.")
     f.add_argument("--mesh", help="known geometry (PLY/OBJ) for a NeRF-synthetic capture")
-    f.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
     f.add_argument("--geometry", choices=["auto", "neus", "given"], default="auto",
-                   help="auto (default): the capture's shapes / mesh.ply or --mesh when there are any, otherwise "
-                        "reconstruct with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus: always "
-                        "reconstruct from the images (needs alpha masks); given: never reconstruct")
-    f.add_argument("--quiet", action="store_true", help="no progress bar")
-    f.add_argument("--help-config", action="store_true", help="list every config key and preset")
+                   help="where the mesh comes from: auto (default), neus or given (see above)")
     f.set_defaults(func=_cmd_fit)
 
-    g = sub.add_parser("geometry", parents=[common, photos],
-                       help="reconstruct a mesh from posed images with alpha masks (NeuS)",
-                       description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. "
-                                   "Writes RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and "
-                                   "the NeuS checkpoint neus.pt. Known geometry in the capture is ignored.")
-    g.add_argument("capture", nargs="?", help="Mitsuba scene XML, a transforms_*.json, or the folder holding one")
-    g.add_argument("-o", "--output", help="run directory (default: runs/<capture folder name>)")
-    g.add_argument("--preset", metavar="NAME", help="named preset configs/NAME.yaml (its `neus` section applies)")
-    g.add_argument("--config", help="a YAML config file (its `neus` section applies)")
-    g.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE",
-                   help="override one key, e.g. --set neus.iterations=3000 (repeatable)")
+
+def _add_geometry(sub, shared) -> None:
+    g = sub.add_parser(
+        "geometry", parents=[shared["threads"], _output(RUN_DIR_OUTPUT)]
+        + [shared[k] for k in ("capture", "config", "resume", "quiet")], help="reconstruct a mesh from posed images with alpha masks (NeuS)",
+        description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. Writes "
+                    "RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and the NeuS "
+                    "checkpoint neus.pt. Known geometry in the capture is ignored. Of the config, the `neus` and "
+                    "`capture` sections apply (e.g. --set neus.iterations=3000).")
     g.add_argument("--gt-mesh", help="score the mesh against this ground-truth mesh (Chamfer, normal consistency)")
-    g.add_argument("--resume", action="store_true", help="continue from RUN_DIR/neus.pt")
-    g.add_argument("--quiet", action="store_true", help="no progress bar")
-    g.add_argument("--help-config", action="store_true", help="list every config key and preset")
     g.set_defaults(func=_cmd_geometry)
 
-    r = sub.add_parser("render", parents=[common],
-                       help="render novel views, material maps and relighting of a fitted run",
-                       description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, "
-                                   "NAME_metallic.exr, NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png, and with "
-                                   "the discrete branch NAME_material.png (ids) and NAME_segmentation.png (overlay).")
+
+def _add_render(sub, shared) -> None:
+    r = sub.add_parser(
+        "render", parents=[shared["threads"], _output("output folder (default: RUN_DIR/renders)"), shared["quiet"]],
+        help="render novel views, material maps and relighting of a fitted run",
+        description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, NAME_metallic.exr, "
+                    "NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png, and with the discrete branch "
+                    "NAME_material.png (ids) and NAME_segmentation.png (overlay). An envmap is a lat-long HDR "
+                    "image in the capture's world convention (Blender's for NeRF/Blender captures). With several "
+                    "--envmap, the first lighting's views go to OUT and each further one's to OUT/<file name>, "
+                    "rendered in one pass.")
     r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
     r.add_argument("--envmap", action="append", default=[],
-                   help="relight with this lat-long HDR image (EXR), in the capture's world convention (Blender's "
-                        "for NeRF/Blender captures); repeatable: the first lighting's views go to OUT, each "
-                        "further one's to OUT/<file name>, rendered in one pass")
+                   help="relight with this lat-long HDR image (EXR); repeatable")
     r.add_argument("--env-rotate", type=_finite(1e6), default=0.0, metavar="DEG",
                    help="rotate the lighting about the up axis by DEG degrees")
     r.add_argument("--exposure", type=_finite(64), default=0.0, metavar="EV", help="scale the lighting by 2^EV")
     r.add_argument("--spp", type=_positive_int, help="samples per pixel (default: render.spp of the run's config)")
-    r.add_argument("-o", "--output", help="output folder (default: RUN_DIR/renders)")
-    r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_render)
 
-    d = sub.add_parser("edit", parents=[common],
-                       help="select materials of a fitted run and change them (writes a new run)",
-                       description="Select surface points by ranked material, by the material under a pixel, "
-                                   "and / or by a world-space box (material and box selections intersect), and "
-                                   "change their BRDF. Writes NEW_RUN with run.json naming RUN_DIR's fitted run and "
-                                   "edits.json, the edit list (RUN_DIR's edits plus this one); render, export and "
-                                   "eval of NEW_RUN show the edit.")
+
+def _add_edit(sub, shared) -> None:
+    d = sub.add_parser(
+        "edit", parents=[shared["threads"], _output("the edited run to write", metavar="NEW_RUN")],
+        help="select materials of a fitted run and change them (writes a new run)",
+        description="Select surface points by ranked material, by the material under a pixel, and / or by a "
+                    "world-space box (material and box selections intersect), and change their BRDF. Writes "
+                    "NEW_RUN with run.json naming RUN_DIR's fitted run and edits.json, the edit list (RUN_DIR's "
+                    "edits plus this one); render, export and eval of NEW_RUN show the edit. --set takes "
+                    "basecolor=R,G,B (linear, 0..1) or basecolor=#RRGGBB (sRGB), metallic=V or roughness=V; "
+                    "--scale multiplies basecolor, metallic or roughness by F, keeping the texture (clamped to 0..1).")
     d.add_argument("run_dir", nargs="?", help="a fitted (or already edited) run directory")
-    d.add_argument("-o", "--output", metavar="NEW_RUN", help="the edited run to write")
     d.add_argument("--material", type=int, action="append", default=[], metavar="K",
                    help="select the K-th ranked material (materials.json; repeatable)")
     d.add_argument("--pick", action="append", default=[], metavar="VIEW:X,Y",
@@ -381,84 +375,111 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--box", action="append", default=[], metavar="x0,y0,z0,x1,y1,z1",
                    help="keep only points inside this world-space box (the capture's coordinates; repeatable)")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="basecolor=R,G,B (linear, 0..1) or basecolor=#RRGGBB (sRGB), metallic=V, roughness=V")
+                   help="set basecolor, metallic or roughness of the selection (see above)")
     d.add_argument("--scale", action="append", default=[], metavar="KEY=F",
-                   help="multiply basecolor, metallic or roughness by F, keeping the texture (clamped to 0..1)")
+                   help="multiply basecolor, metallic or roughness by F (see above)")
     d.add_argument("--hue-shift", type=_finite(1e6), metavar="DEG", help="rotate the basecolor's hue by DEG degrees")
     d.add_argument("--preset", metavar="NAME", help="a named material of the library (see --list-presets)")
     d.add_argument("--list-presets", action="store_true", help="list the library's materials")
     d.set_defaults(func=_cmd_edit)
 
-    x = sub.add_parser("export", parents=[common], help="take a fitted or edited run to Blender, three.js or Mitsuba",
-                       description="UV-unwrap the mesh, bake basecolor, metallic, roughness and the material ids "
-                                   "into textures, and write a glTF binary (.glb, metallic-roughness PBR), OBJ+MTL "
-                                   "(PBR keys) or a Mitsuba scene XML (mesh, principled with textures, envmap, the "
-                                   "capture's cameras). The lighting goes beside it as envmap.exr and envmap.hdr.")
+
+def _add_export(sub, shared) -> None:
+    x = sub.add_parser(
+        "export", parents=[shared["threads"], _output("output folder", metavar="OUT", required=True), shared["quiet"]],
+        help="take a fitted or edited run to Blender, three.js or Mitsuba",
+        description="UV-unwrap the mesh, bake basecolor, metallic, roughness and the material ids into textures, "
+                    "and write a glTF binary (.glb, metallic-roughness PBR), OBJ+MTL (PBR keys) or a Mitsuba scene "
+                    "XML (mesh, principled with textures, envmap, the capture's cameras). The lighting goes beside "
+                    "it as envmap.exr and envmap.hdr.")
     x.add_argument("run_dir", help="a fitted or edited run directory")
     x.add_argument("--format", required=True, choices=["gltf", "obj", "mitsuba"], help="what to write")
-    x.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
     x.add_argument("--texture-size", type=_positive_int, default=1024, metavar="N",
                    help="texture width and height in texels")
     x.add_argument("--branch", choices=["continuous", "discrete"], default="continuous",
                    help="bake the continuous field (texture detail) or the discrete materials (flat per material)")
     x.add_argument("--envmap", help="export this lat-long HDR image as the lighting instead of the fitted one")
-    x.add_argument("--quiet", action="store_true", help="no progress bar")
     x.set_defaults(func=_cmd_export)
 
-    u = sub.add_parser("ui", parents=[common], help="edit a fitted run's materials in the browser",
-                       description="Start a local web server with an editor page: click a material, change its "
-                                   "basecolor, metallic and roughness or give it a preset, relight, undo, save the "
-                                   "edit list as a new run beside RUN_DIR and export it. Reach it from another "
-                                   "machine through an SSH tunnel (docs: README).")
+
+def _add_ui(sub, shared) -> None:
+    u = sub.add_parser(
+        "ui", parents=[shared["threads"]], help="edit a fitted run's materials in the browser",
+        description="Start a local web server with an editor page: click a material, change its basecolor, "
+                    "metallic and roughness or give it a preset, relight, undo, save the edit list as a new run "
+                    "beside RUN_DIR and export it. Reach it from another machine through an SSH tunnel (docs: "
+                    "README); any --host but 127.0.0.1 lets other machines open the editor.")
     u.add_argument("run_dir", help="a fitted or edited run directory")
     u.add_argument("--port", type=int, default=8080, help="TCP port to listen on (0: any free port)")
-    u.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on; anything but 127.0.0.1 lets other machines open the editor")
+    u.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1, this machine only)")
     u.add_argument("--envmaps", metavar="DIR",
                    help="folder of .exr / .hdr envmaps to relight with (default: envmaps/ beside the capture)")
     u.add_argument("--size", type=_positive_int, default=256, metavar="PX", help="long side of the rendered view in pixels")
     u.set_defaults(func=_cmd_ui)
 
-    e = sub.add_parser("eval", parents=[common], help="score a fitted run against a synthetic dataset's ground truth",
-                       description="Render the dataset's test views (transforms_test.json) and compare inside "
-                                   "the ground-truth foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after "
-                                   "per-channel scale alignment, metallic/roughness PSNR, and relighting PSNR/SSIM "
-                                   "under each held-aside envmap (albedo-scale and image-scale variants).")
+
+def _add_eval(sub, shared) -> None:
+    e = sub.add_parser(
+        "eval", parents=[shared["threads"], _output("metrics JSON path (default: RUN_DIR/metrics.json)"),
+                         shared["quiet"]],
+        help="score a fitted run against a synthetic dataset's ground truth",
+        description="Render the dataset's test views (transforms_test.json) and compare inside the ground-truth "
+                    "foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after per-channel scale alignment, "
+                    "metallic/roughness PSNR, and relighting PSNR/SSIM under each held-aside envmap (albedo-scale "
+                    "and image-scale variants). DATASET is a folder written by `vq-mitsuba make-scene` "
+                    "(scene.json, transforms_test.json, images/, gt/, relit/, envmaps/); without --gt, the run's "
+                    "held-out views (fit --holdout K) are scored. --meanshift gives the bandwidths of the "
+                    "MeanShift segmentation baseline on the continuous branch's BRDF maps ('none' skips it); it "
+                    "needs ground-truth material ids.")
     e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
-    e.add_argument("--gt", metavar="DATASET",
-                   help="dataset folder written by `vq-mitsuba make-scene` (scene.json, transforms_test.json, "
-                        "images/, gt/, relit/, envmaps/); without it, the run's held-out views (fit --holdout K)")
-    e.add_argument("-o", "--output", help="metrics JSON path (default: RUN_DIR/metrics.json)")
+    e.add_argument("--gt", metavar="DATASET", help="the ground-truth dataset folder (default: the held-out views)")
     e.add_argument("--spp", type=_positive_int, help="render samples per pixel (default: render.spp of the run's config)")
     e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",
                    help="basecolor scale alignment: lstsq (NeRFactor) or median (TensoIR)")
     e.add_argument("--meanshift", type=_bandwidths, default=(0.2, 0.3, 0.5), metavar="BW,BW,...",
-                   help="bandwidths of the MeanShift segmentation baseline on the continuous branch's "
-                        "BRDF maps (default 0.2,0.3,0.5; 'none' skips it); needs ground-truth material ids")
-    e.add_argument("--quiet", action="store_true", help="no progress bar")
+                   help="MeanShift baseline bandwidths (default 0.2,0.3,0.5; 'none' skips it)")
     e.set_defaults(func=_cmd_eval)
 
-    m = sub.add_parser("make-scene", parents=[common], help="render a bundled synthetic scene with ground truth",
-                       description="Render a bundled scene with Mitsuba's path tracer (or Blender Cycles with "
-                                   "--renderer cycles): training and test views in both capture formats, "
-                                   "ground-truth maps and relit test views.")
+
+def _add_make_scene(sub, shared) -> None:
+    m = sub.add_parser(
+        "make-scene", parents=[shared["threads"], _output("output folder (default: data/NAME)")],
+        help="render a bundled synthetic scene with ground truth",
+        description="Render a bundled scene with Mitsuba's path tracer (or Blender Cycles with --renderer cycles: "
+                    "bpy in .venv-cycles, `make cycles`; same layout, plus relit views under Blender's eight "
+                    "studio-light probes): training and test views in both capture formats, ground-truth maps and "
+                    "relit test views. --photo-formats also writes the training views as a NeuS/IDR capture "
+                    "(neus/) and COLMAP captures (colmap/: binary, pinhole; colmap_opencv/: text, distorted "
+                    "OPENCV lens).")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
-    m.add_argument("-o", "--output", help="output folder (default: data/NAME)")
     m.add_argument("--resolution", type=_resolution, metavar="N|WxH",
                    help="image size in pixels: N for N x N, or W x H (default per scene)")
     m.add_argument("--photo-formats", action="store_true",
-                   help="also write the training views as a NeuS/IDR capture (neus/) and COLMAP captures "
-                        "(colmap/: binary, pinhole; colmap_opencv/: text, distorted OPENCV lens)")
-    m.add_argument("--spp", type=_positive_int, help="path-tracing samples per pixel (default: the scene's for mitsuba, "
-                                           "128 for cycles)")
+                   help="also write the training views as NeuS/IDR and COLMAP captures")
+    m.add_argument("--spp", type=_positive_int,
+                   help="path-tracing samples per pixel (default: the scene's for mitsuba, 128 for cycles)")
     m.add_argument("--renderer", choices=["mitsuba", "cycles"], default="mitsuba",
-                   help="mitsuba (default) or cycles: Blender Cycles through bpy in .venv-cycles (`make cycles`); "
-                        "same output layout, plus relit views under Blender's eight studio-light probes")
+                   help="mitsuba (default) or cycles (Blender Cycles, `make cycles`)")
     m.add_argument("--n-train", type=_positive_int, help="number of training views")
     m.add_argument("--n-test", type=_positive_int, help="number of test views")
     m.add_argument("--seed", type=int, default=0, help="random seed")
     m.add_argument("--list", action="store_true", help="list the bundled scenes")
     m.set_defaults(func=_cmd_make_scene)
+
+
+SUBCOMMANDS = (_add_fit, _add_geometry, _add_render, _add_edit, _add_export, _add_ui, _add_eval, _add_make_scene)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="vq-mitsuba",
+        description="Neural reflectance decomposition (VQ-NeRF) on Mitsuba 3: fit materials and lighting "
+                    "to posed images, then render novel views, material maps and relighting.",
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    shared = _shared_parents()
+    for add in SUBCOMMANDS:
+        add(sub, shared)
     return p
 
 

@@ -155,6 +155,11 @@ class RunDir:
         """Any file that only a run writes is there (a run, or one interrupted early)."""
         return any((self.dir / name).is_file() for name in self.MARKERS)
 
+    def check_not_foreign(self) -> None:
+        """A stage writes into a new folder, an empty one, or a run's own: never over a user's other files."""
+        if self.dir.is_dir() and any(self.dir.iterdir()) and not self.holds_run_files():
+            raise InputError(self.dir, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
+
     def create(self) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
 

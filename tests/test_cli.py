@@ -1,0 +1,140 @@
+"""The command line is thin: one parser built from shared parents (each option defined once, each
+with a one-line help), and `fit` is one library call that refuses a fitted or edited run before
+any geometry work."""
+
+import argparse
+import ast
+import json
+from pathlib import Path
+
+import pytest
+
+from vq_mitsuba import cli
+from vq_mitsuba.errors import InputError
+
+# Which commands take -o and --quiet (from the shared parents).
+OUTPUT = {"fit", "geometry", "render", "edit", "export", "eval", "make-scene"}
+QUIET = {"fit", "geometry", "render", "export", "eval"}
+CONFIG = {"fit", "geometry"}  # --preset, --config, --set, --help-config of the config system
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    parser = cli.build_parser()
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _option(parser: argparse.ArgumentParser, flag: str):
+    return parser._option_string_actions.get(flag)
+
+
+def test_every_command_has_the_shared_options_where_expected():
+    subs = _subparsers()
+    assert set(subs) == {"fit", "geometry", "render", "edit", "export", "ui", "eval", "make-scene"}
+    for name, parser in subs.items():
+        out = _option(parser, "-o")
+        assert (out is not None) == (name in OUTPUT), name
+        if out is not None:
+            assert out.option_strings == ["-o", "--output"] and out.dest == "output", name
+        assert (_option(parser, "--quiet") is not None) == (name in QUIET), name
+        assert _option(parser, "--threads") is not None, name
+    # One definition, shared: every command's --quiet and --threads are the same argparse action.
+    assert len({id(_option(subs[n], "--quiet")) for n in QUIET}) == 1
+    assert len({id(_option(p, "--threads")) for p in subs.values()}) == 1
+    for flag in ("--preset", "--config", "--set", "--help-config", "--downscale", "--holdout", "--resume"):
+        assert len({id(_option(subs[n], flag)) for n in CONFIG}) == 1, flag
+    assert subs["export"]._option_string_actions["-o"].required
+
+
+def test_every_option_has_a_one_line_help():
+    for name, parser in _subparsers().items():
+        for action in parser._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            label = f"{name} {'/'.join(action.option_strings) or action.dest}"
+            assert action.help and action.help.strip(), label
+            assert "\n" not in action.help and len(action.help) <= 100, label
+
+
+@pytest.mark.parametrize("name", sorted(_subparsers()))
+def test_help_of_every_command_prints(name, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main([name, "--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: vq-mitsuba {name}")
+    if name in OUTPUT:
+        assert "-o OUT" in out or "-o NEW_RUN" in out
+
+
+def test_cli_defines_each_option_once_in_small_functions():
+    source = Path(cli.__file__).read_text()
+    tree = ast.parse(source)
+    flags = [node.args[0].value for node in ast.walk(tree) if isinstance(node, ast.Call)
+             and getattr(node.func, "attr", None) == "add_argument" and node.args
+             and isinstance(node.args[0], ast.Constant)]
+    for flag in ("-o", "--quiet", "--threads", "--config", "--help-config", "--downscale", "--resume"):
+        assert flags.count(flag) == 1, flag
+    long = [(f.name, f.end_lineno - f.lineno + 1) for f in ast.walk(tree)
+            if isinstance(f, ast.FunctionDef) and f.end_lineno - f.lineno + 1 > 60]
+    assert not long, long
+
+
+def _capture_without_geometry(folder: Path) -> Path:
+    """A transforms json with no mesh beside it: `fit` would reconstruct the geometry with NeuS."""
+    folder.mkdir(parents=True)
+    path = folder / "transforms_train.json"
+    path.write_text(json.dumps({"camera_angle_x": 0.7, "frames": []}))
+    return path
+
+
+@pytest.fixture
+def no_geometry_stage(monkeypatch):
+    """The geometry stage fails the test if it is reached."""
+    import vq_mitsuba.engine.pipeline as pipeline
+    import vq_mitsuba.geometry.pipeline as geometry
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the geometry stage ran")
+
+    monkeypatch.setattr(pipeline, "ensure_geometry", fail)
+    monkeypatch.setattr(geometry, "run_geometry", fail)
+
+
+def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stage, capsys):
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.pipeline import fit_capture, needs_reconstruction
+    from vq_mitsuba.run.run_dir import RunDir
+
+    capture = _capture_without_geometry(tmp_path / "cap")
+    assert needs_reconstruction(capture)
+    run = RunDir(tmp_path / "run")
+    run.create()
+    (run / RunDir.CHECKPOINT).write_bytes(b"a fitted run")
+    with pytest.raises(InputError, match="already holds a fitted run"):
+        fit_capture(capture, run.dir, load_config(None, []), progress=False)
+    with pytest.raises(InputError, match="already holds a fitted run"):
+        fit_capture(capture, run.dir, load_config(None, []), geometry="neus", progress=False)
+    assert cli.main(["fit", str(capture), "-o", str(run.dir), "--quiet"]) == 2
+    assert "already holds a fitted run" in capsys.readouterr().err
+    assert sorted(p.name for p in run.dir.iterdir()) == [RunDir.CHECKPOINT]
+
+
+def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path, no_geometry_stage):
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.pipeline import fit_capture
+    from vq_mitsuba.run.run_dir import RunDir
+
+    capture = _capture_without_geometry(tmp_path / "cap")
+    edited = RunDir(tmp_path / "edited")
+    edited.create()
+    edited.write_info({"edit_of": {"relative": "../run", "absolute": str(tmp_path / "run")}})
+    with pytest.raises(InputError, match="holds an edited run"):
+        fit_capture(capture, edited.dir, load_config(None, []), progress=False)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="no vq-mitsuba run"):
+        fit_capture(capture, mine, load_config(None, []), progress=False)
+    with pytest.raises(InputError, match="--geometry neus"):
+        fit_capture(capture, tmp_path / "new", load_config(None, []), geometry="neus", mesh=tmp_path / "m.ply")
+    assert not (tmp_path / "new").exists()

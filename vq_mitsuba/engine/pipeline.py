@@ -1,0 +1,44 @@
+"""`vq-mitsuba fit` as one call: the run folder's checks, the geometry stage when the capture
+brings no geometry (NeuS), then the material fit (`vq_mitsuba.engine.trainer.fit`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from vq_mitsuba.config import Config
+from vq_mitsuba.engine.trainer import check_fit_target, fit
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
+from vq_mitsuba.run.run_dir import RunDir
+
+GEOMETRY_MODES = ("auto", "neus", "given")
+
+
+def needs_reconstruction(capture: str | Path, geometry: str = "auto", mesh: str | Path | None = None) -> bool:
+    """Whether the fit reconstructs the geometry with NeuS first: `neus`, or `auto` on a capture
+    without shapes, mesh.ply or --mesh."""
+    if geometry not in GEOMETRY_MODES:
+        raise ValueError(f"geometry must be one of {GEOMETRY_MODES}, got {geometry!r}")
+    if geometry == "neus" and mesh is not None:
+        raise InputError(mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; drop one")
+    if geometry == "given" or mesh is not None:
+        return False
+    return geometry == "neus" or not capture_has_geometry(capture)
+
+
+def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry: str = "auto",
+                mesh: str | Path | None = None, resume: bool = False, progress: bool = True,
+                log: Callable[[str], None] = print) -> dict:
+    """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
+    without `resume` before any work; reconstruct the mesh with NeuS when `needs_reconstruction`
+    (RUN_DIR/mesh.ply, reused on resume); then fit the materials. Returns the fit's summary."""
+    run = RunDir(run_dir)
+    run.check_not_foreign()
+    reconstruct = needs_reconstruction(capture, geometry, mesh)
+    check_fit_target(run, resume)
+    if reconstruct:
+        reused = resume and run.has_mesh()
+        mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
+        log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
+    return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)
