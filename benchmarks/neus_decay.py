@@ -1,7 +1,7 @@
 """Study: NeuS's learning-rate decay driven by the step share alone, against the share of whichever
 budget (steps or seconds) runs out first (the default).
 
-    .venv/bin/python benchmarks/neus_decay.py DATASET [--time-limit 240] [--iterations 4000]
+    .venv/bin/python benchmarks/neus_decay.py DATASET [--time-limit 240] [--iterations 4000] [--seed 0]
 
 Both variants train NeuS on DATASET/transforms_train.json (images and alpha masks) under the same
 step and time budget, one after the other, and their meshes are scored against DATASET/mesh.ply
@@ -9,7 +9,7 @@ step and time budget, one after the other, and their meshes are scored against D
 differ only when the time limit ends the training before the steps: then the default has decayed
 fully, while the step-driven one stops at a large rate. A limit below the run's natural length
 shows that case; with time to spare both give the same run. Writes
-benchmarks/out/neus_decay/neus_decay.json.
+benchmarks/out/neus_decay/neus_decay_seed<SEED>.json.
 """
 
 from __future__ import annotations
@@ -55,13 +55,15 @@ def main() -> int:
     ap.add_argument("dataset", type=Path, help="a make-scene dataset (transforms_train.json, mesh.ply)")
     ap.add_argument("--time-limit", type=float, default=240.0, help="NeuS training seconds of each variant")
     ap.add_argument("--iterations", type=int, default=4000, help="NeuS step budget of each variant")
+    ap.add_argument("--seed", type=int, default=0, help="neus.seed of both variants")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/out/neus_decay", help="output folder")
     args = ap.parse_args()
-    overrides = [f"neus.time_limit_s={args.time_limit}", f"neus.iterations={args.iterations}"]
+    overrides = [f"neus.time_limit_s={args.time_limit}", f"neus.iterations={args.iterations}", f"neus.seed={args.seed}"]
     gt = load_mesh(args.dataset / "mesh.ply")
     rows = [run(v, args.dataset, args.out, overrides, gt) for v in ("larger_share", "step_share")]
-    write_result(args.out / "neus_decay.json", {"dataset": str(args.dataset), "time_limit_s": args.time_limit,
-                                                "iterations": args.iterations, "runs": rows})
+    write_result(args.out / f"neus_decay_seed{args.seed}.json", {
+        "dataset": str(args.dataset), "time_limit_s": args.time_limit, "iterations": args.iterations,
+        "seed": args.seed, "runs": rows})
     return 0
 
 

@@ -211,7 +211,7 @@ class NeuSConfig:
     lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", ">0")
     lr_variance: float = setting(2e-3, "Adam learning rate of the sharpness parameter", ">0")
     lr_end_cosine: float = setting(
-        0.1, "learning-rate factor reached at the end of training (cosine in the training progress)", "(0,1]")
+        0.1, "learning-rate factor reached at the last step (cosine in the steps done)", "(0,1]")
     warmup: int = setting(100, "steps of linear learning-rate warm-up")
     levels: int = setting(4, "resolution levels of the dense feature grid", ">0")
     base_res: int = setting(16, "coarsest grid resolution (points per axis)", ">0")

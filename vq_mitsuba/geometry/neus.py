@@ -562,7 +562,9 @@ def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress:
 
 class _NeuSFit:
     """NeuS's step, optimiser and checkpoint for the loop skeleton (`vq_mitsuba.run.loop`). The
-    schedule (level fade-in, learning rate) follows the share of whichever budget runs out first."""
+    finer grid levels fade in with the share of whichever budget runs out first, so a clock-stopped
+    run has opened them all; the learning rate follows the step share alone, so a run that the
+    clock stops early keeps a large rate (benchmarks/results/neus_step_decay/)."""
 
     def __init__(self, neus: NeuS, run: RunDir | None):
         cfg = self.cfg = neus.cfg
@@ -600,7 +602,7 @@ class _NeuSFit:
         cfg, neus = self.cfg, self.neus
         lw = neus.level_weights(p.share)
         for group in self.optim.param_groups:
-            group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.share)
+            group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.step_share)
         idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
         out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
                           near=neus.ray_near[idx], far=neus.ray_far[idx])
