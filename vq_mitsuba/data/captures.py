@@ -367,8 +367,32 @@ def _xml_cameras(xml: Path, root: ET.Element, defaults: dict[str, str], scene) -
 
 def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
     root, defaults = _parse_xml(xml)
+    # The text is checked before Mitsuba loads anything, for clear messages.
+    env_elems = _xml_envmap_elements(xml, root, defaults)
+    referenced = _xml_mesh_files(xml, root, defaults)
+    env_file = _xml_envmap_file(xml, env_elems, defaults)
+    if env_file is not None:
+        referenced.append(env_file)
+    # Read the envmap first: read_image gives clearer errors than Mitsuba's loader.
+    env_rgb = _read_envmap(env_file) if env_file is not None else None
 
-    # Emitters: only envmaps (checked on the text first, for a clear message).
+    # Cameras and their reference images.
+    scene = _load_mitsuba_scene(xml, referenced)
+    cameras = _xml_cameras(xml, root, defaults, scene)
+    images, alpha, has_alpha = _xml_images(xml, cameras)
+
+    # Known geometry.
+    if mesh_arg is not None:
+        mesh = load_mesh(mesh_arg)
+    else:
+        mesh = _scene_mesh(xml, scene)
+
+    envmap, env_to_world = _xml_envmap(xml, scene, env_rgb)
+    return Capture(xml, cameras, images, alpha, has_alpha, mesh, envmap, env_to_world, "mitsuba")
+
+
+def _xml_envmap_elements(xml: Path, root: ET.Element, defaults: dict[str, str]) -> list[ET.Element]:
+    """The <emitter> elements: only envmaps, at most one."""
     env_elems = []
     for elem in root.iter("emitter"):
         etype = _subst(elem.get("type"), defaults)
@@ -378,8 +402,11 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
         env_elems.append(elem)
     if len(env_elems) > 1:
         raise InputError(xml, f"{len(env_elems)} envmap emitters; at most one is supported")
+    return env_elems
 
-    # Shapes: triangle meshes and spheres.
+
+def _xml_mesh_files(xml: Path, root: ET.Element, defaults: dict[str, str]) -> list[Path]:
+    """The files of the <shape> elements (triangle meshes and spheres only), each checked to exist."""
     referenced: list[Path] = []
     for elem in root.iter("shape"):
         stype = _subst(elem.get("type"), defaults)
@@ -392,22 +419,25 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
             if not mesh_file.is_file():
                 raise InputError(mesh_file, f"mesh file not found (shape '{stype}' in {xml.name})")
             referenced.append(mesh_file)
+    return referenced
 
-    env_file = None
-    if env_elems:
-        filename = _string_param(env_elems[0], "filename", defaults)
-        if filename is None:
-            raise InputError(xml, "envmap emitter has no filename parameter")
-        env_file = _xml_file(xml, filename)
-        if not env_file.is_file():
-            raise InputError(env_file, f"envmap image not found (emitter in {xml.name})")
-        referenced.append(env_file)
-    # Read the envmap first: read_image gives clearer errors than Mitsuba's loader.
-    env_rgb = _read_envmap(env_file) if env_file is not None else None
 
-    # Cameras and their reference images.
-    scene = _load_mitsuba_scene(xml, referenced)
-    cameras = _xml_cameras(xml, root, defaults, scene)
+def _xml_envmap_file(xml: Path, env_elems: list[ET.Element], defaults: dict[str, str]) -> Path | None:
+    """The envmap emitter's image file, checked to exist; None without an envmap."""
+    if not env_elems:
+        return None
+    filename = _string_param(env_elems[0], "filename", defaults)
+    if filename is None:
+        raise InputError(xml, "envmap emitter has no filename parameter")
+    env_file = _xml_file(xml, filename)
+    if not env_file.is_file():
+        raise InputError(env_file, f"envmap image not found (emitter in {xml.name})")
+    return env_file
+
+
+def _xml_images(xml: Path, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The reference image images/<id>.exr or .png of every sensor, stacked (`_stack_images`);
+    one InputError naming every missing or mis-sized image."""
     for cam in cameras[1:]:
         if (cam.width, cam.height) != (cameras[0].width, cameras[0].height):
             raise InputError(xml, f"sensor '{cam.name}' film is {cam.width}x{cam.height} but sensor "
@@ -431,15 +461,11 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
         except InputError as exc:
             problems.append(exc)
     raise_all(problems, xml)
-    images, alpha, has_alpha = _stack_images(entries)
+    return _stack_images(entries)
 
-    # Known geometry.
-    if mesh_arg is not None:
-        mesh = load_mesh(mesh_arg)
-    else:
-        mesh = _scene_mesh(xml, scene)
 
-    # Known lighting.
+def _xml_envmap(xml: Path, scene, env_rgb: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
+    """Known lighting: (envmap times the emitter's scale, its to_world); (None, identity) without one."""
     envmap, env_to_world = None, np.eye(4)
     if env_rgb is not None:
         mi = _ensure_variant()
@@ -450,8 +476,7 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
         env_to_world = _matrix(params["to_world"])
         scale = float(np.ravel(np.array(params["scale"]))[0]) if "scale" in params else 1.0
         envmap = (env_rgb * np.float32(scale)).astype(np.float32)
-
-    return Capture(xml, cameras, images, alpha, has_alpha, mesh, envmap, env_to_world, "mitsuba")
+    return envmap, env_to_world
 
 
 def _read_envmap(path: Path) -> np.ndarray:

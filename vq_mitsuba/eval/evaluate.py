@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -183,14 +184,53 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     `relit_views`). Writes `output` when given."""
     from tqdm import tqdm
 
-    from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
-    from vq_mitsuba.data.cameras import convert_world
-    from vq_mitsuba.render.views import check_finite
-
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
     t0 = time.perf_counter()
+    data = _load_test_views(dataset_dir, predictor.world)
+    spp = int(spp or predictor.default_spp)
+    bar = tqdm(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view", disable=not progress,
+               dynamic_ncols=True)
+    preds = _render_fitted_lighting(predictor, data, spp, aa, bar)
+    per_view, bc_scales = _image_scores(data, preds, scale_method)
+    discrete = _discrete_branch_scores(preds, data.gts, scale_method)
+    segmentation = _segmentation_scores(preds, data.gts, predictor.num_materials, data.meta)
+    per_material = per_material_scores(preds, data.gts, bc_scales, data.meta)
+    meanshift = None
+    if meanshift_bandwidths and all("material" in g for g in data.gts):
+        meanshift = meanshift_segmentation(preds, data.gts, meanshift_bandwidths, seed=0)
+    del preds
+    relighting = _relighting_scores(predictor, data, per_view, bc_scales, spp, aa, bar, scale_method)
+    bar.close()
+    result = _assemble_result(data, per_view, bc_scales, relighting, scale_method, run_label=run_label,
+                              render={"spp": spp, "aa": aa or predictor.default_aa}, discrete=discrete,
+                              segmentation=segmentation, meanshift=meanshift, per_material=per_material,
+                              fit_summary=fit_summary, t0=t0)
+    if output is not None:
+        out_path = Path(output)
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(out_path, json_safe(result))
+    return result
+
+
+@dataclass
+class _TestViews:
+    """A dataset's test views as `evaluate_predictor` scores them."""
+
+    root: Path
+    meta: dict  # scene.json
+    cameras: list  # the test cameras in the dataset's world
+    views: list  # the same cameras in the predictor's world
+    envs: list[tuple[str, Path]]  # relighting conditions (name, envmap)
+    gts: list[dict]  # load_ground_truth of each view
+
+
+def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
+    """The test cameras, relighting envmaps and ground truth of a dataset, checked: every relit
+    view on disk, every image the size of its camera."""
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.data.cameras import convert_world
+
     root = dataset_root(dataset_dir)
     meta = json.loads((root / "scene.json").read_text())
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
@@ -204,30 +244,37 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     for cam, gt in zip(cameras, gts):
         if gt["rgb"].shape[:2] != (cam.height, cam.width):
             raise InputError(root / "images" / f"{cam.name}.exr", "size differs from transforms_test.json")
-
-    run_world = predictor.world
     views = [convert_world(cam, cam_world, run_world) for cam in cameras]
-    spp = int(spp or predictor.default_spp)
-    bar = tqdm(total=len(views) * (1 + len(envs)), desc="eval", unit="view", disable=not progress,
-               dynamic_ncols=True)
+    return _TestViews(root, meta, cameras, views, envs, gts)
 
-    # Fitted lighting: novel views and material maps.
+
+def _render_fitted_lighting(predictor, data: _TestViews, spp: int, aa: int | None, bar) -> list[dict]:
+    """The predictor's maps of every test view under its own lighting (novel views, material
+    maps), normals in Blender world as the ground truth's."""
+    from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
+    from vq_mitsuba.render.views import check_finite
+
     renderer = predictor.renderer(None)
     preds = []
-    for i, cam in enumerate(views):
+    for i, cam in enumerate(data.views):
         out = renderer.render(cam, spp=spp, aa=aa, seed=i)
         check_finite(out, cam.name)  # no score of a NaN image is written
-        if run_world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
+        if predictor.world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
             out["normal"] = out["normal"] @ MITSUBA_TO_BLENDER.T
         preds.append(out)
         bar.update(1)
-    del renderer
+    return preds
 
+
+def _image_scores(data: _TestViews, preds: list[dict], scale_method: str) -> tuple[list[dict], np.ndarray]:
+    """(per-view rows of the novel-view, basecolor, metallic, roughness, normal and coverage
+    scores, the basecolor alignment scales computed over all views jointly)."""
+    gts = data.gts
     masks = np.stack([gt["mask"] for gt in gts])
     _, bc_scales = M.scale_align(np.stack([p["basecolor"] for p in preds]), np.stack([gt["basecolor"] for gt in gts]),
                                  masks, method=scale_method)
     per_view = []
-    for cam, pred, gt in zip(cameras, preds, gts):
+    for cam, pred, gt in zip(data.cameras, preds, gts):
         m = gt["mask"]
         nv = M.image_metrics(pred["rgb"], gt["rgb"], m)
         bc = M.image_metrics(pred["basecolor"] * bc_scales, gt["basecolor"], m)
@@ -243,40 +290,52 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
             row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
         row.update(coverage_scores(pred["alpha"], pred["basecolor"] * bc_scales, gt["basecolor"], m))
         per_view.append(row)
-    discrete = None
-    if all("discrete" in p for p in preds):  # the discrete branch's maps, aligned on their own
-        dmaps = [p["discrete"] for p in preds]
-        _, d_scales = M.scale_align(np.stack([d["basecolor"] for d in dmaps]),
-                                    np.stack([gt["basecolor"] for gt in gts]), masks, method=scale_method)
-        rows_d = [M.image_metrics(d["basecolor"] * d_scales, gt["basecolor"], gt["mask"]) for d, gt in zip(dmaps, gts)]
-        discrete = {"basecolor": {"psnr": _mean(r["psnr"] for r in rows_d), "ssim": _mean(r["ssim"] for r in rows_d),
-                                  "scales": [float(x) for x in d_scales]},
-                    "metallic": {"psnr": _mean(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
-                                               for d, gt in zip(dmaps, gts))},
-                    "roughness": {"psnr": _mean(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
-                                                for d, gt in zip(dmaps, gts))}}
-    segmentation = None
-    if all("material" in p for p in preds) and all("material" in g for g in gts):
-        # Pooled over all test views: a predicted id names the same material in every view.
-        segmentation = M.segmentation_scores(np.concatenate([p["material"].ravel() for p in preds]),
-                                             np.concatenate([g["material"].ravel() for g in gts]),
-                                             np.concatenate([g["mask"].ravel() for g in gts]))
-        segmentation["mapping"] = {str(k): v for k, v in segmentation["mapping"].items()}
-        segmentation["num_materials_found"] = predictor.num_materials
-        segmentation["num_materials_true"] = len(meta.get("materials", []))
-    per_material = per_material_scores(preds, gts, bc_scales, meta)
-    meanshift = None
-    if meanshift_bandwidths and all("material" in g for g in gts):
-        meanshift = meanshift_segmentation(preds, gts, meanshift_bandwidths, seed=0)
-    del preds
+    return per_view, bc_scales
 
-    # Relighting under each held-aside envmap, view by view: one pass per view renders all envmaps.
+
+def _discrete_branch_scores(preds: list[dict], gts: list[dict], scale_method: str) -> dict | None:
+    """The discrete branch's basecolor (aligned on its own), metallic and roughness scores; None
+    when the predictor has no discrete branch."""
+    if not all("discrete" in p for p in preds):
+        return None
+    masks = np.stack([gt["mask"] for gt in gts])
+    dmaps = [p["discrete"] for p in preds]
+    _, d_scales = M.scale_align(np.stack([d["basecolor"] for d in dmaps]),
+                                np.stack([gt["basecolor"] for gt in gts]), masks, method=scale_method)
+    rows_d = [M.image_metrics(d["basecolor"] * d_scales, gt["basecolor"], gt["mask"]) for d, gt in zip(dmaps, gts)]
+    return {"basecolor": {"psnr": _mean(r["psnr"] for r in rows_d), "ssim": _mean(r["ssim"] for r in rows_d),
+                          "scales": [float(x) for x in d_scales]},
+            "metallic": {"psnr": _mean(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
+                                       for d, gt in zip(dmaps, gts))},
+            "roughness": {"psnr": _mean(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
+                                        for d, gt in zip(dmaps, gts))}}
+
+
+def _segmentation_scores(preds: list[dict], gts: list[dict], num_materials: int | None, meta: dict) -> dict | None:
+    """Segmentation F1 of the predicted material ids against the true ones; None without either."""
+    if not (all("material" in p for p in preds) and all("material" in g for g in gts)):
+        return None
+    # Pooled over all test views: a predicted id names the same material in every view.
+    segmentation = M.segmentation_scores(np.concatenate([p["material"].ravel() for p in preds]),
+                                         np.concatenate([g["material"].ravel() for g in gts]),
+                                         np.concatenate([g["mask"].ravel() for g in gts]))
+    segmentation["mapping"] = {str(k): v for k, v in segmentation["mapping"].items()}
+    segmentation["num_materials_found"] = num_materials
+    segmentation["num_materials_true"] = len(meta.get("materials", []))
+    return segmentation
+
+
+def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_scales: np.ndarray, spp: int,
+                       aa: int | None, bar, scale_method: str) -> dict:
+    """Relighting under each held-aside envmap, view by view (one pass per view renders all
+    envmaps), in both alignment variants; adds each view's relit PSNRs to its per_view row."""
+    envs = data.envs
     renderers = [predictor.renderer(read_image(env_path)[0]) for _, env_path in envs]
     rows = {name: {"albedo_scale": [], "image_scale": []} for name, _ in envs}
-    for i, (cam, view, gt) in enumerate(zip(cameras, views, gts)):
+    for i, (cam, view, gt) in enumerate(zip(data.cameras, data.views, data.gts)):
         m = gt["mask"]
         for (env_name, _), pred in zip(envs, relit_views(renderers, view, spp=spp, aa=aa, seed=i)):
-            ref, _ = _read_rgba(root / "relit" / env_name / f"{cam.name}.exr")
+            ref, _ = _read_rgba(data.root / "relit" / env_name / f"{cam.name}.exr")
             pred = pred.astype(np.float64)
             env_rows = rows[env_name]
             env_rows["albedo_scale"].append(M.image_metrics(pred * bc_scales, ref, m))
@@ -290,11 +349,6 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     for env_name, env_rows in rows.items():
         for variant, r in env_rows.items():
             relit[variant][env_name] = {"psnr": _mean(x["psnr"] for x in r), "ssim": _mean(x["ssim"] for x in r)}
-    bar.close()
-
-    def avg(key):
-        return _mean(row[key] for row in per_view if key in row)
-
     relighting = {}
     notes = {"albedo_scale": "relit render x basecolor alignment scales (" + scale_method + ")",
              "image_scale": "relit render aligned per image and channel (lstsq)"}
@@ -304,13 +358,26 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
             "mean": {"psnr": _mean(v["psnr"] for v in per_env.values()),
                      "ssim": _mean(v["ssim"] for v in per_env.values())} if per_env else None,
         }
-    result = {
+    return relighting
+
+
+def _assemble_result(data: _TestViews, per_view: list[dict], bc_scales: np.ndarray, relighting: dict,
+                     scale_method: str, run_label: str, render: dict, discrete: dict | None,
+                     segmentation: dict | None, meanshift: dict | None, per_material: list | None,
+                     fit_summary: dict | None, t0: float) -> dict:
+    """metrics.json's dict: the per-view rows and their means, beside the scores over all views;
+    `seconds` counts from t0."""
+    def avg(key):
+        return _mean(row[key] for row in per_view if key in row)
+
+    cameras = data.cameras
+    return {
         "run": run_label,
-        "dataset": str(root.resolve()),
-        "scene": meta.get("name"),
+        "dataset": str(data.root.resolve()),
+        "scene": data.meta.get("name"),
         "n_views": len(cameras),
         "resolution": [cameras[0].width, cameras[0].height] if cameras else None,
-        "render": {"spp": spp, "aa": aa or predictor.default_aa},
+        "render": render,
         "mask": f"ground-truth alpha > {MASK_THRESHOLD}",
         "color_space": "images and basecolor: sRGB of clipped linear values; metallic, roughness: linear [0, 1]",
         "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},
@@ -333,11 +400,6 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
         "per_view": per_view,
         "seconds": time.perf_counter() - t0,
     }
-    if output is not None:
-        out_path = Path(output)
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        write_json(out_path, json_safe(result))
-    return result
 
 
 def relit_views(renderers: list, camera, spp: int, aa: int | None, seed: int) -> list[np.ndarray]:

@@ -73,6 +73,11 @@ def _register_plugins() -> None:
     mi.register_texture("vqm_lanes", lambda props: LaneTexture(props))
 
 
+def _flat(t) -> "mi.Float":
+    """A kernel input as a flat Dr.Jit array (keeps array sizes out of the kernels' shapes)."""
+    return mi.Float(t.array) if isinstance(t, mi.TensorXf) else mi.Float(t)
+
+
 def envmap_padded(env: torch.Tensor) -> torch.Tensor:
     """(H, W, 3) -> (H, W + 2, 3) as Mitsuba's envmap stores it (wrap-around columns 0 and W+1)."""
     return torch.cat([env[:, -1:], env, env[:, :1]], dim=1)
@@ -204,11 +209,17 @@ class ShadingScene:
 
     # -- shading ------------------------------------------------------------------------
     def _make_shade(self):
-        scene, bsdf, emitter, ctx = self.scene, self.bsdf, self.emitter, self.ctx
-        params, key = self.params, self.env_key
-        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        """The shading kernel (returned) and the bounce kernel (kept as self._bounce), both Dr.Jit
+        functions of torch tensors sharing one setup of the shading points."""
+        setup = self._make_setup()
+        self._bounce = self._make_bounce(setup)
+        return self._make_shade_kernel(setup)
 
-        f = lambda t: mi.Float(t.array) if isinstance(t, mi.TensorXf) else mi.Float(t)
+    def _make_setup(self):
+        """setup(p, n, wi, basecolor, metallic, roughness as flat arrays) -> the SurfaceInteraction3f
+        of the lanes, with the lanes' BRDF loaded into the textures of self.bsdf."""
+        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        f = _flat
 
         def setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough):
             # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
@@ -224,6 +235,14 @@ class ShadingScene:
             tm.values = (f(metal),)
             tr.values = (f(rough),)
             return si
+
+        return setup
+
+    def _make_bounce(self, setup):
+        """The bounce kernel: where each lane's BSDF sample goes (see `shade`'s material_fn)."""
+        scene, bsdf, ctx = self.scene, self.bsdf, self.ctx
+        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        f = _flat
 
         @dr.wrap(source="torch", target="drjit")
         def bounce(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, u):
@@ -243,6 +262,16 @@ class ShadingScene:
                 dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
             tb.values = tm.values = tr.values = None
             return out
+
+        return bounce
+
+    def _make_shade_kernel(self, setup):
+        """The shading kernel: emitter sampling with a shadow ray plus one BSDF sample (MIS), the
+        BSDF sample lit by the envmap or by the caller's bounce radiance."""
+        scene, bsdf, emitter, ctx = self.scene, self.bsdf, self.emitter, self.ctx
+        params, key = self.params, self.env_key
+        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        f = _flat
 
         @dr.wrap(source="torch", target="drjit")
         def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, u, fixed):
@@ -293,7 +322,6 @@ class ShadingScene:
             tb.values = tm.values = tr.values = None
             return radiance.x, radiance.y, radiance.z
 
-        self._bounce = bounce
         return shade
 
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,

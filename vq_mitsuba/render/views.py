@@ -65,29 +65,24 @@ class Renderer:
         cfg = self.fitted.cfg.render
         spp = spp or cfg.spp
         aa = aa or cfg.aa
-        h, w = camera.height, camera.width
-        n_pix = h * w
-        dev = self.env_t.device
-        rng = np.random.default_rng(seed)
-        hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
-        channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
-        discrete = self.fitted.discrete
-        n_mat = int(discrete.num_materials) if discrete is not None else 0
-        votes = torch.zeros(n_pix, n_mat + 1, dtype=torch.int32, device=dev) if discrete is not None else None
-        if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
-            channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
-        relit_keys = [f"relit_{j}" for j in range(len(relight))]  # rgb under each other lighting
-        channels.update({k: 3 for k in relit_keys})
-        acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
-        light_spp = max(2, spp // aa)
+        sums = _PixelSums(camera.height * camera.width, self.fitted.discrete, len(relight), self.env_t.device)
         lights = [self, *relight]
         if any(r.fitted is not self.fitted for r in relight):
             raise ValueError("relight renderers must render the same fitted run")
+        self._trace_passes(camera, sums, lights, aa, max(2, spp // aa), seed)
+        return sums.images(camera.height, camera.width, aa)
+
+    def _trace_passes(self, camera: Camera, sums: _PixelSums, lights: list[Renderer], aa: int, light_spp: int,
+                      seed: int) -> None:
+        """Trace the `aa` stratified primary-ray passes of the view and add their shaded hits to sums."""
+        n_pix = sums.n_pix
+        rng = np.random.default_rng(seed)
         # One generator per lighting, all seeded alike: each draws the samples its own render would.
-        gens = [torch.Generator(device=dev).manual_seed(seed) for _ in lights]
+        gens = [torch.Generator(device=self.env_t.device).manual_seed(seed) for _ in lights]
         # Several primary-ray passes per trace (up to MAX_RAYS rays), their hits shaded in chunks:
         # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
         per_trace = max(1, MAX_RAYS // n_pix)
+        chunk = self.fitted.cfg.render.chunk
         for first in range(0, aa, per_trace):
             # Each pass's offsets are drawn here, in pass order, so only this trace's are held.
             rays = [camera_rays(camera, np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng))
@@ -95,39 +90,65 @@ class Renderer:
             hits = self.scene.trace(np.concatenate([r[0] for r in rays]), np.concatenate([r[1] for r in rays]))
             idx = torch.nonzero(hits.valid)[:, 0]
             pixel = idx % n_pix  # the pixel of each hit
-            hits_count += torch.bincount(pixel, minlength=n_pix)
-            for s in range(0, len(idx), cfg.chunk):
-                sel, pix = idx[s:s + cfg.chunk], pixel[s:s + cfg.chunk]
-                out = self.fitted.materials_at(hits.position[sel], discrete=discrete is not None)
-                # Every lighting's bounce samples land on the same points: the field runs once for them.
-                bounce_field = _LastAnswer(lambda p: self.fitted.materials_at(p, ids=False)) \
-                    if self.fitted.cfg.train.bounces > 0 else None
-                memo = {}  # and the bounce rays are traced once for them (the same samples, the same mesh)
-                rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel],
-                                                     out["basecolor"], out["metallic"], out["roughness"],
-                                                     light.env_t, light_spp, generator=g, material_fn=bounce_field,
-                                                     bounce_memo=memo)
-                                   for light, g in zip(lights, gens))
-                values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
-                          "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
-                          **dict(zip(relit_keys, rgb_relit))}
-                if discrete is not None:  # material id of the hit (its nearest ranked codeword, 1..M) and its BRDF
-                    od = out["discrete"]
-                    votes.index_put_((pix, out["material"]), torch.ones_like(pix, dtype=torch.int32),
-                                     accumulate=True)
-                    values.update({"basecolor_d": od["basecolor"], "metallic_d": od["metallic"][:, None],
-                                   "roughness_d": od["roughness"][:, None]})
-                for k, v in values.items():  # hits of one chunk may share a pixel: index_add sums them
-                    acc[k].index_add_(0, pix, v.double())
-        acc = {k: v.cpu().numpy() for k, v in acc.items()}
-        hits_count = hits_count.cpu().numpy()
-        votes = votes.cpu().numpy() if votes is not None else None
+            sums.hits_count += torch.bincount(pixel, minlength=n_pix)
+            for s in range(0, len(idx), chunk):
+                self._shade_chunk(hits, idx[s:s + chunk], pixel[s:s + chunk], sums, lights, gens, light_spp)
+
+    def _shade_chunk(self, hits, sel: torch.Tensor, pix: torch.Tensor, sums: _PixelSums, lights: list[Renderer],
+                     gens: list[torch.Generator], light_spp: int) -> None:
+        """Shade the hits `sel` (of pixels `pix`) under every lighting and add them to sums."""
+        discrete = self.fitted.discrete
+        out = self.fitted.materials_at(hits.position[sel], discrete=discrete is not None)
+        # Every lighting's bounce samples land on the same points: the field runs once for them.
+        bounce_field = _LastAnswer(lambda p: self.fitted.materials_at(p, ids=False)) \
+            if self.fitted.cfg.train.bounces > 0 else None
+        memo = {}  # and the bounce rays are traced once for them (the same samples, the same mesh)
+        rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel],
+                                             out["basecolor"], out["metallic"], out["roughness"],
+                                             light.env_t, light_spp, generator=g, material_fn=bounce_field,
+                                             bounce_memo=memo)
+                           for light, g in zip(lights, gens))
+        values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
+                  "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
+                  **dict(zip(sums.relit_keys, rgb_relit))}
+        if discrete is not None:  # material id of the hit (its nearest ranked codeword, 1..M) and its BRDF
+            od = out["discrete"]
+            sums.votes.index_put_((pix, out["material"]), torch.ones_like(pix, dtype=torch.int32),
+                                  accumulate=True)
+            values.update({"basecolor_d": od["basecolor"], "metallic_d": od["metallic"][:, None],
+                           "roughness_d": od["roughness"][:, None]})
+        for k, v in values.items():  # hits of one chunk may share a pixel: index_add sums them
+            sums.acc[k].index_add_(0, pix, v.double())
+
+
+class _PixelSums:
+    """Per-pixel sums of a render's shaded hits (float64): hit counts, every map, the rgb under
+    each other lighting and, with a discrete branch, its maps and the material votes."""
+
+    def __init__(self, n_pix: int, discrete, n_relight: int, dev):
+        self.n_pix = n_pix
+        self.hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
+        channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
+        self.discrete = discrete is not None
+        n_mat = int(discrete.num_materials) if discrete is not None else 0
+        self.votes = torch.zeros(n_pix, n_mat + 1, dtype=torch.int32, device=dev) if discrete is not None else None
+        if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
+            channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
+        self.relit_keys = [f"relit_{j}" for j in range(n_relight)]  # rgb under each other lighting
+        channels.update({k: 3 for k in self.relit_keys})
+        self.acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
+
+    def images(self, h: int, w: int, aa: int) -> dict[str, np.ndarray]:
+        """`Renderer.render`'s images from the sums of `aa` primary rays per pixel."""
+        acc = {k: v.cpu().numpy() for k, v in self.acc.items()}
+        hits_count = self.hits_count.cpu().numpy()
+        votes = self.votes.cpu().numpy() if self.votes is not None else None
         alpha = hits_count / aa
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
         # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
         out["rgb"] = (acc["rgb"] / aa).reshape(h, w, 3).astype(np.float32)
-        if relight:
-            out["relit"] = [(acc[k] / aa).reshape(h, w, 3).astype(np.float32) for k in relit_keys]
+        if self.relit_keys:
+            out["relit"] = [(acc[k] / aa).reshape(h, w, 3).astype(np.float32) for k in self.relit_keys]
         safe = np.maximum(hits_count, 1)[:, None]
         for k in ("basecolor", "metallic", "roughness"):
             out[k] = (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
@@ -135,7 +156,7 @@ class Renderer:
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
         out["normal"] = nrm.reshape(h, w, 3).astype(np.float32)
         out["metallic"], out["roughness"] = out["metallic"][..., 0], out["roughness"][..., 0]
-        if discrete is not None:
+        if self.discrete:
             out["discrete"] = {k[:-2]: (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
                                for k in ("basecolor_d", "metallic_d", "roughness_d")}
             for k in ("metallic", "roughness"):
@@ -146,7 +167,6 @@ class Renderer:
             # Share of each pixel's primary rays that hit material k (index k = 1..M; index 0 stays 0).
             out["material_share"] = (votes / aa).reshape(h, w, -1).astype(np.float32)
         return out
-
 
 class _LastAnswer:
     """A material field that keeps its last answer and gives it again for the same points."""

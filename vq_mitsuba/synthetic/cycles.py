@@ -268,6 +268,41 @@ def _bpy_version(python: Path) -> str | None:
     return infos[-1].name[len("bpy-"):-len(".dist-info")] if infos else None
 
 
+PROBE_NOTE = "negative texels (compression noise, > -0.003) clamped to 0"
+
+
+def _render_list(out: Path, work: Path, cams: synthetic.SceneCameras, relights: list[dict]) -> list[dict]:
+    """The worker's renders: train and test views under envmaps/train.exr, test views under each
+    held-aside envmap, each into work/[<env>/]<id>.exr."""
+    renders = []
+    train_env = (out / "envmaps" / "train.exr").resolve()
+    for cam in cams.train + cams.test:
+        renders.append({"camera": cam.name, "envmap": train_env, "output": (work / f"{cam.name}.exr").resolve()})
+    for rl in relights:
+        (work / rl["name"]).mkdir(parents=True, exist_ok=True)
+        for cam in cams.test:
+            renders.append({"camera": cam.name, "envmap": (out / rl["file"]).resolve(),
+                            "output": (work / rl["name"] / f"{cam.name}.exr").resolve()})
+    return renders
+
+
+def _write_dataset_images(out: Path, work: Path, spec: dict, cams: synthetic.SceneCameras,
+                          relights: list[dict]) -> None:
+    """The worker's multilayer EXRs as the dataset layout: images/, gt/ (test views), relit/."""
+    n_mat = len(spec["materials"])
+    test_names = {c.name for c in cams.test}
+    for cam in cams.train + cams.test:
+        passes = read_passes(work / f"{cam.name}.exr")
+        synthetic._write_rgba(out / "images" / cam.name, passes["Combined"])
+        if cam.name in test_names:
+            synthetic.write_gt(out / "gt" / cam.name, gt_maps(passes, n_mat))
+    for rl in relights:
+        (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
+        for cam in cams.test:
+            passes = read_passes(work / rl["name"] / f"{cam.name}.exr")
+            synthetic._write_rgba(out / "relit" / rl["name"] / cam.name, passes["Combined"])
+
+
 def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
                       n_test: int | None = None, spp: int | None = None, seed: int = 0, progress: bool = True,
                       denoise: bool = False, threads: int = 0, keep_raw: bool = False,
@@ -289,67 +324,19 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     spp = int(spp or DEFAULT_SPP)
     if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
-    out = Path(out_dir)
-    subdirs = ("images", "gt", "meshes", "envmaps", "relit", WORK_DIR)
-    if (out / "scene.json").is_file():  # an earlier make-scene output: drop its stale views
-        for sub in subdirs:
-            shutil.rmtree(out / sub, ignore_errors=True)
-    for sub in subdirs:
-        (out / sub).mkdir(parents=True, exist_ok=True)
+    out = synthetic.prepare_out_dir(out_dir, synthetic.OUT_SUBDIRS + (WORK_DIR,))
     work = out / WORK_DIR
 
-    # Geometry (as synthetic.make_scene): Blender world for mesh.ply and Cycles, Mitsuba world for the XML.
-    r = synthetic.R_BLENDER_FROM_MITSUBA
-    mats = {m["name"]: m for m in spec["materials"]}
-    shapes, all_v, all_f, all_n, shape_info = [], [], [], [], {}
-    offset = 0
-    for s in spec["shapes"]:
-        v, f, nrm = synthetic.build_shape(s)
-        mat = mats[s["material"]]
-        colors = synthetic.eval_base_color(mat["base_color"], v) if synthetic.is_textured(mat) else None
-        synthetic._mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(out / "meshes" / f"{s['name']}.ply"))
-        shapes.append({"name": s["name"], "material": s["material"], "vertices": v, "faces": f, "normals": nrm})
-        all_v.append(v), all_f.append(f + offset), all_n.append(nrm)
-        offset += len(v)
-        shape_info[s["name"]] = {"material": s["material"], "file": f"meshes/{s['name']}.ply",
-                                 "vertices": int(len(v)), "faces": int(len(f))}
-    verts = np.concatenate(all_v)
-    synthetic._mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n)).write_ply(str(out / "mesh.ply"))
-    lo, hi = verts.min(0), verts.max(0)
-    center = 0.5 * (lo + hi)
-    radius = float(np.linalg.norm(verts - center, axis=1).max())
+    # Geometry, cameras and lighting as synthetic.make_scene writes them: Blender world for mesh.ply
+    # and Cycles, Mitsuba world for the XML; Cycles reads the dataset's copies of the envmaps.
+    geometry = synthetic.write_geometry(spec, out)
+    cams = synthetic.write_cameras(out, spec, geometry, n_train, n_test, res, spp, seed)
+    env_train_name, _, relights = synthetic.write_envmaps(out, spec, blender_probes(python) if probes else {},
+                                                          probe_note=PROBE_NOTE)
 
-    train, test, dist = synthetic.make_cameras(center, radius, n_train, n_test, res, seed=seed)
-    synthetic._write_transforms(out / "transforms_train.json", train)
-    synthetic._write_transforms(out / "transforms_test.json", test)
-    synthetic.write_scene_xml(out / "scene.xml", spec, [synthetic.to_mitsuba_world(c) for c in train], spp, "train")
-    synthetic.write_scene_xml(out / "scene_test.xml", spec, [synthetic.to_mitsuba_world(c) for c in test], spp,
-                              "test")
-
-    # Lighting: the same files as the Mitsuba generator; Cycles reads the dataset's copies.
-    env_train_name = spec.get("envmap", "sky")
-    envmaps.save_envmap(out / "envmaps" / "train.exr", envmaps.named_envmap(env_train_name))
-    relights = []
-    for env_name in spec.get("relight", ["sunset", "studio"]):
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", envmaps.named_envmap(env_name))
-        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": "preset"})
-    for probe, path in (blender_probes(python).items() if probes else ()):
-        env_name = f"blender_{probe}"
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", load_probe(path))
-        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": str(path),
-                         "note": "negative texels (compression noise, > -0.003) clamped to 0"})
-
-    renders = []
-    train_env = (out / "envmaps" / "train.exr").resolve()
-    for cam in train + test:
-        renders.append({"camera": cam.name, "envmap": train_env, "output": (work / f"{cam.name}.exr").resolve()})
-    for rl in relights:
-        (work / rl["name"]).mkdir(parents=True, exist_ok=True)
-        for cam in test:
-            renders.append({"camera": cam.name, "envmap": (out / rl["file"]).resolve(),
-                            "output": (work / rl["name"] / f"{cam.name}.exr").resolve()})
-    job = build_job(spec, shapes, train + test, renders, spp, seed=seed, denoise=denoise, threads=threads)
-
+    renders = _render_list(out, work, cams, relights)
+    job = build_job(spec, geometry.shapes, cams.train + cams.test, renders, spp, seed=seed, denoise=denoise,
+                    threads=threads)
     bar = tqdm(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view", disable=not progress)
     t_render = time.time()
     try:
@@ -357,20 +344,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     finally:
         bar.close()
     t_rendered = time.time()
-
-    # Convert to the dataset layout.
-    n_mat = len(spec["materials"])
-    test_names = {c.name for c in test}
-    for cam in train + test:
-        passes = read_passes(work / f"{cam.name}.exr")
-        synthetic._write_rgba(out / "images" / cam.name, passes["Combined"])
-        if cam.name in test_names:
-            synthetic.write_gt(out / "gt" / cam.name, gt_maps(passes, n_mat))
-    for rl in relights:
-        (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
-        for cam in test:
-            passes = read_passes(work / rl["name"] / f"{cam.name}.exr")
-            synthetic._write_rgba(out / "relit" / rl["name"] / cam.name, passes["Combined"])
+    _write_dataset_images(out, work, spec, cams, relights)
     if not keep_raw:
         shutil.rmtree(work, ignore_errors=True)
     t_end = time.time()
@@ -389,7 +363,8 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
                    "bsdf": "Principled BSDF, GGX (single scatter), IOR 1.5, Specular IOR Level 0.5",
                    "view_transform": "Standard", "film_transparent": True,
                    "material_id": "material index pass where coverage >= 0.5, else 0"},
-        **synthetic.scene_description(spec, verts, shape_info, env_train_name, relights, r, center, radius, dist,
+        **synthetic.scene_description(spec, geometry.verts, geometry.shape_info, env_train_name, relights,
+                                      synthetic.R_BLENDER_FROM_MITSUBA, geometry.center, geometry.radius, cams.dist,
                                       envmap_convention="Cycles Environment Texture with no mapping in Blender "
                                                         "world, identity to_world in the XML's Mitsuba world"),
         "render_seconds": round(t_rendered - t_render, 2),

@@ -28,8 +28,9 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -544,45 +545,45 @@ def write_gt(stem: Path, gt: dict) -> None:
     write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
 
 
-def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = None, n_train: int | None = None,
-               n_test: int | None = None, spp: int | None = None, seed: int = 0,
-               progress: bool = True, photo_formats: bool = False) -> Path:
-    """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
-    relit test views). None for resolution / n_train / n_test / spp takes the scene's default
-    (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
-    training views as NeuS/IDR (neus/) and COLMAP (colmap/, colmap_opencv/) captures. Returns out_dir."""
-    import mitsuba as mi
-    from tqdm.auto import tqdm
+OUT_SUBDIRS = ("images", "gt", "meshes", "envmaps", "relit")  # a dataset's folders, emptied by each make-scene
 
-    _ensure_variant()
-    t_start = time.time()
-    spec = load_scene_spec(name)
-    res = resolution or spec.get("resolution", 128)
-    res = (int(res), int(res)) if isinstance(res, (int, float)) else (int(res[0]), int(res[1]))
-    n_train = int(spec.get("n_train", 64) if n_train is None else n_train)
-    n_test = int(spec.get("n_test", 16) if n_test is None else n_test)
-    spp = int(spp or spec.get("spp", 256))
-    if min(res) < 1 or n_train < 1 or n_test < 1 or spp < 1:
-        raise InputError(None, "resolution, view counts and spp must be positive")
+
+def prepare_out_dir(out_dir, subdirs=OUT_SUBDIRS) -> Path:
+    """out_dir with its `subdirs` made; where out_dir holds an earlier make-scene output
+    (scene.json), they are emptied first, so no stale view survives."""
     out = Path(out_dir)
-    if (out / "scene.json").is_file():  # an earlier make_scene output: drop its stale views
-        import shutil
-
-        for sub in ("images", "gt", "meshes", "envmaps", "relit"):
+    if (out / "scene.json").is_file():  # an earlier make-scene output: drop its stale views
+        for sub in subdirs:
             shutil.rmtree(out / sub, ignore_errors=True)
-    for sub in ("images", "gt", "meshes", "envmaps", "relit"):
+    for sub in subdirs:
         (out / sub).mkdir(parents=True, exist_ok=True)
+    return out
 
-    # Geometry: Blender world for mesh.ply, Mitsuba world (R^-1) for the XML's meshes.
+
+@dataclass
+class SceneGeometry:
+    """The shapes of a scene spec, Blender world, as `write_geometry` wrote them."""
+
+    shapes: list[dict]  # per shape: name, material, vertices (V,3), faces (F,3), normals (V,3)
+    shape_info: dict  # scene.json's entry per shape name: material, file, vertices, faces
+    verts: np.ndarray  # all vertices, merged (V,3)
+    center: np.ndarray  # centre of the bounding box
+    radius: float  # bounding sphere about center
+
+
+def write_geometry(spec: dict, out: Path) -> SceneGeometry:
+    """meshes/<shape>.ply in Mitsuba world (R^-1; vertex colours where the base colour is a
+    pattern) and mesh.ply, all shapes merged in Blender world."""
     r = R_BLENDER_FROM_MITSUBA
     mats = {m["name"]: m for m in spec["materials"]}
-    all_v, all_f, all_n, shape_info = [], [], [], {}
+    shapes, all_v, all_f, all_n, shape_info = [], [], [], [], {}
     offset = 0
     for s in spec["shapes"]:
         v, f, nrm = build_shape(s)
         mat = mats[s["material"]]
         colors = eval_base_color(mat["base_color"], v) if is_textured(mat) else None
         _mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(out / "meshes" / f"{s['name']}.ply"))
+        shapes.append({"name": s["name"], "material": s["material"], "vertices": v, "faces": f, "normals": nrm})
         all_v.append(v), all_f.append(f + offset), all_n.append(nrm)
         offset += len(v)
         shape_info[s["name"]] = {"material": s["material"], "file": f"meshes/{s['name']}.ply",
@@ -592,30 +593,72 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     lo, hi = verts.min(0), verts.max(0)
     center = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(verts - center, axis=1).max())
+    return SceneGeometry(shapes, shape_info, verts, center, radius)
 
-    train, test, dist = make_cameras(center, radius, n_train, n_test, res, seed=seed)
+
+@dataclass
+class SceneCameras:
+    """The cameras `write_cameras` wrote: Blender world and the same in Mitsuba world."""
+
+    train: list[Camera]
+    test: list[Camera]
+    dist: float  # camera distance from the bounding sphere's centre
+    train_mi: list[Camera]
+    test_mi: list[Camera]
+
+
+def write_cameras(out: Path, spec: dict, geometry: SceneGeometry, n_train: int, n_test: int,
+                  resolution: int | tuple[int, int], spp: int, seed: int) -> SceneCameras:
+    """transforms_train.json, transforms_test.json (Blender world) and scene.xml, scene_test.xml
+    (Mitsuba world) of the cameras `make_cameras` places about the geometry."""
+    train, test, dist = make_cameras(geometry.center, geometry.radius, n_train, n_test, resolution, seed=seed)
     train_mi, test_mi = [to_mitsuba_world(c) for c in train], [to_mitsuba_world(c) for c in test]
     _write_transforms(out / "transforms_train.json", train)
     _write_transforms(out / "transforms_test.json", test)
     write_scene_xml(out / "scene.xml", spec, train_mi, spp, "train")
     write_scene_xml(out / "scene_test.xml", spec, test_mi, spp, "test")
+    return SceneCameras(train, test, dist, train_mi, test_mi)
 
-    # Lighting.
+
+def write_envmaps(out: Path, spec: dict, probes: dict[str, Path], keep_arrays: bool = False,
+                  probe_note: str | None = None) -> tuple[str, np.ndarray, list[dict]]:
+    """envmaps/train.exr, the spec's held-aside envmaps and the Blender studio-light `probes`
+    (name -> path; saved as envmaps/blender_<name>.exr). Returns (training envmap's name, its
+    array, relights): one scene.json entry per held-aside envmap (name, file, source, with
+    `probe_note` as note on the probes' entries), holding its array under "array" if keep_arrays."""
+    def relight(env_name: str, arr: np.ndarray, source: str, note: str | None = None) -> dict:
+        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
+        entry = {"name": env_name, "file": f"envmaps/{env_name}.exr", "source": source}
+        if note is not None:
+            entry["note"] = note
+        if keep_arrays:
+            entry["array"] = arr
+        return entry
+
     env_train_name = spec.get("envmap", "sky")
     env_train = envmaps.named_envmap(env_train_name)
     envmaps.save_envmap(out / "envmaps" / "train.exr", env_train)
-    relights = []
-    for env_name in spec.get("relight", ["sunset", "studio"]):
-        arr = envmaps.named_envmap(env_name)
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
-        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": "preset", "array": arr})
-    for probe, path in envmaps.blender_probes().items():
-        arr = envmaps.load_envmap(path)
-        env_name = f"blender_{probe}"
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
-        relights.append({"name": env_name, "file": f"envmaps/{env_name}.exr", "source": str(path), "array": arr})
+    relights = [relight(env_name, envmaps.named_envmap(env_name), "preset")
+                for env_name in spec.get("relight", ["sunset", "studio"])]
+    relights += [relight(f"blender_{probe}", envmaps.load_envmap(path), str(path), probe_note)
+                 for probe, path in probes.items()]
+    return env_train_name, env_train, relights
 
-    # One Mitsuba scene per envmap (Mitsuba world, identity to_world), sensors built once.
+
+def _scene_settings(spec: dict, resolution, n_train, n_test, spp) -> tuple[tuple[int, int], int, int, int]:
+    """make_scene's (width, height), n_train, n_test and spp: the arguments, or the spec's defaults."""
+    res = resolution or spec.get("resolution", 128)
+    res = (int(res), int(res)) if isinstance(res, (int, float)) else (int(res[0]), int(res[1]))
+    n_train = int(spec.get("n_train", 64) if n_train is None else n_train)
+    n_test = int(spec.get("n_test", 16) if n_test is None else n_test)
+    spp = int(spp or spec.get("spp", 256))
+    if min(res) < 1 or n_train < 1 or n_test < 1 or spp < 1:
+        raise InputError(None, "resolution, view counts and spp must be positive")
+    return res, n_train, n_test, spp
+
+
+def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
+    """The Mitsuba scene (path tracer, materials, the meshes of out/meshes/) without its envmap."""
     base = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True}}
     for m in spec["materials"]:
         bsdf = {"type": "principled", "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
@@ -626,11 +669,21 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     for s in spec["shapes"]:
         base[s["name"]] = {"type": "ply", "filename": str((out / "meshes" / f"{s['name']}.ply").resolve()),
                            "bsdf": {"type": "ref", "id": "mat_" + s["material"]}}
+    return base
 
-    def scene_with(env: np.ndarray):
-        # optimize=False: Mitsuba would merge the meshes that share a BSDF into one shape without
-        # an id, and the ground-truth maps look shapes up by id.
-        return mi.load_dict(dict(base, envmap=envmaps.to_mitsuba_dict(env, blender_world=False)), optimize=False)
+
+def _scene_with(base: dict, env: np.ndarray):
+    """The scene `base` lit by the lat-long map `env` (Mitsuba world, identity to_world)."""
+    import mitsuba as mi
+
+    # optimize=False: Mitsuba would merge the meshes that share a BSDF into one shape without
+    # an id, and the ground-truth maps look shapes up by id.
+    return mi.load_dict(dict(base, envmap=envmaps.to_mitsuba_dict(env, blender_world=False)), optimize=False)
+
+
+def _make_sensors(cameras: list[Camera], spp: int) -> dict:
+    """Camera name -> Mitsuba sensor with a SAMPLER sampler of spp samples (built once per view)."""
+    import mitsuba as mi
 
     def make_sensor(cam: Camera):
         d = cam.to_mitsuba_dict(spp)
@@ -640,11 +693,20 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     log_level = mi.logger().log_level()
     mi.logger().set_log_level(mi.LogLevel.Error)  # no "sample count rounded" warnings
     try:
-        sensors = {c.name: make_sensor(c) for c in train_mi + test_mi}
+        return {c.name: make_sensor(c) for c in cameras}
     finally:
         mi.logger().set_log_level(log_level)
-    spp_used = int(next(iter(sensors.values())).sampler().sample_count())
-    total = n_train + n_test + n_test * len(relights)
+
+
+def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, cams: SceneCameras,
+                  env_train: np.ndarray, relights: list[dict], shape_info: dict, seed: int, progress: bool) -> None:
+    """images/ (train and test views under the training envmap), gt/ (test views) and relit/
+    (test views under each held-aside envmap, whose "array" is taken from its relights entry)."""
+    import mitsuba as mi
+    from tqdm.auto import tqdm
+
+    train_mi, test_mi = cams.train_mi, cams.test_mi
+    total = len(train_mi) + len(test_mi) + len(test_mi) * len(relights)
     bar = tqdm(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
     counter = [seed * 1_000_003]
 
@@ -654,8 +716,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
         _write_rgba(stem, np.array(img))
         bar.update(1)
 
-    t_render = time.time()
-    scene = scene_with(env_train)
+    scene = _scene_with(base, env_train)
     for cam in train_mi + test_mi:
         render(scene, cam, out / "images" / cam.name)
     rng = np.random.default_rng(seed + 1)
@@ -664,12 +725,37 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
         write_gt(out / "gt" / cam.name, gt)
     del scene
     for rl in relights:
-        scene = scene_with(rl.pop("array"))
+        scene = _scene_with(base, rl.pop("array"))
         (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
         for cam in test_mi:
             render(scene, cam, out / "relit" / rl["name"] / cam.name)
         del scene
     bar.close()
+
+
+def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = None, n_train: int | None = None,
+               n_test: int | None = None, spp: int | None = None, seed: int = 0,
+               progress: bool = True, photo_formats: bool = False) -> Path:
+    """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
+    relit test views). None for resolution / n_train / n_test / spp takes the scene's default
+    (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
+    training views as NeuS/IDR (neus/) and COLMAP (colmap/, colmap_opencv/) captures. Returns out_dir."""
+    _ensure_variant()
+    t_start = time.time()
+    spec = load_scene_spec(name)
+    res, n_train, n_test, spp = _scene_settings(spec, resolution, n_train, n_test, spp)
+    out = prepare_out_dir(out_dir)
+    # Geometry and cameras: Blender world for mesh.ply and the json, Mitsuba world (R^-1) for the XML.
+    geometry = write_geometry(spec, out)
+    cams = write_cameras(out, spec, geometry, n_train, n_test, res, spp, seed)
+    env_train_name, env_train, relights = write_envmaps(out, spec, envmaps.blender_probes(), keep_arrays=True)
+
+    # One Mitsuba scene per envmap (Mitsuba world, identity to_world), sensors built once.
+    base = _mitsuba_scene_dict(spec, out)
+    sensors = _make_sensors(cams.train_mi + cams.test_mi, spp)
+    spp_used = int(next(iter(sensors.values())).sampler().sample_count())
+    t_render = time.time()
+    _render_views(name, spec, out, base, sensors, cams, env_train, relights, geometry.shape_info, seed, progress)
     t_end = time.time()
 
     meta = {
@@ -683,7 +769,8 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
         "seed": seed,
         "max_depth": MAX_DEPTH,
         "integrator": "path",
-        **scene_description(spec, verts, shape_info, env_train_name, relights, r, center, radius, dist,
+        **scene_description(spec, geometry.verts, geometry.shape_info, env_train_name, relights,
+                            R_BLENDER_FROM_MITSUBA, geometry.center, geometry.radius, cams.dist,
                             envmap_convention="to_world = BLENDER_ENV_TO_WORLD in Blender world, identity in "
                                               "the XML's Mitsuba world"),
         "render_seconds": round(t_end - t_render, 2),
