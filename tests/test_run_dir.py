@@ -70,3 +70,21 @@ def test_unknown_format_version_is_refused(tmp_path):
 def test_a_folder_without_a_run_is_named(tmp_path):
     with pytest.raises(InputError, match="run.json missing"):
         RunDir(tmp_path).load()
+
+
+def test_parsed_once_but_each_load_has_its_own_config(tmp_path, monkeypatch):
+    """run.json and config.yaml are read once per RunDir; a caller that changes its FittedModel's
+    config (a preview without the bounce) changes no later load of the same run."""
+    cfg = load_config(None, ["field.hidden=16", "field.decoder_hidden=16", "vq.num_codes=4"])
+    run = RunDir(_write_run(tmp_path / "run", cfg)[0].dir)
+    first = run.load()
+    first.cfg.train.bounces = 0
+    reads = []
+    monkeypatch.setattr(RunDir, "saved_config", lambda self: reads.append(1) or {})
+    second = run.load()
+    assert second.cfg.train.bounces == cfg.train.bounces == 1
+    assert reads == []  # the cached parse, not the file again
+    assert run.info() is run.info()
+    written = {**run.info(), "n_views": 7}
+    run.write_info({k: v for k, v in written.items() if k != "format"})
+    assert RunDir(run.dir).info()["n_views"] == 7 and run.info()["n_views"] == 7

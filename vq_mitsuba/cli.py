@@ -86,11 +86,9 @@ def _cmd_geometry(args) -> int:
 
 def _cmd_render(args) -> int:
     """Reads the finished run through RunDir and renders it: no training module is imported."""
-    import json
-
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
-    from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir, write_json
     from vq_mitsuba.render.views import render_views
 
     _output_folder(args.output)
@@ -102,17 +100,17 @@ def _cmd_render(args) -> int:
     if len(set(names)) < len(names):
         raise InputError(None, f"--envmap: two lightings share a file name ({', '.join(names)}); their "
                                "views would go to the same folder")
-    out = Path(args.output) if args.output else run.dir / "renders"
+    out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
     out.mkdir(parents=True, exist_ok=True)
     render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None, env_rotate_deg=args.env_rotate,
                  exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
                  more_envmaps=list(zip(names[1:], envmaps[1:])))
-    (out / "render.json").write_text(json.dumps({
+    write_json(out / "render.json", {
         "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
         "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
         "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
         "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
-    }, indent=2))
+    })
     print(f"rendered views in {out}/")
     return 0
 

@@ -29,6 +29,7 @@ the checkpoint and returns a `FittedModel`.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 from pathlib import Path
@@ -119,6 +120,7 @@ class RunDir:
     FIT = "fit.json"
     METRICS = "metrics.json"
     SNAPSHOTS = "snapshots"
+    RENDERS = "renders"  # the default output folder of `vq-mitsuba render`
     EDITS = "edits.json"
     # Files only a run of vq-mitsuba holds: a folder with one of them is a run (maybe unfinished).
     MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT)
@@ -266,6 +268,8 @@ class RunDir:
             raise InputError(path, f"invalid YAML: {exc}") from None
 
     def config(self) -> Config:
+        """The run's resolved configuration: parsed once, and a copy of its own for each caller
+        (a caller that changes its copy, e.g. a preview without the bounce, changes no other)."""
         if self.is_edit():
             return self.source().config()
         if self._config is None:
@@ -273,7 +277,7 @@ class RunDir:
             if base is None:
                 raise InputError(self.dir / self.CONFIG, "missing: the run directory is incomplete")
             self._config = load_config(base=base)
-        return self._config
+        return copy.deepcopy(self._config)
 
     # --- geometry and lighting ---------------------------------------------------------------
     def write_mesh(self, mesh) -> None:
