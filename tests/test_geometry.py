@@ -379,3 +379,26 @@ def test_rate_spread_finds_a_slowed_stretch_of_training():
     # A slowdown in the last, shorter stretch is found too.
     tail = [{"step": 600 + 5 * t, "seconds": 60.0 + t} for t in range(1, 21)]
     assert rate_spread(steady + tail, window_s=30.0)["min"] == pytest.approx(5.0)
+
+
+def test_train_callback_at_the_start_and_every_interval_outside_the_training_clock(tmp_path):
+    """`callback` sees the initialisation (step 0) and then the model every `callback_every_s`
+    training seconds; its own time (here 0.2 s a call) is not training time."""
+    import time
+
+    capture = sphere_capture(n_views=6, size=16)
+    calls = []
+
+    def callback(neus, step, seconds):
+        calls.append((step, seconds))
+        time.sleep(0.2)
+
+    neus = NeuS(capture, small_cfg(iterations=30))
+    t0 = time.perf_counter()
+    summary = train(neus, progress=False, callback=callback, callback_every_s=0.05)
+    wall = time.perf_counter() - t0
+    assert calls[0] == (0, 0.0) and len(calls) >= 2
+    assert [s for s, _ in calls] == sorted(s for s, _ in calls) and calls[-1][0] <= 30
+    assert all(seconds >= 0.05 for _, seconds in calls[1:])
+    assert summary["iterations"] == 30
+    assert summary["train_seconds"] <= wall - 0.2 * len(calls) + 0.01

@@ -305,10 +305,14 @@ def _shared_parents() -> dict[str, argparse.ArgumentParser]:
 RUN_DIR_OUTPUT = "run directory (default: runs/<capture folder name>)"
 
 
+def _run_parents(shared) -> list:
+    """The options of the commands that write a run folder from a capture (fit, geometry)."""
+    return [shared["threads"], _output(RUN_DIR_OUTPUT)] + [shared[k] for k in ("capture", "config", "resume", "quiet")]
+
+
 def _add_fit(sub, shared) -> None:
     f = sub.add_parser(
-        "fit", parents=[shared["threads"], _output(RUN_DIR_OUTPUT)]
-        + [shared[k] for k in ("capture", "config", "resume", "quiet")], help="decompose a capture into materials and lighting (VQ-NeRF)",
+        "fit", parents=_run_parents(shared), help="decompose a capture into materials and lighting (VQ-NeRF)",
         description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the continuous and "
                     "discrete material branches, the lighting if unknown, and the ranked materials. Writes RUN_DIR "
                     "(docs/run_dir.md): config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
@@ -324,8 +328,7 @@ def _add_fit(sub, shared) -> None:
 
 def _add_geometry(sub, shared) -> None:
     g = sub.add_parser(
-        "geometry", parents=[shared["threads"], _output(RUN_DIR_OUTPUT)]
-        + [shared[k] for k in ("capture", "config", "resume", "quiet")], help="reconstruct a mesh from posed images with alpha masks (NeuS)",
+        "geometry", parents=_run_parents(shared), help="reconstruct a mesh from posed images with alpha masks (NeuS)",
         description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. Writes "
                     "RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and the NeuS "
                     "checkpoint neus.pt. Known geometry in the capture is ignored. Of the config, the `neus` and "

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig
-from vq_mitsuba.run.loop import Budget, Clock, Loop, Progress
+from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 from vq_mitsuba.config import check as validate
 
@@ -637,10 +637,10 @@ class _NeuSFit:
                          checkpoint=self.save, checkpoint_every=cfg.checkpoint_every,
                          snapshot=(lambda p, label: callback(self.neus, p.step, p.seconds)) if periodic else None,
                          snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress)
-        self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
-        if periodic and self.step == 0:
-            callback(self.neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
-        self.loop.clock = Clock(self.elapsed)  # set-up work above is not training time
+        with self.loop.clock.paused():  # set-up work is not training time
+            self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
+            if periodic and self.step == 0:
+                callback(self.neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
         result = self.loop.run()
         return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
                 "stopped_by_time": result.stopped_by_time}

@@ -81,7 +81,7 @@ class Loop:
                  start_step: int = 0, start_seconds: float = 0.0,
                  checkpoint: Callable[[Progress], None] | None = None, checkpoint_every: int = 0,
                  snapshot: Callable[[Progress, float], None] | None = None, snapshot_times: Iterable[float] = (),
-                 snapshot_every_s: float = 0.0, progress_bar: bool = True, unit: str = "it"):
+                 snapshot_every_s: float = 0.0, progress_bar: bool = True):
         self.name, self.budget, self.step_fn = name, budget, step
         self.step, self.start_step = start_step, start_step
         self.clock = Clock(start_seconds)
@@ -91,7 +91,7 @@ class Loop:
         self.every_s = snapshot_every_s
         self.next_periodic = ((start_seconds // snapshot_every_s) + 1) * snapshot_every_s if snapshot_every_s > 0 \
             else None
-        self.progress_bar, self.unit = progress_bar, unit
+        self.progress_bar = progress_bar
 
     def progress(self) -> Progress:
         seconds = self.clock()
@@ -124,7 +124,7 @@ class Loop:
     def run(self) -> LoopResult:
         from tqdm import tqdm
 
-        bar = tqdm(total=self.budget.steps or None, initial=self.step, desc=self.name, unit=self.unit,
+        bar = tqdm(total=self.budget.steps or None, initial=self.step, desc=self.name,
                    disable=not self.progress_bar, dynamic_ncols=True)
         stopped_by_time = False
         try:

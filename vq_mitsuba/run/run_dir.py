@@ -299,9 +299,6 @@ class RunDir:
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
 
-    def geometry_summary(self) -> dict | None:
-        return self._read_json(self.GEOMETRY)
-
     @property
     def neus_checkpoint_path(self) -> Path:
         return self.dir / self.NEUS_CHECKPOINT
