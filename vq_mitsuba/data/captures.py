@@ -22,6 +22,7 @@ import numpy as np
 from vq_mitsuba.config import CaptureConfig
 from vq_mitsuba.errors import InputError, raise_all
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_pose, check_size, finite_number
 from vq_mitsuba.data.imageio import read_image
 
 if TYPE_CHECKING:
@@ -94,10 +95,7 @@ def load_cameras(path: str | Path, options: CaptureConfig | None = None,
         data = _read_json(source)
         angle, frames = _json_header(source, data)
         width, height = _json_image_size(source, data, frames)
-        cameras = [
-            nerf_to_camera(name, matrix, angle, width, height)
-            for name, matrix in zip(_frame_names(frames), _frame_matrices(source, frames))
-        ]
+        cameras = _json_cameras(source, frames, _frame_matrices(source, frames), angle, width, height)
         world = "blender"
     else:
         from vq_mitsuba.data.photo_captures import photo_cameras
@@ -361,7 +359,10 @@ def _xml_cameras(xml: Path, root: ET.Element, defaults: dict[str, str], scene) -
         to_world = _matrix(params["to_world"])
         if not (np.all(np.isfinite(to_world)) and abs(np.linalg.det(to_world[:3, :3])) > 1e-12):
             raise InputError(xml, f"sensor '{sid}': degenerate to_world transform")
+        if not (finite_number(fov_x) and finite_number(ox) and finite_number(oy)):
+            raise InputError(xml, f"sensor '{sid}': non-finite field of view or principal point offset")
         cameras.append(Camera(sid, to_world, fov_x, size[0], size[1], principal=principal))
+        check_camera(xml, f"sensor '{sid}'", cameras[-1])
     return cameras
 
 
@@ -556,8 +557,9 @@ def _json_header(path: Path, data: dict) -> tuple[float, list[dict]]:
     if "camera_angle_x" not in data:
         raise InputError(path, "missing 'camera_angle_x' (horizontal field of view in radians)")
     angle = data["camera_angle_x"]
-    if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not (0.0 < angle < math.pi):
-        raise InputError(path, f"'camera_angle_x' must be a number of radians in (0, pi), got {angle!r}")
+    if not finite_number(angle) or not (MIN_FOV_DEG <= math.degrees(angle) <= MAX_FOV_DEG):
+        raise InputError(path, f"'camera_angle_x' must be a number of radians in (0, pi) (a field of view of "
+                               f"{MIN_FOV_DEG:g}..{MAX_FOV_DEG:g} degrees), got {angle!r}")
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise InputError(path, "no cameras: 'frames' is missing or empty")
@@ -583,8 +585,19 @@ def _frame_matrices(path: Path, frames: list[dict]) -> list[np.ndarray]:
                                    "(expected 4x4 finite numbers)")
         if abs(np.linalg.det(m[:3, :3])) < 1e-12:
             raise InputError(path, f"frames[{i}] ({frame['file_path']}): degenerate transform_matrix")
+        check_pose(path, f"frames[{i}] ({frame['file_path']})", m)
         out.append(m)
     return out
+
+
+def _json_cameras(path: Path, frames: list[dict], matrices: list[np.ndarray], angle: float, width: int,
+                  height: int) -> list[Camera]:
+    """The frames' cameras, each checked (vq_mitsuba.data.checks)."""
+    cameras = []
+    for i, (name, matrix) in enumerate(zip(_frame_names(frames), matrices)):
+        cameras.append(nerf_to_camera(name, matrix, angle, width, height))
+        check_camera(path, f"frames[{i}] ({frames[i]['file_path']})", cameras[-1])
+    return cameras
 
 
 def _frame_names(frames: list[dict]) -> list[str]:
@@ -614,7 +627,8 @@ def _frame_image(path: Path, i: int, frame: dict) -> Path:
 def _json_image_size(path: Path, data: dict, frames: list[dict]) -> tuple[int, int]:
     """(width, height) for cameras-only loading: 'w'/'h' keys, else the first image found."""
     w, h = data.get("w"), data.get("h")
-    if isinstance(w, (int, float)) and isinstance(h, (int, float)) and w > 0 and h > 0:
+    if w is not None and h is not None:
+        check_size(path, "'w' and 'h'", w, h)
         return int(w), int(h)
     for frame in frames:
         for c in _frame_image_candidates(path, frame):
@@ -628,7 +642,6 @@ def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
     data = _read_json(path)
     angle, frames = _json_header(path, data)
     matrices = _frame_matrices(path, frames)
-    names = _frame_names(frames)
 
     entries, first, problems = [], None, []
     for i, frame in enumerate(frames):
@@ -647,7 +660,7 @@ def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
     raise_all(problems, path)
     images, alpha, has_alpha = _stack_images(entries)
     width, height = first[1], first[2]
-    cameras = [nerf_to_camera(n, m, angle, width, height) for n, m in zip(names, matrices)]
+    cameras = _json_cameras(path, frames, matrices, angle, width, height)
 
     if mesh_arg is not None:
         mesh = load_mesh(mesh_arg)

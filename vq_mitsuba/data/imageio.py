@@ -38,6 +38,12 @@ def _read_8_or_16_bit(path: Path) -> np.ndarray:
 
         init_mitsuba()
         return np.array(mi.Bitmap(str(path)))
+    if png:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            if "transparency" in im.info:  # a tRNS chunk (palette or colour-key PNG): its transparency is alpha
+                return np.asarray(im.convert("LA" if im.mode in ("1", "L", "I") else "RGBA"))
     return np.asarray(iio.imread(path))
 
 

@@ -16,8 +16,8 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import read_image, read_mask
-from vq_mitsuba.data.photo_formats import (Lens, colmap_camera, colmap_model_dir, idr_camera, read_colmap, read_idr,
-                                           undistort_image)
+from vq_mitsuba.data.photo_formats import (Lens, check_idr_views, colmap_camera, colmap_model_dir, idr_camera,
+                                           read_colmap, read_idr, undistort_image)
 from vq_mitsuba.errors import InputError, raise_all
 
 PHOTO_EXTS = (".png", ".jpg", ".jpeg", ".exr")
@@ -39,6 +39,7 @@ def _idr_views(npz: Path) -> tuple[list[Camera], list[Path], list[Path] | None]:
     from vq_mitsuba.data.imageio import image_size
 
     w, h = image_size(images[0])
+    check_idr_views(npz, views, w, h)
     cameras = [idr_camera(p.stem, k, c2w, w, h) for p, (k, c2w) in zip(images, views)]
     return cameras, images, masks or None
 

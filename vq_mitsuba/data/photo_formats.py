@@ -5,6 +5,9 @@ COLMAP and IDR use OpenCV camera axes (+X right, +Y down, +Z forward); a Mitsuba
 left and +Y up, so camera-to-world matrices differ by diag(-1, -1, 1). COLMAP puts pixel centres
 at +0.5 as we do; IDR intrinsics put them at integer coordinates (NeuS casts rays through
 integer pixel positions), so their principal point is shifted by half a pixel on reading.
+
+Everything read is checked before any work (vq_mitsuba.data.checks, plus `check_lens` for the
+distortion and `_check_colmap_image` for quaternions and image entries).
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.data.checks import check_intrinsics, check_pose, check_unique, collect, finite_number
+from vq_mitsuba.errors import InputError, raise_all
 
 OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 
@@ -109,6 +113,43 @@ class Lens:
         return u * self.fx + self.cx, v * self.fy + self.cy
 
 
+# Plausible distortion: over the whole image the lens keeps every point within a factor
+# MAX_RADIAL_SCALE of its distance from the principal point, and stays one-to-one (a positive
+# Jacobian), which undistortion needs. Wide-angle lenses that COLMAP's OPENCV model fits stay well
+# inside (k1 = -0.25, k2 = 0.06 scale the corners of a 4:3 view 100 degrees wide by 0.74); k1 = 50
+# on a 4:3 view 60 degrees wide scales them by 27.
+MAX_RADIAL_SCALE = 2.0
+
+
+def check_lens(path: Path, entry: str, lens: Lens) -> None:
+    """A COLMAP camera: intrinsics (vq_mitsuba.data.checks), finite and plausible distortion."""
+    check_intrinsics(path, entry, lens.fx, lens.fy, lens.cx, lens.cy, lens.width, lens.height)
+    for name in ("k1", "k2", "p1", "p2"):
+        if not finite_number(getattr(lens, name)):
+            raise InputError(path, f"{entry}: distortion {name} = {getattr(lens, name)!r} is not a finite number")
+    if not lens.distorted:
+        return
+    xs, ys = np.meshgrid(np.linspace(0, lens.width, 17), np.linspace(0, lens.height, 17))
+    u, v = lens.pixel_to_normalised(xs, ys)
+    eps = 1e-6
+    with np.errstate(all="ignore"):  # overflow becomes inf, refused below
+        du, dv = lens.distort(u, v)
+        r = np.hypot(u, v)
+        scale = np.hypot(du, dv)[r > 1e-9] / r[r > 1e-9]
+        (a, c), (b, d) = (((x - y) / eps for x, y in zip(moved, (du, dv)))
+                          for moved in (lens.distort(u + eps, v), lens.distort(u, v + eps)))
+        folds = not np.all(a * d - b * c > 0)
+    coefficients = ", ".join(f"{n} = {getattr(lens, n):g}" for n in ("k1", "k2", "p1", "p2"))
+    if not np.all((scale >= 1 / MAX_RADIAL_SCALE) & (scale <= MAX_RADIAL_SCALE)):
+        worst = scale[np.argmax(np.abs(np.log(np.nan_to_num(scale, nan=np.inf) + 1e-300)))]
+        raise InputError(path, f"{entry}: implausible distortion ({coefficients}): it moves image points to "
+                               f"{worst:.3g} times their distance from the principal point (a real lens stays "
+                               f"within {1 / MAX_RADIAL_SCALE:g}..{MAX_RADIAL_SCALE:g})")
+    if folds:
+        raise InputError(path, f"{entry}: implausible distortion ({coefficients}): it folds the image over "
+                               "(not one-to-one), so it cannot be undone")
+
+
 def resample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear samples of `image` (H, W, C) at pixel positions x, y (pixel centres at +0.5), and a
     mask of the positions that lie inside the image."""
@@ -149,6 +190,7 @@ class ColmapImage:
     camera_id: int
     qvec: np.ndarray  # (w, x, y, z): world-to-camera rotation
     tvec: np.ndarray  # world-to-camera translation
+    image_id: int = 0
 
 
 def qvec_to_matrix(q) -> np.ndarray:
@@ -175,27 +217,61 @@ def colmap_model_dir(folder: Path) -> Path | None:
 
 
 def read_colmap(model: Path) -> tuple[dict[int, Lens], list[ColmapImage]]:
-    """Cameras and registered images of a sparse model (binary preferred over text)."""
+    """Cameras and registered images of a sparse model (binary preferred over text), checked."""
     binary = (model / "cameras.bin").is_file()
+    ext = "bin" if binary else "txt"
+    cameras_file, images_file = model / f"cameras.{ext}", model / f"images.{ext}"
+    lenses = _read_colmap_file(cameras_file, _read_cameras_bin if binary else _read_cameras_txt)
+    images = _read_colmap_file(images_file, _read_images_bin if binary else _read_images_txt)
+    _check_colmap(cameras_file, images_file, lenses, images)
+    return lenses, sorted(images, key=lambda i: i.name)
+
+
+def _read_colmap_file(path: Path, reader):
+    """`reader(path)`, with every way a file can be broken reported as an InputError naming it."""
+    which = "binary" if path.suffix == ".bin" else "text"
     try:
-        if binary:
-            lenses, images = _read_cameras_bin(model / "cameras.bin"), _read_images_bin(model / "images.bin")
-        else:
-            lenses, images = _read_cameras_txt(model / "cameras.txt"), _read_images_txt(model / "images.txt")
+        return reader(path)
     except InputError:
         raise
-    except FileNotFoundError as exc:
-        raise InputError(Path(exc.filename), "missing: a COLMAP model needs cameras and images files") from None
-    except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
-        which = "binary" if binary else "text"
-        raise InputError(model, f"cannot read the COLMAP {which} model ({type(exc).__name__}: {exc})") from None
-    for img in images:
-        if img.camera_id not in lenses:
-            raise InputError(model / ("images.bin" if binary else "images.txt"),
-                             f"image {img.name} refers to camera {img.camera_id}, which cameras lists not")
+    except FileNotFoundError:
+        raise InputError(path, "missing: a COLMAP model needs cameras and images files") from None
+    except (OSError, struct.error, ValueError, IndexError, UnicodeDecodeError, OverflowError, MemoryError) as exc:
+        raise InputError(path, f"cannot read the COLMAP {which} model ({type(exc).__name__}: {exc})") from None
+
+
+def _check_colmap(cameras_file: Path, images_file: Path, lenses: dict[int, Lens], images: list[ColmapImage]) -> None:
+    """Every camera and every image entry of a model; all problems reported at once."""
+    problems: list[InputError] = []
+    for cid, lens in lenses.items():
+        collect(problems, check_lens, cameras_file, f"camera {cid} ({lens.model})", lens)
     if not images:
-        raise InputError(model, "the COLMAP model registers no images")
-    return lenses, sorted(images, key=lambda i: i.name)
+        problems.append(InputError(images_file, "the COLMAP model registers no images"))
+    collect(problems, check_unique, images_file, "image name", [img.name for img in images])
+    collect(problems, check_unique, images_file, "image id", [img.image_id for img in images])
+    for img in images:
+        collect(problems, _check_colmap_image, images_file, img, lenses)
+    raise_all(problems, cameras_file.parent)
+
+
+def _check_colmap_image(path: Path, img: ColmapImage, lenses: dict[int, Lens]) -> None:
+    """One image entry: a name, a listed camera, a quaternion that normalises, a finite translation."""
+    entry = f"image {img.image_id} ({img.name!r})"
+    if not img.name.strip() or Path(img.name).is_absolute() or ".." in Path(img.name).parts:
+        raise InputError(path, f"{entry}: the name must be a file name under images/")
+    if img.camera_id not in lenses:
+        raise InputError(path, f"{entry} refers to camera {img.camera_id}, which "
+                               f"{path.with_name('cameras' + path.suffix).name} does not list")
+    q = np.asarray(img.qvec, np.float64)
+    norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
+    if not 1e-6 <= norm <= 1e6:
+        raise InputError(path, f"{entry}: quaternion (QW, QX, QY, QZ) = ({', '.join(f'{v:g}' for v in q)}) "
+                               "is not a rotation (it must be finite and not zero)")
+    t = np.asarray(img.tvec, np.float64)
+    if not np.all(np.isfinite(t)):
+        raise InputError(path, f"{entry}: translation (TX, TY, TZ) = ({', '.join(f'{v:g}' for v in t)}) "
+                               "is not finite")
+    check_pose(path, entry, colmap_to_world(img))
 
 
 def _model(path: Path, model_id_or_name) -> str:
@@ -213,18 +289,28 @@ def _model(path: Path, model_id_or_name) -> str:
 
 
 def _read_cameras_txt(path: Path) -> dict[int, Lens]:
-    out = {}
-    for line in path.read_text().splitlines():
+    entries = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
         if not line.strip() or line.startswith("#"):
             continue
         parts = line.split()
-        cid, model, w, h = int(parts[0]), _model(path, parts[1]), int(parts[2]), int(parts[3])
-        params = [float(p) for p in parts[4:]]
-        if len(params) != len(MODELS[MODEL_IDS[model]][1]):
-            raise InputError(path, f"camera {cid}: {model} has {len(MODELS[MODEL_IDS[model]][1])} parameters, "
+        try:
+            cid, model, w, h = int(parts[0]), _model(path, parts[1]), int(parts[2]), int(parts[3])
+            params = [float(p) for p in parts[4:]]
+        except (ValueError, IndexError):
+            raise InputError(path, f"line {number} ('{line[:60]}') is not CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]") \
+                from None
+        names = MODELS[MODEL_IDS[model]][1]
+        if len(params) != len(names):
+            raise InputError(path, f"camera {cid}: {model} has {len(names)} parameters ({' '.join(names)}), "
                                    f"got {len(params)}")
-        out[cid] = Lens.from_params(model, w, h, params)
-    return out
+        entries.append((cid, Lens.from_params(model, w, h, params)))
+    return _by_id(path, entries)
+
+
+def _by_id(path: Path, entries: list[tuple[int, Lens]]) -> dict[int, Lens]:
+    check_unique(path, "camera id", [cid for cid, _ in entries])
+    return dict(entries)
 
 
 def _read_images_txt(path: Path) -> list[ColmapImage]:
@@ -236,10 +322,14 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
             i += 1
             continue
         parts = lines[i].split()
-        if len(parts) < 10:
-            raise InputError(path, f"line '{lines[i][:60]}' is not IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-        out.append(ColmapImage(" ".join(parts[9:]), int(parts[8]), np.array(parts[1:5], np.float64),
-                               np.array(parts[5:8], np.float64)))
+        try:
+            if len(parts) < 10:
+                raise ValueError
+            out.append(ColmapImage(" ".join(parts[9:]), int(parts[8]), np.array(parts[1:5], np.float64),
+                                   np.array(parts[5:8], np.float64), int(parts[0])))
+        except ValueError:
+            raise InputError(path, f"line '{lines[i][:60]}' is not IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME") \
+                from None
         i += 2  # the next line lists the image's 2D points (possibly empty)
     return out
 
@@ -253,15 +343,15 @@ def _read(f, fmt):
 
 
 def _read_cameras_bin(path: Path) -> dict[int, Lens]:
-    out = {}
+    entries = []
     with open(path, "rb") as f:
         (n,) = _read(f, "<Q")
         for _ in range(n):
             cid, mid, w, h = _read(f, "<iiQQ")
             model = _model(path, mid)
             params = _read(f, "<" + "d" * len(MODELS[mid][1]))
-            out[cid] = Lens.from_params(model, w, h, params)
-    return out
+            entries.append((cid, Lens.from_params(model, w, h, params)))
+    return _by_id(path, entries)
 
 
 def _read_images_bin(path: Path) -> list[ColmapImage]:
@@ -275,18 +365,23 @@ def _read_images_bin(path: Path) -> list[ColmapImage]:
                 name += c
             (npts,) = _read(f, "<Q")
             f.seek(24 * npts, 1)
-            out.append(ColmapImage(name.decode(), values[8], np.array(values[1:5]), np.array(values[5:8])))
+            out.append(ColmapImage(name.decode(), values[8], np.array(values[1:5]), np.array(values[5:8]), values[0]))
     return out
 
 
-def colmap_camera(img: ColmapImage, lens: Lens) -> Camera:
-    """The pinhole (undistorted) Mitsuba camera of one registered image."""
+def colmap_to_world(img: ColmapImage) -> np.ndarray:
+    """(4, 4) camera-to-world matrix, in OpenCV camera axes, of one registered image."""
     r = qvec_to_matrix(img.qvec)
     c2w = np.eye(4)
     c2w[:3, :3] = r.T
     c2w[:3, 3] = -r.T @ img.tvec
-    return camera_from_intrinsics(Path(img.name).stem, c2w @ OPENCV_TO_MITSUBA, lens.fx, lens.fy, lens.cx, lens.cy,
-                                  lens.width, lens.height)
+    return c2w
+
+
+def colmap_camera(img: ColmapImage, lens: Lens) -> Camera:
+    """The pinhole (undistorted) Mitsuba camera of one registered image."""
+    return camera_from_intrinsics(Path(img.name).stem, colmap_to_world(img) @ OPENCV_TO_MITSUBA, lens.fx, lens.fy,
+                                  lens.cx, lens.cy, lens.width, lens.height)
 
 
 def write_colmap(model: Path, cameras: list[Camera], names: list[str], lens_of=None, binary: bool = True,
@@ -339,30 +434,66 @@ def write_colmap(model: Path, cameras: list[Camera], names: list[str], lens_of=N
 
 def read_idr(path: Path, count: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
     """(K 3x3 with pixel centres at +0.5, camera-to-world in OpenCV axes) of views 0..count-1, and
-    their scale matrices (normalised -> world)."""
-    try:
-        data = np.load(path)
-    except Exception as exc:
-        raise InputError(path, f"cannot read ({type(exc).__name__}: {exc})") from None
-    views, scales = [], []
-    for i in range(count):
-        if f"world_mat_{i}" not in data:
-            raise InputError(path, f"has no world_mat_{i}, but the capture has {count} images")
-        p = np.asarray(data[f"world_mat_{i}"], np.float64)[:3, :4]
-        scale = np.asarray(data[f"scale_mat_{i}"], np.float64) if f"scale_mat_{i}" in data else np.eye(4)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(scale))):
-            raise InputError(path, f"world_mat_{i} or scale_mat_{i} holds non-finite values")
-        views.append(_decompose(path, i, p))
-        scales.append(scale)
+    their scale matrices (normalised -> world), each matrix checked for its shape, dtype and values."""
+    with _open_npz(path) as data:
+        views, scales = [], []
+        for i in range(count):
+            if f"world_mat_{i}" not in data.files:
+                raise InputError(path, f"has no world_mat_{i}, but the capture has {count} images")
+            p = _idr_matrix(path, data, f"world_mat_{i}", ((3, 4), (4, 4)))[:3, :4]
+            scale = _idr_matrix(path, data, f"scale_mat_{i}", ((4, 4),)) if f"scale_mat_{i}" in data.files \
+                else np.eye(4)
+            _check_invertible(path, f"scale_mat_{i}", scale[:3, :3])
+            views.append(_decompose(path, i, p))
+            scales.append(scale)
     return views, scales
+
+
+def _open_npz(path: Path):
+    """The npz archive (no pickles: an object array is refused when read, not run)."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:  # numpy, zipfile and OS errors differ
+        raise InputError(path, f"cannot read ({type(exc).__name__}: {exc})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(path, "not an .npz archive of named matrices (world_mat_0, scale_mat_0, ...)")
+    return data
+
+
+def _idr_matrix(path: Path, data, key: str, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """One matrix of the archive: numbers (no strings, no pickled objects), one of `shapes`, finite."""
+    try:
+        raw = data[key]
+    except ValueError as exc:
+        if "allow_pickle" in str(exc):
+            raise InputError(path, f"{key} is an array of Python objects (a pickle), which is never loaded: "
+                                   "save it as an array of numbers") from None
+        raise InputError(path, f"{key}: cannot read ({exc})") from None
+    except Exception as exc:  # a damaged member of the archive
+        raise InputError(path, f"{key}: cannot read ({type(exc).__name__}: {exc})") from None
+    if raw.dtype.kind not in "biuf":
+        raise InputError(path, f"{key} holds {raw.dtype} values, not numbers")
+    if raw.shape not in shapes:
+        raise InputError(path, f"{key} has shape {raw.shape}; expected " + " or ".join(f"{r}x{c}" for r, c in shapes))
+    m = raw.astype(np.float64)
+    if not np.all(np.isfinite(m)):
+        raise InputError(path, f"{key} holds non-finite values")
+    return m
+
+
+def _check_invertible(path: Path, key: str, m: np.ndarray) -> None:
+    """A 3x3 block that a projection or a scale needs to invert (condition number below 1e12)."""
+    with np.errstate(all="ignore"):
+        cond = np.linalg.cond(m)
+    if not cond < 1e12:
+        raise InputError(path, f"{key} is singular (its 3x3 part cannot be inverted)")
 
 
 def _decompose(path: Path, i: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     from scipy.linalg import rq
 
     m = p[:, :3]
-    if abs(np.linalg.det(m)) < 1e-12:
-        raise InputError(path, f"world_mat_{i} is singular: not a projection matrix")
+    _check_invertible(path, f"world_mat_{i}", m)
     k, r = rq(m)
     fix = np.diag(np.sign(np.diag(k)))  # a positive diagonal for K
     k, r = k @ fix, fix @ r
@@ -379,6 +510,15 @@ def _decompose(path: Path, i: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarra
     c2w[:3, :3] = r.T
     c2w[:3, 3] = -r.T @ t
     return k, c2w
+
+
+def check_idr_views(path: Path, views: list[tuple[np.ndarray, np.ndarray]], width: int, height: int) -> None:
+    """The intrinsics and poses that `read_idr` decomposed, for images of width x height; all at once."""
+    problems: list[InputError] = []
+    for i, (k, c2w) in enumerate(views):
+        collect(problems, check_intrinsics, path, f"world_mat_{i}", k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+        collect(problems, check_pose, path, f"world_mat_{i}", c2w)
+    raise_all(problems, path)
 
 
 def idr_camera(name: str, k: np.ndarray, c2w_opencv: np.ndarray, width: int, height: int) -> Camera:
