@@ -88,3 +88,99 @@ def test_parsed_once_but_each_load_has_its_own_config(tmp_path, monkeypatch):
     written = {**run.info(), "n_views": 7}
     run.write_info({k: v for k, v in written.items() if k != "format"})
     assert RunDir(run.dir).info()["n_views"] == 7 and run.info()["n_views"] == 7
+
+
+@pytest.mark.parametrize("bad, where", [(float("nan"), "materials[1].roughness"), (float("inf"), "materials[1].roughness"),
+                                        (-float("inf"), "materials[1].roughness")])
+def test_json_holds_finite_numbers_only(tmp_path, bad, where):
+    """A NaN or Inf is never written into a run's JSON: NumericalError naming the file and the key,
+    and the file already there is kept."""
+    from vq_mitsuba.errors import NumericalError
+
+    run = RunDir(tmp_path / "run")
+    run.create()
+    good = {"num_materials": 2, "materials": [{"roughness": 0.5}, {"roughness": 0.25}]}
+    run.write_materials(good)
+    bad_materials = {"num_materials": 2, "materials": [{"roughness": 0.5}, {"roughness": bad}]}
+    with pytest.raises(NumericalError) as info:
+        run.write_materials(bad_materials)
+    assert str(run / RunDir.MATERIALS) in str(info.value) and where in str(info.value)
+    assert json.loads((run / RunDir.MATERIALS).read_text()) == good
+    assert sorted(p.name for p in run.dir.iterdir()) == [RunDir.MATERIALS]  # no temporary file left
+
+
+def _hold_lock_in_subprocess(folder, command="fit"):
+    """A process holding the run's lock until it is killed; returns (process, its pid)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, time\nfrom vq_mitsuba.run.run_dir import RunDir\n"
+            f"with RunDir(sys.argv[1]).lock({command!r}):\n    print('held', flush=True)\n    time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_lock_refuses_a_second_process_and_is_taken_over_once_its_owner_died(tmp_path):
+    import os
+    import signal
+
+    folder = tmp_path / "run"
+    proc = _hold_lock_in_subprocess(folder)
+    try:
+        owner = json.loads((folder / RunDir.LOCK).read_text())
+        assert owner["pid"] == proc.pid and owner["command"] == "fit" and owner["host"]
+        with pytest.raises(InputError, match=rf"in use by `vq-mitsuba fit` \(pid {proc.pid} on "):
+            with RunDir(folder).lock("edit"):
+                pass
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert (folder / RunDir.LOCK).is_file()  # left behind by the killed process: stale
+    notes = []
+    with RunDir(folder).lock("fit", log=notes.append):
+        assert json.loads((folder / RunDir.LOCK).read_text())["pid"] == os.getpid()
+        with RunDir(folder).lock("geometry", log=notes.append):  # the same process again: no-op
+            pass
+        assert (folder / RunDir.LOCK).is_file()  # still held by the outer one
+    assert len(notes) == 1 and f"pid {proc.pid}" in notes[0] and "no longer running" in notes[0]
+    assert not (folder / RunDir.LOCK).exists()
+
+
+def test_lock_leaves_no_empty_folder_behind(tmp_path):
+    folder = tmp_path / "new" / "run"
+    with pytest.raises(InputError, match="refused"):
+        with RunDir(folder).lock("fit"):
+            raise InputError(None, "refused")
+    assert not folder.exists()
+    with RunDir(folder).lock("fit"):
+        (folder / "result.txt").write_text("kept")
+    assert sorted(p.name for p in folder.iterdir()) == ["result.txt"]
+
+
+def test_a_refused_write_names_the_file_and_keeps_the_old_one(tmp_path, monkeypatch):
+    """Disk full (ENOSPC) or no permission while a file is written: one WriteError naming the
+    file; the file written before stays whole and no temporary file is left."""
+    import errno
+
+    from vq_mitsuba.run.run_dir import WriteError, write_atomic
+
+    target = tmp_path / "fit.json"
+    target.write_text("before")
+
+    def full_disk(tmp):
+        tmp.write_text("half of")
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+
+    with pytest.raises(WriteError, match="no space left on the device") as info:
+        write_atomic(target, full_disk)
+    assert info.value.path == target
+    assert target.read_text() == "before" and sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]
+
+    def denied(tmp):
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp))
+
+    with pytest.raises(WriteError, match="permission denied"):
+        write_atomic(target, denied)
+    with pytest.raises(OSError, match="something else"):  # other errors are not disguised as write errors
+        write_atomic(target, lambda tmp: (_ for _ in ()).throw(OSError(errno.EIO, "something else")))

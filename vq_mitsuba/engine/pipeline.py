@@ -32,13 +32,16 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
                 log: Callable[[str], None] = print) -> dict:
     """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
     without `resume` before any work; reconstruct the mesh with NeuS when `needs_reconstruction`
-    (RUN_DIR/mesh.ply, reused on resume); then fit the materials. Returns the fit's summary."""
+    (RUN_DIR/mesh.ply, reused on resume); then fit the materials. Returns the fit's summary.
+    The run's lock is held throughout: a second process fitting into RUN_DIR is refused."""
     run = RunDir(run_dir)
     run.check_not_foreign()
     reconstruct = needs_reconstruction(capture, geometry, mesh)
     check_fit_target(run, resume)
-    if reconstruct:
-        reused = resume and run.has_mesh()
-        mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
-        log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
-    return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)
+    with run.lock("fit", log):
+        check_fit_target(run, resume)  # again, now that no other process writes here
+        if reconstruct:
+            reused = resume and run.has_mesh()
+            mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
+            log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
+        return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)

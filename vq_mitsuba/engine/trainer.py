@@ -10,6 +10,7 @@ is written through `RunDir`; a run resumes from its last checkpoint.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from pathlib import Path
@@ -109,13 +110,18 @@ class Trainer:
         return self.env_module() if self.learn_env else self.fixed_env
 
     def set_envmap_height(self, height: int, resample: bool = True) -> None:
-        """Grow the learned envmap to `height` rows (resampled, or a blank parameter of that shape
-        that a checkpoint fills); its Adam state restarts."""
+        """Bring the learned envmap to `height` rows (resampled, or a blank parameter of that shape
+        that a checkpoint fills); its Adam state restarts. It grows as the schedule goes on, and
+        shrinks only when a run resumes with more iterations, at an earlier point of the ladder."""
         env = self.env_module
         old = env.log_radiance
         if old.shape[0] == height:
             return
-        if resample:
+        if resample and height < old.shape[0]:  # the mean radiance of each coarser texel
+            radiance = torch.nn.functional.adaptive_avg_pool2d(torch.exp(old.detach()).permute(2, 0, 1),
+                                                               (height, 2 * height))
+            env.log_radiance = torch.nn.Parameter(torch.log(radiance).permute(1, 2, 0).contiguous())
+        elif resample:
             env.resize(height)
         else:
             env.log_radiance = torch.nn.Parameter(torch.zeros(height, 2 * height, 3, device=old.device))
@@ -132,9 +138,10 @@ class Trainer:
                 "step": self.step, "elapsed_s": elapsed, "config": to_dict(self.cfg)}
 
     def checkpoint(self, elapsed: float) -> None:
-        """The fitted state plus what resuming needs."""
+        """The fitted state plus what resuming needs, and config.yaml with the same configuration."""
         self.run.save_state({**self.fitted_state(elapsed), "optim": self.optim.state_dict(),
                              "generator": self.gen.get_state(), "history": self.history})
+        self.run.write_config(self.cfg)
 
     def snapshot(self, elapsed: float) -> None:
         self.run.save_state(self.fitted_state(elapsed), self.run.snapshot_path(elapsed, self.step))
@@ -351,8 +358,17 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                 raise InputError(run.dir, f"was fitted on another mesh than the one given now ({len(old)} vertices "
                                           f"in {RunDir.MESH}, {len(new)} now); resume with the run's geometry, "
                                           "or choose another -o")
+        done = int(run.load_state().get("step", 0))
+        if done >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
+            if run.fit_summary().get("iterations") == done:
+                print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
+                      "asks for no more): nothing to do, the run is unchanged")
+                return run.fit_summary()
+            cfg = copy.deepcopy(cfg)
+            cfg.train.iterations = done
     run.create()
-    run.write_config(cfg)
+    if not resume:  # a resumed run's config.yaml is written with its next checkpoint
+        run.write_config(cfg)
     run.write_mesh(capture.mesh)
     trainer = Trainer(capture, run, cfg)
     stats = trainer.pool_stats
@@ -369,7 +385,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     if resume:
         trainer.resume()
         if trainer.step >= cfg.train.iterations:
-            print(f"{run.dir}: already fitted ({trainer.step} of {cfg.train.iterations} iterations); nothing to do")
+            print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
     startup = time.perf_counter() - t_start
     summary = trainer.train(progress)
     summary["startup_s"] = startup
@@ -378,7 +394,10 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
 
 
 def check_fit_target(run: RunDir, resume: bool) -> None:
-    """Refuse to fit into an edited run, or over a fitted one unless resuming it (before any work)."""
+    """Refuse to fit into an edited run, over a fitted one unless resuming it, or to resume a folder
+    that is not there (before any work)."""
+    if resume and not run.dir.is_dir():
+        raise InputError(run.dir, "no run to resume (the folder does not exist)")
     if run.is_run() and run.is_edit():
         raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
     if run.has_checkpoint() and not resume:

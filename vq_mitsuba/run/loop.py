@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
+from vq_mitsuba.run.write_errors import WriteError
+
 
 @dataclass(frozen=True)
 class Budget:
@@ -74,8 +76,9 @@ class Loop:
 
     `step` returns None or a mapping shown beside the progress bar. `checkpoint(progress)` runs
     every `checkpoint_every` steps, at the end, and when a step raises (so that an interrupted
-    fit resumes from where it stopped); `snapshot(progress, label_s)` runs once the clock passes
-    each of `snapshot_times` (label_s is that time) and every `snapshot_every_s` seconds."""
+    fit resumes from where it stopped; not after a refused write, a `WriteError`, which would fail
+    again: the last checkpoint written stays); `snapshot(progress, label_s)` runs once the clock
+    passes each of `snapshot_times` (label_s is that time) and every `snapshot_every_s` seconds."""
 
     def __init__(self, name: str, budget: Budget, step: Callable[[Progress], dict | None], *,
                  start_step: int = 0, start_seconds: float = 0.0,
@@ -138,9 +141,10 @@ class Loop:
                 if postfix:
                     bar.set_postfix(postfix)
                 self._writes_due()
-        except BaseException:
+        except BaseException as exc:
             bar.close()
-            self._checkpoint_after_error()
+            if not isinstance(exc, WriteError):  # a refused write (full disk): the last checkpoint stays
+                self._checkpoint_after_error()
             raise
         bar.close()
         with self.clock.paused():

@@ -16,12 +16,14 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     loss.png, fit.json   training curves and the fit's summary
     metrics.json         written by `vq-mitsuba eval`
     snapshots/           states kept at train.snapshot_s
+    run.lock             while a command writes into the run: its owner (one process at a time)
 
 An edited run (`vq-mitsuba edit`) holds only run.json, naming the fitted run it edits
 (`edit_of`), and edits.json, its edit list; everything else is read from the fitted run.
 
 Every file is written through `write_atomic` (a crash leaves the old file or the new one, never
-half of one). What a RunDir parses (run.json, config.yaml) is parsed once per RunDir and kept.
+half of one; a refused write, no permission or a full disk, is a `WriteError` naming the file);
+JSON holds finite numbers only. What a RunDir parses (run.json, config.yaml) is parsed once per RunDir and kept.
 
 Reading a finished run needs no training code: `RunDir(path).load()` builds the networks from
 the checkpoint and returns a `FittedModel`.
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 from pathlib import Path
 from typing import Callable
@@ -43,6 +46,8 @@ from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
+from vq_mitsuba.run.lock import RunLock
+from vq_mitsuba.run.write_errors import WriteError, as_write_error
 
 FORMAT_VERSION = 1
 
@@ -56,15 +61,60 @@ def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     try:
         write(tmp)
         os.replace(tmp, path)
+    except OSError as exc:
+        error = as_write_error(exc, path)
+        if error is None:
+            raise
+        raise error from None
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
     return path
 
 
+def _first_nonfinite(data, where: str = "") -> str | None:
+    """Where in `data` (dicts and lists) a float is NaN or infinite, e.g. "materials[0].roughness"."""
+    if isinstance(data, float):
+        return None if math.isfinite(data) else (where or "the value")
+    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, (list, tuple)) else ()
+    for key, value in items:
+        found = _first_nonfinite(value, f"{where}[{key}]" if isinstance(key, int) else
+                                 f"{where}.{key}" if where else str(key))
+        if found:
+            return found
+    return None
+
+
 def write_json(path: str | Path, data: dict) -> Path:
-    """Write JSON atomically."""
-    return write_atomic(path, lambda tmp: tmp.write_text(json.dumps(data, indent=2)))
+    """Write JSON atomically, with finite numbers only: a NaN or Inf is a NumericalError naming the
+    file and the key, and nothing is written."""
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False)
+    except ValueError:
+        raise NumericalError(path, f"not written: {_first_nonfinite(data)} is not a finite number "
+                                   "(a JSON file of a run holds finite numbers only)") from None
+    return write_atomic(path, lambda tmp: tmp.write_text(text))
+
+
+def check_writable(folder: str | Path) -> None:
+    """Refuse, before any work, an output folder that cannot be made or written (its nearest
+    existing parent, when it does not exist yet) with a WriteError naming it."""
+    folder = Path(folder).absolute()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir():
+        raise InputError(existing, "is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        reason = "the file system is read-only" if _read_only(existing) else "permission denied"
+        raise WriteError(existing, f"cannot be written: {reason}")
+
+
+def _read_only(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        return False
 
 
 def read_json(path: Path, missing: str) -> dict:
@@ -122,6 +172,7 @@ class RunDir:
     SNAPSHOTS = "snapshots"
     RENDERS = "renders"  # the default output folder of `vq-mitsuba render`
     EDITS = "edits.json"
+    LOCK = "run.lock"  # the command writing into the run (pid, host): RunLock
     # Files only a run of vq-mitsuba holds: a folder with one of them is a run (maybe unfinished).
     MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT)
 
@@ -159,8 +210,14 @@ class RunDir:
 
     def check_not_foreign(self) -> None:
         """A stage writes into a new folder, an empty one, or a run's own: never over a user's other files."""
-        if self.dir.is_dir() and any(self.dir.iterdir()) and not self.holds_run_files():
+        if self.dir.is_dir() and any(p.name != self.LOCK for p in self.dir.iterdir()) and not self.holds_run_files():
             raise InputError(self.dir, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
+
+    def lock(self, command: str, log: Callable[[str], None] = print) -> RunLock:
+        """`with run.lock("fit"):` this process alone writes into the run (the folder is made if
+        missing, and removed again if the command leaves it empty); another process holding it is
+        an InputError naming it, a lock left by a dead process is taken over with a note."""
+        return RunLock(self.dir / self.LOCK, command, log)
 
     def create(self) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
@@ -223,12 +280,12 @@ class RunDir:
         base = source.source()
         if self.dir.resolve() == base.dir.resolve():
             raise InputError(self.dir, "an edit writes a new run: choose an -o other than the fitted run")
-        self.create()
         info = {k: v for k, v in base.info().items() if k not in ("format", "edit_of")}
-        info["edit_of"] = {"absolute": str(base.dir.resolve()),
-                           "relative": os.path.relpath(base.dir.resolve(), self.dir.resolve())}
-        write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
-        self.write_info(info)
+        with self.lock("edit"):
+            info["edit_of"] = {"absolute": str(base.dir.resolve()),
+                               "relative": os.path.relpath(base.dir.resolve(), self.dir.resolve())}
+            write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
+            self.write_info(info)
 
     # --- the capture's cameras ------------------------------------------------------------------
     def cameras(self) -> dict[str, list]:
