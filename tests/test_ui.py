@@ -28,17 +28,19 @@ def editor(three_materials):
     stop_editor(session, server)
 
 
-def _get(server, path):
+def _get(server, path, headers=None):
     conn = http.client.HTTPConnection(*server.server_address[:2], timeout=30)
-    conn.request("GET", path)  # sent as written: no client-side normalisation of ../
+    conn.request("GET", path, headers=headers or {})  # sent as written: no client-side normalisation of ../
     r = conn.getresponse()
     return r.status, r.read()
 
 
-def _post(server, action, body, raw=None):
+def _post(server, action, body, raw=None, headers=None):
+    """POST as the page does (JSON, the session's token); `headers` replace or add (None: drop one)."""
     conn = http.client.HTTPConnection(*server.server_address[:2], timeout=60)
     data = raw if raw is not None else json.dumps(body).encode()
-    conn.request("POST", f"/api/{action}", body=data, headers={"Content-Type": "application/json"})
+    sent = {"Content-Type": "application/json", "X-VQM-Token": server.token, **(headers or {})}
+    conn.request("POST", f"/api/{action}", body=data, headers={k: v for k, v in sent.items() if v is not None})
     r = conn.getresponse()
     body = r.read()
     return r.status, json.loads(body) if r.getheader("Content-Type") == "application/json" else {"text": body}
@@ -67,10 +69,11 @@ def _wait_refined(session, version=None, timeout=120):
 
 def _wait_idle(session, timeout=180):
     """Until the render thread has refined the current state to the end and waits: the test may
-    then render in its own thread (the editor renders on one thread only)."""
+    then render in its own thread (the editor renders on one thread only). Asks for frames, as an
+    open page does, so that refining goes on."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        f = session.frame
+        f = session.wait_frame(-1, -1, timeout=1)
         if f is not None and f.version == session.version and f.spp >= session.max_spp:
             return
         time.sleep(0.2)
@@ -78,11 +81,18 @@ def _wait_idle(session, timeout=180):
 
 
 # --- the server: what it serves and what it refuses ---------------------------------------------------
-def test_server_serves_the_page_and_the_runs_files_only(editor, tmp_path):
+def test_server_serves_the_page_and_the_runs_images_only(editor, tmp_path):
+    import imageio.v3 as iio
+
     session, server = editor
     assert _get(server, "/")[0] == 200 and b"app.js" in _get(server, "/")[1]
-    status, body = _get(server, "/run/materials.json")
-    assert status == 200 and json.loads(body)["num_materials"] == session.num_materials
+    status, body = _get(server, "/run/materials_sheet.png")
+    assert status == 200 and np.array_equal(iio.imread(io.BytesIO(body)),
+                                            iio.imread(session.run.dir / "materials_sheet.png"))
+    # what the page never shows is not served, though it lies in the run folder
+    for name in ["checkpoint.pt", "config.yaml", "run.json", "materials.json", "mesh.ply", "fit.json"]:
+        assert (session.run.dir / name).is_file(), name
+        assert _get(server, f"/run/{name}")[0] == 404, name
     other = tmp_path / "other_run"
     other.mkdir()
     (other / "run.json").write_text("{}")
@@ -134,6 +144,8 @@ def test_bad_requests_are_refused_with_a_reason(editor):
     for name in ["../escape", "/tmp/x", "", ".."]:
         status, body = _post(server, "save", {"name": name})
         assert status == 400, name
+    status, body = _post(server, "select", {"materials": [1]}, headers={"Content-Type": "text/plain"})
+    assert status == 415 and "application/json" in body["error"]
     status, body = _post(server, "lighting", {"envmap": "../../secret.exr"})
     assert status == 400 and "no envmap" in body["error"]
     assert _post(server, "no-such-action", {})[0] == 404
@@ -208,6 +220,80 @@ def test_the_command_prints_its_address_and_stops_on_ctrl_c(three_materials):
             os.kill(proc.pid, signal.SIGKILL)
 
 
+def test_other_web_pages_and_foreign_hosts_are_refused(editor):
+    """A page on another origin cannot drive the editor (even with a body the browser sends without
+    asking: text/plain), nor reach it under another host name (DNS rebinding)."""
+    session, server = editor
+    port = server.server_address[1]
+    session.select(materials=[1])
+    session.edit([{"key": "roughness", "value": 0.7}])
+    before = (session.position, len(session.history), session.selection)
+    folders = sorted(p.name for p in session.run.dir.parent.iterdir())
+    evil = {"Origin": "http://evil.example"}
+    for action, body in [("undo", {}), ("save", {"name": "from-evil"}), ("select", {"materials": [2]})]:
+        status, answer = _post(server, action, body, headers={**evil, "Content-Type": "text/plain"})
+        assert status == 403, (action, answer)
+        status, answer = _post(server, action, body, headers=evil)  # even with the token (it cannot have it)
+        assert status == 403 and "other web pages" in answer["error"], (action, answer)
+        status, answer = _post(server, action, body, headers={"X-VQM-Token": None})  # our origin, no token
+        assert status == 403 and "X-VQM-Token" in answer["error"], (action, answer)
+        status, answer = _post(server, action, body, headers={"X-VQM-Token": server.token[:-1] + "x"})
+        assert status == 403, (action, answer)
+        for origin in ("null", f"http://evil.example:{port}", f"https://127.0.0.1:{port}", "http://127.0.0.1:1"):
+            assert _post(server, action, body, headers={"Origin": origin})[0] == 403, (action, origin)
+    for host in ("evil.example", f"evil.example:{port}", "127.0.0.1:1", f"127.0.0.1.evil.example:{port}"):
+        for path in ("/", "/api/state", "/run/materials_sheet.png", "/app.js"):
+            status, body = _get(server, path, headers={"Host": host})
+            assert status == 403 and server.token.encode() not in body, (host, path)
+        assert _post(server, "undo", {}, headers={"Host": host})[0] == 403, host
+    assert (session.position, len(session.history), session.selection) == before
+    assert sorted(p.name for p in session.run.dir.parent.iterdir()) == folders
+    # the editor's own addresses are served, and the page holds the token
+    for host in (f"127.0.0.1:{port}", f"localhost:{port}"):
+        status, body = _get(server, "/", headers={"Host": host})
+        assert status == 200 and server.token.encode() in body
+        assert _get(server, "/api/state", headers={"Host": host, "Origin": f"http://{host}"})[0] == 200
+    status, _ = _post(server, "undo", {}, headers={"Origin": f"http://localhost:{port}", "Host": f"localhost:{port}"})
+    assert status == 200 and session.position == before[0] - 1
+    session.select(materials=[])
+
+
+def test_each_server_has_its_own_token(editor):
+    from vq_mitsuba.ui.server import make_server
+
+    session, server = editor
+    other = make_server(session, port=0)
+    try:
+        assert other.token != server.token and len(server.token) >= 32
+    finally:
+        other.server_close()
+
+
+def test_refining_pauses_when_no_page_asks_for_frames(editor):
+    session, _ = editor
+    idle_s, max_spp = session.idle_s, session.max_spp
+    session.idle_s, session.max_spp = 0.5, 1 << 20  # refining would go on for minutes
+    try:
+        session.set_view(session.view_name)  # a change: previewed, then refined while asked
+        first = _wait_refined(session, session.version)
+        deadline = time.monotonic() + 60
+        spp = [session.frame.spp]
+        while time.monotonic() < deadline:  # nobody asks now: the samples stop growing
+            time.sleep(2.0)
+            spp.append(session.frame.spp)
+            if spp[-1] == spp[-2]:
+                break
+        assert spp[-1] == spp[-2] and spp[-1] < session.max_spp, spp
+        time.sleep(1.0)
+        assert session.frame.spp == spp[-1]
+        # a page asks again: refining goes on from where it stopped
+        newer = session.wait_frame(session.frame.version, spp[-1], timeout=30)
+        assert newer.version == first.version and newer.spp > spp[-1]
+    finally:
+        session.idle_s, session.max_spp = idle_s, max_spp
+        _wait_idle(session)
+
+
 # --- the session: edits, undo / redo, orbit --------------------------------------------------------
 def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
     session, _ = editor
@@ -232,6 +318,41 @@ def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
     while session.state()["can_undo"]:
         session.undo()
     assert session.edits() == []
+
+
+def test_the_panel_values_follow_presets_undo_and_redo(editor):
+    """state()["materials"] holds each material's values as the edits leave them (what the page's
+    material panel shows)."""
+    from vq_mitsuba.models.edits import material_library
+
+    session, _ = editor
+    values = lambda: {m["id"]: m for m in session.state()["materials"]}  # noqa: E731
+    fitted = values()
+    gold = material_library()["gold"]
+    session.select(materials=[2])
+    session.edit(preset="gold")
+    now = values()
+    assert now[2]["basecolor"] == pytest.approx(gold["basecolor"]) and now[2]["metallic"] == gold["metallic"]
+    assert now[2]["roughness"] == pytest.approx(gold["roughness"])
+    assert now[1] == fitted[1] and now[3] == fitted[3]
+    session.edit([{"op": "scale", "key": "roughness", "value": 0.5}])
+    assert values()[2]["roughness"] == pytest.approx(gold["roughness"] * 0.5)
+    session.undo()
+    assert values()[2]["roughness"] == pytest.approx(gold["roughness"])
+    session.undo()
+    assert values() == fitted
+    session.redo()
+    assert values()[2]["metallic"] == gold["metallic"]
+    # an edit inside a box changes part of the material: it shows while that box is selected
+    lo, hi = session.bounds[0].tolist(), session.bounds.mean(0).tolist()
+    session.select(materials=[2], box=[lo, hi])
+    session.edit([{"key": "metallic", "value": 0.0}])
+    assert values()[2]["metallic"] == 0.0
+    session.select(materials=[2])
+    assert values()[2]["metallic"] == gold["metallic"]
+    while session.state()["can_undo"]:
+        session.undo()
+    session.select(materials=[])
 
 
 def test_orbit_turns_about_the_object_and_stops_short_of_the_poles():
@@ -380,3 +501,53 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     assert three_material_ids(hit.position.cpu().numpy())[0] == sphere + 1
     session.undo()
     session.fitted.cfg.train.bounces = bounces
+
+
+def test_browser_panel_shows_the_values_after_a_preset_undo_and_redo(editor, browser):
+    """The page (its POSTs carry the token it was served) applies a preset to the selected material;
+    the sliders and the colour then show the preset's values, and the fitted ones again after undo."""
+    from vq_mitsuba.data.imageio import linear_to_srgb
+    from vq_mitsuba.models.edits import material_library
+    from vq_mitsuba.ui.browser import page_url, wait_page
+
+    session, server = editor
+    session.select(materials=[])
+    while session.state()["can_undo"]:
+        session.undo()
+    browser.get(page_url(server))
+    wait_page(browser, "return document.querySelectorAll('#materials li').length === 3")
+    fitted = {m["id"]: m for m in session.state()["materials"]}
+
+    def panel_shows(m):
+        srgb8 = (np.clip(linear_to_srgb(np.asarray(m["basecolor"], np.float64)), 0, 1) * 255).tolist()
+        wait_page(browser, "const v = (id) => document.getElementById(id).value; "
+                           "const c = [1, 3, 5].map((i) => parseInt(v('basecolor').slice(i, i + 2), 16)); "
+                           f"return c.every((x, i) => Math.abs(x - {srgb8}[i]) <= 1) && "
+                           f"Math.abs(v('metallic') - {m['metallic']}) < 0.006 && "
+                           f"Math.abs(v('roughness') - {m['roughness']}) < 0.006", timeout=60)
+
+    browser.find_element("css selector", "#materials li[data-id='2']").click()
+    wait_page(browser, "return document.getElementById('frame').dataset.selected === '2'")
+    panel_shows(fitted[2])
+    gold = material_library()["gold"]
+    assert abs(fitted[2]["roughness"] - gold["roughness"]) > 0.05  # the preset moves the sliders
+    browser.execute_script("const p = document.getElementById('preset'); p.value = 'gold'; "
+                           "p.dispatchEvent(new Event('change'));")
+    wait_page(browser, "return document.querySelectorAll('#edits li').length === 1")
+    assert browser.find_element("id", "edits").text == "--material 2 --preset gold"
+    assert [e.label for e in session.edits()] == ["--material 2 --preset gold"]  # the token was accepted
+    panel_shows(gold)
+    browser.find_element("id", "undo").click()
+    wait_page(browser, "return document.querySelectorAll('#edits li').length === 0")
+    panel_shows(fitted[2])
+    browser.find_element("id", "redo").click()
+    panel_shows(gold)
+    # a slider touched now starts from the preset's values: only roughness changes
+    browser.execute_script("const r = document.getElementById('roughness'); r.value = '0.6'; "
+                           "r.dispatchEvent(new Event('change'));")
+    wait_page(browser, "return document.querySelectorAll('#edits li').length === 2")
+    assert session.state()["materials"][1]["metallic"] == gold["metallic"]
+    assert session.state()["materials"][1]["roughness"] == pytest.approx(0.6)
+    while session.state()["can_undo"]:
+        session.undo()
+    session.select(materials=[])

@@ -1,14 +1,23 @@
 """`vq-mitsuba ui`: a local web server for the editor page of one run.
 
-Serves its own page (`ui/static`), the run's own files under /run/, and a small JSON API over an
+Serves its own page (`ui/static`), the run's images under /run/, and a small JSON API over an
 `EditorSession`. Binds to 127.0.0.1 unless a host is given. Nothing outside the page and the run
-folder (and, for an edited run, the fitted run it edits) can be read, whatever the request says.
+folder's images (and, for an edited run, the fitted run's) can be read, whatever the request says.
+
+No other web page can drive it: a request whose `Host` (or `Origin`, when sent) is not an address
+this server answers on is refused (so DNS rebinding reaches nothing), and every POST must be JSON
+and carry the session's token, which only the served page holds (in its HTML, readable by
+same-origin scripts only), in the `X-VQM-Token` header.
 """
 
 from __future__ import annotations
 
+import hmac
+import ipaddress
 import json
+import secrets
 import signal
+import socket
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -22,9 +31,13 @@ DEFAULT_HOST = "127.0.0.1"
 STATIC = Path(__file__).resolve().parent / "static"
 PAGES = {"/": ("index.html", "text/html; charset=utf-8"), "/index.html": ("index.html", "text/html; charset=utf-8"),
          "/app.js": ("app.js", "text/javascript; charset=utf-8"), "/style.css": ("style.css", "text/css; charset=utf-8")}
-TYPES = {".png": "image/png", ".json": "application/json", ".exr": "image/x-exr", ".yaml": "text/plain; charset=utf-8",
-         ".ply": "application/octet-stream", ".glb": "model/gltf-binary", ".txt": "text/plain; charset=utf-8"}
+# What /run/ serves: images and maps only (never checkpoints, configuration or meshes).
+TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".exr": "image/x-exr"}
 MAX_BODY = 1 << 16
+TOKEN_HEADER = "X-VQM-Token"
+TOKEN_SLOT = "{{VQM_TOKEN}}"  # in index.html, replaced by the session's token
+LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+WILDCARD = ("", "0.0.0.0", "::")
 
 
 def run_file(roots: list[Path], rel: str) -> Path | None:
@@ -34,17 +47,47 @@ def run_file(roots: list[Path], rel: str) -> Path | None:
     parts = rel.split("/")
     if not rel or rel.startswith("/") or "\\" in rel or "\0" in rel or any(p in ("", ".", "..") for p in parts):
         return None
+    if Path(rel).suffix.lower() not in TYPES:
+        return None
     for root in roots:
         base = root.resolve()
         path = (base / rel).resolve()
-        if path.is_relative_to(base) and path.is_file():
+        if path.is_relative_to(base) and path.is_file() and path.suffix.lower() in TYPES:
             return path
     return None
+
+
+def _host_name(host: str) -> str:
+    """A bound address as a Host header spells it (IPv6 in brackets)."""
+    return f"[{host}]" if ":" in host and not host.startswith("[") else host
+
+
+def allowed_hosts(bound_host: str, port: int) -> set[str]:
+    """The `Host` values (host:port) a page of this server is loaded from: the bound address, and the
+    loopback names when it listens on loopback or on every interface."""
+    names = {_host_name(bound_host)}
+    if bound_host in WILDCARD or bound_host in ("127.0.0.1", "::1", "localhost"):
+        names.update(LOOPBACK)
+    if bound_host in WILDCARD:
+        names.update({socket.gethostname(), socket.getfqdn()})
+    return {f"{n.lower()}:{port}" for n in names if n and n not in WILDCARD}
+
+
+def _is_ip_literal(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host.strip("[]"))
+        return True
+    except ValueError:
+        return False
 
 
 class _Handler(BaseHTTPRequestHandler):
     session: EditorSession
     roots: list[Path]
+    token: str
+    hosts: set[str]  # host:port values this server answers to
+    any_ip: bool  # listening on every interface: any IP literal with our port is ours too
+    port: int
     server_version = "vq-mitsuba"
 
     def log_message(self, format, *args):  # quiet: the terminal shows the address and errors only
@@ -69,12 +112,41 @@ class _Handler(BaseHTTPRequestHandler):
     def _not_found(self) -> None:
         self._send(HTTPStatus.NOT_FOUND, b"not found", "text/plain; charset=utf-8")
 
+    def _ours(self, host: str) -> bool:
+        """`host` (host:port, as a Host header or an Origin's authority gives it) names this server.
+        Any other name could be an attacker's domain resolved to us (DNS rebinding)."""
+        host = host.strip().lower()
+        if host in self.hosts:
+            return True
+        name, _, port = host.rpartition(":")
+        return self.any_ip and port == str(self.port) and _is_ip_literal(name)
+
+    def _refused(self) -> str | None:
+        """Why this request does not come from our own page's address (None: it may)."""
+        if not self._ours(self.headers.get("Host", "")):
+            return "the Host header does not name this editor's address"
+        origin = self.headers.get("Origin")
+        if origin is not None:
+            url = urlsplit(origin)
+            if url.scheme != "http" or not self._ours(url.netloc):
+                return "requests from other web pages are refused"
+        return None
+
+    def _forbid(self, why: str) -> None:
+        self._json({"error": why}, HTTPStatus.FORBIDDEN)
+
     def do_GET(self):
+        why = self._refused()
+        if why:
+            return self._forbid(why)
         url = urlsplit(self.path)
         path = url.path
         if path in PAGES:
             name, ctype = PAGES[path]
-            return self._send(200, (STATIC / name).read_bytes(), ctype)
+            body = (STATIC / name).read_bytes()
+            if name == "index.html":
+                body = body.replace(TOKEN_SLOT.encode(), self.token.encode())
+            return self._send(200, body, ctype)
         if path == "/api/state":
             return self._json(self.session.state())
         if path == "/api/frame":
@@ -96,6 +168,15 @@ class _Handler(BaseHTTPRequestHandler):
         return self._not_found()
 
     def do_POST(self):
+        why = self._refused()
+        if why:
+            return self._forbid(why)
+        if not hmac.compare_digest(self.headers.get(TOKEN_HEADER, "").encode(), self.token.encode()):
+            return self._forbid(f"missing or wrong {TOKEN_HEADER}: reload the editor's page")
+        ctype = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            return self._json({"error": "the request body must be application/json"},
+                              HTTPStatus.UNSUPPORTED_MEDIA_TYPE)
         path = urlsplit(self.path).path
         action = path[len("/api/"):] if path.startswith("/api/") else None
         handler = ACTIONS.get(action)
@@ -147,7 +228,8 @@ ACTIONS = {
 
 
 def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 8080) -> ThreadingHTTPServer:
-    """An HTTP server for `session` bound to host:port (port 0: any free port)."""
+    """An HTTP server for `session` bound to host:port (port 0: any free port). Its `token` is the
+    per-server secret every POST must carry (the served page holds it)."""
     roots = [session.run.dir]
     if session.run.is_edit():
         roots.append(session.run.source().dir)
@@ -157,6 +239,11 @@ def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 80
     except OSError as exc:
         raise InputError(None, f"cannot listen on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
     server.daemon_threads = True
+    bound_port = server.server_address[1]
+    handler.token = server.token = secrets.token_urlsafe(32)
+    handler.hosts = allowed_hosts(host, bound_port) | allowed_hosts(str(server.server_address[0]), bound_port)
+    handler.any_ip = host in WILDCARD
+    handler.port = bound_port
     return server
 
 

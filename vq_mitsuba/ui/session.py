@@ -1,5 +1,6 @@
 """What the browser editor holds: the view, the lighting, the selection and the edit history of
-one run, and a render thread that draws a quick preview after every change and then refines it.
+one run, and a render thread that draws a quick preview after every change and then refines it
+while a page asks for frames (refining pauses `idle_s` seconds after the last request ends).
 
 Reads the run through `run.run_dir`; edits are `models.edits.Edit`s, saved as `vq-mitsuba
 edit` saves them, so a run saved here renders the same with `vq-mitsuba render`. Everything that
@@ -22,7 +23,8 @@ from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.models.edits import Change, Edit, Selection, check_change, material_library, preset_changes
+from vq_mitsuba.models.edits import Change, Edit, Selection, apply_edits, check_change, material_library, \
+    preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
 
 MODES = ("render", "segmentation", "basecolor", "metallic", "roughness", "normal")
@@ -30,6 +32,7 @@ PREVIEW = (2, 1)  # (spp, primary rays per pixel) of the first pass after a chan
 REFINE = (32, 4)  # the same for every later pass; passes average, weighted by their spp
 MAX_SPP = 1024  # refining stops here
 FRAME_TIMEOUT_S = 20.0  # a frame request waits at most this long for a newer frame
+IDLE_S = 10.0  # refining pauses once no page has asked for a frame for this long
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 
 
@@ -109,13 +112,16 @@ class EditorSession:
     """The editor's state for one run, and the thread that renders it."""
 
     def __init__(self, run_dir: str | Path, envmap_dir: str | Path | None = None, size: int = 256,
-                 max_spp: int = MAX_SPP):
+                 max_spp: int = MAX_SPP, idle_s: float = IDLE_S):
         self.run = RunDir(run_dir)
         self.fitted = self.run.load()
         self.num_materials = self.fitted.num_materials
         self.materials = self._materials()  # the ranked materials as the page lists them
         self.size = int(size)
         self.max_spp = int(max_spp)  # refining stops here
+        self.idle_s = float(idle_s)  # refining pauses once no frame was asked for this long
+        self._waiting = 0  # frame requests waiting now
+        self._asked_at = -math.inf  # when the last frame request ended (monotonic seconds)
         views = self.run.cameras()
         self.views = {c.name: c for split in views.values() for c in split}
         self.view_splits = {c.name: split for split, cams in views.items() for c in cams}
@@ -205,12 +211,17 @@ class EditorSession:
             self._renderers = {key: Renderer(self.fitted, envmap, lighting.rotate_deg, lighting.exposure_ev)}
         return self._renderers[key]
 
+    def _watched(self) -> bool:
+        """Call with the lock held: a page is waiting for a frame or asked for one lately."""
+        return self._waiting > 0 or time.monotonic() - self._asked_at < self.idle_s
+
     def _loop(self) -> None:
         while True:
             with self._cond:
+                # a change is always previewed (selecting a pixel needs its frame); refining needs a viewer
                 while not self._stop and not self._jobs and self._accum_version == self.version \
-                        and self._accum is not None and self._accum.weight >= self.max_spp:
-                    self._cond.wait()
+                        and self._accum is not None and (self._accum.weight >= self.max_spp or not self._watched()):
+                    self._cond.wait()  # a change, a job, a frame request or stop wakes it
                 if self._stop:
                     return
                 job = self._jobs.pop(0) if self._jobs else None
@@ -265,14 +276,20 @@ class EditorSession:
         """The newest frame once it differs from (after_version, after_spp); None on timeout."""
         deadline = time.monotonic() + timeout
         with self._cond:
-            while True:
-                f = self.frame
-                if f is not None and (f.version, f.spp) != (after_version, after_spp):
-                    return f
-                left = deadline - time.monotonic()
-                if left <= 0 or self._stop:
-                    return f
-                self._cond.wait(left)
+            self._waiting += 1
+            self._cond.notify_all()  # a paused refinement goes on
+            try:
+                while True:
+                    f = self.frame
+                    if f is not None and (f.version, f.spp) != (after_version, after_spp):
+                        return f
+                    left = deadline - time.monotonic()
+                    if left <= 0 or self._stop:
+                        return f
+                    self._cond.wait(left)
+            finally:
+                self._waiting -= 1
+                self._asked_at = time.monotonic()
 
     # --- what a frame shows -----------------------------------------------------------------------
     def compose(self, images: dict, mode: str, selection: Selection) -> np.ndarray:
@@ -317,7 +334,7 @@ class EditorSession:
                 "modes": [m for m in MODES if m != "segmentation" or self.num_materials],
                 "mode": self.mode,
                 "envmaps": self.envmaps(), "lighting": vars(self.lighting),
-                "materials": materials,
+                "materials": self._materials_now(materials, edits, self.selection),
                 "presets": sorted(material_library()),
                 "selection": self.selection.to_dict(),
                 "bounds": self.bounds.tolist(),
@@ -340,6 +357,32 @@ class EditorSession:
             out.append({"id": k, "colour": "#%02x%02x%02x" % tuple(int(round(x * 255)) for x in c),
                         **{key: listed.get(k, {}).get(key) for key in ("basecolor", "metallic", "roughness")}})
         return out
+
+    def _materials_now(self, materials: list[dict], edits: list[Edit], selection: Selection) -> list[dict]:
+        """`materials` (the fitted values) with `edits` applied as the renderer applies them: an edit
+        counts for material k when it selects k (or any material) and, if it has boxes, when the
+        centre of the selection's box lies in one (without a box in the selection, box edits do
+        not count: they change part of a material only)."""
+        import torch
+
+        keys = ("basecolor", "metallic", "roughness")
+        known = [m for m in materials if all(m.get(k) is not None for k in keys)]
+        if not edits or not known:
+            return materials
+        if selection.boxes:
+            lo, hi = selection.boxes[0]
+            point = [(a + b) / 2 for a, b in zip(lo, hi)]
+        else:
+            point = [math.nan] * 3  # inside no box
+        brdf = {"basecolor": torch.tensor([m["basecolor"] for m in known], dtype=torch.float64),
+                "metallic": torch.tensor([m["metallic"] for m in known], dtype=torch.float64),
+                "roughness": torch.tensor([m["roughness"] for m in known], dtype=torch.float64)}
+        ids = torch.tensor([m["id"] for m in known])
+        points = torch.tensor([point] * len(known), dtype=torch.float64)
+        now = apply_edits(edits, points, brdf, ids, self.fitted.cfg.field.roughness_min)
+        values = {m["id"]: {"basecolor": now["basecolor"][i].tolist(), "metallic": float(now["metallic"][i]),
+                            "roughness": float(now["roughness"][i])} for i, m in enumerate(known)}
+        return [{**m, **values.get(m["id"], {})} for m in materials]
 
     def set_view(self, name: str) -> None:
         if name not in self.views:

@@ -3,6 +3,10 @@
 
 const $ = (id) => document.getElementById(id);
 let state = null;
+// The server's per-session token, written into this page: every POST carries it.
+const TOKEN = document.querySelector('meta[name="vqm-token"]').content;
+// Answers that can change the selected material's values: the panel then shows them.
+const PANEL_ACTIONS = new Set(["select", "edit", "undo", "redo"]);
 
 function showMessage(text, error) {
   const m = $("message");
@@ -12,11 +16,14 @@ function showMessage(text, error) {
 
 async function post(action, body) {
   const r = await fetch("/api/" + action, {
-    method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body || {}),
+    method: "POST", headers: { "Content-Type": "application/json", "X-VQM-Token": TOKEN },
+    body: JSON.stringify(body || {}),
   });
   const data = await r.json();
   if (!r.ok) { showMessage(data.error, true); return null; }
   if (data.state) applyState(data.state);
+  // a slider being dragged keeps its own value (answers to earlier drag steps come in late)
+  if (data.state && PANEL_ACTIONS.has(action) && !(body && body.live)) showSelectedMaterial();
   return data;
 }
 
@@ -96,7 +103,13 @@ function currentBox() {
 
 async function selectMaterials(ids) {
   const r = await post("select", { materials: ids, box: currentBox() });
-  if (r) { showMessage(""); setControlsFromMaterial(ids[ids.length - 1]); }
+  if (r) showMessage("");
+}
+
+// The panel shows the last selected material's values as the edits so far leave them.
+function showSelectedMaterial() {
+  const ids = state ? state.selection.materials : [];
+  if (ids.length) setControlsFromMaterial(ids[ids.length - 1]);
 }
 
 function setControlsFromMaterial(id) {
@@ -166,7 +179,7 @@ function setupView() {
     if (!wasClick || ev.target !== img) return;
     const [x, y] = framePixel(ev);
     const r = await post("select", { pixel: [x, y], add: ev.shiftKey, box: currentBox() });
-    if (r) { showMessage(""); const ids = r.selection.materials; setControlsFromMaterial(ids[ids.length - 1]); }
+    if (r) showMessage("");
   });
   img.addEventListener("wheel", (ev) => {
     ev.preventDefault();
