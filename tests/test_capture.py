@@ -403,3 +403,51 @@ def test_mesh_errors(tmp_path):
     _expect(lambda: load_capture(path, mesh=tmp_path / "empty.obj"), "empty.obj", "empty")
     (tmp_path / "mesh.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n\x00\x01")
     _expect(lambda: load_capture(path), "mesh.ply", "cannot read mesh")
+
+
+@pytest.mark.parametrize("change, phrases", [
+    ({"camera_angle_x": 1e-9}, ("'camera_angle_x' must be", "0.01..170 degrees")),
+    ({"camera_angle_x": 3.1}, ("'camera_angle_x' must be",)),
+    ({"camera_angle_x": float("inf")}, ("'camera_angle_x' must be",)),
+    ({"w": float("inf"), "h": 16}, ("'w' and 'h': image width inf is not a whole number",)),
+    ({"w": 24, "h": float("nan")}, ("image height nan",)),
+    ({"w": 24, "h": 0}, ("image height 0",)),
+    ({"w": "24", "h": 16}, ("image width '24'",)),
+])
+def test_json_intrinsics_are_finite_and_plausible(tmp_path, change, phrases):
+    data = json.loads(make_json_capture(tmp_path).read_text())
+    (tmp_path / "transforms_train.json").write_text(json.dumps({**data, **change}))
+    _expect(lambda: load_cameras(tmp_path), "transforms_train.json", *phrases)
+
+
+def test_json_camera_far_from_the_origin_is_refused(tmp_path):
+    data = json.loads(make_json_capture(tmp_path).read_text())
+    data["frames"][1]["transform_matrix"][2][3] = 1e300
+    (tmp_path / "transforms_train.json").write_text(json.dumps(data))
+    _expect(lambda: load_capture(tmp_path), "transforms_train.json", "frames[1] (./train/r_1)",
+            "units from the origin")
+
+
+@pytest.mark.parametrize("fov, phrase", [("nan", "non-finite field of view"), ("0.0001", "field of view of 0.0001")])
+def test_xml_sensor_fov_is_finite_and_plausible(tmp_path, fov, phrase):
+    xml = make_xml_capture(tmp_path)
+    xml.write_text(xml.read_text().replace('name="fov" value="45"', f'name="fov" value="{fov}"'))
+    _expect(lambda: load_cameras(xml), "scene.xml", "sensor 'cam_a'", phrase)
+
+
+def test_palette_png_transparency_is_alpha(tmp_path):
+    """A palette ("P") PNG with a tRNS chunk: its transparent entries are alpha 0, the rest 1."""
+    from PIL import Image
+
+    path = make_json_capture(tmp_path)
+    index = np.zeros((H, W), np.uint8)
+    index[4:12, 6:18] = 1
+    image = Image.fromarray(index, mode="P")
+    image.putpalette([0, 0, 0, 255, 128, 0] + [0] * 762)
+    for k in (1, 2):
+        image.save(tmp_path / "train" / f"r_{k}.png", transparency=bytes([0, 255]))
+    cap = load_capture(path)
+    assert cap.has_alpha
+    np.testing.assert_array_equal(cap.alpha[1], (index == 1).astype(np.float32))
+    orange = srgb_to_linear(np.array([1.0, 128 / 255, 0.0]))
+    np.testing.assert_allclose(cap.images[1][index == 1], np.broadcast_to(orange, (int(index.sum()), 3)), atol=1e-6)

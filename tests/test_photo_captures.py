@@ -269,3 +269,207 @@ def test_reconstruction_without_masks_says_what_is_needed(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "idr"), "-o", str(tmp_path / "run"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "needs masks" in err and "--background-color" in err and "mask/" in err
+
+
+# --------------------------------------------------------------------------------------------
+# What the camera files say is checked before any work: one InputError naming the file and entry
+
+def _colmap(folder, binary, lens=None, names=("a.png", "b.png", "c.png"), images=True):
+    """A three-view COLMAP capture (sparse/0 and, when asked, 40x28 photos); `lens` for the first
+    view (camera 1), a plausible one of its model for the others."""
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+
+    def lens_of(camera):
+        return lens if camera.name == "v0" else Lens(lens.model, 40, 28, 30.0, 30.0, 20.5, 13.2)
+
+    model = folder / "sparse" / "0"
+    write_colmap(model, _cameras(3), list(names), lens_of=None if lens is None else lens_of, binary=binary)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    for name in names if images else ():
+        write_png(folder / "images" / name, np.full((28, 40, 3), 0.5))
+    return model
+
+
+def _refused(call, path, *parts):
+    with pytest.raises(InputError) as info:
+        call()
+    assert info.value.path == path, (info.value.path, path)
+    for part in parts:
+        assert part in info.value.message, (part, info.value.message)
+    return info.value
+
+
+@pytest.mark.parametrize("binary", [True, False])
+@pytest.mark.parametrize("model, field, value, message", [
+    ("OPENCV", "fx", float("nan"), "fx = nan is not a finite number"),
+    ("OPENCV", "k1", float("nan"), "k1 = nan is not a finite number"),
+    ("OPENCV", "p2", float("inf"), "p2 = inf is not a finite number"),
+    ("OPENCV", "cy", float("-inf"), "cy = -inf is not a finite number"),
+    ("PINHOLE", "fy", float("nan"), "fy = nan is not a finite number"),
+    ("PINHOLE", "fx", 0.0, "focal length fx = 0 must be positive"),
+    ("SIMPLE_PINHOLE", "fx", -30.0, "focal length fx = -30 must be positive"),
+    ("PINHOLE", "fx", 1e-3, "field of view"),
+    ("PINHOLE", "cx", 500.0, "principal point cx = 500 lies far outside"),
+    ("OPENCV", "k1", 50.0, "implausible distortion"),
+    ("RADIAL", "k2", -40.0, "implausible distortion"),
+    ("SIMPLE_RADIAL", "k1", -3.0, "implausible distortion"),
+])
+def test_bad_colmap_intrinsics_are_refused_before_any_work(tmp_path, binary, model, field, value, message):
+    from dataclasses import replace
+
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.photo_formats import Lens
+
+    lens = replace(Lens(model, 40, 28, 30.0, 30.0, 20.5, 13.2), **{field: value})
+    if model.startswith("SIMPLE"):
+        lens = replace(lens, fy=lens.fx)
+    sparse = _colmap(tmp_path, binary, lens)
+    cache = tmp_path / "undistorted"
+    _refused(lambda: load_capture(tmp_path, cache_dir=cache), sparse / f"cameras.{'bin' if binary else 'txt'}",
+             f"camera 1 ({model})", message)
+    assert not cache.exists()  # nothing written before the check
+
+
+def test_colmap_camera_lines_of_the_wrong_length_or_listed_twice_are_refused(tmp_path):
+    from vq_mitsuba.data.captures import load_cameras
+
+    sparse = _colmap(tmp_path, binary=False, images=False)
+    text = (sparse / "cameras.txt").read_text()
+    lines = text.splitlines()
+    (sparse / "cameras.txt").write_text("\n".join(lines[:1] + [lines[1] + " 0.5"] + lines[2:]) + "\n")
+    _refused(lambda: load_cameras(tmp_path), sparse / "cameras.txt", "camera 1: PINHOLE has 4 parameters", "got 5")
+    (sparse / "cameras.txt").write_text("\n".join(lines[:1] + [" ".join(lines[1].split()[:-1])] + lines[2:]) + "\n")
+    _refused(lambda: load_cameras(tmp_path), sparse / "cameras.txt", "got 3")
+    (sparse / "cameras.txt").write_text(text + lines[2] + "\n")
+    _refused(lambda: load_cameras(tmp_path), sparse / "cameras.txt", "camera id 2 is listed 2 times")
+    (sparse / "cameras.txt").write_text(text.replace(" PINHOLE 40 ", " PINHOLE forty ", 1))
+    _refused(lambda: load_cameras(tmp_path), sparse / "cameras.txt", "line 2", "is not CAMERA_ID MODEL")
+
+
+def _patch_first_image(model, binary, qvec=None, tvec=None, camera_id=None):
+    """Overwrite the first image entry's quaternion, translation or camera id in place."""
+    if binary:  # <Q count> then <i id, 4d qvec, 3d tvec, i camera_id> name\0 ...
+        raw = bytearray((model / "images.bin").read_bytes())
+        for offset, fmt, value in ((12, "<4d", qvec), (44, "<3d", tvec), (68, "<i", camera_id)):
+            if value is not None:
+                struct.pack_into(fmt, raw, offset, *np.atleast_1d(value))
+        (model / "images.bin").write_bytes(bytes(raw))
+        return
+    lines = (model / "images.txt").read_text().splitlines()
+    parts = lines[1].split()
+    for start, value in ((1, qvec), (5, tvec), (8, camera_id)):
+        if value is not None:
+            values = np.atleast_1d(value)
+            parts[start:start + len(values)] = [str(v) for v in values]
+    (model / "images.txt").write_text("\n".join(lines[:1] + [" ".join(parts)] + lines[2:]) + "\n")
+
+
+@pytest.mark.parametrize("binary", [True, False])
+@pytest.mark.parametrize("patch, message", [
+    ({"qvec": [np.nan, 0, 0, 1]}, "quaternion (QW, QX, QY, QZ) = (nan, 0, 0, 1) is not a rotation"),
+    ({"qvec": [0, 0, 0, 0]}, "quaternion (QW, QX, QY, QZ) = (0, 0, 0, 0) is not a rotation"),
+    ({"tvec": [0, np.inf, 1]}, "translation (TX, TY, TZ) = (0, inf, 1) is not finite"),
+    ({"tvec": [0, 1e300, 1]}, "units from the origin"),
+    ({"camera_id": 9}, "refers to camera 9, which cameras"),
+])
+def test_bad_colmap_images_are_refused(tmp_path, binary, patch, message):
+    from vq_mitsuba.data.captures import load_cameras
+
+    model = _colmap(tmp_path, binary, images=False)
+    _patch_first_image(model, binary, **patch)
+    _refused(lambda: load_cameras(tmp_path), model / f"images.{'bin' if binary else 'txt'}", "image 1 ('a.png')",
+             message)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_colmap_image_listed_twice_is_refused_not_an_extra_view(tmp_path, binary):
+    from vq_mitsuba.data.captures import load_capture
+
+    model = _colmap(tmp_path, binary, names=("a.png", "b.png", "a.png"))
+    _refused(lambda: load_capture(tmp_path), model / f"images.{'bin' if binary else 'txt'}",
+             "image name a.png is listed 2 times")
+
+
+def test_every_problem_of_a_colmap_model_is_reported_at_once(tmp_path):
+    from dataclasses import replace
+
+    from vq_mitsuba.data.captures import load_cameras
+    from vq_mitsuba.data.photo_formats import Lens
+
+    model = _colmap(tmp_path, True, replace(Lens("PINHOLE", 40, 28, 30.0, 30.0, 20.5, 13.2), fx=np.nan),
+                    images=False)
+    _patch_first_image(model, True, qvec=[0, 0, 0, 0])
+    message = _refused(lambda: load_cameras(tmp_path), model, "problems in this capture").message
+    assert "2 problems" in message and "cameras.bin: camera 1 (PINHOLE): fx = nan" in message
+    assert "images.bin: image 1 ('a.png'): quaternion" in message
+
+
+@pytest.mark.parametrize("name, damage", [
+    ("cameras.bin", lambda raw: raw[:30]),  # truncated inside the first camera
+    ("cameras.bin", lambda raw: b""),
+    ("images.bin", lambda raw: raw[:-9]),  # truncated inside the last entry
+    ("images.bin", lambda raw: raw[:8] + b"\xff" * 40),  # garbled
+])
+def test_broken_colmap_binaries_are_named_by_file(tmp_path, name, damage):
+    from vq_mitsuba.data.captures import load_cameras
+
+    model = _colmap(tmp_path, True, images=False)
+    (model / name).write_bytes(damage((model / name).read_bytes()))
+    _refused(lambda: load_cameras(tmp_path), model / name, "cannot read the COLMAP binary model")
+
+
+def _idr(folder, n=3, **entries):
+    """A NeuS/IDR capture of n 40x28 views whose archive entries `entries` replace (None: removed)."""
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import write_idr
+
+    for i in range(n):
+        write_png(folder / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
+    npz = folder / "cameras_sphere.npz"
+    write_idr(npz, _cameras(n), np.zeros(3), 1.0)
+    data = dict(np.load(npz))
+    data.update(entries)
+    np.savez(npz, **{k: v for k, v in data.items() if v is not None})
+    return npz
+
+
+def _rank_two():
+    m = np.eye(4)
+    m[2, :3] = m[0, :3] + m[1, :3]
+    return m
+
+
+@pytest.mark.parametrize("entries, message", [
+    ({"world_mat_1": np.eye(3)}, "world_mat_1 has shape (3, 3); expected 3x4 or 4x4"),
+    ({"world_mat_1": np.array("a string")}, "world_mat_1 holds <U8 values, not numbers"),
+    ({"world_mat_1": np.array([np.eye(4), "x"], dtype=object)}, "world_mat_1 is an array of Python objects"),
+    ({"world_mat_1": np.full((4, 4), np.nan)}, "world_mat_1 holds non-finite values"),
+    ({"world_mat_1": np.zeros((4, 4))}, "world_mat_1 is singular"),
+    ({"world_mat_1": _rank_two()}, "world_mat_1 is singular"),
+    ({"world_mat_2": None}, "has no world_mat_2, but the capture has 3 images"),
+    ({"scale_mat_0": np.eye(3)}, "scale_mat_0 has shape (3, 3); expected 4x4"),
+    ({"scale_mat_0": np.diag([0.0, 0, 0, 1])}, "scale_mat_0 is singular"),
+    ({"scale_mat_0": np.diag([1.0, np.inf, 1, 1])}, "scale_mat_0 holds non-finite values"),
+])
+def test_bad_neus_matrices_are_refused(tmp_path, entries, message):
+    from vq_mitsuba.data.captures import load_cameras
+
+    npz = _idr(tmp_path, **entries)
+    _refused(lambda: load_cameras(tmp_path), npz, message)
+
+
+def test_neus_intrinsics_and_poses_are_checked_and_a_plain_array_is_not_an_archive(tmp_path):
+    from vq_mitsuba.data.captures import load_cameras
+
+    far = np.load(_idr(tmp_path / "far"))["world_mat_0"].copy()
+    far[:3, 3] *= 1e9  # the camera moves 1e9 units away
+    _refused(lambda: load_cameras(tmp_path / "far"), _idr(tmp_path / "far", world_mat_0=far), "world_mat_0",
+             "units from the origin")
+    tele = np.diag([1e9, 1e9, 1.0, 1.0]) @ np.load(_idr(tmp_path / "tele"))["world_mat_1"]  # fx = 1e9 pixels
+    _refused(lambda: load_cameras(tmp_path / "tele"), _idr(tmp_path / "tele", world_mat_1=tele), "world_mat_1",
+             "field of view")
+    npz = _idr(tmp_path / "plain")
+    np.save(tmp_path / "plain" / "array.npy", np.eye(4))
+    (tmp_path / "plain" / "array.npy").replace(npz)
+    _refused(lambda: load_cameras(tmp_path / "plain"), npz, "not an .npz archive")

@@ -238,3 +238,25 @@ def test_resume_refuses_another_mesh(tmp_path, capsys):
     trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(tmp_path / "a" / "sphere.ply")
     assert cli.main(["fit", str(capture), "-o", str(run), "--resume", *quick]) == 2
     assert "another mesh" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("binary, model", [(False, "OPENCV"), (True, "PINHOLE")])
+def test_fit_of_a_colmap_capture_with_a_nan_focal_length_writes_nothing(tmp_path, capsys, binary, model):
+    """Once a Dr.Jit abort (exit 134) after an all-NaN undistorted/ cache, or a fit of NaN cameras."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+
+    capture = load_capture(write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8))
+    folder = tmp_path / "colmap"
+    lenses = iter([Lens(model, 16, 16, float("nan"), 20.0, 8.0, 8.0)]
+                  + [Lens(model, 16, 16, 20.0, 20.0, 8.0, 8.0, *([-0.05] if model == "OPENCV" else []))] * 3)
+    names = [f"{c.name}.png" for c in capture.cameras]
+    write_colmap(folder / "sparse" / "0", capture.cameras, names, lens_of=lambda c: next(lenses), binary=binary)
+    for name, rgb, alpha in zip(names, capture.images, capture.alpha):
+        write_png(folder / "images" / name, rgb, alpha=alpha)
+    out = tmp_path / "run"
+    assert cli.main(["fit", str(folder), "-o", str(out), "--set", "train.iterations=5", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"cameras.{'bin' if binary else 'txt'}: camera 1 ({model}): fx = nan is not a finite number" in err
+    assert "Traceback" not in err and not out.exists()

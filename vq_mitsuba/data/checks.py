@@ -7,8 +7,8 @@ overflows on its way to Dr.Jit (float32):
 - focal lengths: positive, giving a field of view of MIN_FOV_DEG to MAX_FOV_DEG on each axis (a
   pinhole camera cannot see 180 degrees; a fisheye needs a model vq-mitsuba does not read);
 - principal point: inside the image widened by half its size on each side;
-- camera positions: within MAX_DISTANCE of the world origin (capture units are arbitrary; farther
-  is a broken file, or a model to rescale, since float32 keeps only a few digits there).
+- camera positions: within MAX_DISTANCE of the world origin along each axis (capture units are
+  arbitrary; farther is a broken file, or a model to rescale, since float32 keeps few digits there).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def check_intrinsics(path: Path, entry: str, fx, fy, cx, cy, width, height) -> N
         fov = math.degrees(2.0 * math.atan(0.5 * side / focal))
         if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
             raise InputError(path, f"{entry}: focal length {name} = {focal:g} pixels gives a field of view of "
-                                   f"{fov:.3g} degrees over {side} pixels; a pinhole camera needs "
+                                   f"{fov:.4g} degrees over {side} pixels; a pinhole camera needs "
                                    f"{MIN_FOV_DEG:g}..{MAX_FOV_DEG:g}")
     for name, value, side in (("cx", cx, width), ("cy", cy, height)):
         if not -0.5 * side <= value <= 1.5 * side:
@@ -75,7 +75,7 @@ def check_pose(path: Path, entry: str, to_world) -> None:
     scale = np.abs(rot).max()
     if scale == 0 or abs(np.linalg.det(rot / scale)) < 1e-9:
         raise InputError(path, f"{entry}: the camera's rotation is degenerate (a singular 3x3 part)")
-    distance = float(np.linalg.norm(m[:3, 3]))
+    distance = float(np.abs(m[:3, 3]).max())  # along the farthest axis (a norm could overflow)
     if not distance <= MAX_DISTANCE:
         raise InputError(path, f"{entry}: the camera sits {distance:.3g} units from the origin; more than "
                                f"{MAX_DISTANCE:g} is a broken file or a model to rescale")
