@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from vq_mitsuba.errors import InputError
@@ -34,21 +36,28 @@ def _config(args, run_dir: Path | None = None):
     from vq_mitsuba.run.run_dir import RunDir
 
     base = RunDir(run_dir).saved_config() if (args.resume and run_dir is not None) else None
-    flags = [f"capture.{key}={value}" for key, value in (("downscale", getattr(args, "downscale", None)),
-                                                         ("background_color", getattr(args, "background_color", None)),
-                                                         ("holdout", getattr(args, "holdout", None)))
-             if value is not None]
+    flags = []
+    for key in ("downscale", "background_color", "holdout"):
+        value = getattr(args, key, None)
+        if value is None:
+            continue
+        flags.append(f"capture.{key}={value}")
+        try:  # alone first, so that an error names the option, not --set
+            load_config(None, flags[-1:])
+        except InputError as exc:
+            raise InputError(None, f"--{key.replace('_', '-')} {value}: {exc.message}") from None
     return load_config(args.config, flags + list(args.set), base=base, preset=args.preset)
 
 
 def _cmd_fit(args) -> int:
     from vq_mitsuba.engine.pipeline import fit_capture
-    from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir, check_writable
 
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "fit")
     _output_folder(run_dir)
+    check_writable(run_dir)
     cfg = _config(args, run_dir)  # bad keys and values fail before any work
     summary = fit_capture(args.capture, run_dir, cfg, geometry=args.geometry, mesh=args.mesh, resume=args.resume,
                           progress=not args.quiet)
@@ -71,8 +80,9 @@ def _cmd_geometry(args) -> int:
     _output_folder(run_dir)
     RunDir(run_dir).check_not_foreign()
     cfg = _config(args)
-    info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                        gt_mesh=args.gt_mesh, capture_cfg=cfg.capture).summary
+    with RunDir(run_dir).lock("geometry"):
+        info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
+                            gt_mesh=args.gt_mesh, capture_cfg=cfg.capture).summary
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
@@ -88,11 +98,13 @@ def _cmd_render(args) -> int:
     """Reads the finished run through RunDir and renders it: no training module is imported."""
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
-    from vq_mitsuba.run.run_dir import RunDir, write_json
+    from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
     from vq_mitsuba.render.views import render_views
 
     _output_folder(args.output)
     run = RunDir(args.run_dir)
+    out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
+    check_writable(out)
     fitted = run.load()
     cameras, world, _ = load_cameras(args.cameras)  # input checks before any rendering
     envmaps = [load_envmap(p) for p in args.envmap]
@@ -100,17 +112,16 @@ def _cmd_render(args) -> int:
     if len(set(names)) < len(names):
         raise InputError(None, f"--envmap: two lightings share a file name ({', '.join(names)}); their "
                                "views would go to the same folder")
-    out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
-    out.mkdir(parents=True, exist_ok=True)
-    render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None, env_rotate_deg=args.env_rotate,
-                 exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
-                 more_envmaps=list(zip(names[1:], envmaps[1:])))
-    write_json(out / "render.json", {
-        "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
-        "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
-        "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
-        "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
-    })
+    with _new_folder(out):
+        render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
+                     env_rotate_deg=args.env_rotate, exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
+                     more_envmaps=list(zip(names[1:], envmaps[1:])))
+        write_json(out / "render.json", {
+            "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
+            "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
+            "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
+            "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
+        })
     print(f"rendered views in {out}/")
     return 0
 
@@ -125,7 +136,7 @@ def _edit_label(args) -> str:
 
 def _cmd_edit(args) -> int:
     from vq_mitsuba.edit import build_edit, edit_run
-    from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir, check_writable
     from vq_mitsuba.models.edits import material_library
 
     if args.list_presets:
@@ -135,6 +146,7 @@ def _cmd_edit(args) -> int:
     if args.output is None:
         raise InputError(None, "edit writes a new run: give it a folder with -o NEW_RUN")
     _output_folder(args.output)
+    check_writable(args.output)
     run = RunDir(args.run_dir)
     fitted = run.load()
     edit = build_edit(run, fitted, args.material, args.pick, args.box, args.set, args.scale, args.hue_shift,
@@ -174,8 +186,11 @@ def _cmd_ui(args) -> int:
 
 def _cmd_eval(args) -> int:
     from vq_mitsuba.eval.evaluate import evaluate, evaluate_holdout, format_table
-    from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.run.run_dir import RunDir, check_writable
 
+    if args.output is not None and (Path(args.output).is_dir() or args.output.endswith(("/", "\\"))):
+        raise InputError(args.output, "is a folder; eval -o names the metrics JSON file (e.g. -o OUT/metrics.json)")
+    check_writable(Path(args.output).parent if args.output else args.run_dir)
     if args.gt is None:  # a real capture: the held-out views
         metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output)
         print(f"held-out views ({len(metrics['views'])}): novel view PSNR {metrics['novel_view']['psnr']:.2f} dB, "
@@ -189,6 +204,7 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_make_scene(args) -> int:
+    from vq_mitsuba.run.run_dir import RunDir, check_writable
     from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
     if args.list or args.name is None:
@@ -197,6 +213,10 @@ def _cmd_make_scene(args) -> int:
     if args.name not in synthetic.SCENES:
         raise InputError(None, f"unknown scene '{args.name}' (bundled: {', '.join(synthetic.SCENES)})")
     out = Path(args.output) if args.output else Path("data") / args.name
+    if RunDir(out).holds_run_files():  # as fit refuses a folder of other files
+        raise InputError(out, "holds a vq-mitsuba run: make-scene writes a dataset, it would replace the run's "
+                              "files; choose another -o")
+    check_writable(out)
     kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
                                 ("n_test", args.n_test)) if v is not None}
     if args.renderer == "cycles":
@@ -250,6 +270,20 @@ def _output_folder(path: str | None) -> None:
     """-o names a folder: refuse an existing file before any work."""
     if path is not None and Path(path).exists() and not Path(path).is_dir():
         raise InputError(path, "is a file; -o names an output folder")
+
+
+@contextmanager
+def _new_folder(path: Path):
+    """Make the output folder `path`; if the command then fails, remove it again when it was new
+    and is still empty (a refusal leaves no empty folder behind)."""
+    new = not path.exists()
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield path
+    except BaseException:
+        if new and not any(path.iterdir()):
+            path.rmdir()
+        raise
 
 
 def _bandwidths(text: str) -> tuple[float, ...]:
@@ -497,15 +531,43 @@ def _join_negative_lists(argv: list[str]) -> list[str]:
     return out
 
 
+@contextmanager
+def _warnings_as_messages():
+    """Warnings of the libraries (PIL, scikit-learn, OpenEXR, ...) shown as one `warning:` line each,
+    once, without their source line; scikit-learn's k-means convergence notes (duplicate latents
+    early in a fit, expected) are dropped."""
+    seen = set()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+        if text not in seen:
+            seen.add(text)
+            print(f"warning: {text}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Number of distinct clusters")
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
         from vq_mitsuba.backend import set_threads
 
-        set_threads(args.threads)
-        return args.func(args)
+        with _warnings_as_messages():
+            set_threads(args.threads)
+            return args.func(args)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a write the machine refused outside RunDir's writers (images of render, make-scene)
+        from vq_mitsuba.run.write_errors import as_write_error
+
+        error = as_write_error(exc)
+        if error is None:
+            raise
+        print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)", file=sys.stderr)

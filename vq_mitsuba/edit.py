@@ -143,7 +143,34 @@ def build_edit(run: RunDir, fitted: FittedModel, materials: Sequence[int] = (), 
     for text in picks:
         view, x, y = parse_pick(text)
         ids.append(material_under_pixel(fitted, find_view(run, view), x, y))
-    return Edit(Selection(tuple(dict.fromkeys(ids)), tuple(parse_box(b) for b in boxes)), changes, label)
+    edit = Edit(Selection(tuple(dict.fromkeys(ids)), tuple(parse_box(b) for b in boxes)), changes, label)
+    if edit.selection.boxes:
+        check_box_selects_surface(fitted, edit.selection)
+    return edit
+
+
+SURFACE_SAMPLES = 20000  # points of the run's surface (besides its vertices) a box selection is tried on
+
+
+def check_box_selects_surface(fitted: FittedModel, selection: Selection) -> None:
+    """Refuse a selection with boxes that holds no point of the run's surface (a box beside the
+    object, or none of the selected materials inside it): such an edit would change nothing."""
+    import torch
+    import trimesh
+
+    mesh = fitted.mesh
+    samples, _ = trimesh.sample.sample_surface(mesh, SURFACE_SAMPLES, seed=0)
+    points = torch.as_tensor(np.concatenate([np.asarray(mesh.vertices), samples]), dtype=torch.float32)
+    ids = None
+    if selection.materials:
+        device = next(fitted.model.parameters()).device
+        with torch.no_grad():
+            ids = fitted.materials_at(points.to(device))["material"].cpu()
+    if not bool(selection.mask(points, ids).any()):
+        lo, hi = np.asarray(mesh.bounds)
+        what = "no surface point of the selected materials" if selection.materials else "no surface point"
+        raise InputError(None, f"--box: the box(es) hold {what}: the edit would change nothing (the object spans "
+                               f"{', '.join(f'{a:.3g}..{b:.3g}' for a, b in zip(lo, hi))} in x, y, z)")
 
 
 def edit_run(run_dir: str | Path | RunDir, out_dir: str | Path, edit: Edit) -> RunDir:

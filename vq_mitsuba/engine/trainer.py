@@ -22,6 +22,7 @@ from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture, load_capture
 from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
+from vq_mitsuba.engine.checks import mesh_scale_warning
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
 from vq_mitsuba.run.run_dir import RunDir
@@ -379,6 +380,9 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     elif stats["geometry_coverage"] < 0.9:
         print(f"warning: only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
               "the geometry may not match the images (units, world axes?)")
+    scale_warning = mesh_scale_warning(capture.mesh, capture.cameras)
+    if scale_warning:
+        print(scale_warning)
     run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
                     "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})

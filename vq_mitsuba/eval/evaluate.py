@@ -39,6 +39,7 @@ from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
+MIN_SIDE = 3  # pixels per side of a test view: SSIM's smallest window (eval.metrics.ssim)
 DEFAULT_AA = None  # primary rays per pixel: None takes the run's render.aa
 
 
@@ -244,6 +245,9 @@ def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
     for cam, gt in zip(cameras, gts):
         if gt["rgb"].shape[:2] != (cam.height, cam.width):
             raise InputError(root / "images" / f"{cam.name}.exr", "size differs from transforms_test.json")
+        if min(cam.width, cam.height) < MIN_SIDE:
+            raise InputError(root / "transforms_test.json", f"test view {cam.name} is {cam.width}x{cam.height} "
+                                                            f"pixels: SSIM needs at least {MIN_SIDE} per side")
     views = [convert_world(cam, cam_world, run_world) for cam in cameras]
     return _TestViews(root, meta, cameras, views, envs, gts)
 

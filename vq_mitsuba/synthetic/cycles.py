@@ -324,6 +324,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     spp = int(spp or DEFAULT_SPP)
     if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
+    synthetic.check_resolution((res, res))
     out = synthetic.prepare_out_dir(out_dir, synthetic.OUT_SUBDIRS + (WORK_DIR,))
     work = out / WORK_DIR
 

@@ -30,6 +30,7 @@ import math
 import re
 import shutil
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -552,7 +553,7 @@ def prepare_out_dir(out_dir, subdirs=OUT_SUBDIRS) -> Path:
     """out_dir with its `subdirs` made; where out_dir holds an earlier make-scene output
     (scene.json), they are emptied first, so no stale view survives."""
     out = Path(out_dir)
-    if (out / "scene.json").is_file():  # an earlier make-scene output: drop its stale views
+    if (out / "scene.json").is_file() or (out / INCOMPLETE).is_file():  # an earlier output: drop its stale views
         for sub in subdirs:
             shutil.rmtree(out / sub, ignore_errors=True)
     for sub in subdirs:
@@ -654,7 +655,18 @@ def _scene_settings(spec: dict, resolution, n_train, n_test, spp) -> tuple[tuple
     spp = int(spp or spec.get("spp", 256))
     if min(res) < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
+    check_resolution(res)
     return res, n_train, n_test, spp
+
+
+RESOLUTION_RANGE = (8, 4096)  # pixels per side: SSIM needs a few pixels; beyond 4096 a dataset outgrows memory
+
+
+def check_resolution(res: tuple[int, int]) -> None:
+    """Refuse, before any work, an image side outside RESOLUTION_RANGE."""
+    lo, hi = RESOLUTION_RANGE
+    if not all(lo <= int(side) <= hi for side in res):
+        raise InputError(None, f"--resolution {'x'.join(map(str, res))}: each side must be {lo} to {hi} pixels")
 
 
 def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
@@ -744,7 +756,45 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     t_start = time.time()
     spec = load_scene_spec(name)
     res, n_train, n_test, spp = _scene_settings(spec, resolution, n_train, n_test, spp)
-    out = prepare_out_dir(out_dir)
+    with _complete_or_removed(out_dir) as out:
+        _render_dataset(name, spec, out, res, n_train, n_test, spp, seed, progress, t_start)
+        if photo_formats:
+            from vq_mitsuba.data.captures import load_capture
+            from vq_mitsuba.synthetic.photo_formats import write_photo_formats
+
+            write_photo_formats(load_capture(out / "scene.xml"), out)
+    return out
+
+
+INCOMPLETE = ".make-scene-incomplete"  # in a dataset folder while make-scene writes it
+
+
+@contextmanager
+def _complete_or_removed(out_dir):
+    """The dataset folder, prepared (`prepare_out_dir`) and marked incomplete while the body runs;
+    if the body fails, what it wrote into a new or empty folder is removed, and an earlier dataset's
+    folder keeps the mark and no scene.json (the next make-scene into it empties it first): no
+    half-written dataset passes for a whole one."""
+    out = Path(out_dir)
+    made = not out.exists()
+    empty = made or not any(out.iterdir())
+    out = prepare_out_dir(out)
+    (out / INCOMPLETE).write_text("make-scene did not finish writing this folder\n")
+    (out / "scene.json").unlink(missing_ok=True)  # an earlier dataset's, written again last
+    try:
+        yield out
+    except BaseException:
+        if empty:
+            shutil.rmtree(out, ignore_errors=True)
+            if not made:
+                out.mkdir()
+        raise
+    (out / INCOMPLETE).unlink()
+
+
+def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test: int, spp: int, seed: int,
+                    progress: bool, t_start: float) -> None:
+    """make_scene's views, ground truth and scene.json into the prepared folder `out`."""
     # Geometry and cameras: Blender world for mesh.ply and the json, Mitsuba world (R^-1) for the XML.
     geometry = write_geometry(spec, out)
     cams = write_cameras(out, spec, geometry, n_train, n_test, res, spp, seed)
@@ -778,9 +828,3 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
         "versions": _versions(),
     }
     (out / "scene.json").write_text(json.dumps(meta, indent=2))
-    if photo_formats:
-        from vq_mitsuba.data.captures import load_capture
-        from vq_mitsuba.synthetic.photo_formats import write_photo_formats
-
-        write_photo_formats(load_capture(out / "scene.xml"), out)
-    return out
