@@ -1,14 +1,16 @@
 """Fuzz of the capture loaders (Hypothesis): malformed json and XML, odd image sizes, bit depths and
-channel layouts. A capture either loads with finite images in [0, 1]-ish ranges, or is refused
-with an InputError naming a file; no other exception (no traceback) ever reaches the user."""
+channel layouts, mutated COLMAP text and binary models and NeuS/IDR archives. A capture either
+loads with finite images in [0, 1]-ish ranges and finite cameras, or is refused with an InputError
+naming a file; no other exception (no traceback) ever reaches the user."""
 
 import json
 import os
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
+from hypothesis.extra.numpy import array_shapes, arrays
 
 from vq_mitsuba.data.captures import load_capture
 from vq_mitsuba.errors import InputError
@@ -103,3 +105,168 @@ def test_image_layouts_load_or_are_refused(folder, height, width, channels, dept
     (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames_json}))
     outcome = _check(folder)
     assert outcome == ("refused" if second_size else "loaded")
+
+
+# --------------------------------------------------------------------------------------------
+# Photographed captures: COLMAP (text and binary) and NeuS/IDR, three 8x6 views
+
+
+PHOTO_W, PHOTO_H = 8, 6
+SPECIAL = [float("nan"), float("inf"), float("-inf"), 0.0, -0.0, -1.0, 1e-300, 1e300, 50.0, -50.0, 2.0 ** 63]
+
+
+def _photo_cameras():
+    from vq_mitsuba.data.cameras import Camera, look_at
+
+    return [Camera(f"v{i}", look_at([3 * np.sin(i), 0.5, 3 * np.cos(i)], [0, 0, 0], [0, 1, 0]), 50.0, PHOTO_W, PHOTO_H)
+            for i in range(3)]
+
+
+def _photos(folder, sub, names):
+    from vq_mitsuba.data.imageio import write_png
+
+    for name in names:
+        if not (folder / sub / name).is_file():
+            write_png(folder / sub / name, np.full((PHOTO_H, PHOTO_W, 3), 0.4), alpha=np.ones((PHOTO_H, PHOTO_W)))
+
+
+def _check_photo(folder):
+    """Loads with finite cameras and images, or is refused with an InputError naming a file."""
+    from vq_mitsuba.data.captures import load_capture
+
+    try:
+        cap = load_capture(folder, cache_dir=folder / "undistorted")
+    except InputError as exc:
+        assert exc.path is not None, exc
+        event("refused")
+        return "refused"
+    event("loaded")
+    assert np.isfinite(cap.images).all() and np.isfinite(cap.alpha).all()
+    for cam in cap.cameras:
+        fx, fy, cx, cy = cam.intrinsics()
+        assert np.isfinite(cam.to_world).all() and np.isfinite([fx, fy, cx, cy, cam.fov_x_deg]).all()
+        assert fx > 0 and fy > 0 and 0 < cam.fov_x_deg < 180
+    return "loaded"
+
+
+def _colmap_base(folder, binary):
+    """A valid model: camera 1 OPENCV (mild distortion), cameras 2 and 3 PINHOLE."""
+    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+
+    def lens_of(cam):
+        fx, fy, cx, cy = cam.intrinsics()
+        if cam.name == "v0":
+            return Lens("OPENCV", cam.width, cam.height, fx, fy, cx, cy, -0.05, 0.01, 0.001, -0.001)
+        return Lens("PINHOLE", cam.width, cam.height, fx, fy, cx, cy)
+
+    names = ["a.png", "b.png", "c.png"]
+    _photos(folder, "images", names)
+    model = folder / "sparse" / "0"
+    for old in model.glob("*"):
+        old.unlink()
+    write_colmap(model, _photo_cameras(), names, lens_of=lens_of, binary=binary)
+    return model
+
+
+tokens = (st.sampled_from(["nan", "inf", "-inf", "0", "-1", "1e300", "1e-300", "50", "-0", "", "x", "OPENCV",
+                           "PINHOLE", "FULL_OPENCV", "1", "3", "99", "4294967296", "a.png", "../a.png",
+                           "<delete line>", "<repeat line>"])
+          | st.text(max_size=4) | st.floats().map(repr) | st.integers().map(str))
+text_edits = st.lists(st.tuples(st.sampled_from(["cameras.txt", "images.txt"]), st.integers(0, 12),
+                                st.integers(0, 14), tokens), min_size=1, max_size=4)
+
+
+@FUZZ
+@given(edits=text_edits)
+def test_mutated_colmap_text_models_load_or_are_refused(folder, edits):
+    model = _colmap_base(folder, binary=False)
+    for name, line, token, value in edits:
+        lines = (model / name).read_text().split("\n")
+        i = line % len(lines)
+        if value in ("<delete line>", "<repeat line>"):
+            lines[i:i + 1] = [] if value == "<delete line>" else [lines[i]] * 2
+        else:
+            parts = lines[i].split(" ")
+            parts[token % len(parts):token % len(parts) + 1] = [value]
+            lines[i] = " ".join(parts)
+        (model / name).write_text("\n".join(lines))
+    _check_photo(folder)
+
+
+binary_edits = st.lists(st.tuples(
+    st.sampled_from(["cameras.bin", "images.bin"]),
+    st.sampled_from(["double", "int32", "uint64", "bytes", "truncate", "append"]),
+    st.integers(0, 200),
+    st.sampled_from(SPECIAL) | st.floats(),
+    st.binary(min_size=1, max_size=12)), min_size=1, max_size=4)
+
+
+@FUZZ
+@given(edits=binary_edits)
+def test_mutated_colmap_binary_models_load_or_are_refused(folder, edits):
+    import struct
+
+    model = _colmap_base(folder, binary=True)
+    for name, kind, pos, number, raw in edits:
+        data = bytearray((model / name).read_bytes())
+        pos = pos % (len(data) + 1)
+        if kind == "truncate":
+            data = data[:pos]
+        elif kind == "append":
+            data += raw
+        elif kind == "bytes":
+            data[pos:pos + len(raw)] = raw
+        else:
+            fmt = {"double": "<d", "int32": "<i", "uint64": "<Q"}[kind]
+            value = number if kind == "double" else (int(number) if np.isfinite(number) else -1)
+            limit = 2 ** 31 if kind == "int32" else 2 ** 64
+            value = value if kind == "double" else value % limit - (limit // 2 if kind == "int32" else 0)
+            data[pos:pos + struct.calcsize(fmt)] = struct.pack(fmt, value)
+        (model / name).write_bytes(bytes(data))
+    _check_photo(folder)
+
+
+numeric_arrays = arrays(dtype=st.sampled_from([np.float64, np.float32, np.int64, np.bool_, np.complex128, "<U3"]),
+                        shape=array_shapes(min_dims=0, max_dims=3, max_side=5))
+entry_values = st.one_of(
+    st.none(),  # the entry removed
+    numeric_arrays,
+    st.just("object"),
+    st.tuples(st.integers(0, 3), st.integers(0, 3), st.sampled_from(SPECIAL) | st.floats()),  # one entry changed
+    st.sampled_from(SPECIAL).map(lambda f: ("scaled", f)),
+)
+archive_edits = st.lists(st.tuples(st.sampled_from(["world_mat_0", "world_mat_1", "world_mat_2", "scale_mat_0",
+                                                    "scale_mat_2", "camera_mat_0"]), entry_values),
+                         min_size=1, max_size=4)
+
+
+def _edited(base, value):
+    if value is None or isinstance(value, np.ndarray):
+        return value
+    if isinstance(value, str):
+        return np.array([np.eye(4), "x"], dtype=object)
+    usable = isinstance(base, np.ndarray) and base.shape == (4, 4) and base.dtype.kind in "biuf"
+    m = np.array(base if usable else np.eye(4), np.float64)
+    if value[0] == "scaled":
+        with np.errstate(all="ignore"):
+            return m * value[1]
+    i, j, number = value
+    m[i, j] = number
+    return m
+
+
+@FUZZ
+@given(edits=archive_edits, garbage=st.one_of(st.none(), st.binary(max_size=40)))
+def test_mutated_neus_archives_load_or_are_refused(folder, edits, garbage):
+    from vq_mitsuba.data.photo_formats import write_idr
+
+    _photos(folder, "image", ["000.png", "001.png", "002.png"])
+    npz = folder / "cameras_sphere.npz"
+    write_idr(npz, _photo_cameras(), np.zeros(3), 1.5)
+    entries = dict(np.load(npz))
+    for key, value in edits:
+        entries[key] = _edited(entries.get(key), value)
+    np.savez(npz, **{k: v for k, v in entries.items() if v is not None})
+    if garbage is not None:  # a damaged archive
+        npz.write_bytes(npz.read_bytes()[:len(garbage) * 20] + garbage)
+    _check_photo(folder)

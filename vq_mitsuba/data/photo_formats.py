@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import struct
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -263,7 +264,8 @@ def _check_colmap_image(path: Path, img: ColmapImage, lenses: dict[int, Lens]) -
         raise InputError(path, f"{entry} refers to camera {img.camera_id}, which "
                                f"{path.with_name('cameras' + path.suffix).name} does not list")
     q = np.asarray(img.qvec, np.float64)
-    norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
+    largest = float(np.abs(q).max())
+    norm = largest * float(np.linalg.norm(q / largest)) if 0 < largest < math.inf else largest  # no overflow
     if not 1e-6 <= norm <= 1e6:
         raise InputError(path, f"{entry}: quaternion (QW, QX, QY, QZ) = ({', '.join(f'{v:g}' for v in q)}) "
                                "is not a rotation (it must be finite and not zero)")
@@ -449,15 +451,23 @@ def read_idr(path: Path, count: int) -> tuple[list[tuple[np.ndarray, np.ndarray]
     return views, scales
 
 
+@contextmanager
 def _open_npz(path: Path):
-    """The npz archive (no pickles: an object array is refused when read, not run)."""
+    """The npz archive (no pickles: an object array is refused when read, not run). The file is
+    opened here so that an archive numpy cannot parse is closed too."""
     try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:  # numpy, zipfile and OS errors differ
-        raise InputError(path, f"cannot read ({type(exc).__name__}: {exc})") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputError(path, "not an .npz archive of named matrices (world_mat_0, scale_mat_0, ...)")
-    return data
+        f = open(path, "rb")
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    with f:
+        try:
+            data = np.load(f, allow_pickle=False)
+        except Exception as exc:  # numpy, zipfile and OS errors differ
+            raise InputError(path, f"cannot read ({type(exc).__name__}: {exc})") from None
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise InputError(path, "not an .npz archive of named matrices (world_mat_0, scale_mat_0, ...)")
+        with data:
+            yield data
 
 
 def _idr_matrix(path: Path, data, key: str, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
