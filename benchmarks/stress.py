@@ -1,8 +1,10 @@
 """The stress suite: kill -9 at random points of fits followed by --resume, lighting and exposure
-extremes on a fitted run, and the capture-loader fuzz with many examples. Prints what was tried,
-NaN/Inf found, tracebacks, and how the resumes went; writes JSON.
+extremes on a fitted run, and the capture-loader fuzz (tests/test_fuzz_captures.py: NeRF json,
+Mitsuba XML, image layouts, COLMAP text and binary, NeuS/IDR) with many examples per loader.
+Prints what was tried, NaN/Inf found, tracebacks, and how the resumes went; writes JSON.
 
     .venv/bin/python benchmarks/stress.py [--kills 8] [--fuzz-examples 1000] [--seed 0] [-o benchmarks/out/stress]
+        [--parts kill,lighting,fuzz] [--fuzz-tests PYTEST_K_EXPRESSION]
 """
 
 from __future__ import annotations
@@ -96,36 +98,61 @@ def lighting_extremes(capture: Path, tmp: Path) -> dict:
     return counts
 
 
+def loader_fuzz(examples: int, select: str | None, tmp: Path) -> dict:
+    """The fuzz tests with `examples` Hypothesis examples each; per test, how many examples loaded,
+    were refused with an InputError, held NaN/Inf or ended in another exception (from the tests'
+    $VQM_FUZZ_TALLY lines)."""
+    tally = tmp / "fuzz_tally.txt"
+    env = {**os.environ, "VQM_FUZZ_EXAMPLES": str(examples), "VQM_FUZZ_TALLY": str(tally)}
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           str(ROOT / "tests" / "test_fuzz_captures.py"), *(["-k", select] if select else [])],
+                          env=env, capture_output=True, text=True)
+    last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr[-500:]
+    tests: dict[str, dict[str, int]] = {}
+    for line in tally.read_text().splitlines() if tally.is_file() else []:
+        test, outcome = line.split()
+        counts = tests.setdefault(test, {"examples": 0, "loaded": 0, "refused": 0, "nonfinite": 0, "traceback": 0})
+        counts["examples"] += 1
+        counts[outcome] += 1
+    return {"examples_per_test": examples, "select": select, "tests": tests, "pytest": last,
+            "pytest_returncode": proc.returncode, "tracebacks": sum(c["traceback"] for c in tests.values()),
+            "nonfinite": sum(c["nonfinite"] for c in tests.values())}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--kills", type=int, default=8)
     p.add_argument("--fuzz-examples", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "out" / "stress"))
+    p.add_argument("--parts", default="kill,lighting,fuzz", help="which parts to run (comma-separated)")
+    p.add_argument("--fuzz-tests", default=None, help="a pytest -k expression choosing the fuzz tests (default all)")
     args = p.parse_args()
+    parts = set(args.parts.split(","))
 
     from provenance import provenance, write_result
 
     write_sphere_capture = tiny_scene().write_sphere_capture
     rng = np.random.default_rng(args.seed)
-    report = {}
+    report = {"parts": sorted(parts)}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        capture = write_sphere_capture(tmp / "cap", size=16, n_views=6, spp=8)
-        kills = [kill_and_resume(capture, tmp, rng, i) for i in range(args.kills)]
-        report["kill_resume"] = {"cases": kills, "tried": len(kills), "torn": sum(k["torn"] for k in kills),
-                                 "resumed": sum(bool(k.get("resumed")) for k in kills)}
-        print(f"kill -9 + resume: {len(kills)} tried, {report['kill_resume']['torn']} torn checkpoints, "
-              f"{report['kill_resume']['resumed']} resumed and finished", flush=True)
-        report["lighting_extremes"] = lighting_extremes(capture, tmp)
-        print(f"lighting extremes: {report['lighting_extremes']}", flush=True)
-    env = {**os.environ, "VQM_FUZZ_EXAMPLES": str(args.fuzz_examples)}
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           str(ROOT / "tests" / "test_fuzz_captures.py")], env=env, capture_output=True, text=True)
-    last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr[-500:]
-    report["fuzz"] = {"examples_per_test": args.fuzz_examples, "tests": 3, "pytest": last,
-                      "tracebacks": 0 if proc.returncode == 0 else "see pytest output"}
-    print(f"loader fuzz: {args.fuzz_examples} examples x 3 tests: {last}")
+        capture = write_sphere_capture(tmp / "cap", size=16, n_views=6, spp=8) if parts & {"kill", "lighting"} else None
+        if "kill" in parts:
+            kills = [kill_and_resume(capture, tmp, rng, i) for i in range(args.kills)]
+            report["kill_resume"] = {"cases": kills, "tried": len(kills), "torn": sum(k["torn"] for k in kills),
+                                     "resumed": sum(bool(k.get("resumed")) for k in kills)}
+            print(f"kill -9 + resume: {len(kills)} tried, {report['kill_resume']['torn']} torn checkpoints, "
+                  f"{report['kill_resume']['resumed']} resumed and finished", flush=True)
+        if "lighting" in parts:
+            report["lighting_extremes"] = lighting_extremes(capture, tmp)
+            print(f"lighting extremes: {report['lighting_extremes']}", flush=True)
+        if "fuzz" in parts:
+            fuzz = report["fuzz"] = loader_fuzz(args.fuzz_examples, args.fuzz_tests, tmp)
+            for test, counts in fuzz["tests"].items():
+                print(f"loader fuzz {test}: {counts}")
+            print(f"loader fuzz: {args.fuzz_examples} examples x {len(fuzz['tests'])} tests, "
+                  f"{fuzz['tracebacks']} tracebacks, {fuzz['nonfinite']} with NaN/Inf: {fuzz['pytest']}")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     path = write_result(out / f"stress_{provenance()['commit']}.json", report)
