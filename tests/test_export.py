@@ -16,8 +16,8 @@ from vq_mitsuba import cli
 from vq_mitsuba.data.envmaps import texel_directions
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.export.bake import bake, rasterise_uv
-from vq_mitsuba.export.files import Y_UP_TO_BLENDER, envmap_for_blender, world_to_y_up
-from vq_mitsuba.export.formats import export_run
+from vq_mitsuba.export.files import Y_UP_TO_BLENDER, envmap_for_blender, export_axes, world_to_y_up
+from vq_mitsuba.export.formats import _planned_files, export_run
 from vq_mitsuba.render.views import Renderer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -51,6 +51,58 @@ def _bilinear(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="module")
 def fitted(three_materials):
     return three_materials[1].load()
+
+
+FIT_BRIEFLY = ["--quiet", "--set", "train.iterations=4", "--set", "train.batch_rays=128"]
+
+
+@pytest.fixture(scope="module")
+def nerf_run(tmp_path_factory):
+    """(capture folder, RunDir): a tiny NeRF-format capture (transforms_*.json, mesh.ply, Blender's
+    world) fitted for a few steps. Geometry and cameras are all the export tests below need."""
+    from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
+
+    root = tmp_path_factory.mktemp("nerf")
+    data = make_scene("demo", root / "demo", resolution=16, n_train=4, n_test=2, spp=8, progress=False)
+    assert cli.main(["fit", str(data / "transforms_train.json"), "-o", str(root / "run"), *FIT_BRIEFLY]) == 0
+    return data, RunDir(root / "run")
+
+
+def _gltf_to_blender(v: np.ndarray) -> np.ndarray:
+    """What Blender's glTF and OBJ importers make of Y-up (x, y, z): Blender's (x, -z, y)."""
+    return np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
+
+
+def _own_test_camera(data: Path, size: int = 64):
+    """The capture's first test view, as its transforms_test.json gives it (its own world), at size^2."""
+    from vq_mitsuba.data.captures import load_cameras
+
+    spec = json.loads((data / "transforms_test.json").read_text())
+    spec.update(w=size, h=size, frames=spec["frames"][:1])
+    path = data / f"transforms_test_{size}.json"
+    path.write_text(json.dumps(spec))
+    (camera,), world, _ = load_cameras(path)
+    assert world == "blender"
+    return path, camera, spec["frames"][0]
+
+
+def _coverage(mesh, camera, rays: int = 64) -> np.ndarray:
+    """(H, W) share of each pixel's jittered rays that hit `mesh` (in the camera's world)."""
+    from vq_mitsuba.data.cameras import camera_rays
+    from vq_mitsuba.render.shading import scene_for_mesh
+
+    scene = scene_for_mesh(mesh, np.ones((8, 16, 3), np.float32), np.eye(4))
+    rng = np.random.default_rng(0)
+    hits = np.zeros(camera.height * camera.width)
+    for _ in range(rays):
+        o, d = camera_rays(camera, jitter=rng.random((camera.height * camera.width, 2)))
+        hits += scene.trace(o, d).valid.cpu().numpy()
+    return (hits / rays).reshape(camera.height, camera.width)
+
+
+def _soft_iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.minimum(a, b).sum() / np.maximum(a, b).sum())
 
 
 def test_rasteriser_covers_each_triangle_once():
@@ -93,7 +145,8 @@ def test_discrete_branch_bakes_one_brdf_per_material(fitted):
 def test_mitsuba_export_renders_like_vq_mitsuba_in_plain_mitsuba(three_materials, tmp_path):
     _, run = three_materials
     out = tmp_path / "mitsuba"
-    export_run(run.dir, "mitsuba", out, texture_size=512, progress=False)
+    summary = export_run(run.dir, "mitsuba", out, texture_size=512, progress=False)
+    assert set(summary["files"]) <= set(_planned_files("mitsuba", run.dir.name)), summary["files"]
     fitted = run.load()
     cam = run.cameras()["train"][0]
     spp = 1024
@@ -188,6 +241,81 @@ def test_export_command_line(three_materials, tmp_path, capsys):
     assert "16..8192" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
+def test_gltf_and_obj_of_a_nerf_capture_lie_in_its_own_world(nerf_run, tmp_path):
+    """Imported as Blender's importers read them, the exported vertices are the capture's own
+    mesh.ply vertices, and seen from the capture's own test camera the object covers what
+    `vq-mitsuba render` of that view covers."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    data, run = nerf_run
+    own = trimesh.load(data / "mesh.ply", process=False)
+    tree = cKDTree(own.vertices)
+    scale = float(np.ptp(own.vertices, 0).max())
+    meshes = {}
+    for fmt in ("gltf", "obj"):
+        summary = export_run(run.dir, fmt, tmp_path / fmt, texture_size=16, progress=False)
+        assert summary["world"] == "blender"
+        assert set(summary["files"]) | {"export.json"} <= set(_planned_files(fmt, run.dir.name)), summary["files"]
+        loaded = trimesh.load(tmp_path / fmt / summary["files"][0], process=False, force="mesh")
+        vertices = _gltf_to_blender(np.asarray(loaded.vertices, np.float64))
+        dist, _ = tree.query(vertices)
+        assert dist.max() < 1e-5 * scale, (fmt, dist.max())
+        assert np.allclose(np.sort(vertices, 0)[[0, -1]], own.bounds, atol=1e-5 * scale)
+        meshes[fmt] = trimesh.Trimesh(vertices, np.asarray(loaded.faces), process=False)
+    path, camera, _ = _own_test_camera(data)
+    assert cli.main(["render", str(run.dir), "--cameras", str(path), "-o", str(tmp_path / "r"), "--spp", "64",
+                     "--quiet"]) == 0
+    import imageio.v3 as iio
+
+    rendered = iio.imread(tmp_path / "r" / f"{camera.name}_alpha.png").astype(np.float64) / 255
+    assert rendered.mean() > 0.05  # the object is in view
+    for fmt, mesh in meshes.items():
+        assert _soft_iou(_coverage(mesh, camera), rendered) >= 0.98, fmt
+    # the test tells a turned export apart: the same mesh a quarter turn about Blender's Z is far off
+    turned = meshes["gltf"].copy()
+    turned.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 0, 1], own.centroid))
+    assert _soft_iou(_coverage(turned, camera), rendered) < 0.9
+
+
+def test_export_axes_undo_the_loaders_world_conversion():
+    """A run held in Mitsuba's world of a capture in Blender's world: the export's axes take a run
+    point to where Blender's importer puts the capture's own point."""
+    from vq_mitsuba.data.cameras import world_rotation
+
+    rng = np.random.default_rng(1)
+    own = rng.normal(size=(20, 3))  # points in the capture's Blender world
+    for run_world in ("blender", "mitsuba"):
+        in_run = own @ world_rotation("blender", run_world).T  # what the loader made of them
+        exported = in_run @ export_axes(run_world, "blender").T
+        assert np.allclose(_gltf_to_blender(exported), own), run_world
+    # a Mitsuba-world capture is exported as it is, Y up already
+    assert np.allclose(export_axes("mitsuba", "mitsuba"), np.eye(3))
+
+
+def test_export_refuses_to_overwrite_a_runs_files_and_leaves_no_empty_folder(nerf_run, tmp_path, capsys):
+    data, run = nerf_run
+    envmap = next((data / "envmaps").glob("*.exr"))
+    learned = (run.dir / "envmap.exr").read_bytes()
+    before = sorted(p.name for p in run.dir.iterdir())
+    for fmt in ("gltf", "obj", "mitsuba"):
+        assert cli.main(["export", str(run.dir), "--format", fmt, "--envmap", str(envmap), "-o", str(run.dir),
+                         "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "envmap.exr" in err and "another -o" in err and str(run.dir) in err, err
+    assert (run.dir / "envmap.exr").read_bytes() == learned
+    assert sorted(p.name for p in run.dir.iterdir()) == before
+    # a refused export leaves no folder behind
+    continuous = tmp_path / "continuous"
+    assert cli.main(["fit", str(data / "transforms_train.json"), "-o", str(continuous), "--preset", "continuous",
+                     *FIT_BRIEFLY]) == 0
+    out = tmp_path / "out" / "discrete"
+    assert cli.main(["export", str(continuous), "--format", "gltf", "--branch", "discrete", "-o", str(out),
+                     "--quiet"]) == 2
+    assert "no discrete branch" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "out").exists()
+
+
 CYCLES_PYTHON = ROOT / ".venv-cycles" / "bin" / "python"
 
 
@@ -204,7 +332,7 @@ def test_glb_renders_in_blender_cycles_like_vq_mitsuba(three_materials, tmp_path
     summary = export_run(run.dir, "gltf", tmp_path, texture_size=256, progress=False)
     cam = run.cameras()["train"][0]
     to_blender = np.eye(4)
-    to_blender[:3, :3] = Y_UP_TO_BLENDER @ world_to_y_up(fitted.world)
+    to_blender[:3, :3] = Y_UP_TO_BLENDER @ export_axes(fitted.world, summary["world"])
     job = {"glb": str(tmp_path / summary["files"][0]), "envmap": str(tmp_path / "envmap.exr"),
            "camera": {"name": cam.name, "transform_matrix": (to_blender @ cam.to_world @ OPENGL_TO_MITSUBA).tolist(),
                       "camera_angle_x": float(np.radians(cam.fov_x_deg)), "width": cam.width, "height": cam.height},
@@ -223,3 +351,39 @@ def test_glb_renders_in_blender_cycles_like_vq_mitsuba(three_materials, tmp_path
     assert psnr > 24.0, psnr
     ratio = cycles[..., :3][mask].mean(0) / ours["rgb"][mask].mean(0)
     assert np.all(np.abs(ratio - 1) < 0.12), ratio
+
+
+@pytest.mark.skipif(not CYCLES_PYTHON.is_file(), reason="Blender (bpy) is not installed: `make cycles`")
+def test_glb_of_a_nerf_capture_renders_in_blender_from_the_captures_own_camera(nerf_run, tmp_path):
+    """The .glb of a NeRF-capture run, imported by Blender's glTF importer and rendered by Cycles from
+    the capture's own test camera (its transforms_test.json matrix, untouched), shows the object
+    where `vq-mitsuba render` of that view does, in about the same colours."""
+    import imageio.v3 as iio
+
+    from vq_mitsuba.data.imageio import read_exr
+    from vq_mitsuba.synthetic.cycles import read_passes
+
+    data, run = nerf_run
+    summary = export_run(run.dir, "gltf", tmp_path, texture_size=64, progress=False)
+    path, camera, frame = _own_test_camera(data)
+    job = {"glb": str(tmp_path / summary["files"][0]), "envmap": str(tmp_path / "envmap.exr"),
+           "camera": {"name": camera.name, "transform_matrix": frame["transform_matrix"],
+                      "camera_angle_x": json.loads(path.read_text())["camera_angle_x"],
+                      "width": camera.width, "height": camera.height},
+           "samples": 128, "max_bounces": run.load().cfg.train.bounces, "output": str(tmp_path / "cycles.exr")}
+    (tmp_path / "job.json").write_text(json.dumps(job))
+    proc = subprocess.run([str(CYCLES_PYTHON), str(ROOT / "tests" / "blender_glb.py"), str(tmp_path / "job.json")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    cycles = read_passes(tmp_path / "cycles.exr")["Combined"]
+    assert cli.main(["render", str(run.dir), "--cameras", str(path), "-o", str(tmp_path / "r"), "--spp", "128",
+                     "--quiet"]) == 0
+    alpha = iio.imread(tmp_path / "r" / f"{camera.name}_alpha.png").astype(np.float64) / 255
+    assert alpha.mean() > 0.05
+    assert _soft_iou(np.clip(cycles[..., 3], 0, 1), alpha) >= 0.98
+    ours = read_exr(tmp_path / "r" / f"{camera.name}_rgb.exr")[..., :3]
+    mask = (alpha > 0.99) & (cycles[..., 3] > 0.99)  # inside the silhouette: colour, not coverage
+    ratio = cycles[..., :3][mask].mean(0) / ours[mask].mean(0)
+    assert np.all(np.abs(ratio - 1) < 0.15), ratio
+    assert M.image_metrics(cycles[..., :3], ours, mask)["psnr"] > 20.0
+

@@ -1,5 +1,5 @@
 """What every export format shares: textures as image files, the envmap in a target's
-convention, and the axes of Y-up formats (glTF, OBJ)."""
+convention, and the axes of Y-up formats (glTF, OBJ), which hold the capture's own world."""
 
 from __future__ import annotations
 
@@ -7,10 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, world_rotation
 from vq_mitsuba.data.envmaps import direction_to_pixel, texel_directions
 from vq_mitsuba.data.imageio import linear_to_srgb
+from vq_mitsuba.errors import InputError
 from vq_mitsuba.export.bake import BakedMesh
+from vq_mitsuba.run.run_dir import RunDir
 
 # glTF and OBJ are Y up; Blender's importers turn their (x, y, z) into Blender's (x, -z, y).
 Y_UP_TO_BLENDER = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -20,6 +22,24 @@ def world_to_y_up(world: str) -> np.ndarray:
     """(3, 3) rotation from a run's world ("mitsuba" Y up / "blender" Z up) to glTF / OBJ axes, chosen
     so that Blender's importers put the object back at the capture's own Blender coordinates."""
     return np.eye(3) if world == "mitsuba" else Y_UP_TO_BLENDER.T
+
+
+def capture_world(run: RunDir) -> str:
+    """The world the run's capture itself is written in (its cameras' and mesh.ply's), as the
+    loader reports it; the run's own world when the capture is no longer there."""
+    from vq_mitsuba.data.captures import load_cameras
+
+    info = run.source().info()
+    try:
+        return load_cameras(info["capture"])[1]
+    except (InputError, OSError):
+        return info["world"]
+
+
+def export_axes(run_world: str, own_world: str) -> np.ndarray:
+    """(3, 3) rotation from a run's world to the axes of a Y-up export (glTF, OBJ) of the capture's
+    own world `own_world`: the inverse of the loader's conversion (capture -> run), then Y up."""
+    return world_to_y_up(own_world) @ world_rotation(run_world, own_world)
 
 
 def srgb8(linear: np.ndarray) -> np.ndarray:
@@ -92,11 +112,12 @@ def write_envmap(path_stem: Path, env: np.ndarray) -> list[Path]:
     return [exr, hdr]
 
 
-def blender_envmap(fitted, envmap: np.ndarray | None, env_to_world: np.ndarray | None = None) -> np.ndarray:
-    """The run's lighting (or `envmap`, in the run's envmap frame) for a Y-up export imported
-    into Blender."""
+def blender_envmap(fitted, envmap: np.ndarray | None, axes: np.ndarray,
+                   env_to_world: np.ndarray | None = None) -> np.ndarray:
+    """The run's lighting (or `envmap`, in the run's envmap frame) for a Y-up export whose
+    coordinates are `axes` @ the run's, imported into Blender."""
     env = fitted.envmap if envmap is None else envmap
     to_world = fitted.envmap_to_world if env_to_world is None else env_to_world
-    world_to_blender = Y_UP_TO_BLENDER @ world_to_y_up(fitted.world)  # the identity for Blender-world runs
+    world_to_blender = Y_UP_TO_BLENDER @ axes  # the identity for Blender-world runs of Blender captures
     return envmap_for_blender(env, to_world, world_to_blender)
 

@@ -1,12 +1,16 @@
 """`vq-mitsuba export`: a fitted (or edited) run as a glTF binary, OBJ+MTL or a Mitsuba scene.
 
 Reads the run through `run.run_dir`; the material fields (with the run's edits) are baked into
-textures on a UV atlas (`export.bake`). Each format is one writer module.
+textures on a UV atlas (`export.bake`). Each format is one writer module. glTF and OBJ hold the
+capture's own world (a NeRF/Blender capture's Blender world, turned Y up as the formats ask, so
+Blender's importers put the object back among the capture's cameras); the Mitsuba scene holds
+the run's world, in which its sensors and envmap frame are given.
 """
 
 from __future__ import annotations
 
 import re
+import shutil
 import time
 from pathlib import Path
 
@@ -14,12 +18,33 @@ import numpy as np
 
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
+from vq_mitsuba.export.files import capture_world, export_axes
 
 FORMATS = ("gltf", "obj", "mitsuba")
 
 
 def _name(run: RunDir) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", run.dir.resolve().name) or "object"
+
+
+def _planned_files(fmt: str, name: str) -> list[str]:
+    """The names an export of `fmt` may write into its folder (what the writers below write)."""
+    textures = {"gltf": [], "obj": ["png"], "mitsuba": ["exr"]}[fmt]
+    files = [f"{name}_{key}.{ext}" for ext in textures for key in ("basecolor", "metallic", "roughness")]
+    files += {"gltf": [f"{name}.glb"], "obj": [f"{name}.obj", f"{name}.mtl"],
+              "mitsuba": ["scene.xml", f"{name}.ply"]}[fmt]
+    return files + ["envmap.exr", "envmap.hdr", f"{name}_material_id.png", "export.json"]
+
+
+def _check_target(out: Path, fmt: str, name: str) -> None:
+    """Refuse an output folder holding a run whose own files the export would replace."""
+    if not (out / RunDir.INFO).is_file():
+        return
+    run_files = {v for k, v in vars(RunDir).items() if k.isupper() and isinstance(v, str)}
+    clash = sorted(set(_planned_files(fmt, name)) & run_files)
+    if clash:
+        raise InputError(out, f"holds a run, and the export would overwrite its {', '.join(clash)}: "
+                              "choose another -o (e.g. a new folder)")
 
 
 def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size: int = 1024,
@@ -39,49 +64,58 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
         envmap = load_envmap(envmap_path)
     cameras = [c for split in run.cameras().values() for c in split] if fmt == "mitsuba" else []
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    name = _name(run)
+    _check_target(out, fmt, name)
+    world = fitted.world if fmt == "mitsuba" else capture_world(run)
+    axes = export_axes(fitted.world, world)
 
     from vq_mitsuba.export.bake import bake
 
     t0 = time.perf_counter()
     baked = bake(fitted, int(texture_size), branch, progress=progress)
     bake_s = time.perf_counter() - t0
-    name = _name(run)
+    missing = [p for p in (out, *out.parents) if not p.exists()]  # made here: removed again if writing fails
+    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    if fmt == "gltf":
-        from vq_mitsuba.export.gltf import write_glb
+    try:
+        if fmt == "gltf":
+            from vq_mitsuba.export.gltf import write_glb
 
-        files = [write_glb(out / f"{name}.glb", baked, fitted.world, name)]
-    elif fmt == "obj":
-        from vq_mitsuba.export.obj import write_obj
+            files = [write_glb(out / f"{name}.glb", baked, axes, name)]
+        elif fmt == "obj":
+            from vq_mitsuba.export.obj import write_obj
 
-        files = write_obj(out / f"{name}.obj", baked, fitted.world, name)
-    else:
-        from vq_mitsuba.export.mitsuba_xml import write_mitsuba
+            files = write_obj(out / f"{name}.obj", baked, axes, name)
+        else:
+            from vq_mitsuba.export.mitsuba_xml import write_mitsuba
 
-        env = fitted.envmap if envmap is None else envmap
-        files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,
-                              2 + fitted.cfg.train.bounces, name)
-    if fmt != "mitsuba":  # Y-up formats: the lighting in Blender's convention (the XML holds its own frame)
-        from vq_mitsuba.export.files import blender_envmap, write_envmap
+            env = fitted.envmap if envmap is None else envmap
+            files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,
+                                  2 + fitted.cfg.train.bounces, name)
+        if fmt != "mitsuba":  # Y-up formats: the lighting in Blender's convention (the XML holds its own frame)
+            from vq_mitsuba.export.files import blender_envmap, write_envmap
 
-        files += write_envmap(out / "envmap", blender_envmap(fitted, envmap))
-    if baked.material is not None:
-        import imageio.v3 as iio
+            files += write_envmap(out / "envmap", blender_envmap(fitted, envmap, axes))
+        if baked.material is not None:
+            import imageio.v3 as iio
 
-        iio.imwrite(out / f"{name}_material_id.png", baked.material)
-        files.append(out / f"{name}_material_id.png")
-    summary = {
-        "run": str(run.dir.resolve()), "format": fmt, "branch": branch, "texture_size": int(texture_size),
-        "envmap": str(Path(envmap_path).resolve()) if envmap_path else "fitted",
-        "envmap_convention": "mitsuba scene frame (to_world in scene.xml)" if fmt == "mitsuba" else
-        "Blender world of the imported file",
-        "world": fitted.world, "edits": len(fitted.edits), "vertices": int(len(baked.vertices)),
-        "faces": int(len(baked.faces)), "texel_coverage": float(np.mean(baked.coverage)),
-        "seconds": {"bake": round(bake_s, 2), **{k: round(v, 2) for k, v in baked.seconds.items()},
-                    "write": round(time.perf_counter() - t0, 2)},
-        "files": [str(Path(f).relative_to(out)) for f in files],
-    }
-    write_json(out / "export.json", summary)
+            iio.imwrite(out / f"{name}_material_id.png", baked.material)
+            files.append(out / f"{name}_material_id.png")
+        summary = {
+            "run": str(run.dir.resolve()), "format": fmt, "branch": branch, "texture_size": int(texture_size),
+            "envmap": str(Path(envmap_path).resolve()) if envmap_path else "fitted",
+            "envmap_convention": "mitsuba scene frame (to_world in scene.xml)" if fmt == "mitsuba" else
+            "Blender world of the imported file",
+            "world": world, "run_world": fitted.world, "edits": len(fitted.edits),
+            "vertices": int(len(baked.vertices)), "faces": int(len(baked.faces)),
+            "texel_coverage": float(np.mean(baked.coverage)),
+            "seconds": {"bake": round(bake_s, 2), **{k: round(v, 2) for k, v in baked.seconds.items()},
+                        "write": round(time.perf_counter() - t0, 2)},
+            "files": [str(Path(f).relative_to(out)) for f in files],
+        }
+        write_json(out / "export.json", summary)
+    except BaseException:
+        if missing:
+            shutil.rmtree(missing[-1], ignore_errors=True)
+        raise
     return summary
-

@@ -2,7 +2,8 @@
 
 basecolor is an sRGB texture; metallic and roughness share one linear texture (roughness in G,
 metallic in B), as the specification asks. glTF's roughness is the same perceptual roughness
-as Mitsuba's `principled` (alpha = roughness^2). Axes are Y up (`files.world_to_y_up`).
+as Mitsuba's `principled` (alpha = roughness^2). Axes are Y up, in the capture's own world
+(`files.export_axes`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.export.bake import BakedMesh
-from vq_mitsuba.export.files import png_bytes, texture_images, world_to_y_up
+from vq_mitsuba.export.files import png_bytes, texture_images
 
 FLOAT, UINT32 = 5126, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
@@ -25,8 +26,9 @@ def _pad4(data: bytes, fill: bytes = b"\0") -> bytes:
     return data + fill * (-len(data) % 4)
 
 
-def write_glb(path: Path, baked: BakedMesh, world: str, name: str = "object") -> Path:
-    rot = world_to_y_up(world)
+def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "object") -> Path:
+    """`path` holding the baked mesh turned by `axes` (3, 3), run world -> the file's axes."""
+    rot = np.asarray(axes, np.float64)
     positions = (baked.vertices.astype(np.float64) @ rot.T).astype(np.float32)
     normals = baked.normals.astype(np.float64) @ rot.T
     normals = (normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)).astype(np.float32)

@@ -1,5 +1,6 @@
 """Wavefront OBJ + MTL with the PBR extension keys (`Pr`/`map_Pr` roughness, `Pm`/`map_Pm`
-metallic) that Blender's importer and many engines read; textures as PNG beside it. Y up."""
+metallic) that Blender's importer and many engines read; textures as PNG beside it. Y up, in
+the capture's own world (`files.export_axes`)."""
 
 from __future__ import annotations
 
@@ -8,14 +9,15 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.export.bake import BakedMesh
-from vq_mitsuba.export.files import texture_images, world_to_y_up
+from vq_mitsuba.export.files import texture_images
 
 
-def write_obj(path: Path, baked: BakedMesh, world: str, name: str = "object") -> list[Path]:
+def write_obj(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "object") -> list[Path]:
+    """`path`, its .mtl and textures: the baked mesh turned by `axes` (3, 3), run world -> the file's axes."""
     import imageio.v3 as iio
 
     out = path.parent
-    rot = world_to_y_up(world)
+    rot = np.asarray(axes, np.float64)
     v = baked.vertices.astype(np.float64) @ rot.T
     n = baked.normals.astype(np.float64) @ rot.T
     images = texture_images(baked)
