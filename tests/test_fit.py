@@ -292,3 +292,76 @@ def test_resume_after_the_envmap_grew(tmp_path):
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     assert state["step"] == 6 and state["envmap"]["log_radiance"].shape == (64, 128, 3)
     assert RunDir(run).load().envmap.shape == (64, 128, 3)
+
+
+@pytest.fixture
+def five_step_run(tmp_path):
+    """(capture, run folder, settings) of a 5-step fit with a learned envmap grown to 128 rows."""
+    capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=8, known_envmap=False)
+    run = tmp_path / "run"
+    base = ["--quiet", "--set", "train.batch_rays=128", "--set", "vq.warmup_frac=0.3"]
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=5"]) == 0
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["envmap"]["log_radiance"].shape[0] == 128
+    return capture, run, base
+
+
+def _config_iterations(run) -> int:
+    import yaml
+
+    return yaml.safe_load((run / "config.yaml").read_text())["train"]["iterations"]
+
+
+def test_resume_with_more_iterations_follows_the_resumed_schedule(five_step_run, monkeypatch):
+    """Step 5 of 40 is early on the envmap's ladder: the 128-row envmap is averaged down to 32 rows
+    and grows back to 128 by the end; config.yaml matches the checkpoint."""
+    from vq_mitsuba.engine.trainer import Trainer
+
+    capture, run, base = five_step_run
+    heights = []
+    step = Trainer.train_step
+    monkeypatch.setattr(Trainer, "train_step", lambda self, s: (step(self, s), heights.append(
+        self.env_module.log_radiance.shape[0]))[0])
+    before = torch.exp(torch.load(run / "checkpoint.pt", weights_only=False)["envmap"]["log_radiance"])
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=40", "--resume"]) == 0
+    assert heights[0] == 32 and heights[-1] == 128 and heights == sorted(heights)
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 40 and state["envmap"]["log_radiance"].shape == (128, 256, 3)
+    assert state["config"]["train"]["iterations"] == _config_iterations(run) == 40
+    assert json.loads((run / "fit.json").read_text())["iterations"] == 40
+    # The shrunk envmap keeps the light's mean radiance (an average, not a fresh start).
+    shrunk = torch.nn.functional.adaptive_avg_pool2d(before.permute(2, 0, 1), (32, 64))
+    assert torch.allclose(shrunk.mean((1, 2)), before.mean((0, 1)), rtol=1e-4)
+
+
+def test_resume_with_fewer_iterations_leaves_the_run_unchanged(five_step_run, capsys):
+    capture, run, base = five_step_run
+    files = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=3", "--resume"]) == 0
+    out = capsys.readouterr().out
+    assert "already fitted (5 iterations; train.iterations=3" in out and "nothing to do" in out
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == files
+    assert _config_iterations(run) == torch.load(run / "checkpoint.pt", weights_only=False)["config"]["train"][
+        "iterations"] == 5
+
+
+def test_resume_past_the_target_of_an_unfinished_run_finishes_it(five_step_run, capsys):
+    """A run stopped after its last step but before its results (no fit.json): resuming with fewer
+    iterations writes the results at the steps done, and config.yaml says that many."""
+    capture, run, base = five_step_run
+    (run / "fit.json").unlink()
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=3", "--resume"]) == 0
+    assert json.loads((run / "fit.json").read_text())["iterations"] == 5
+    assert _config_iterations(run) == 5 == torch.load(run / "checkpoint.pt", weights_only=False)["step"]
+
+
+def test_a_mesh_far_too_large_for_the_cameras_is_warned_about(tmp_path, capsys):
+    import trimesh
+
+    capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=8)
+    cfg = load_config(None, ["train.iterations=2", "train.batch_rays=64", "vq.enabled=false"])
+    fit(capture, tmp_path / "right", cfg, progress=False)
+    assert "warning: the mesh" not in capsys.readouterr().out
+    trimesh.creation.icosphere(subdivisions=3, radius=500.0).export(capture.parent / "sphere.ply")  # mm, not m
+    fit(capture, tmp_path / "huge", cfg, progress=False)
+    out = capsys.readouterr().out
+    assert "warning: the mesh's bounding sphere (radius 866) encloses every camera" in out  # 500 * sqrt(3)
