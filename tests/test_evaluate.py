@@ -145,3 +145,34 @@ def test_ground_truth_scored_as_the_prediction_is_perfect(tiny_dataset):
                  m["relighting"]["albedo_scale"]["mean"]["psnr"]):
         assert psnr == math.inf or psnr > 80
     assert m["novel_view"]["ssim"] == pytest.approx(1.0)
+
+
+def test_eval_reports_novel_view_with_and_without_the_residual(tiny_dataset, tmp_path, capsys):
+    """Both figures from one render: the physically based one is what the same run without its
+    residual.pt scores, the other is the render with the residual added."""
+    import shutil
+
+    from vq_mitsuba.run.run_dir import RunDir
+
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_dataset / "scene.xml"), "-o", str(run), "--quiet", "--set", "train.iterations=4",
+                 "--set", "train.batch_rays=128", "--set", "residual.iterations=30"]) == 0
+    bare = tmp_path / "bare"
+    shutil.copytree(run, bare)
+    (bare / RunDir.RESIDUAL).unlink()
+    m = {}
+    for name in ("run", "bare"):
+        out = tmp_path / f"{name}.json"
+        assert main(["eval", str(tmp_path / name), "--gt", str(tiny_dataset), "--spp", "4", "--quiet", "-o", str(out),
+                     "--meanshift", "none"]) == 0
+        m[name] = json.loads(out.read_text())
+    assert "novel view + residual" in capsys.readouterr().out
+    with_r, without = m["run"], m["bare"]
+    assert without["novel_view_residual"] is None
+    assert with_r["novel_view"]["psnr"] == pytest.approx(without["novel_view"]["psnr"], abs=1e-9)
+    assert math.isfinite(with_r["novel_view_residual"]["psnr"])
+    assert with_r["novel_view_residual"]["psnr"] != with_r["novel_view"]["psnr"]
+    assert all("novel_view_residual_psnr" in row for row in with_r["per_view"])
+    # the relighting renders leave the residual out: the same figures as the run without it
+    assert with_r["relighting"]["image_scale"]["mean"]["psnr"] == \
+        pytest.approx(without["relighting"]["image_scale"]["mean"]["psnr"], abs=1e-9)

@@ -190,6 +190,14 @@ class TrainConfig:
 
 
 @dataclass
+class ResidualConfig:
+    """The view-dependent residual of novel views, fitted after the materials (VQ-NeRF, Sec. 4)."""
+
+    iterations: int = setting(500, "steps fitting the residual on the training pixels, materials and light frozen "
+                                   "(0: no residual)")
+
+
+@dataclass
 class RenderConfig:
     """Rendering views of a fitted run."""
 
@@ -262,6 +270,7 @@ class Config:
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     vq: VQConfig = dataclasses.field(default_factory=VQConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    residual: ResidualConfig = dataclasses.field(default_factory=ResidualConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
     ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)

@@ -25,6 +25,7 @@ from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
 from vq_mitsuba.engine.checks import mesh_scale_warning
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
+from vq_mitsuba.engine.residual import residual_stage
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.run.loop import Budget, Loop, Progress
@@ -306,7 +307,8 @@ class Trainer:
         return None
 
     def finish(self, summary: dict) -> None:
-        """Rank the codewords (when the discrete branch ran) and write the run's results."""
+        """Rank the codewords (when the discrete branch ran), fit the residual of novel views
+        (`residual.iterations`) and write the run's results."""
         from vq_mitsuba.render.sheet import write_material_sheet
 
         run, env = self.run, self.envmap().detach()
@@ -322,6 +324,9 @@ class Trainer:
             print("warning: the fit ended before the discrete branch started (vq.warmup_frac); "
                   "no materials.json was written")
         run.write_envmap(env.cpu().numpy())
+        if self.cfg.residual.iterations > 0:  # VQ-NeRF Sec. 4: materials and light frozen from here
+            summary["residual"] = residual_stage(run, self.scene, self.model, self.pool, env, self.capture.mesh.bounds,
+                                                 self.cfg, self.step)
         run.write_file(RunDir.LOSS_PLOT, lambda path: plot_history(self.history, path))
         run.write_fit_summary(summary)
 

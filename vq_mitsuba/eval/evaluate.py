@@ -6,7 +6,8 @@ world); the test cameras come from transforms_test.json and are converted to the
 Every test view is rendered with the fitted lighting (novel view, material maps) and under each
 held-aside envmap (relighting), and compared inside the ground-truth foreground (gt alpha > 0.5):
 
-- novel view: premultiplied linear RGB of `images/<id>.exr`, compared in sRGB (PSNR, SSIM);
+- novel view: premultiplied linear RGB of `images/<id>.exr`, compared in sRGB (PSNR, SSIM), the
+  physically based render; with the run's residual (`novel_view_residual`) when it has one;
 - basecolor: `gt/<id>_basecolor.exr` after a per-channel scale alignment computed once over all
   test views jointly (method "lstsq" as NeRFactor or "median" as TensoIR), compared in sRGB;
 - metallic, roughness: PSNR of the linear [0, 1] maps, no alignment;
@@ -263,6 +264,8 @@ def _render_fitted_lighting(predictor, data: _TestViews, spp: int, aa: int | Non
     for i, cam in enumerate(data.views):
         out = renderer.render(cam, spp=spp, aa=aa, seed=i)
         check_finite(out, cam.name)  # no score of a NaN image is written
+        if "rgb_physical" in out:  # every score but novel_view_residual sees the physically based render
+            out["rgb_residual"], out["rgb"] = out["rgb"], out.pop("rgb_physical")
         if predictor.world == "mitsuba":  # GT normals are in Blender world = R @ Mitsuba world
             out["normal"] = out["normal"] @ MITSUBA_TO_BLENDER.T
         preds.append(out)
@@ -284,6 +287,8 @@ def _image_scores(data: _TestViews, preds: list[dict], scale_method: str) -> tup
         bc = M.image_metrics(pred["basecolor"] * bc_scales, gt["basecolor"], m)
         row = {"view": cam.name, "pixels": int(m.sum()),
                "novel_view_psnr": nv["psnr"], "novel_view_ssim": nv["ssim"],
+               **({"novel_view_residual_" + k: v for k, v in M.image_metrics(pred["rgb_residual"], gt["rgb"], m).items()}
+                  if "rgb_residual" in pred else {}),
                "basecolor_psnr": bc["psnr"], "basecolor_ssim": bc["ssim"],
                "basecolor_psnr_unaligned": M.psnr(M.srgb(pred["basecolor"]), M.srgb(gt["basecolor"]), m),
                "metallic_psnr": M.psnr(pred["metallic"], gt["metallic"], m),
@@ -385,6 +390,8 @@ def _assemble_result(data: _TestViews, per_view: list[dict], bc_scales: np.ndarr
         "mask": f"ground-truth alpha > {MASK_THRESHOLD}",
         "color_space": "images and basecolor: sRGB of clipped linear values; metallic, roughness: linear [0, 1]",
         "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},
+        "novel_view_residual": {"psnr": avg("novel_view_residual_psnr"), "ssim": avg("novel_view_residual_ssim")}
+        if any("novel_view_residual_psnr" in row for row in per_view) else None,
         "basecolor": {"psnr": avg("basecolor_psnr"), "ssim": avg("basecolor_ssim"),
                       "psnr_unaligned": avg("basecolor_psnr_unaligned"), "aligned_with": scale_method},
         "alignment": {"method": scale_method, "scales": [float(s) for s in bc_scales],
@@ -515,8 +522,11 @@ def _fmt(x, digits: int) -> str:
 def table_rows(metrics: dict) -> list[tuple[str, object, object]]:
     """(label, PSNR, SSIM) rows of the readable table; SSIM None where not computed."""
     method = metrics["alignment"]["method"]
-    rows = [("novel view", metrics["novel_view"]["psnr"], metrics["novel_view"]["ssim"]),
-            (f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
+    rows = [("novel view", metrics["novel_view"]["psnr"], metrics["novel_view"]["ssim"])]
+    if metrics.get("novel_view_residual"):
+        rows.append(("novel view + residual", metrics["novel_view_residual"]["psnr"],
+                     metrics["novel_view_residual"]["ssim"]))
+    rows += [            (f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
             ("metallic (linear)", metrics["metallic"]["psnr"], None),
             ("roughness (linear)", metrics["roughness"]["psnr"], None)]
     d = metrics.get("discrete_branch")
@@ -599,11 +609,17 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
         out = renderer.render(cam, spp=spp)
         check_finite(out, cam.name)
         mask = alpha > 0.5
-        pred = out["rgb"] / np.maximum(out["alpha"], 1e-6)[..., None]  # straight colour, as the photo's
-        rows.append({"view": cam.name, **M.image_metrics(pred, image, mask),
-                     "coverage_iou": float((mask & (out["alpha"] > 0.5)).sum() / max((mask | (out["alpha"] > 0.5)).sum(), 1))})
+        straight = lambda rgb: rgb / np.maximum(out["alpha"], 1e-6)[..., None]  # noqa: E731 (as the photo's)
+        row = {"view": cam.name, **M.image_metrics(straight(out.get("rgb_physical", out["rgb"])), image, mask),
+               "coverage_iou": float((mask & (out["alpha"] > 0.5)).sum() / max((mask | (out["alpha"] > 0.5)).sum(), 1))}
+        if "rgb_physical" in out:  # the run's residual: rgb has it, rgb_physical not
+            row.update({"residual_" + k: v for k, v in M.image_metrics(straight(out["rgb"]), image, mask).items()})
+        rows.append(row)
     metrics = {"run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
                "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
+               "novel_view_residual": {"psnr": _mean(r["residual_psnr"] for r in rows),
+                                       "ssim": _mean(r["residual_ssim"] for r in rows)}
+               if any("residual_psnr" in r for r in rows) else None,
                "coverage_iou": _mean(r["coverage_iou"] for r in rows), "views": rows}
     if output is not None:
         Path(output).parent.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,7 @@ import torch
 from vq_mitsuba.config import Config
 from vq_mitsuba.models.edits import Edit, apply_edits
 from vq_mitsuba.models.fields import ContinuousMaterial
+from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.models.vq import DiscreteBranch
 
 if TYPE_CHECKING:
@@ -28,6 +29,9 @@ class FittedModel:
     mesh: trimesh.Trimesh
     step: int  # training steps behind this state (-1 when the state file does not say)
     edits: list[Edit] = field(default_factory=list)  # material edits, applied wherever the fields are read
+    # The view-dependent residual of novel views under the capture's own light (None: the run has
+    # none); renders under other light, of edits and exports leave it out (`render.views.Renderer`).
+    residual: ResidualField | None = None
 
     @torch.no_grad()
     def materials_at(self, points: torch.Tensor, discrete: bool = False, ids: bool = True) -> dict[str, torch.Tensor]:

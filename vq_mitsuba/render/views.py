@@ -16,6 +16,7 @@ from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_ji
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.fitted import FittedModel
+from vq_mitsuba.models.residual import add_residual
 from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
@@ -31,7 +32,12 @@ def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:
 
 
 class Renderer:
-    """Renders views of a fitted run under its own lighting or another envmap."""
+    """Renders views of a fitted run under its own lighting or another envmap.
+
+    Under the run's own lighting (no envmap, rotation or exposure given) and without edits, the
+    run's residual (`FittedModel.residual`, VQ-NeRF Sec. 4) is added to each hit's radiance; the
+    render then also returns `rgb_physical`, the same image without it. Any other lighting and
+    any edit give the physically based render alone."""
 
     def __init__(self, fitted: FittedModel, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
                  exposure_ev: float = 0.0):
@@ -46,6 +52,8 @@ class Renderer:
         to_world = rotate_about_up(fitted.envmap_to_world, env_rotate_deg)
         self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
+        own_light = envmap is None and env_rotate_deg == 0 and exposure_ev == 0
+        self.residual = fitted.residual if own_light else None
 
     @torch.no_grad()
     def render(self, camera: Camera, spp: int | None = None, aa: int | None = None, seed: int = 0,
@@ -65,12 +73,17 @@ class Renderer:
         cfg = self.fitted.cfg.render
         spp = spp or cfg.spp
         aa = aa or cfg.aa
-        sums = _PixelSums(camera.height * camera.width, self.fitted.discrete, len(relight), self.env_t.device)
+        sums = _PixelSums(camera.height * camera.width, self.fitted.discrete, len(relight), self.env_t.device,
+                          physical=self._residual() is not None)
         lights = [self, *relight]
         if any(r.fitted is not self.fitted for r in relight):
             raise ValueError("relight renderers must render the same fitted run")
         self._trace_passes(camera, sums, lights, aa, max(2, spp // aa), seed)
         return sums.images(camera.height, camera.width, aa)
+
+    def _residual(self):
+        """The residual this render adds: the run's under its own light, none once edits apply."""
+        return self.residual if not self.fitted.edits else None
 
     def _trace_passes(self, camera: Camera, sums: _PixelSums, lights: list[Renderer], aa: int, light_spp: int,
                       seed: int) -> None:
@@ -108,9 +121,14 @@ class Renderer:
                                              light.env_t, light_spp, generator=g, material_fn=bounce_field,
                                              bounce_memo=memo)
                            for light, g in zip(lights, gens))
-        values = {"rgb": rgb, "basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
+        values = {"basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
                   "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
                   **dict(zip(sums.relit_keys, rgb_relit))}
+        residual = self._residual()
+        if residual is not None:
+            values["rgb_physical"] = rgb
+            rgb = add_residual(rgb, residual(hits.position[sel], hits.normal[sel], hits.wi[sel]))
+        values["rgb"] = rgb
         if discrete is not None:  # material id of the hit (its nearest ranked codeword, 1..M) and its BRDF
             od = out["discrete"]
             sums.votes.index_put_((pix, out["material"]), torch.ones_like(pix, dtype=torch.int32),
@@ -125,7 +143,7 @@ class _PixelSums:
     """Per-pixel sums of a render's shaded hits (float64): hit counts, every map, the rgb under
     each other lighting and, with a discrete branch, its maps and the material votes."""
 
-    def __init__(self, n_pix: int, discrete, n_relight: int, dev):
+    def __init__(self, n_pix: int, discrete, n_relight: int, dev, physical: bool = False):
         self.n_pix = n_pix
         self.hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
         channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
@@ -135,6 +153,8 @@ class _PixelSums:
         if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
             channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
         self.relit_keys = [f"relit_{j}" for j in range(n_relight)]  # rgb under each other lighting
+        if physical:  # the rgb without the residual
+            channels["rgb_physical"] = 3
         channels.update({k: 3 for k in self.relit_keys})
         self.acc = {k: torch.zeros(n_pix, c, dtype=torch.float64, device=dev) for k, c in channels.items()}
 
@@ -147,6 +167,8 @@ class _PixelSums:
         out = {"alpha": alpha.reshape(h, w).astype(np.float32)}
         # Colour is premultiplied by coverage (background is black); maps are averaged over hits.
         out["rgb"] = (acc["rgb"] / aa).reshape(h, w, 3).astype(np.float32)
+        if "rgb_physical" in acc:
+            out["rgb_physical"] = (acc["rgb_physical"] / aa).reshape(h, w, 3).astype(np.float32)
         if self.relit_keys:
             out["relit"] = [(acc[k] / aa).reshape(h, w, 3).astype(np.float32) for k in self.relit_keys]
         safe = np.maximum(hits_count, 1)[:, None]

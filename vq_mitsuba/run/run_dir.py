@@ -14,6 +14,7 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     materials_err.png    err_k against k with M marked
     materials_sheet.png  each ranked material as a sphere under the fitted light
     loss.png, fit.json   training curves and the fit's summary
+    residual.pt          the view-dependent residual for novel views under the capture's light
     metrics.json         written by `vq-mitsuba eval`
     snapshots/           states kept at train.snapshot_s
     run.lock             while a command writes into the run: its owner (one process at a time)
@@ -46,6 +47,7 @@ from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
+from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock
 from vq_mitsuba.run.write_errors import WriteError, as_write_error
 
@@ -169,6 +171,7 @@ class RunDir:
     LOSS_PLOT = "loss.png"
     FIT = "fit.json"
     METRICS = "metrics.json"
+    RESIDUAL = "residual.pt"  # the residual field of novel views (models/residual.py), with its fit's step
     SNAPSHOTS = "snapshots"
     RENDERS = "renders"  # the default output folder of `vq-mitsuba render`
     EDITS = "edits.json"
@@ -383,6 +386,22 @@ class RunDir:
             raise InputError(path, f"holds non-finite values in {', '.join(bad[:5])}: refusing to load it")
         return state
 
+    def save_residual(self, field_state: dict, step: int) -> None:
+        """The residual field fitted after the material fit's step `step` (finite tensors only)."""
+        bad = [k for k, t in field_state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+        if bad:
+            raise NumericalError(self.dir, f"{self.RESIDUAL} not written: non-finite values in {', '.join(bad[:5])}")
+        save_torch({"step": int(step), "field": field_state}, self.dir / self.RESIDUAL)
+
+    def residual_state(self, step: int, device=None) -> dict | None:
+        """The residual field's state when the run has one fitted after step `step` (a run fitted
+        before this stage has none; one left from before a resumed fit is another step's: None)."""
+        path = self.source().dir / self.RESIDUAL
+        if not path.is_file():
+            return None
+        state = self.load_state(path, device)
+        return state["field"] if state.get("step") == step and isinstance(state.get("field"), dict) else None
+
     def snapshot_path(self, elapsed_s: float, step: int) -> Path:
         (self.dir / self.SNAPSHOTS).mkdir(exist_ok=True)
         return self.dir / self.SNAPSHOTS / f"t{elapsed_s:07.1f}s_step{step:06d}.pt"
@@ -440,5 +459,11 @@ class RunDir:
             envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
         else:
             envmap = state["envmap_fixed"].cpu().numpy()
-        return FittedModel(cfg, model, discrete, envmap, np.asarray(info["envmap_to_world"]), info["world"], mesh,
-                           int(state.get("step", -1)))
+        fitted = FittedModel(cfg, model, discrete, envmap, np.asarray(info["envmap_to_world"]), info["world"], mesh,
+                             int(state.get("step", -1)))
+        residual = self.residual_state(fitted.step, device) if checkpoint is None else None
+        if residual is not None:
+            fitted.residual = ResidualField(*mesh.bounds).to(device)
+            fitted.residual.load_state_dict(residual)
+            fitted.residual.eval()
+        return fitted

@@ -1,0 +1,110 @@
+"""Residual baking (VQ-NeRF, Sec. 4): the view-dependent residual fitted after the material fit.
+
+Materials and light are frozen, so the physically based radiance of each training hit is a
+constant: it is rendered once (`PREDICTION_SPP` sample pairs, the continuous branch with the
+render's bounce, as `render.views.Renderer` shades it) for up to `RESIDUAL_HITS` random hits of
+the trainer's pixel pool. The residual field (`vq_mitsuba.models.residual`) is then fitted in
+torch alone, without Mitsuba in the loop, to the gamma-encoded pixel colours:
+
+    min_r  mean || enc(L_pbr(x, wi) + r(x, wi)) - enc(target) ||^2,   enc(c) = c^(1/loss.gamma)
+
+Approximate: each hit's L_pbr is one Monte Carlo estimate, not its mean, so the targets of the
+residual carry that noise; the field is smooth and fitted over many hits, so it averages it out
+rather than learning it (fit.json's `residual` block shows the training-pixel PSNR before and
+after, on hits the field was not fitted on).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from vq_mitsuba.config import Config
+from vq_mitsuba.data.pixels import PixelPool
+from vq_mitsuba.models import losses
+from vq_mitsuba.models.residual import ResidualField, add_residual
+from vq_mitsuba.run.loop import Budget, Loop, Progress
+from vq_mitsuba.run.run_dir import RunDir
+
+RESIDUAL_HITS = 1 << 17  # training hits the residual is fitted on (a random subset of larger pools)
+CHECK_SHARE = 0.1  # share of those hits kept aside to measure it
+PREDICTION_SPP = 32  # sample pairs of each hit's physically based radiance
+BATCH = 4096
+LR = 2e-3
+LR_END = 0.1  # learning-rate factor at the last step (exponential decay)
+
+
+@torch.no_grad()
+def physical_radiance(scene, model, pool: PixelPool, idx: torch.Tensor, env: torch.Tensor, cfg: Config,
+                      generator: torch.Generator) -> torch.Tensor:
+    """Linear radiance (len(idx), 3) of the pool's hits `idx` with the continuous branch's BRDF
+    under `env`, with the bounce when the fit simulates one (what `render` shows without the residual)."""
+    field = (lambda p: model(p)) if cfg.train.bounces > 0 else None
+    parts = []
+    for s in range(0, len(idx), cfg.render.chunk):
+        sel = idx[s:s + cfg.render.chunk]
+        out = model(pool.position[sel])
+        parts.append(scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], out["basecolor"],
+                                 out["metallic"], out["roughness"], env, PREDICTION_SPP, generator=generator,
+                                 material_fn=field))
+    return torch.cat(parts)
+
+
+def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: Config,
+                 progress: bool = False) -> tuple[ResidualField, dict]:
+    """The residual field fitted on the pool's hits (materials `model` and light `env` frozen),
+    and its summary: hits, steps, and the sRGB PSNR of the kept-aside hits before and after."""
+    device = pool.position.device
+    gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
+    n = min(len(pool), RESIDUAL_HITS)
+    idx = torch.randperm(len(pool), generator=gen, device=device)[:n]
+    target = pool.rgb[idx]
+    physical = physical_radiance(scene, model, pool, idx, env, cfg, gen)
+    n_check = max(1, int(CHECK_SHARE * n)) if n > 1 else 0
+    fit_ids, check_ids = torch.arange(n_check, n, device=device), torch.arange(n_check, device=device)
+    if len(fit_ids) == 0:
+        fit_ids = check_ids
+    field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4))).to(device)
+    optim = torch.optim.Adam(field.parameters(), lr=LR)
+    gamma = cfg.loss.gamma
+    position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
+    batch = min(BATCH, len(fit_ids))
+
+    def step(p: Progress) -> None:
+        for g in optim.param_groups:
+            g["lr"] = LR * LR_END ** p.step_share
+        b = fit_ids[torch.randint(0, len(fit_ids), (batch,), generator=gen, device=device)]
+        rgb = add_residual(physical[b], field(position[b], normal[b], wi[b]))
+        loss = losses.reconstruction_l2(rgb, target[b], gamma)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+
+    t0 = time.perf_counter()
+    Loop("residual", Budget(cfg.residual.iterations), step, progress_bar=progress).run()
+    field.eval()
+    with torch.no_grad():
+        c = check_ids
+        with_residual = add_residual(physical[c], field(position[c], normal[c], wi[c]))
+        before = losses.psnr(float(losses.srgb_mse(physical[c], target[c])))
+        after = losses.psnr(float(losses.srgb_mse(with_residual, target[c])))
+    info = {"iterations": cfg.residual.iterations, "hits": n, "check_hits": len(check_ids),
+            "prediction_spp": PREDICTION_SPP, "seconds": time.perf_counter() - t0,
+            "psnr_check_hits_before": before, "psnr_check_hits_after": after}
+    return field, info
+
+
+def residual_stage(run: RunDir, scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: Config,
+                   step: int, progress: bool = False) -> dict:
+    """Fit the residual after the material fit's step `step`, write it (RunDir.RESIDUAL) and
+    return its summary for fit.json."""
+    t0 = time.perf_counter()
+    field, info = fit_residual(scene, model, pool, env.detach(), bounds, cfg, progress)
+    run.save_residual(field.state_dict(), step)
+    info["seconds"] = time.perf_counter() - t0  # the prediction's render included
+    if math.isfinite(info["psnr_check_hits_before"]) and math.isfinite(info["psnr_check_hits_after"]):
+        print(f"residual: training hits {info['psnr_check_hits_before']:.2f} -> {info['psnr_check_hits_after']:.2f} "
+              f"dB PSNR (physically based -> with the residual), {info['seconds']:.1f} s")
+    return info
