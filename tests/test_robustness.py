@@ -260,3 +260,236 @@ def test_fit_of_a_colmap_capture_with_a_nan_focal_length_writes_nothing(tmp_path
     err = capsys.readouterr().err
     assert f"cameras.{'bin' if binary else 'txt'}: camera 1 ({model}): fx = nan is not a finite number" in err
     assert "Traceback" not in err and not out.exists()
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """(capture XML, run folder) of a 6-step fit of a small sphere, with both branches."""
+    from vq_mitsuba.engine.trainer import fit
+
+    folder = tmp_path_factory.mktemp("tiny")
+    capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
+    fit(capture, folder / "run", load_config(None, ["train.iterations=6", "train.batch_rays=128", "vq.warmup_frac=0.3"]),
+        progress=False)
+    return capture, folder / "run"
+
+
+def _wait_for(predicate, seconds: float = 300.0) -> None:
+    import time
+
+    deadline = time.time() + seconds
+    while not predicate():
+        assert time.time() < deadline, "timed out"
+        time.sleep(0.2)
+
+
+def test_two_concurrent_fits_on_one_folder(tmp_path, capsys):
+    """The second `fit` into a folder that a running fit writes is refused (exit 2, naming the
+    owner), with or without --resume; the first finishes with its results intact."""
+    import json
+    import subprocess
+    import sys
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    run = tmp_path / "run"
+    # The first fit runs for 15 training seconds, whatever this machine's speed.
+    first_settings = ["--set", "train.iterations=100000", "--set", "train.time_limit_s=15", "--set",
+                      "train.batch_rays=128", "--set", "vq.enabled=false", "--set", "train.checkpoint_every=10"]
+    first = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "fit", str(capture), "-o", str(run), "--quiet",
+                              *first_settings], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: (run / "config.yaml").is_file() or first.poll() is not None)
+        assert first.poll() is None and json.loads((run / RunDir.LOCK).read_text())["pid"] == first.pid
+        second = ["fit", str(capture), "-o", str(run), "--quiet", "--set", "train.iterations=5"]
+        for extra in ([], ["--resume"]):
+            assert cli.main(second + extra) == 2
+            err = capsys.readouterr().err
+            assert f"{run}: is in use by `vq-mitsuba fit` (pid {first.pid} on " in err and "Traceback" not in err
+        out, err = first.communicate(timeout=600)
+    finally:
+        first.kill()
+        first.wait()
+    assert first.returncode == 0, err
+    summary = json.loads((run / "fit.json").read_text())
+    state = RunDir(run).load_state()
+    assert summary["iterations"] == state["step"] > 0 and state["config"]["train"]["time_limit_s"] == 15
+    assert RunDir(run).config().train.iterations == 100000  # config.yaml is the first fit's
+    assert not (run / RunDir.LOCK).exists()
+
+
+def test_disk_full_during_a_fit_keeps_the_last_checkpoint(tmp_path, monkeypatch, capsys):
+    """ENOSPC while the second checkpoint is written: one message naming the file (exit 2); the
+    first checkpoint stays whole and loadable, and no temporary file is left."""
+    import errno
+    from pathlib import Path
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    run = tmp_path / "run"
+    real_save, saves = torch.save, []
+
+    def save(obj, f, *args, **kwargs):
+        saves.append(Path(f))
+        if len(saves) >= 2:
+            Path(f).write_bytes(b"half a checkpoint")
+            raise OSError(errno.ENOSPC, "No space left on device", str(f))
+        return real_save(obj, f, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", save)
+    code = cli.main(["fit", str(capture), "-o", str(run), "--quiet", "--set", "train.iterations=6", "--set",
+                     "train.checkpoint_every=2", "--set", "train.batch_rays=128", "--set", "vq.enabled=false"])
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert code == 2 and len(saves) == 2  # no second try after the refused write
+    assert [line for line in err.splitlines() if line.startswith("error")] == [
+        f"error: {run / RunDir.CHECKPOINT}: cannot be written: no space left on the device (files written before "
+        "are kept)"]
+    assert "Traceback" not in err and "warning" not in err
+    assert RunDir(run).load_state()["step"] == 2
+    assert not [p.name for p in run.iterdir() if p.name.startswith(".")]
+
+
+def _command(name: str, capture, run, out) -> list[str]:
+    return {"fit": ["fit", str(capture), "-o", str(out / "run"), "--quiet"],
+            "render": ["render", str(run), "--cameras", str(capture), "-o", str(out / "views"), "--quiet"],
+            "edit": ["edit", str(run), "--material", "1", "--set", "roughness=0.5", "-o", str(out / "edited")],
+            "eval": ["eval", str(run), "--gt", str(out.parent / "no_dataset"), "-o", str(out / "metrics.json")],
+            "make-scene": ["make-scene", "demo", "-o", str(out / "demo"), "--resolution", "8"]}[name]
+
+
+COMMANDS_WRITING = ("fit", "render", "edit", "eval", "make-scene")
+
+
+@pytest.mark.parametrize("command", COMMANDS_WRITING)
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tiny_run, tmp_path, monkeypatch, capsys,
+                                                                           command):
+    """The operating system says the folder is not writable (as for a read-only folder of a user
+    without root): one message naming it, exit 2, before the run or the capture is read."""
+    import os
+    from pathlib import Path
+
+    capture, run = tiny_run
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == locked else real_access(p, mode, **kw))
+    monkeypatch.setattr(RunDir, "load", lambda *a, **kw: pytest.fail("the run was loaded"))
+    import vq_mitsuba.engine.trainer as trainer
+
+    monkeypatch.setattr(trainer, "load_capture", lambda *a, **kw: pytest.fail("the capture was loaded"))
+    assert cli.main(_command(command, capture, run, locked)) == 2
+    assert f"error: {locked}: cannot be written: permission denied" in capsys.readouterr().err
+    assert list(locked.iterdir()) == []
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() == 0,
+                    reason="root writes into read-only folders")
+@pytest.mark.parametrize("command", COMMANDS_WRITING)
+def test_a_read_only_output_folder_is_one_message(tiny_run, tmp_path, capsys, command):
+    capture, run = tiny_run
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        assert cli.main(_command(command, capture, run, locked)) == 2
+        err = capsys.readouterr().err
+        assert f"{locked}" in err and "cannot be written" in err and "Traceback" not in err
+        assert list(locked.iterdir()) == []
+    finally:
+        locked.chmod(0o755)
+
+
+def test_make_scene_never_writes_into_a_run(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / RunDir.INFO).write_text("{}")
+    (run / RunDir.MESH).write_bytes(b"the fitted geometry")
+    assert cli.main(["make-scene", "demo", "-o", str(run), "--resolution", "8"]) == 2
+    assert "holds a vq-mitsuba run" in capsys.readouterr().err
+    assert (run / RunDir.MESH).read_bytes() == b"the fitted geometry" and len(list(run.iterdir())) == 2
+
+
+@pytest.mark.parametrize("resolution", ["100000", "64x100000", "4"])
+def test_make_scene_refuses_an_absurd_resolution_up_front(tmp_path, capsys, resolution):
+    out = tmp_path / "demo"
+    assert cli.main(["make-scene", "demo", "-o", str(out), "--resolution", resolution]) == 2
+    assert "each side must be 8 to 4096 pixels" in capsys.readouterr().err and not out.exists()
+
+
+def test_make_scene_leaves_no_half_written_dataset(tmp_path, monkeypatch):
+    from vq_mitsuba.eval.evaluate import dataset_root
+    from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("the renderer ran out of memory")
+
+    monkeypatch.setattr(synthetic, "_render_views", fail)
+    settings = dict(resolution=8, n_train=1, n_test=1, spp=1, progress=False)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        synthetic.make_scene("demo", tmp_path / "new", **settings)
+    assert not (tmp_path / "new").exists()
+    earlier = tmp_path / "earlier"  # an earlier dataset written over: no longer passes for a dataset
+    (earlier / "images").mkdir(parents=True)
+    (earlier / "images" / "r_0.exr").write_bytes(b"stale view")
+    for name in ("scene.json", "transforms_test.json"):
+        (earlier / name).write_text("{}")
+    with pytest.raises(RuntimeError, match="out of memory"):
+        synthetic.make_scene("demo", earlier, **settings)
+    assert not (earlier / "scene.json").exists() and (earlier / synthetic.INCOMPLETE).is_file()
+    assert not (earlier / "images" / "r_0.exr").exists()
+    with pytest.raises(InputError, match="scene.json: not a dataset"):
+        dataset_root(earlier)
+
+
+@pytest.mark.parametrize("output", ["folder", "folder/", "new_folder/"])
+def test_eval_refuses_a_folder_as_its_output_before_any_work(tiny_run, tmp_path, monkeypatch, capsys, output):
+    _, run = tiny_run
+    (tmp_path / "folder").mkdir()
+    monkeypatch.setattr(RunDir, "load", lambda *a, **kw: pytest.fail("the run was loaded"))
+    target = str(tmp_path / output.rstrip("/")) + ("/" if output.endswith("/") else "")
+    assert cli.main(["eval", str(run), "-o", target, "--quiet"]) == 2
+    assert f"{tmp_path / output.rstrip('/')}: is a folder; eval -o names the metrics JSON file" in capsys.readouterr().err
+    assert not (tmp_path / "new_folder").exists()
+
+
+def test_eval_of_a_1x1_dataset_is_refused_before_rendering(tiny_run, tmp_path, monkeypatch, capsys):
+    from vq_mitsuba.render.views import Renderer
+    from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+
+    monkeypatch.setattr(synthetic, "RESOLUTION_RANGE", (1, 4096))  # make-scene refuses it now; others may not
+    data = synthetic.make_scene("demo", tmp_path / "tiny", resolution=1, n_train=1, n_test=1, spp=1, progress=False)
+    monkeypatch.setattr(Renderer, "render", lambda *a, **kw: pytest.fail("rendered"))
+    _, run = tiny_run
+    assert cli.main(["eval", str(run), "--gt", str(data), "-o", str(tmp_path / "m.json"), "--quiet"]) == 2
+    assert "is 1x1 pixels: SSIM needs at least 3 per side" in capsys.readouterr().err
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_an_edit_box_that_selects_nothing_is_refused(tiny_run, tmp_path, capsys):
+    """The sphere of radius 0.5 about the origin: a box beside it changes nothing and is refused,
+    writing no folder; a box through it is an edit."""
+    _, run = tiny_run
+    for box in (["--box", "5,5,5,6,6,6"], ["--box", "0.55,-0.1,-0.1,0.7,0.1,0.1"], ["--material", "1", "--box=2,2,2,3,3,3"]):
+        out = tmp_path / "nothing"
+        assert cli.main(["edit", str(run), *box, "--set", "roughness=0.5", "-o", str(out)]) == 2
+        assert "hold no surface point" in capsys.readouterr().err and not out.exists()
+    out = tmp_path / "half"
+    assert cli.main(["edit", str(run), "--box", "-1,-1,-1,0,1,1", "--set", "roughness=0.5", "-o", str(out)]) == 0
+    assert (out / RunDir.EDITS).is_file() and not (out / RunDir.LOCK).exists()
+
+
+def test_a_failed_render_leaves_no_empty_folder(tiny_run, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    import vq_mitsuba.render.views as views
+
+    capture, run = tiny_run
+    out = tmp_path / "views"
+    monkeypatch.setattr(views, "render_views", lambda *a, **kw: (_ for _ in ()).throw(
+        InputError(None, "view_00: the render is not finite")))
+    assert cli.main(["render", str(run), "--cameras", str(capture), "-o", str(out), "--quiet"]) == 2
+    assert "not finite" in capsys.readouterr().err and not out.exists()
+    broken = tmp_path / "broken"
+    shutil.copytree(run, broken)
+    (broken / RunDir.CHECKPOINT).write_bytes(b"torn")
+    assert cli.main(["render", str(broken), "--cameras", str(capture), "--quiet"]) == 2
+    assert "not a readable checkpoint" in capsys.readouterr().err and not (broken / RunDir.RENDERS).exists()
