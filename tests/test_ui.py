@@ -269,6 +269,16 @@ def test_each_server_has_its_own_token(editor):
         other.server_close()
 
 
+def test_the_addresses_a_server_answers_to():
+    from vq_mitsuba.ui.server import allowed_hosts
+
+    assert allowed_hosts("127.0.0.1", 8080) == {"127.0.0.1:8080", "localhost:8080", "[::1]:8080"}
+    assert "localhost" in allowed_hosts("127.0.0.1", 80)  # a browser leaves out the default port
+    assert allowed_hosts("192.168.1.7", 8080) == {"192.168.1.7:8080"}  # not every name of the machine
+    wildcard = allowed_hosts("0.0.0.0", 8080)
+    assert "localhost:8080" in wildcard and not any(h.startswith("0.0.0.0") for h in wildcard)
+
+
 def test_refining_pauses_when_no_page_asks_for_frames(editor):
     session, _ = editor
     idle_s, max_spp = session.idle_s, session.max_spp

@@ -70,7 +70,9 @@ def allowed_hosts(bound_host: str, port: int) -> set[str]:
         names.update(LOOPBACK)
     if bound_host in WILDCARD:
         names.update({socket.gethostname(), socket.getfqdn()})
-    return {f"{n.lower()}:{port}" for n in names if n and n not in WILDCARD}
+    names = {n.lower() for n in names if n and n not in WILDCARD}
+    # a browser leaves out the scheme's default port
+    return {f"{n}:{port}" for n in names} | (names if port == 80 else set())
 
 
 def _is_ip_literal(host: str) -> bool:
@@ -118,7 +120,9 @@ class _Handler(BaseHTTPRequestHandler):
         host = host.strip().lower()
         if host in self.hosts:
             return True
-        name, _, port = host.rpartition(":")
+        name, sep, port = host.rpartition(":")
+        if not sep or "]" in port:  # no port given: the scheme's default
+            name, port = host, "80"
         return self.any_ip and port == str(self.port) and _is_ip_literal(name)
 
     def _refused(self) -> str | None:
