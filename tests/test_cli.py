@@ -138,3 +138,57 @@ def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path,
     with pytest.raises(InputError, match="--geometry neus"):
         fit_capture(capture, tmp_path / "new", load_config(None, []), geometry="neus", mesh=tmp_path / "m.ply")
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("value", ["2,0,0", "0.5,0.5", "red"])
+def test_background_color_errors_name_the_option(tmp_path, capsys, value):
+    run = tmp_path / "run"
+    assert cli.main(["fit", str(tmp_path / "scene.xml"), "-o", str(run), "--background-color", value]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --background-color {value}: capture.background_color must be R,G,B" in err
+    assert "--set" not in err and not run.exists()
+
+
+def test_library_warnings_are_one_line_each(monkeypatch, capsys):
+    """A PIL warning is shown once as `warning: ...` (no source line, however often it comes);
+    scikit-learn's k-means note about duplicate points is not shown."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    def command(args):
+        palette = Image.new("P", (4, 4))
+        palette.putpalette([0, 0, 0, 255, 0, 0] + [0] * 762)
+        buffer = io.BytesIO()
+        palette.save(buffer, format="PNG", transparency=b"\x00\x80")  # tRNS as bytes: PIL warns on convert
+        for _ in range(2):
+            Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")
+        from sklearn.cluster import KMeans
+
+        KMeans(n_clusters=3, n_init=1).fit(np.zeros((10, 2)))
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_make_scene", command)
+    assert cli.main(["make-scene", "demo"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["warning: Palette images with Transparency expressed in bytes should be converted to RGBA images"]
+
+
+def test_geometry_is_refused_while_another_process_writes_the_run(tmp_path, no_geometry_stage, capsys):
+    import signal
+    import subprocess
+    import sys
+
+    capture = _capture_without_geometry(tmp_path / "cap")
+    run = tmp_path / "run"
+    code = ("import sys, time\nfrom vq_mitsuba.run.run_dir import RunDir\n"
+            "with RunDir(sys.argv[1]).lock('fit'):\n    print('held', flush=True)\n    time.sleep(600)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert cli.main(["geometry", str(capture), "-o", str(run), "--quiet"]) == 2
+        assert f"{run}: is in use by `vq-mitsuba fit` (pid {holder.pid} on " in capsys.readouterr().err
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
