@@ -17,7 +17,9 @@ held-aside envmap (relighting), and compared inside the ground-truth foreground 
 - relighting under `relit/<env>/<id>.exr`, compared in sRGB, in two labelled variants:
   `albedo_scale` (the relit render times the basecolor alignment scales, as NeRFactor) and
   `image_scale` (each relit render aligned to its reference by its own per-channel least-squares
-  scale, which also absorbs an exposure mismatch of the fitted lighting).
+  scale, which also absorbs an exposure mismatch of the fitted lighting);
+- with the dataset's true mesh (mesh.ply) and a run on another mesh: the materials at the true
+  surface points, each read at the nearest point of the run's mesh (`vq_mitsuba.eval.surface`).
 
 Figures are means of per-view values (NeRF convention). Renders are Monte Carlo estimates
 (`spp` samples per pixel): their noise lowers PSNR slightly, more at low spp.
@@ -35,6 +37,7 @@ import numpy as np
 
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
+from vq_mitsuba.eval.surface import evaluate_surface
 from vq_mitsuba.data.imageio import read_exr, read_image
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
@@ -197,6 +200,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     per_view, bc_scales = _image_scores(data, preds, scale_method)
     discrete = _discrete_branch_scores(preds, data.gts, scale_method)
     segmentation = _segmentation_scores(preds, data.gts, predictor.num_materials, data.meta)
+    surface = evaluate_surface(predictor, data, aa or predictor.default_aa, scale_method)
     per_material = per_material_scores(preds, data.gts, bc_scales, data.meta)
     meanshift = None
     if meanshift_bandwidths and all("material" in g for g in data.gts):
@@ -208,6 +212,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
                               render={"spp": spp, "aa": aa or predictor.default_aa}, discrete=discrete,
                               segmentation=segmentation, meanshift=meanshift, per_material=per_material,
                               fit_summary=fit_summary, t0=t0)
+    result["surface_material"] = surface  # the materials at the true surface (eval/surface.py), or None
     if output is not None:
         out_path = Path(output)
         out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -225,6 +230,7 @@ class _TestViews:
     views: list  # the same cameras in the predictor's world
     envs: list[tuple[str, Path]]  # relighting conditions (name, envmap)
     gts: list[dict]  # load_ground_truth of each view
+    cameras_world: str  # the world of the dataset's cameras (and of its mesh.ply)
 
 
 def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
@@ -250,7 +256,7 @@ def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
             raise InputError(root / "transforms_test.json", f"test view {cam.name} is {cam.width}x{cam.height} "
                                                             f"pixels: SSIM needs at least {MIN_SIDE} per side")
     views = [convert_world(cam, cam_world, run_world) for cam in cameras]
-    return _TestViews(root, meta, cameras, views, envs, gts)
+    return _TestViews(root, meta, cameras, views, envs, gts, cam_world)
 
 
 def _render_fitted_lighting(predictor, data: _TestViews, spp: int, aa: int | None, bar) -> list[dict]:
@@ -559,6 +565,12 @@ def format_table(metrics: dict) -> str:
                      f"{_fmt(cov['basecolor_psnr_covered'], 2)} dB")
     if metrics["normal"]["mae_deg"] is not None and not math.isnan(metrics["normal"]["mae_deg"]):
         lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
+    surf = metrics.get("surface_material")
+    if surf:
+        lines.append(f"materials at the true surface (nearest point of the run's mesh): basecolor "
+                     f"{_fmt(surf['basecolor']['psnr'], 2)} dB, metallic {_fmt(surf['metallic']['psnr'], 2)} dB, "
+                     f"roughness {_fmt(surf['roughness']['psnr'], 2)} dB; true points "
+                     f"{_fmt(surf['distance']['median'], 4)} (median) from the run's mesh")
     seg = metrics.get("segmentation")
     if seg:
         lines.append(f"segmentation: micro-F1 {seg['micro_f1']:.3f}, macro-F1 {seg['macro_f1']:.3f}, "
