@@ -174,9 +174,10 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
         near, dist = lookup(hits.position[idx].double().cpu().numpy())
         out = fitted.materials_at(torch.as_tensor(near, dtype=torch.float32, device=device), ids=False)
         values = torch.cat([out["basecolor"], out["metallic"][:, None], out["roughness"][:, None]], 1)
-        pix = idx.cpu().numpy()
-        np.add.at(sums, pix, values.double().cpu().numpy())
-        np.add.at(count, pix, 1.0)
+        pix, values = idx.cpu().numpy(), values.double().cpu().numpy()
+        for c in range(values.shape[1]):  # bincount, not np.add.at: the same sums, far faster
+            sums[:, c] += np.bincount(pix, values[:, c], minlength=n_pix)
+        count += np.bincount(pix, minlength=n_pix)
         distances.append(dist)
     mean = sums / np.maximum(count, 1)[:, None]
     return {"basecolor": mean[:, :3].reshape(h, w, 3), "metallic": mean[:, 3].reshape(h, w),
