@@ -184,3 +184,13 @@ def test_a_refused_write_names_the_file_and_keeps_the_old_one(tmp_path, monkeypa
         write_atomic(target, denied)
     with pytest.raises(OSError, match="something else"):  # other errors are not disguised as write errors
         write_atomic(target, lambda tmp: (_ for _ in ()).throw(OSError(errno.EIO, "something else")))
+
+
+def test_metrics_keep_undefined_scores_as_text(tmp_path):
+    """eval's scores may be undefined (PSNR of identical images, SSIM of an empty mask): metrics.json
+    keeps them as "inf" / "nan", as `eval` writes them, instead of losing the scoring work."""
+    run = RunDir(tmp_path / "run")
+    run.create()
+    run.write_metrics({"views": [{"psnr": float("inf"), "ssim": float("nan")}], "coverage_iou": 0.5})
+    assert json.loads((run / RunDir.METRICS).read_text()) == {"views": [{"psnr": "inf", "ssim": "nan"}],
+                                                              "coverage_iou": 0.5}

@@ -89,6 +89,17 @@ def _first_nonfinite(data, where: str = "") -> str | None:
     return None
 
 
+def nonfinite_as_text(data):
+    """`data` (dicts, lists, numbers) with each NaN / Inf float as the string "nan", "inf" or "-inf"."""
+    if isinstance(data, dict):
+        return {k: nonfinite_as_text(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [nonfinite_as_text(v) for v in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return "nan" if math.isnan(data) else ("inf" if data > 0 else "-inf")
+    return data
+
+
 def write_json(path: str | Path, data: dict) -> Path:
     """Write JSON atomically, with finite numbers only: a NaN or Inf is a NumericalError naming the
     file and the key, and nothing is written."""
@@ -425,8 +436,10 @@ class RunDir:
         return self._read_json(self.FIT) or {}
 
     def write_metrics(self, metrics: dict, path: str | Path | None = None) -> Path:
-        """metrics.json of `vq-mitsuba eval` (or the file `path` a user named instead)."""
-        return write_json(Path(path) if path is not None else self.dir / self.METRICS, metrics)
+        """metrics.json of `vq-mitsuba eval` (or the file `path` a user named instead). A score that
+        is not a finite number (PSNR of identical images, SSIM of an empty mask) is written as the
+        string "inf", "-inf" or "nan", as `eval` writes them, so that no scoring work is lost."""
+        return write_json(Path(path) if path is not None else self.dir / self.METRICS, nonfinite_as_text(metrics))
 
     # --- the fitted scene ---------------------------------------------------------------------
     def load(self, checkpoint: str | Path | None = None) -> FittedModel:
