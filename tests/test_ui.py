@@ -465,6 +465,10 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     # (with interreflections, what mirrors K changes too)
     bounces = session.fitted.cfg.train.bounces
     session.fitted.cfg.train.bounces = 0
+    # and no residual: the first edit turns it off everywhere (it holds the unedited run's light only)
+    _wait_idle(session)  # the render thread waits while its renderers are dropped
+    residual, session.fitted.residual = session.fitted.residual, None
+    session._renderers.clear()
     session.select(materials=[])
     session.set_view(session.view_name)  # render again from scratch
     refined = session.state()["refine_spp"]
@@ -511,6 +515,9 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     assert three_material_ids(hit.position.cpu().numpy())[0] == sphere + 1
     session.undo()
     session.fitted.cfg.train.bounces = bounces
+    _wait_idle(session)
+    session.fitted.residual = residual
+    session._renderers.clear()
 
 
 def test_browser_panel_shows_the_values_after_a_preset_undo_and_redo(editor, browser):
