@@ -25,7 +25,7 @@ try:
 except ImportError:  # Windows: no flock; the lock file still names the owner, without exclusion
     fcntl = None
 
-_HELD: dict[str, int] = {}  # lock path -> depth, for the locks this process holds
+_HELD: dict[str, list] = {}  # lock path -> [depth, descriptor] of the locks this process holds
 _HELD_GUARD = threading.Lock()
 
 
@@ -51,19 +51,18 @@ class RunLock:
     def __init__(self, path: str | Path, command: str, log: Callable[[str], None] = print):
         self.path, self.command, self.log = Path(path), command, log
         self.key = os.path.abspath(self.path)
-        self.fd: int | None = None
         self.made_folder = False
 
     def __enter__(self) -> RunLock:
         with _HELD_GUARD:
             if self.key in _HELD:
-                _HELD[self.key] += 1
+                _HELD[self.key][0] += 1
                 return self
         folder = self.path.parent
         self.made_folder = not folder.exists()
         try:
             folder.mkdir(parents=True, exist_ok=True)
-            self.fd = self._acquire()
+            fd = self._acquire()
         except BaseException as exc:
             self._remove_empty_folder()
             error = as_write_error(exc, folder)
@@ -71,20 +70,20 @@ class RunLock:
                 raise error from None
             raise
         with _HELD_GUARD:
-            _HELD[self.key] = 1
+            _HELD[self.key] = [1, fd]
         return self
 
     def __exit__(self, *exc) -> None:
         with _HELD_GUARD:
-            _HELD[self.key] -= 1
-            if _HELD[self.key] > 0 or self.fd is None:
+            held = _HELD[self.key]
+            held[0] -= 1
+            if held[0] > 0:
                 return
             del _HELD[self.key]
         try:
             self.path.unlink(missing_ok=True)  # before closing: a process that opened it now sees it is gone
         finally:
-            os.close(self.fd)
-            self.fd = None
+            os.close(held[1])
             self._remove_empty_folder()
 
     def _remove_empty_folder(self) -> None:
