@@ -79,11 +79,18 @@ def test_render_adds_it_under_the_own_light_only(view_dependent_run):
     np.testing.assert_allclose(relit["rgb"], own["rgb_physical"], atol=1e-5)
     rotated = Renderer(fitted, env_rotate_deg=90.0).render(cam, spp=8, aa=1, seed=3)
     assert "rgb_physical" not in rotated
-    # An edit that changes nothing still turns the residual off: edited runs are physically based
+    # An edit that changes nothing still turns the residual off where it selects: edited points
+    # are physically based, the others keep it
     fitted.edits = [Edit(Selection(), [Change("scale", "roughness", 1.0)], "no-op")]
     edited = Renderer(fitted).render(cam, spp=8, aa=1, seed=3)
-    assert "rgb_physical" not in edited
     np.testing.assert_allclose(edited["rgb"], own["rgb_physical"], atol=1e-5)
+    half = Selection(boxes=(((-9.0, -9.0, -9.0), (9.0, 9.0, 0.0)),))  # the half z <= 0
+    fitted.edits = [Edit(half, [Change("scale", "roughness", 1.0)], "no-op, half")]
+    edited = Renderer(fitted).render(cam, spp=8, aa=1, seed=3)
+    np.testing.assert_allclose(edited["rgb_physical"], own["rgb_physical"], atol=1e-5)
+    kept = np.isclose(edited["rgb"], own["rgb"], atol=1e-5).all(-1) & fg
+    dropped = np.isclose(edited["rgb"], own["rgb_physical"], atol=1e-5).all(-1) & fg
+    assert kept.sum() > 0.2 * fg.sum() and dropped.sum() > 0.2 * fg.sum()
 
 
 def test_a_residual_of_another_step_is_not_loaded(view_dependent_run, tmp_path):

@@ -465,9 +465,7 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     # (with interreflections, what mirrors K changes too)
     bounces = session.fitted.cfg.train.bounces
     session.fitted.cfg.train.bounces = 0
-    # and no residual: the first edit turns it off everywhere (it holds the unedited run's light only)
     _wait_idle(session)  # the render thread waits while its renderers are dropped
-    residual, session.fitted.residual = session.fitted.residual, None
     session._renderers.clear()
     session.select(materials=[])
     session.set_view(session.view_name)  # render again from scratch
@@ -516,7 +514,6 @@ def test_browser_click_selects_a_material_and_recolours_only_it(editor, browser)
     session.undo()
     session.fitted.cfg.train.bounces = bounces
     _wait_idle(session)
-    session.fitted.residual = residual
     session._renderers.clear()
 
 

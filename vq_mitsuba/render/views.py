@@ -34,10 +34,11 @@ def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:
 class Renderer:
     """Renders views of a fitted run under its own lighting or another envmap.
 
-    Under the run's own lighting (no envmap, rotation or exposure given) and without edits, the
-    run's residual (`FittedModel.residual`, VQ-NeRF Sec. 4) is added to each hit's radiance; the
-    render then also returns `rgb_physical`, the same image without it. Any other lighting and
-    any edit give the physically based render alone."""
+    Under the run's own lighting (no envmap, rotation or exposure given), the run's residual
+    (`FittedModel.residual`, VQ-NeRF Sec. 4) is added to the radiance of each hit that no edit
+    selects; the render then also returns `rgb_physical`, the same image without it. Any other
+    lighting gives the physically based render alone, and so do edited parts: an edit changes its
+    own material only."""
 
     def __init__(self, fitted: FittedModel, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
                  exposure_ev: float = 0.0):
@@ -82,8 +83,8 @@ class Renderer:
         return sums.images(camera.height, camera.width, aa)
 
     def _residual(self):
-        """The residual this render adds: the run's under its own light, none once edits apply."""
-        return self.residual if not self.fitted.edits else None
+        """The residual this render adds: the run's under its own light (None otherwise)."""
+        return self.residual
 
     def _trace_passes(self, camera: Camera, sums: _PixelSums, lights: list[Renderer], aa: int, light_spp: int,
                       seed: int) -> None:
@@ -127,7 +128,10 @@ class Renderer:
         residual = self._residual()
         if residual is not None:
             values["rgb_physical"] = rgb
-            rgb = add_residual(rgb, residual(hits.position[sel], hits.normal[sel], hits.wi[sel]))
+            r = residual(hits.position[sel], hits.normal[sel], hits.wi[sel])
+            for edit in self.fitted.edits:  # edited points are physically based
+                r = r * (~edit.selection.mask(hits.position[sel], out.get("material")))[:, None]
+            rgb = add_residual(rgb, r)
         values["rgb"] = rgb
         if discrete is not None:  # material id of the hit (its nearest ranked codeword, 1..M) and its BRDF
             od = out["discrete"]
