@@ -253,20 +253,6 @@ class NeuSConfig:
 
 
 @dataclass
-class RefineConfig:
-    """Mesh refinement after NeuS: the vertices fitted with materials and light in Mitsuba."""
-
-    iterations: int = setting(600, "refinement steps after NeuS (0: no refinement)")
-    time_limit_s: float = setting(0.0, "stop refining after this many seconds (0: no limit)")
-    lr: float = setting(2e-3, "Adam learning rate of the smoothed vertex coordinates", ">0")
-    lr_end: float = setting(0.1, "learning-rate factor reached at the last step (exponential in the steps done)",
-                            "(0,1]")
-    warmup: float = setting(0.3, "share of the steps that fit materials and light before the vertices move", "[0,1)")
-    smoothness: float = setting(20.0, "lambda of the (I + lambda L) vertex parameterisation (larger: smoother steps)",
-                                ">0")
-
-
-@dataclass
 class CaptureConfig:
     """How a capture's images are read: their size, the mask, the views kept out of training."""
 
@@ -287,7 +273,6 @@ class Config:
     residual: ResidualConfig = dataclasses.field(default_factory=ResidualConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
-    refine: RefineConfig = dataclasses.field(default_factory=RefineConfig)
     ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)
     capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
 

@@ -1,5 +1,5 @@
 """`vq-mitsuba fit` as one call: the run folder's checks, the geometry stage when the capture
-brings no geometry (NeuS, then the mesh refined in Mitsuba), then the material fit (`vq_mitsuba.engine.trainer.fit`)."""
+brings no geometry (NeuS), then the material fit (`vq_mitsuba.engine.trainer.fit`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Callable
 
 from vq_mitsuba.config import Config
-from vq_mitsuba.engine.refine import ensure_refined
 from vq_mitsuba.engine.trainer import check_fit_target, fit
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
@@ -45,8 +44,4 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
             reused = resume and run.has_mesh()
             mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
             log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
-            refined = ensure_refined(capture, run, cfg, progress=progress)
-            if refined is not None:
-                log(f"geometry: refined in {refined['iterations']} steps (median vertex move "
-                    f"{100 * refined['moved_rel_diagonal']['median']:.3f}% of the diagonal)")
         return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)

@@ -207,24 +207,6 @@ class ShadingScene:
         wi = -torch.as_tensor(directions, device=dev)
         return Hits(valid_t, pos.float(), nrm.float(), wi.float())
 
-    def set_vertices(self, vertices: np.ndarray) -> None:
-        """Move the mesh's vertices (same faces); traced rays and shadow rays see the new mesh."""
-        params = mi.traverse(self.mesh)
-        params["vertex_positions"] = mi.Float(np.ascontiguousarray(vertices, dtype=np.float32).ravel())
-        params.update()
-
-    def trace_primitives(self, origins: np.ndarray, directions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Which triangle each ray hits first: (valid (N,) bool, triangle index (N,) int64)."""
-        with dr.suspend_grad():
-            ray = mi.Ray3f(mi.Point3f(*[mi.Float(origins[:, i]) for i in range(3)]),
-                           mi.Vector3f(*[mi.Float(directions[:, i]) for i in range(3)]))
-            pi = self.scene.ray_intersect_preliminary(ray)
-            valid, prim = pi.is_valid(), pi.prim_index
-            dr.eval(valid, prim)
-        dev = torch_device()
-        return (torch.as_tensor(np.array(valid), dtype=torch.bool, device=dev),
-                torch.as_tensor(np.array(prim).astype(np.int64), device=dev))
-
     # -- shading ------------------------------------------------------------------------
     def _make_shade(self):
         """The shading kernel (returned) and the bounce kernel (kept as self._bounce), both Dr.Jit

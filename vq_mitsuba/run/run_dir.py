@@ -171,7 +171,6 @@ class RunDir:
     CONFIG = "config.yaml"
     CHECKPOINT = "checkpoint.pt"
     MESH = "mesh.ply"
-    NEUS_MESH = "mesh_neus.ply"  # NeuS's mesh, kept once the refinement stage replaced mesh.ply
     NEUS_CHECKPOINT = "neus.pt"
     GEOMETRY = "geometry.json"
     GEOMETRY_PLOT = "geometry_loss.png"
@@ -370,20 +369,6 @@ class RunDir:
 
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
-
-    def is_refined(self) -> bool:
-        """Whether the refinement stage replaced NeuS's mesh.ply (its original kept as mesh_neus.ply)."""
-        return (self.dir / self.NEUS_MESH).is_file()
-
-    def write_refined_mesh(self, mesh, summary: dict) -> None:
-        """The refined mesh as mesh.ply, NeuS's kept as mesh_neus.ply, and the stage's summary in
-        geometry.json under "refine"."""
-        if not self.is_refined():
-            (self.dir / self.MESH).replace(self.dir / self.NEUS_MESH)
-        write_atomic(self.dir / self.MESH, mesh.export)
-        path = self.dir / self.GEOMETRY
-        geometry = json.loads(path.read_text()) if path.is_file() else {}
-        self.write_geometry_summary({**geometry, "refine": summary})
 
     @property
     def neus_checkpoint_path(self) -> Path:
