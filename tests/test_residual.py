@@ -55,7 +55,12 @@ def test_the_residual_explains_what_the_materials_cannot(view_dependent_run):
 
     _, run = view_dependent_run
     info = json.loads((run / RunDir.FIT).read_text())["residual"]
-    assert info["iterations"] == 400 and info["check_hits"] > 100
+    # at most residual.iterations, and at most MAX_EPOCHS passes over a pool this small
+    from vq_mitsuba.engine.residual import BATCH, MAX_EPOCHS, MIN_STEPS
+
+    fitted = info["hits"] - info["check_hits"]
+    assert info["iterations"] == min(400, max(MIN_STEPS, -(-MAX_EPOCHS * fitted // min(BATCH, fitted))))
+    assert info["check_hits"] > 100
     # measured on training hits the field was not fitted on
     assert info["psnr_check_hits_after"] > info["psnr_check_hits_before"] + 3.0
     assert RunDir(run).load().residual is not None

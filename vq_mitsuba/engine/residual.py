@@ -34,6 +34,8 @@ PREDICTION_SPP = 32  # sample pairs of each hit's physically based radiance
 BATCH = 4096
 LR = 2e-3
 LR_END = 0.1  # learning-rate factor at the last step (exponential decay)
+MAX_EPOCHS = 200  # passes over the fitted hits at most: a small pool needs fewer steps than residual.iterations
+MIN_STEPS = 50
 
 
 @torch.no_grad()
@@ -83,14 +85,15 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         optim.step()
 
     t0 = time.perf_counter()
-    Loop("residual", Budget(cfg.residual.iterations), step, progress_bar=progress).run()
+    steps = min(cfg.residual.iterations, max(MIN_STEPS, math.ceil(MAX_EPOCHS * len(fit_ids) / batch)))
+    Loop("residual", Budget(steps), step, progress_bar=progress).run()
     field.eval()
     with torch.no_grad():
         c = check_ids
         with_residual = add_residual(physical[c], field(position[c], normal[c], wi[c]))
         before = losses.psnr(float(losses.srgb_mse(physical[c], target[c])))
         after = losses.psnr(float(losses.srgb_mse(with_residual, target[c])))
-    info = {"iterations": cfg.residual.iterations, "hits": n, "check_hits": len(check_ids),
+    info = {"iterations": steps, "hits": n, "check_hits": len(check_ids),
             "prediction_spp": PREDICTION_SPP, "seconds": time.perf_counter() - t0,
             "psnr_check_hits_before": before, "psnr_check_hits_after": after}
     return field, info
