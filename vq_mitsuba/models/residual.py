@@ -6,8 +6,8 @@ small field r(x, wi) added to the render's linear radiance:
 
     L(x, wi) = clamp(L_pbr(x, wi) + r(x, wi), 0)
 
-It is tied to the capture's own light and materials: relighting, edits and exports leave it out
-and stay physically based (`vq_mitsuba.render.views.Renderer`).
+It is tied to the capture's own light and materials: relighting, edited parts and exports leave
+it out and stay physically based (`vq_mitsuba.render.views.Renderer`).
 
 Inputs: the positional encoding of the point mapped to [-1, 1]^3 by the mesh's bounding box,
 real spherical harmonics up to degree 2 of the view direction wi and of its mirror direction
