@@ -39,7 +39,7 @@ from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
 from vq_mitsuba.eval.surface import evaluate_surface
 from vq_mitsuba.data.imageio import read_exr, read_image
-from vq_mitsuba.run.run_dir import RunDir, write_json
+from vq_mitsuba.run.run_dir import RunDir, json_safe, write_json
 from vq_mitsuba.errors import InputError
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
@@ -493,20 +493,6 @@ def meanshift_segmentation(preds: list[dict], gts: list[dict], bandwidths, seed:
         scores["seconds"] = time.perf_counter() - t0
         out[f"{float(bw):g}"] = scores
     return out
-
-
-def json_safe(obj):
-    """Non-finite floats as the strings "inf", "-inf", "nan" (JSON has no literal for them)."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        x = float(obj)
-        return x if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 # --------------------------------------------------------------------------------------------

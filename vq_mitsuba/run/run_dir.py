@@ -89,15 +89,19 @@ def _first_nonfinite(data, where: str = "") -> str | None:
     return None
 
 
-def nonfinite_as_text(data):
-    """`data` (dicts, lists, numbers) with each NaN / Inf float as the string "nan", "inf" or "-inf"."""
-    if isinstance(data, dict):
-        return {k: nonfinite_as_text(v) for k, v in data.items()}
-    if isinstance(data, (list, tuple)):
-        return [nonfinite_as_text(v) for v in data]
-    if isinstance(data, float) and not math.isfinite(data):
-        return "nan" if math.isnan(data) else ("inf" if data > 0 else "-inf")
-    return data
+def json_safe(obj):
+    """`obj` (dicts, lists, numbers) with each NaN / Inf float as the string "nan", "inf" or "-inf"
+    (JSON has no literal for them) and numpy scalars as Python numbers."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return x if math.isfinite(x) else ("nan" if math.isnan(x) else ("inf" if x > 0 else "-inf"))
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
 
 
 def write_json(path: str | Path, data: dict) -> Path:
@@ -439,7 +443,7 @@ class RunDir:
         """metrics.json of `vq-mitsuba eval` (or the file `path` a user named instead). A score that
         is not a finite number (PSNR of identical images, SSIM of an empty mask) is written as the
         string "inf", "-inf" or "nan", as `eval` writes them, so that no scoring work is lost."""
-        return write_json(Path(path) if path is not None else self.dir / self.METRICS, nonfinite_as_text(metrics))
+        return write_json(Path(path) if path is not None else self.dir / self.METRICS, json_safe(metrics))
 
     # --- the fitted scene ---------------------------------------------------------------------
     def load(self, checkpoint: str | Path | None = None) -> FittedModel:
