@@ -10,9 +10,7 @@ import numpy as np
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, world_rotation
 from vq_mitsuba.data.envmaps import direction_to_pixel, texel_directions
 from vq_mitsuba.data.imageio import linear_to_srgb
-from vq_mitsuba.errors import InputError
 from vq_mitsuba.export.bake import BakedMesh
-from vq_mitsuba.run.run_dir import RunDir
 
 # glTF and OBJ are Y up; Blender's importers turn their (x, y, z) into Blender's (x, -z, y).
 Y_UP_TO_BLENDER = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -22,18 +20,6 @@ def world_to_y_up(world: str) -> np.ndarray:
     """(3, 3) rotation from a run's world ("mitsuba" Y up / "blender" Z up) to glTF / OBJ axes, chosen
     so that Blender's importers put the object back at the capture's own Blender coordinates."""
     return np.eye(3) if world == "mitsuba" else Y_UP_TO_BLENDER.T
-
-
-def capture_world(run: RunDir) -> str:
-    """The world the run's capture itself is written in (its cameras' and mesh.ply's), as the
-    loader reports it; the run's own world when the capture is no longer there."""
-    from vq_mitsuba.data.captures import load_cameras
-
-    info = run.source().info()
-    try:
-        return load_cameras(info["capture"])[1]
-    except (InputError, OSError):
-        return info["world"]
 
 
 def export_axes(run_world: str, own_world: str) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.export.files import capture_world, export_axes
+from vq_mitsuba.export.files import export_axes
 
 FORMATS = ("gltf", "obj", "mitsuba")
 
@@ -66,7 +66,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
     out = Path(out_dir)
     name = _name(run)
     _check_target(out, fmt, name)
-    world = fitted.world if fmt == "mitsuba" else capture_world(run)
+    world = fitted.world  # a run keeps its capture's own world (loaders convert only other cameras)
     axes = export_axes(fitted.world, world)
 
     from vq_mitsuba.export.bake import bake
