@@ -13,7 +13,7 @@ def mesh_scale_warning(mesh, cameras) -> str | None:
     from inside, coverage 1.0), or it is a speck at the cameras' distance; None when plausible."""
     lo, hi = np.asarray(mesh.bounds, np.float64)
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
-    origins = np.array([np.asarray(c.to_world, np.float64)[:3, 3] for c in cameras])
+    origins = np.array([c.origin for c in cameras], np.float64)
     if not len(origins) or not np.isfinite(radius):
         return None
     dist = np.linalg.norm(origins - centre, axis=1)

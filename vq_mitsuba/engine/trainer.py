@@ -148,8 +148,9 @@ class Trainer:
     def snapshot(self, elapsed: float) -> None:
         self.run.save_state(self.fitted_state(elapsed), self.run.snapshot_path(elapsed, self.step))
 
-    def resume(self) -> None:
-        state = self.run.load_state(device=self.device)
+    def resume(self, state: dict | None = None) -> None:
+        """Continue from the run's checkpoint (`state`: that checkpoint, when already loaded)."""
+        state = self.run.load_state(device=self.device) if state is None else state
         self.model.load_state_dict(state["model"])
         if self.discrete is not None:
             self.discrete.load_state_dict(state["discrete"])
@@ -339,8 +340,6 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     parse_snapshot_times(cfg.train.snapshot_s)
     check_fit_target(run, resume)
     if resume and not run.has_checkpoint():
-        if not run.dir.is_dir():
-            raise InputError(run.dir, "no run to resume (the folder does not exist)")
         # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
         # material fit from the beginning, keeping what the folder already holds (mesh.ply).
         print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
@@ -364,7 +363,9 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                 raise InputError(run.dir, f"was fitted on another mesh than the one given now ({len(old)} vertices "
                                           f"in {RunDir.MESH}, {len(new)} now); resume with the run's geometry, "
                                           "or choose another -o")
-        done = int(run.load_state().get("step", 0))
+        init_mitsuba()
+        state = run.load_state(device=torch_device())  # read once: the trainer resumes from it below
+        done = int(state.get("step", 0))
         if done >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
             if run.fit_summary().get("iterations") == done:
                 print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
@@ -392,7 +393,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
                     "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})
     if resume:
-        trainer.resume()
+        trainer.resume(state)
         if trainer.step >= cfg.train.iterations:
             print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
     startup = time.perf_counter() - t_start
