@@ -473,3 +473,26 @@ def test_neus_intrinsics_and_poses_are_checked_and_a_plain_array_is_not_an_archi
     np.save(tmp_path / "plain" / "array.npy", np.eye(4))
     (tmp_path / "plain" / "array.npy").replace(npz)
     _refused(lambda: load_cameras(tmp_path / "plain"), npz, "not an .npz archive")
+
+
+def test_a_neus_capture_with_images_and_masks_folders_loads_its_masks(tmp_path):
+    """Copies of DTU made for other tools name the NeuS folders images/ and masks/."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.data.photo_formats import write_idr
+
+    cams = _cameras(3)
+    (tmp_path / "images").mkdir()
+    (tmp_path / "masks").mkdir()
+    write_idr(tmp_path / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
+    for i in range(len(cams)):
+        write_png(tmp_path / "images" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
+        mask = np.zeros((28, 40, 3))
+        mask[5:20, 10:30] = 1.0
+        write_png(tmp_path / "masks" / f"{i:03d}.png", mask)
+    capture = load_capture(tmp_path)
+    assert capture.has_alpha and len(capture.cameras) == 3
+    assert capture.alpha[:, 5:20, 10:30].min() > 0.99 and capture.alpha[:, :5].max() < 0.01
+    write_png(tmp_path / "masks" / "003.png", np.zeros((28, 40, 3)))
+    with pytest.raises(InputError, match="4 masks for 3 images in images/"):
+        load_capture(tmp_path)

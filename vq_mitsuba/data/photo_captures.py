@@ -29,12 +29,15 @@ def _images_in(folder: Path) -> list[Path]:
 
 def _idr_views(npz: Path) -> tuple[list[Camera], list[Path], list[Path] | None]:
     folder = npz.parent
-    images = _images_in(folder / "image")
+    # NeuS names the folders image/ and mask/; copies of DTU made for other tools use images/ and masks/.
+    image_dir = next((folder / d for d in ("image", "images") if _images_in(folder / d)), folder / "image")
+    images = _images_in(image_dir)
     if not images:
         raise InputError(folder / "image", "no images (the NeuS/IDR layout keeps them in image/, e.g. 000.png)")
-    masks = _images_in(folder / "mask")
+    mask_dir = next((folder / d for d in ("mask", "masks") if _images_in(folder / d)), folder / "mask")
+    masks = _images_in(mask_dir)
     if masks and len(masks) != len(images):
-        raise InputError(folder / "mask", f"holds {len(masks)} masks for {len(images)} images in image/")
+        raise InputError(mask_dir, f"holds {len(masks)} masks for {len(images)} images in {image_dir.name}/")
     views, _ = read_idr(npz, len(images))
     from vq_mitsuba.data.imageio import image_size
 
