@@ -109,29 +109,47 @@ def _tiny_capture(tmp_path):
     return write_three_material_capture(tmp_path / "xml", size=(40, 30), n_views=6, spp=16, principal_shift=(2.5, -1.5))
 
 
+def _cropped(camera, window):
+    """`camera` seeing the pixels x0..x1, y0..y1 of its image only."""
+    from vq_mitsuba.data.photo_formats import camera_from_intrinsics
+
+    x0, y0, x1, y1 = window
+    fx, fy, cx, cy = camera.intrinsics()
+    return camera_from_intrinsics(camera.name, camera.to_world, fx, fy, cx - x0, cy - y0, x1 - x0, y1 - y0)
+
+
 def test_one_scene_through_every_format_gives_the_same_rays_and_pixels(tmp_path):
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.synthetic.photo_formats import colmap_similarity, write_photo_formats
+    from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
+    from vq_mitsuba.synthetic.photo_formats import format_frames, llff_window, write_photo_formats
 
     xml = _tiny_capture(tmp_path)
     ref = load_capture(xml)
     assert ref.cameras[0].principal is not None and ref.width != ref.height
     folders = write_photo_formats(ref, tmp_path / "formats")
-    sim = colmap_similarity()
+    assert set(folders) == {"neus", "colmap", "colmap_opencv", "nerfstudio", "llff"}
+    assert (folders["nerfstudio"] / "transforms.json").is_file() and (folders["llff"] / "poses_bounds.npy").is_file()
     for name, folder in folders.items():
         cap = load_capture(folder, cache_dir=tmp_path / f"cache_{name}")
-        assert cap.has_alpha and cap.images.shape == ref.images.shape
-        frame = sim if name.startswith("colmap") else np.eye(4)
+        frame = format_frames()[name]
+        # LLFF's cameras are centred: its copy is the views cropped around their principal point
+        window = llff_window(ref.cameras[0]) if name == "llff" else (0, 0, ref.width, ref.height)
+        x0, y0, x1, y1 = window
+        assert cap.has_alpha and cap.images.shape == (len(ref.cameras), y1 - y0, x1 - x0, 3), name
         for a, b in zip(ref.cameras, cap.cameras):
-            assert _round_trip_pixels(a, b, frame) < 0.05, name
-        # the same pixels (8-bit PNG; the distorted copy is resampled twice, compared inside its frame)
-        err = np.abs(cap.images - ref.images).mean(-1)
-        inner = (cap.alpha > 0.99) & (ref.alpha > 0.99)
+            assert _round_trip_pixels(_cropped(a, window), b, frame) < 0.05, name
+        # the same pixels (8-bit PNG; the distorted copies are resampled twice, compared inside their frame)
+        ref_images, ref_alpha = ref.images[:, y0:y1, x0:x1], ref.alpha[:, y0:y1, x0:x1]
+        err = np.abs(cap.images - ref_images).mean(-1)
+        inner = (cap.alpha > 0.99) & (ref_alpha > 0.99)
         inner[:, :3], inner[:, -3:], inner[:, :, :3], inner[:, :, -3:] = False, False, False, False
-        assert np.median(err[inner]) < (0.03 if name == "colmap_opencv" else 0.01), name
-        # the envmap's up follows the cameras' up
+        assert np.median(err[inner]) < (0.03 if name in ("colmap_opencv", "nerfstudio") else 0.01), name
+        # the envmap's up follows the cameras' up; nerfstudio's world is Z up, Blender's envmap frame
         up = np.asarray(cap.envmap_to_world)[:3, 1]
         assert up @ (frame[:3, :3] @ [0, 1, 0]) / np.linalg.norm(frame[:3, :3] @ [0, 1, 0]) > 0.9
+        assert cap.world == ("blender" if name == "nerfstudio" else "mitsuba")
+        if name == "nerfstudio":
+            assert np.allclose(cap.envmap_to_world, BLENDER_ENV_TO_WORLD)
     # the undistorted photos are cached: a second load reads them back
     cache = tmp_path / "cache_colmap_opencv"
     assert len(list(cache.glob("*.npz"))) == len(ref.cameras)

@@ -257,6 +257,8 @@ class CaptureConfig:
     """How a capture's images are read: their size, the mask, the views kept out of training."""
 
     downscale: int = setting(1, "divide the image width and height by this, averaging blocks of pixels", ">0")
+    max_size: int = setting(0, "longest image side in pixels once read: each photo is area-averaged down to it "
+                               "as it is read, after downscale (0: no limit)", ">=0")
     background_color: str = setting("", "R,G,B (sRGB, 0..1) of a plain backdrop, keyed out as the mask (\"\": none)")
     background_tolerance: float = setting(0.08, "sRGB distance from background_color still counted as backdrop",
                                                 "[0,1]")

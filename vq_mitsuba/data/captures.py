@@ -1,10 +1,13 @@
 """Captures: posed reference images plus optional known geometry and lighting.
 
-A capture is either a Mitsuba scene XML (sensors with `images/<id>.exr|png` beside the XML,
-optional `<shape>` geometry and `<emitter type="envmap">` lighting; Mitsuba world) or a
-NeRF-synthetic `transforms_*.json` (OpenGL camera axes, Blender world with Z up; optional
-`mesh.ply` beside it or a `mesh=` argument). Everything is validated before returning, and
-every problem is an InputError naming the offending file.
+A capture is a Mitsuba scene XML (sensors with `images/<id>.exr|png` beside the XML, optional
+`<shape>` geometry and `<emitter type="envmap">` lighting; Mitsuba world), a NeRF-synthetic
+`transforms_*.json` (OpenGL camera axes, Blender world with Z up; optional `mesh.ply` beside it or
+a `mesh=` argument), a nerfstudio `transforms.json` (pixel intrinsics, lens distortion, masks:
+vq_mitsuba.data.nerfstudio), or a photographed capture (COLMAP, NeuS/IDR, LLFF:
+vq_mitsuba.data.photo_captures). Images are shrunk as they are read (capture.downscale,
+capture.max_size: vq_mitsuba.data.resize). Everything is validated before returning, and every
+problem is an InputError naming the offending file.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from vq_mitsuba.errors import InputError, raise_all
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_pose, check_size, finite_number
 from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.data.resize import Shrink, downscaled_camera  # noqa: F401 (downscaled_camera: public here too)
 
 if TYPE_CHECKING:
     import trimesh
@@ -60,21 +64,23 @@ class Capture:
 
 def load_capture(path: str | Path, mesh: str | Path | None = None, options: CaptureConfig | None = None,
                  split: str = "all", cache_dir: str | Path | None = None) -> Capture:
-    """Load and validate a capture (scene XML, transforms json, NeuS/IDR cameras_sphere.npz, a COLMAP
-    folder, or a folder holding one). `options` (config section `capture`) sets the downscale, the
-    background keying and the held-out views; `split` is "all", "train" (without the held-out
-    views) or "holdout". Undistorted COLMAP images are cached in `cache_dir` when given."""
+    """Load and validate a capture (scene XML, transforms json, NeuS/IDR cameras_sphere.npz, LLFF
+    poses_bounds.npy, a COLMAP folder, or a folder holding one). `options` (config section `capture`)
+    sets the downscale and maximum size (applied to each image as it is read), the background keying
+    and the held-out views; `split` is "all", "train" (without the held-out views) or "holdout".
+    Undistorted photos are cached in `cache_dir` when given."""
     options = options or CaptureConfig()
+    shrink = Shrink.of(options)
     source = resolve_capture_path(path)
     kind = capture_kind(source)
     if kind == "xml":
-        capture = _load_xml_capture(source, mesh)
+        capture = _load_xml_capture(source, mesh, shrink)
     elif kind == "json":
-        capture = _load_json_capture(source, mesh)
+        capture = _load_json_capture(source, mesh, shrink, cache_dir)
     else:
         from vq_mitsuba.data.photo_captures import load_photo_views
 
-        cameras, images, alpha, has_alpha, folder, env_to_world = load_photo_views(source, kind, cache_dir)
+        cameras, images, alpha, has_alpha, folder, env_to_world = load_photo_views(source, kind, cache_dir, shrink)
         mesh_file = mesh if mesh is not None else (folder / "mesh.ply" if (folder / "mesh.ply").is_file() else None)
         capture = Capture(source, cameras, images, alpha, has_alpha, load_mesh(mesh_file) if mesh_file else None,
                           None, env_to_world, "mitsuba")
@@ -92,45 +98,57 @@ def load_cameras(path: str | Path, options: CaptureConfig | None = None,
         scene = _load_mitsuba_sensors_only(source, root)
         cameras, world = _xml_cameras(source, root, defaults, scene), "mitsuba"
     elif kind == "json":
+        from vq_mitsuba.data.nerfstudio import is_nerfstudio
+
         data = _read_json(source)
-        angle, frames = _json_header(source, data)
-        width, height = _json_image_size(source, data, frames)
-        cameras = _json_cameras(source, frames, _frame_matrices(source, frames), angle, width, height)
+        frames = _json_frames(source, data)
+        if is_nerfstudio(data):
+            cameras = _nerfstudio_cameras(source, data, frames)[0]
+        else:
+            angle = _json_angle(source, data)
+            width, height = _json_image_size(source, data, frames)
+            cameras = _json_cameras(source, frames, _frame_matrices(source, frames), angle, width, height)
         world = "blender"
     else:
         from vq_mitsuba.data.photo_captures import photo_cameras
 
         cameras, world = photo_cameras(source, kind), "mitsuba"
-    cameras = [downscaled_camera(c, options.downscale) for c in cameras]
+    shrink = Shrink.of(options)
+    cameras = [shrink.camera(c, source) for c in cameras]
     return [cameras[i] for i in split_indices(len(cameras), options.holdout, split)], world, source
 
 
 def capture_kind(source: Path) -> str:
-    """"xml", "json", "idr" (cameras_sphere.npz) or "colmap" (a folder with a sparse model)."""
+    """"xml", "json", "idr" (cameras_sphere.npz), "llff" (poses_bounds.npy) or "colmap" (a folder
+    with a sparse model)."""
     if source.is_dir():
         return "colmap"
-    return {".xml": "xml", ".json": "json", ".npz": "idr"}[source.suffix.lower()]
+    return {".xml": "xml", ".json": "json", ".npz": "idr", ".npy": "llff"}[source.suffix.lower()]
 
 
 def resolve_capture_path(path: str | Path) -> Path:
-    """The capture for `path`: the file itself, a folder's transforms_train.json / scene.xml /
-    cameras_sphere.npz, or the folder itself when it holds a COLMAP sparse model."""
+    """The capture for `path`: the file itself, a folder's transforms_train.json / transforms.json /
+    scene.xml / cameras_sphere.npz / poses_bounds.npy, or the folder itself when it holds a COLMAP
+    sparse model."""
     from vq_mitsuba.data.photo_formats import colmap_model_dir
 
     path = Path(path)
     if path.is_dir():
-        for name in ("transforms_train.json", "scene.xml", "cameras_sphere.npz"):
+        for name in ("transforms_train.json", "transforms.json", "scene.xml", "cameras_sphere.npz",
+                     "poses_bounds.npy"):
             if (path / name).is_file():
                 return path / name
         if colmap_model_dir(path) is not None:
             return path
-        raise InputError(path, "capture folder holds no transforms_train.json, scene.xml, cameras_sphere.npz "
-                               "(NeuS/IDR) or COLMAP model (sparse/0/cameras.bin or .txt)")
+        raise InputError(path, "capture folder holds no transforms_train.json, transforms.json (nerfstudio), "
+                               "scene.xml, cameras_sphere.npz (NeuS/IDR), poses_bounds.npy (LLFF) or COLMAP "
+                               "model (sparse/0/cameras.bin or .txt)")
     if not path.exists():
         raise InputError(path, "capture file not found")
-    if path.suffix.lower() not in (".xml", ".json", ".npz"):
-        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml, a transforms_*.json, a "
-                               "NeuS/IDR cameras_sphere.npz or a COLMAP folder)")
+    if path.suffix.lower() not in (".xml", ".json", ".npz", ".npy"):
+        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml, a transforms_*.json or "
+                               "nerfstudio transforms.json, a NeuS/IDR cameras_sphere.npz, an LLFF poses_bounds.npy "
+                               "or a COLMAP folder)")
     return path
 
 
@@ -144,19 +162,9 @@ def split_indices(count: int, holdout: int, split: str) -> list[int]:
     return [i for i in range(count) if (i in held) == (split == "holdout")]
 
 
-def downscaled_camera(camera: Camera, factor: int) -> Camera:
-    """The camera of the image downscaled by an integer factor (cropped to a multiple of it)."""
-    if factor <= 1:
-        return camera
-    from vq_mitsuba.data.photo_formats import camera_from_intrinsics
-
-    fx, fy, cx, cy = camera.intrinsics()
-    return camera_from_intrinsics(camera.name, camera.to_world, fx / factor, fy / factor, cx / factor, cy / factor,
-                                  camera.width // factor, camera.height // factor)
-
-
 def finish_capture(capture: Capture, options: CaptureConfig, split: str = "all") -> Capture:
-    """Apply background keying, the downscale and the split to a loaded capture."""
+    """Apply the size (the loaders shrank the images as they read them; here the cameras follow),
+    background keying and the split to a loaded capture."""
     from vq_mitsuba.config import background_rgb
 
     images, alpha, has_alpha = capture.images, capture.alpha, capture.has_alpha
@@ -174,16 +182,11 @@ def finish_capture(capture: Capture, options: CaptureConfig, split: str = "all")
         if not (alpha > 0.5).any():
             raise InputError(capture.source, f"every pixel lies within {tol} of the background colour {key}: "
                                              "nothing left to fit (check capture.background_color)")
-    cameras = capture.cameras
-    f = int(options.downscale)
-    if f > 1:
-        n, h, w = images.shape[:3]
-        if h // f < 4 or w // f < 4:
-            raise InputError(capture.source, f"--downscale {f} leaves {w // f}x{h // f} pixels of {w}x{h} images")
-        hc, wc = h // f * f, w // f * f
-        images = images[:, :hc, :wc].reshape(n, hc // f, f, wc // f, f, 3).mean((2, 4), dtype=np.float32)
-        alpha = alpha[:, :hc, :wc].reshape(n, hc // f, f, wc // f, f).mean((2, 4), dtype=np.float32)
-        cameras = [downscaled_camera(c, f) for c in cameras]
+    cameras = [Shrink.of(options).camera(c, capture.source) for c in capture.cameras]
+    for cam in cameras:
+        if (cam.height, cam.width) != images.shape[1:3]:  # a loader that did not shrink its images
+            raise AssertionError(f"view {cam.name}: camera {cam.width}x{cam.height}, image "
+                                 f"{images.shape[2]}x{images.shape[1]}")
     keep = split_indices(len(cameras), options.holdout, split)
     if not keep:
         raise InputError(capture.source, f"capture.holdout {options.holdout} leaves no {split} view of {len(cameras)}")
@@ -239,6 +242,15 @@ def _find_image(stem: Path) -> Path | None:
         if candidate.is_file():
             return candidate
     return None
+
+
+def _shrunk_entry(shrink: Shrink, path: Path, rgb: np.ndarray, alpha: np.ndarray | None):
+    """(path, rgb, alpha) at the size `shrink` gives, alpha checked first (averaging would hide a bad value)."""
+    if alpha is not None and (alpha.min() < 0.0 or alpha.max() > 1.0):
+        raise InputError(path, f"alpha outside [0, 1] (range {alpha.min():g}..{alpha.max():g})")
+    if not shrink.active:
+        return path, rgb, alpha
+    return path, shrink.image(rgb, path), None if alpha is None else shrink.image(alpha, path)
 
 
 def _stack_images(entries: list[tuple[Path, np.ndarray, np.ndarray | None]]):
@@ -366,7 +378,7 @@ def _xml_cameras(xml: Path, root: ET.Element, defaults: dict[str, str], scene) -
     return cameras
 
 
-def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
+def _load_xml_capture(xml: Path, mesh_arg: str | Path | None, shrink: Shrink | None = None) -> Capture:
     root, defaults = _parse_xml(xml)
     # The text is checked before Mitsuba loads anything, for clear messages.
     env_elems = _xml_envmap_elements(xml, root, defaults)
@@ -380,7 +392,7 @@ def _load_xml_capture(xml: Path, mesh_arg: str | Path | None) -> Capture:
     # Cameras and their reference images.
     scene = _load_mitsuba_scene(xml, referenced)
     cameras = _xml_cameras(xml, root, defaults, scene)
-    images, alpha, has_alpha = _xml_images(xml, cameras)
+    images, alpha, has_alpha = _xml_images(xml, cameras, shrink or Shrink())
 
     # Known geometry.
     if mesh_arg is not None:
@@ -436,9 +448,9 @@ def _xml_envmap_file(xml: Path, env_elems: list[ET.Element], defaults: dict[str,
     return env_file
 
 
-def _xml_images(xml: Path, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The reference image images/<id>.exr or .png of every sensor, stacked (`_stack_images`);
-    one InputError naming every missing or mis-sized image."""
+def _xml_images(xml: Path, cameras: list[Camera], shrink: Shrink) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The reference image images/<id>.exr or .png of every sensor, each shrunk as it is read, stacked
+    (`_stack_images`); one InputError naming every missing or mis-sized image."""
     for cam in cameras[1:]:
         if (cam.width, cam.height) != (cameras[0].width, cameras[0].height):
             raise InputError(xml, f"sensor '{cam.name}' film is {cam.width}x{cam.height} but sensor "
@@ -458,7 +470,7 @@ def _xml_images(xml: Path, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarra
             if (w, h) != (cam.width, cam.height):
                 raise InputError(img_path, f"image size {w}x{h} differs from the film size "
                                            f"{cam.width}x{cam.height} of sensor '{cam.name}' in {xml.name}")
-            entries.append((img_path, rgb, alpha))
+            entries.append(_shrunk_entry(shrink, img_path, rgb, alpha))
         except InputError as exc:
             problems.append(exc)
     raise_all(problems, xml)
@@ -553,13 +565,18 @@ def _read_json(path: Path) -> dict:
     return data
 
 
-def _json_header(path: Path, data: dict) -> tuple[float, list[dict]]:
+def _json_angle(path: Path, data: dict) -> float:
     if "camera_angle_x" not in data:
-        raise InputError(path, "missing 'camera_angle_x' (horizontal field of view in radians)")
+        raise InputError(path, "missing 'camera_angle_x' (horizontal field of view in radians; or nerfstudio's "
+                               "'fl_x' / 'fl_y' focal lengths in pixels)")
     angle = data["camera_angle_x"]
     if not finite_number(angle) or not (MIN_FOV_DEG <= math.degrees(angle) <= MAX_FOV_DEG):
         raise InputError(path, f"'camera_angle_x' must be a number of radians in (0, pi) (a field of view of "
                                f"{MIN_FOV_DEG:g}..{MAX_FOV_DEG:g} degrees), got {angle!r}")
+    return float(angle)
+
+
+def _json_frames(path: Path, data: dict) -> list[dict]:
     frames = data.get("frames")
     if not isinstance(frames, list) or not frames:
         raise InputError(path, "no cameras: 'frames' is missing or empty")
@@ -570,7 +587,7 @@ def _json_header(path: Path, data: dict) -> tuple[float, list[dict]]:
             raise InputError(path, f"frames[{i}] has no 'file_path'")
         if "transform_matrix" not in frame:
             raise InputError(path, f"frames[{i}] ({frame['file_path']}) has no 'transform_matrix'")
-    return float(angle), frames
+    return frames
 
 
 def _frame_matrices(path: Path, frames: list[dict]) -> list[np.ndarray]:
@@ -638,9 +655,53 @@ def _json_image_size(path: Path, data: dict, frames: list[dict]) -> tuple[int, i
     raise InputError(path, "cannot tell the image size: no 'w'/'h' keys and no frame image exists")
 
 
-def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
+def _nerfstudio_cameras(path: Path, data: dict, frames: list[dict]):
+    """(cameras, lenses) of a nerfstudio-style json (vq_mitsuba.data.nerfstudio)."""
+    from vq_mitsuba.data.nerfstudio import nerfstudio_cameras
+
+    return nerfstudio_cameras(path, data, frames, _frame_matrices(path, frames), _frame_names(frames),
+                              lambda i: _frame_image(path, i, frames[i]))
+
+
+def _json_mesh(path: Path, mesh_arg: str | Path | None):
+    if mesh_arg is not None:
+        return load_mesh(mesh_arg)
+    if (path.parent / "mesh.ply").exists():
+        return load_mesh(path.parent / "mesh.ply")
+    return None
+
+
+def _load_nerfstudio_capture(path: Path, data: dict, frames: list[dict], mesh_arg, shrink: Shrink,
+                             cache_dir) -> Capture:
+    """A nerfstudio transforms.json: distorted photos undistorted (and cached), masks multiplied into
+    alpha, each photo shrunk as it is read."""
+    from vq_mitsuba.data.nerfstudio import envmap_frame, mask_paths
+    from vq_mitsuba.data.photo_captures import read_views
+
+    cameras, lenses = _nerfstudio_cameras(path, data, frames)
+    masks = mask_paths(path, frames)
+    problems, paths = [], []
+    for i, frame in enumerate(frames):
+        try:
+            paths.append(_frame_image(path, i, frame))
+        except InputError as exc:
+            problems.append(exc)
+    raise_all(problems, path)
+    images, alpha, has_alpha = read_views(path, cameras, paths, masks, lenses, cache_dir, shrink)
+    return Capture(path, cameras, images, alpha, has_alpha, _json_mesh(path, mesh_arg), None, envmap_frame(cameras),
+                   "blender")
+
+
+def _load_json_capture(path: Path, mesh_arg: str | Path | None, shrink: Shrink | None = None,
+                       cache_dir=None) -> Capture:
+    from vq_mitsuba.data.nerfstudio import is_nerfstudio
+
+    shrink = shrink or Shrink()
     data = _read_json(path)
-    angle, frames = _json_header(path, data)
+    frames = _json_frames(path, data)
+    if is_nerfstudio(data):
+        return _load_nerfstudio_capture(path, data, frames, mesh_arg, shrink, cache_dir)
+    angle = _json_angle(path, data)
     matrices = _frame_matrices(path, frames)
 
     entries, first, problems = [], None, []
@@ -654,20 +715,12 @@ def _load_json_capture(path: Path, mesh_arg: str | Path | None) -> Capture:
             elif (w, h) != first[1:]:
                 raise InputError(img_path, f"image size {w}x{h} differs from {first[0].name} "
                                            f"({first[1]}x{first[2]}); all frames must share one size")
-            entries.append((img_path, rgb, alpha))
+            entries.append(_shrunk_entry(shrink, img_path, rgb, alpha))
         except InputError as exc:
             problems.append(exc)
     raise_all(problems, path)
     images, alpha, has_alpha = _stack_images(entries)
     width, height = first[1], first[2]
     cameras = _json_cameras(path, frames, matrices, angle, width, height)
-
-    if mesh_arg is not None:
-        mesh = load_mesh(mesh_arg)
-    elif (path.parent / "mesh.ply").exists():
-        mesh = load_mesh(path.parent / "mesh.ply")
-    else:
-        mesh = None
-
-    return Capture(path, cameras, images, alpha, has_alpha, mesh, None,
+    return Capture(path, cameras, images, alpha, has_alpha, _json_mesh(path, mesh_arg), None,
                    BLENDER_ENV_TO_WORLD.copy(), "blender")

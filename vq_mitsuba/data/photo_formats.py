@@ -33,10 +33,13 @@ MODELS = {
     2: ("SIMPLE_RADIAL", ("f", "cx", "cy", "k")),
     3: ("RADIAL", ("f", "cx", "cy", "k1", "k2")),
     4: ("OPENCV", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")),
+    5: ("OPENCV_FISHEYE", ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")),
 }
 MODEL_IDS = {name: i for i, (name, _) in MODELS.items()}
-OTHER_MODELS = {5: "OPENCV_FISHEYE", 6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE",
+OTHER_MODELS = {6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE",
                 10: "THIN_PRISM_FISHEYE"}
+FISHEYE = "OPENCV_FISHEYE"  # equidistant projection, k1..k4 on the angle theta (COLMAP's and OpenCV's model)
+DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def camera_from_intrinsics(name: str, to_world: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -53,7 +56,10 @@ def camera_from_intrinsics(name: str, to_world: np.ndarray, fx: float, fy: float
 
 @dataclass
 class Lens:
-    """One COLMAP camera: pinhole intrinsics plus radial / tangential distortion."""
+    """One camera's lens: pinhole intrinsics plus distortion. The perspective models (COLMAP's
+    SIMPLE_RADIAL, RADIAL, OPENCV; nerfstudio's PINHOLE and OPENCV) scale a point at radius r by
+    1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8 and add the tangential p1, p2 terms; OPENCV_FISHEYE maps
+    the angle theta = atan(r) to theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)."""
 
     model: str
     width: int
@@ -66,14 +72,16 @@ class Lens:
     k2: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
 
     @property
     def distorted(self) -> bool:
-        return any(abs(v) > 0 for v in (self.k1, self.k2, self.p1, self.p2))
+        return self.model == FISHEYE or any(abs(getattr(self, n)) > 0 for n in DISTORTION)
 
     def params(self) -> list[float]:
         values = {"f": self.fx, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "k": self.k1,
-                  "k1": self.k1, "k2": self.k2, "p1": self.p1, "p2": self.p2}
+                  **{n: getattr(self, n) for n in DISTORTION}}
         return [values[n] for n in MODELS[MODEL_IDS[self.model]][1]]
 
     @staticmethod
@@ -83,12 +91,20 @@ class Lens:
         fx = v.get("fx", v.get("f"))
         fy = v.get("fy", v.get("f"))
         return Lens(model, int(width), int(height), fx, fy, v["cx"], v["cy"], v.get("k1", v.get("k", 0.0)),
-                    v.get("k2", 0.0), v.get("p1", 0.0), v.get("p2", 0.0))
+                    v.get("k2", 0.0), v.get("p1", 0.0), v.get("p2", 0.0), v.get("k3", 0.0), v.get("k4", 0.0))
+
+    def _radial(self, x2: np.ndarray) -> np.ndarray:
+        return 1.0 + x2 * (self.k1 + x2 * (self.k2 + x2 * (self.k3 + x2 * self.k4)))
 
     def distort(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised undistorted coordinates -> distorted ones."""
         r2 = u * u + v * v
-        radial = self.k1 * r2 + self.k2 * r2 * r2
+        if self.model == FISHEYE:
+            r = np.sqrt(r2)
+            theta = np.arctan(r)
+            scale = np.where(r > 1e-12, theta * self._radial(theta * theta) / np.maximum(r, 1e-12), 1.0)
+            return u * scale, v * scale
+        radial = self._radial(r2) - 1.0
         du = u * radial + 2 * self.p1 * u * v + self.p2 * (r2 + 2 * u * u)
         dv = v * radial + 2 * self.p2 * u * v + self.p1 * (r2 + 2 * v * v)
         return u + du, v + dv
@@ -125,7 +141,7 @@ MAX_RADIAL_SCALE = 2.0
 def check_lens(path: Path, entry: str, lens: Lens) -> None:
     """A COLMAP camera: intrinsics (vq_mitsuba.data.checks), finite and plausible distortion."""
     check_intrinsics(path, entry, lens.fx, lens.fy, lens.cx, lens.cy, lens.width, lens.height)
-    for name in ("k1", "k2", "p1", "p2"):
+    for name in DISTORTION:
         if not finite_number(getattr(lens, name)):
             raise InputError(path, f"{entry}: distortion {name} = {getattr(lens, name)!r} is not a finite number")
     if not lens.distorted:
@@ -136,11 +152,13 @@ def check_lens(path: Path, entry: str, lens: Lens) -> None:
     with np.errstate(all="ignore"):  # overflow becomes inf, refused below
         du, dv = lens.distort(u, v)
         r = np.hypot(u, v)
-        scale = np.hypot(du, dv)[r > 1e-9] / r[r > 1e-9]
+        ideal = np.arctan(r) if lens.model == FISHEYE else r  # a fisheye's own projection is no distortion
+        scale = np.hypot(du, dv)[r > 1e-9] / ideal[r > 1e-9]
         (a, c), (b, d) = (((x - y) / eps for x, y in zip(moved, (du, dv)))
                           for moved in (lens.distort(u + eps, v), lens.distort(u, v + eps)))
         folds = not np.all(a * d - b * c > 0)
-    coefficients = ", ".join(f"{n} = {getattr(lens, n):g}" for n in ("k1", "k2", "p1", "p2"))
+    coefficients = ", ".join(f"{n} = {getattr(lens, n):g}" for n in DISTORTION if n in ("k1", "k2", "p1", "p2")
+                             or getattr(lens, n) != 0)
     if not np.all((scale >= 1 / MAX_RADIAL_SCALE) & (scale <= MAX_RADIAL_SCALE)):
         worst = scale[np.argmax(np.abs(np.log(np.nan_to_num(scale, nan=np.inf) + 1e-300)))]
         raise InputError(path, f"{entry}: implausible distortion ({coefficients}): it moves image points to "
