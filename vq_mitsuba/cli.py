@@ -1,4 +1,4 @@
-"""Command line: `vq-mitsuba fit | geometry | render | edit | export | ui | eval | make-scene`.
+"""Command line: `vq-mitsuba fit | geometry | pose | render | edit | export | ui | eval | make-scene`.
 
 Thin: one parser built from shared parent parsers (each option defined once), then one library
 call per command (`fit` is `vq_mitsuba.engine.pipeline.fit_capture`) and its report."""
@@ -82,7 +82,7 @@ def _cmd_geometry(args) -> int:
     cfg = _config(args)
     with RunDir(run_dir).lock("geometry"):
         info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                            gt_mesh=args.gt_mesh, capture_cfg=cfg.capture).summary
+                            gt_mesh=args.gt_mesh, capture_cfg=cfg.capture, pose_cfg=cfg.pose).summary
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
@@ -91,6 +91,26 @@ def _cmd_geometry(args) -> int:
         print(f"against {args.gt_mesh}: Chamfer {100 * m['chamfer_rel']:.3f}% of the bounding-box diagonal, "
               f"normal consistency {m['normal_consistency']:.4f}, shading normals off by "
               f"{m['shading_normal_deg_median']:.2f} degrees (median)")
+    return 0
+
+
+def _cmd_pose(args) -> int:
+    from vq_mitsuba.geometry.poses import pose_capture
+    from vq_mitsuba.run.run_dir import check_writable
+
+    if args.help_config:
+        return _help_config()
+    if args.source is None:
+        raise InputError(None, "pose needs a folder of photos or a video")
+    if args.output is None:
+        raise InputError(None, "pose writes a COLMAP capture: give it a folder with -o OUT")
+    _output_folder(args.output)
+    check_writable(args.output)
+    cfg = _config(args)
+    summary = pose_capture(args.source, args.output, cfg.pose, progress=not args.quiet)
+    print(f"{summary['registered']} of {summary['images']} images posed, mean reprojection error "
+          f"{summary['mean_reprojection_error_px']:.2f} px: {args.output}/ (images/, sparse/0/, pose.json); "
+          f"fit it with: vq-mitsuba fit {args.output}")
     return 0
 
 
@@ -324,7 +344,8 @@ def _shared_parents() -> dict[str, argparse.ArgumentParser]:
     config.add_argument("--help-config", action="store_true", help="list every config key and preset")
     capture = _parent()  # the capture, and how its images are read (config section capture)
     capture.add_argument("capture", nargs="?", help="a scene XML, transforms_*.json, cameras_sphere.npz, COLMAP "
-                                                    "folder, or the folder holding one")
+                                                    "folder, or the folder holding one; a folder of photos or "
+                                                    "a video (posed first, see `pose`)")
     capture.add_argument("--downscale", type=_positive_int, metavar="N",
                          help="divide the photos' width and height by N (capture.downscale)")
     capture.add_argument("--background-color", metavar="R,G,B",
@@ -369,6 +390,22 @@ def _add_geometry(sub, shared) -> None:
                     "`capture` sections apply (e.g. --set neus.iterations=3000).")
     g.add_argument("--gt-mesh", help="score the mesh against this ground-truth mesh (Chamfer, normal consistency)")
     g.set_defaults(func=_cmd_geometry)
+
+
+def _add_pose(sub, shared) -> None:
+    p = sub.add_parser(
+        "pose", parents=[shared["threads"], _output("the posed capture to write", metavar="OUT"),
+                         shared["config"], shared["quiet"]],
+        help="find the camera poses of photos or a video (SfM): a COLMAP capture to fit",
+        description="Structure from motion with COLMAP (pycolmap): SIFT features, matching, incremental mapping "
+                    "with one camera for all images. SOURCE is a folder of photos (JPEG / PNG, one size; EXIF "
+                    "orientation applied) or a video (.mp4 .mov .avi .mkv .webm: the sharpest frame of each of "
+                    "pose.frames equal time windows). Writes OUT/images/, OUT/sparse/0/ (the model that places the "
+                    "most images) and OUT/pose.json (images placed, mean reprojection error, timings); refused "
+                    "when fewer than pose.min_registered of the images (and at least 3) are placed. Run again on "
+                    "the same inputs, OUT is reused. `fit` does this on its own for photos or a video (RUN_DIR/pose/).")
+    p.add_argument("source", nargs="?", help="a folder of photos or a video file")
+    p.set_defaults(func=_cmd_pose, resume=False)
 
 
 def _add_render(sub, shared) -> None:
@@ -502,7 +539,8 @@ def _add_make_scene(sub, shared) -> None:
     m.set_defaults(func=_cmd_make_scene)
 
 
-SUBCOMMANDS = (_add_fit, _add_geometry, _add_render, _add_edit, _add_export, _add_ui, _add_eval, _add_make_scene)
+SUBCOMMANDS = (_add_fit, _add_geometry, _add_pose, _add_render, _add_edit, _add_export, _add_ui, _add_eval,
+               _add_make_scene)
 
 
 def build_parser() -> argparse.ArgumentParser:

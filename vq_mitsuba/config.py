@@ -266,6 +266,18 @@ class CaptureConfig:
 
 
 @dataclass
+class PoseConfig:
+    """Camera poses of photos or a video without them (structure from motion with COLMAP)."""
+
+    matcher: str = setting("auto", "which image pairs SfM matches: sequential (neighbours in order), exhaustive "
+                                   "(all pairs) or auto (sequential for a video and over 100 photos, else exhaustive)",
+                           ("auto", "sequential", "exhaustive"))
+    frames: int = setting(80, "frames kept from a video: the sharpest of each of this many equal time windows", ">0")
+    min_registered: float = setting(0.5, "share of the images SfM must place (and at least 3), else it is refused",
+                                    "[0,1]")
+
+
+@dataclass
 class Config:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     envmap: EnvmapConfig = dataclasses.field(default_factory=EnvmapConfig)
@@ -277,6 +289,7 @@ class Config:
     neus: NeuSConfig = dataclasses.field(default_factory=NeuSConfig)
     ablation: AblationConfig = dataclasses.field(default_factory=AblationConfig)
     capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
+    pose: PoseConfig = dataclasses.field(default_factory=PoseConfig)
 
 
 PRESETS_DIR = Path(__file__).resolve().parent.parent / "configs"

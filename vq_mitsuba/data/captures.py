@@ -27,6 +27,7 @@ from vq_mitsuba.errors import InputError, raise_all
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_pose, check_size, finite_number
 from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.data.unposed import UNPOSED_KINDS, is_video, photo_files, unposed_error
 from vq_mitsuba.data.resize import Shrink, downscaled_camera  # noqa: F401 (downscaled_camera: public here too)
 
 if TYPE_CHECKING:
@@ -73,6 +74,8 @@ def load_capture(path: str | Path, mesh: str | Path | None = None, options: Capt
     shrink = Shrink.of(options)
     source = resolve_capture_path(path)
     kind = capture_kind(source)
+    if kind in UNPOSED_KINDS:
+        raise unposed_error(source)
     if kind == "xml":
         capture = _load_xml_capture(source, mesh, shrink)
     elif kind == "json":
@@ -93,6 +96,8 @@ def load_cameras(path: str | Path, options: CaptureConfig | None = None,
     options = options or CaptureConfig()
     source = resolve_capture_path(path)
     kind = capture_kind(source)
+    if kind in UNPOSED_KINDS:
+        raise unposed_error(source)
     if kind == "xml":
         root, defaults = _parse_xml(source)
         scene = _load_mitsuba_sensors_only(source, root)
@@ -120,16 +125,20 @@ def load_cameras(path: str | Path, options: CaptureConfig | None = None,
 
 def capture_kind(source: Path) -> str:
     """"xml", "json", "idr" (cameras_sphere.npz), "llff" (poses_bounds.npy) or "colmap" (a folder
-    with a sparse model)."""
+    with a sparse model); "photos" (a folder of photos without poses) or "video" (no poses either)."""
     if source.is_dir():
-        return "colmap"
+        from vq_mitsuba.data.photo_formats import colmap_model_dir
+
+        return "colmap" if colmap_model_dir(source) is not None else "photos"
+    if is_video(source):
+        return "video"
     return {".xml": "xml", ".json": "json", ".npz": "idr", ".npy": "llff"}[source.suffix.lower()]
 
 
 def resolve_capture_path(path: str | Path) -> Path:
     """The capture for `path`: the file itself, a folder's transforms_train.json / transforms.json /
     scene.xml / cameras_sphere.npz / poses_bounds.npy, or the folder itself when it holds a COLMAP
-    sparse model."""
+    sparse model or, failing all these, photos (a capture without poses, as a video file is)."""
     from vq_mitsuba.data.photo_formats import colmap_model_dir
 
     path = Path(path)
@@ -138,17 +147,17 @@ def resolve_capture_path(path: str | Path) -> Path:
                      "poses_bounds.npy"):
             if (path / name).is_file():
                 return path / name
-        if colmap_model_dir(path) is not None:
+        if colmap_model_dir(path) is not None or photo_files(path):
             return path
         raise InputError(path, "capture folder holds no transforms_train.json, transforms.json (nerfstudio), "
-                               "scene.xml, cameras_sphere.npz (NeuS/IDR), poses_bounds.npy (LLFF) or COLMAP "
-                               "model (sparse/0/cameras.bin or .txt)")
+                               "scene.xml, cameras_sphere.npz (NeuS/IDR), poses_bounds.npy (LLFF), COLMAP "
+                               "model (sparse/0/cameras.bin or .txt) or photos (JPEG / PNG)")
     if not path.exists():
         raise InputError(path, "capture file not found")
-    if path.suffix.lower() not in (".xml", ".json", ".npz", ".npy"):
+    if path.suffix.lower() not in (".xml", ".json", ".npz", ".npy") and not is_video(path):
         raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml, a transforms_*.json or "
-                               "nerfstudio transforms.json, a NeuS/IDR cameras_sphere.npz, an LLFF poses_bounds.npy "
-                               "or a COLMAP folder)")
+                               "nerfstudio transforms.json, a NeuS/IDR cameras_sphere.npz, an LLFF poses_bounds.npy, "
+                               "a COLMAP folder, a folder of photos or a video)")
     return path
 
 

@@ -1,5 +1,6 @@
-"""`vq-mitsuba fit` as one call: the run folder's checks, the geometry stage when the capture
-brings no geometry (NeuS), then the material fit (`vq_mitsuba.engine.trainer.fit`)."""
+"""`vq-mitsuba fit` as one call: the run folder's checks, the camera poses when the capture is photos
+or a video without them (SfM), the geometry stage when the capture brings no geometry (NeuS), then
+the material fit (`vq_mitsuba.engine.trainer.fit`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from vq_mitsuba.config import Config
 from vq_mitsuba.engine.trainer import check_fit_target, fit
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
+from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 from vq_mitsuba.run.run_dir import RunDir
 
 GEOMETRY_MODES = ("auto", "neus", "given")
@@ -31,15 +33,24 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
                 mesh: str | Path | None = None, resume: bool = False, progress: bool = True,
                 log: Callable[[str], None] = print) -> dict:
     """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
-    without `resume` before any work; reconstruct the mesh with NeuS when `needs_reconstruction`
-    (RUN_DIR/mesh.ply, reused on resume); then fit the materials. Returns the fit's summary.
+    without `resume` before any work; pose photos or a video without poses (RUN_DIR/pose/, a COLMAP
+    capture, reused while the inputs are the same) and fit that capture; reconstruct the mesh with
+    NeuS when `needs_reconstruction` (RUN_DIR/mesh.ply, reused on resume); then fit the materials.
+    Returns the fit's summary.
     The run's lock is held throughout: a second process fitting into RUN_DIR is refused."""
     run = RunDir(run_dir)
     run.check_not_foreign()
-    reconstruct = needs_reconstruction(capture, geometry, mesh)
+    unposed = is_unposed(capture)
+    if unposed and (mesh is not None or geometry == "given"):
+        raise InputError(mesh or capture, "known geometry cannot be used with photos or a video without poses: "
+                                          "their cameras come from SfM, in a frame and scale of its own; drop "
+                                          f"{'--mesh' if mesh is not None else '--geometry given'}")
+    reconstruct = unposed or needs_reconstruction(capture, geometry, mesh)
     check_fit_target(run, resume)
     with run.lock("fit", log):
         check_fit_target(run, resume)  # again, now that no other process writes here
+        if unposed:
+            capture = ensure_poses(capture, run, cfg.pose, progress=progress, log=log)
         if reconstruct:
             reused = resume and run.has_mesh()
             mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)

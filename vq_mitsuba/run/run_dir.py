@@ -8,6 +8,7 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     mesh.ply             the geometry used (given, or reconstructed by NeuS beside geometry.json)
     neus.pt              the NeuS checkpoint (`--resume` of the geometry stage continues from it)
     geometry.json        the geometry stage's summary; geometry_loss.png its training curves
+    pose/                photos or a video without poses, posed by SfM: a COLMAP capture and pose.json
     undistorted/         the capture's photos undistorted once (lens-distorted COLMAP captures)
     envmap.exr           the learned (or given) lighting, lat-long
     materials.json       the ranked codebook: M, each material's BRDF and pixel share, err_k
@@ -178,6 +179,8 @@ class RunDir:
     NEUS_CHECKPOINT = "neus.pt"
     GEOMETRY = "geometry.json"
     GEOMETRY_PLOT = "geometry_loss.png"
+    POSE = "pose"  # the COLMAP capture SfM made of photos or a video without poses (geometry/poses.py)
+    POSE_SUMMARY = "pose/pose.json"  # written last: the pose stage finished
     UNDISTORTED = "undistorted"
     ENVMAP = "envmap.exr"
     MATERIALS = "materials.json"
@@ -192,7 +195,7 @@ class RunDir:
     EDITS = "edits.json"
     LOCK = "run.lock"  # the command writing into the run (pid, host): RunLock
     # Files only a run of vq-mitsuba holds: a folder with one of them is a run (maybe unfinished).
-    MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT)
+    MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT, POSE_SUMMARY)
 
     def __init__(self, path: str | Path):
         self.dir = Path(path)

@@ -1,0 +1,265 @@
+"""Camera poses for photos or a video that come without them: structure from motion with COLMAP
+(pycolmap), written as a COLMAP capture that the capture loaders read (vq_mitsuba.data.photo_captures).
+
+    OUT/images/     the photos (turned upright where their EXIF orientation says so), or the video's kept frames
+    OUT/sparse/0/   the largest model: cameras.bin (one SIMPLE_RADIAL camera), images.bin, points3D.bin, ...
+    OUT/pose.json   what was done: the inputs, the matcher, registered / total images, the mean reprojection error
+
+The steps: SIFT features on the CPU (on images of at most SIFT_MAX_SIDE pixels), matching
+(`pose.matcher`: sequential pairs of neighbours in order for a video and for more than
+EXHAUSTIVE_MAX photos, every pair otherwise), incremental mapping with one camera shared by all
+images (they must share one size), and the model that places the most images. Fewer placed
+images than max(MIN_IMAGES, pose.min_registered x the images) is an InputError naming how many.
+
+The model keeps COLMAP's frame and scale, which are arbitrary: the loaders use its cameras as
+they are, NeuS frames the object from the cameras (and masks), and points3D.bin holds the sparse
+points for stages that frame the object by them. Run again on the same inputs with the same
+settings, OUT is reused (pose.json records them); the work happens in a folder beside OUT that
+replaces it once done, so an interrupted run leaves no half-written model.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable
+
+from vq_mitsuba.config import PoseConfig
+from vq_mitsuba.data.unposed import (UNPOSED_KINDS, copy_upright, fingerprint, is_video, photo_files,
+                                     pick_frames)
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.run.run_dir import RunDir, read_json, write_json
+
+SUMMARY = "pose.json"
+MIN_IMAGES = 3  # SfM needs three images to place any of them with confidence
+EXHAUSTIVE_MAX = 100  # photos up to which `auto` matches every pair (4950 pairs); over it, neighbours in name order
+SIFT_MAX_SIDE = 2000  # SIFT runs on images scaled down to this long side (phone photos: 4032 px, 4x the time)
+CAMERA_MODEL = "SIMPLE_RADIAL"  # focal length, principal point, one radial term: what a phone needs, few unknowns
+SUMMARY_VERSION = 1
+
+
+def is_unposed(capture: str | Path) -> bool:
+    """True when `capture` is a folder of photos or a video (no camera poses)."""
+    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
+
+    return capture_kind(resolve_capture_path(capture)) in UNPOSED_KINDS
+
+
+def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
+                 log: Callable[[str], None] = print) -> Path:
+    """The run's posed COLMAP capture RUN/pose of an unposed capture (made, or reused when it was
+    made from the same inputs); returns its folder."""
+    pose_capture(capture, run / RunDir.POSE, cfg, progress=progress, log=log)
+    return run / RunDir.POSE
+
+
+def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = None, progress: bool = True,
+                 log: Callable[[str], None] = print) -> dict:
+    """Find the camera poses of a folder of photos or a video and write the COLMAP capture OUT
+    (images/, sparse/0/, pose.json); returns pose.json's content (with "reused" true when OUT
+    already held the result for the same inputs and settings)."""
+    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
+
+    cfg = cfg or PoseConfig()
+    source = resolve_capture_path(source)
+    kind = capture_kind(source)
+    if kind not in UNPOSED_KINDS:
+        raise InputError(source, f"already has camera poses ({kind} capture): fit it as it is")
+    out = Path(out)
+    inputs = _inputs(source, kind, cfg)
+    previous = _previous(out)
+    if previous is not None and previous.get("inputs") == inputs:
+        _check_registered(out, previous["registered"], previous["images"], cfg, kind)
+        log(f"pose: reusing {out} ({previous['registered']} of {previous['images']} {_noun(kind)} placed)")
+        return dict(previous, reused=True)
+    work = out.parent / f".{out.name}.pose-tmp"
+    with _scratch(work):
+        t0 = time.perf_counter()
+        images = work / "images"
+        images.mkdir()
+        video = pick_frames(source, images, cfg.frames, progress=progress, log=log) if kind == "video" else None
+        names = _photos(source, images) if kind == "photos" else sorted(p.name for p in images.iterdir())
+        t_images = time.perf_counter() - t0
+        matcher = inputs["matcher"]
+        model, seconds = _sfm(work, names, matcher, progress, log)
+        registered = model.num_reg_images() if model is not None else 0
+        _check_registered(source, registered, len(names), cfg, kind)
+        model.write(str(_mkdir(work / "sparse" / "0")))
+        placed = {model.image(i).name for i in model.reg_image_ids()}
+        summary = {
+            "version": SUMMARY_VERSION, "source": str(source.resolve()), "kind": kind, "inputs": inputs,
+            "matcher": matcher, "camera_model": CAMERA_MODEL, "images": len(names), "registered": registered,
+            "unregistered": [n for n in names if n not in placed],
+            "mean_reprojection_error_px": round(float(model.compute_mean_reprojection_error()), 4),
+            "points3D": int(model.num_points3D()),
+            "seconds": {"images": round(t_images, 2), **seconds, "total": round(time.perf_counter() - t0, 2)},
+        }
+        if video is not None:
+            summary["video"] = video
+        (work / "database.db").unlink(missing_ok=True)
+        write_json(work / SUMMARY, summary)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(work, out)
+    log(f"pose: placed {registered} of {len(names)} {_noun(kind)}, mean reprojection error "
+        f"{summary['mean_reprojection_error_px']:.2f} px, {summary['points3D']} points ({matcher} matching, "
+        f"{summary['seconds']['total']:.1f} s): {out}")
+    return dict(summary, reused=False)
+
+
+def _noun(kind: str) -> str:
+    return "video frames" if kind == "video" else "photos"
+
+
+def _inputs(source: Path, kind: str, cfg: PoseConfig) -> dict:
+    """What the result depends on: the files (names and content keys) and the settings that change it."""
+    if kind == "video":
+        files = [[source.name, fingerprint(source)]]
+        return {"files": files, "frames": cfg.frames, "matcher": _matcher(cfg.matcher, kind, cfg.frames)}
+    photos = photo_files(source)
+    if len(photos) < MIN_IMAGES:
+        raise InputError(source, f"holds {len(photos)} photo{'s' * (len(photos) != 1)} (JPEG / PNG): structure from "
+                                 f"motion needs at least {MIN_IMAGES}, and 20 or more around the object work best")
+    return {"files": [[p.name, fingerprint(p)] for p in photos], "matcher": _matcher(cfg.matcher, kind, len(photos))}
+
+
+def _matcher(choice: str, kind: str, count: int) -> str:
+    if choice != "auto":
+        return choice
+    return "sequential" if kind == "video" or count > EXHAUSTIVE_MAX else "exhaustive"
+
+
+def _previous(out: Path) -> dict | None:
+    """The summary of an earlier result in OUT when it is complete; None for a new or empty folder.
+    A folder holding other files is refused (it is never emptied)."""
+    if not out.exists():
+        return None
+    if not out.is_dir():
+        raise InputError(out, "is a file; the posed capture goes into a folder")
+    if not (out / SUMMARY).is_file():
+        if any(out.iterdir()):
+            raise InputError(out, "holds other files and no posed capture (pose.json): choose a new or empty folder")
+        return None
+    summary = read_json(out / SUMMARY, "missing")
+    model = out / "sparse" / "0"
+    if summary.get("version") != SUMMARY_VERSION or not any((model / f"cameras.{e}").is_file() for e in ("bin", "txt")):
+        return {}  # an older or damaged result: made again
+    return summary
+
+
+def _check_registered(source: Path, registered: int, total: int, cfg: PoseConfig, kind: str) -> None:
+    need = max(MIN_IMAGES, math.ceil(cfg.min_registered * total - 1e-9))
+    if registered < need:
+        raise InputError(source, f"structure from motion placed {registered} of {total} {_noun(kind)} (at least "
+                                 f"{need} needed, pose.min_registered {cfg.min_registered:g}): the images need "
+                                 "texture, sharp focus and overlap (each part of the object in three or more, "
+                                 "taken a few steps apart around it)")
+
+
+@contextmanager
+def _scratch(folder: Path):
+    """A new empty folder, removed again unless the body moved it away."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    try:
+        yield folder
+    finally:
+        if folder.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _mkdir(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _photos(source: Path, images: Path) -> list[str]:
+    """Copy the photos upright into `images`; all must share one size (one camera)."""
+    sizes: dict[tuple[int, int], list[str]] = {}
+    for photo in photo_files(source):
+        sizes.setdefault(copy_upright(photo, images / photo.name), []).append(photo.name)
+    if len(sizes) > 1:
+        listed = "; ".join(f"{w}x{h}: {len(n)} ({', '.join(n[:3])}{', ...' if len(n) > 3 else ''})"
+                           for (w, h), n in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
+        raise InputError(source, f"the photos differ in size ({listed}): vq-mitsuba needs one size and one camera "
+                                 "for all views (turn them alike, or leave the odd ones out)")
+    return sorted(n for names in sizes.values() for n in names)
+
+
+def _threads() -> int:
+    """The CPU threads COLMAP may use: torch's count (vq-mitsuba --threads), at most the cores."""
+    import torch
+
+    from vq_mitsuba.backend import available_cores
+
+    return max(1, min(torch.get_num_threads(), available_cores()))
+
+
+@contextmanager
+def _quiet_colmap():
+    """COLMAP's log lines (thousands of them) only when they are errors."""
+    import pycolmap
+
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callable[[str], None]):
+    """COLMAP on work/images: (the model placing the most images or None, seconds per step)."""
+    import pycolmap
+    from tqdm.auto import tqdm
+
+    threads, db, images = _threads(), work / "database.db", work / "images"
+    seconds = {}
+    bar = tqdm(total=3, desc="pose", unit="step", disable=not progress)
+    with _quiet_colmap(), bar:
+        t = time.perf_counter()
+        bar.set_postfix_str(f"SIFT features of {len(names)} images")
+        reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
+        extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, max_image_size=SIFT_MAX_SIDE)
+        pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        seconds["features"] = round(time.perf_counter() - t, 2)
+        bar.update(1)
+
+        t = time.perf_counter()
+        bar.set_postfix_str(f"{matcher} matching")
+        matching = pycolmap.FeatureMatchingOptions(num_threads=threads)
+        if matcher == "sequential":
+            pycolmap.match_sequential(db, matching_options=matching, device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        seconds["matching"] = round(time.perf_counter() - t, 2)
+        bar.update(1)
+
+        t = time.perf_counter()
+        placed = [0]
+
+        def placing(count: int):
+            def callback():
+                placed[0] += count
+                bar.set_postfix_str(f"mapping: {placed[0]} images placed")
+            return callback
+
+        pycolmap.set_random_seed(0)
+        mapping = pycolmap.IncrementalPipelineOptions(num_threads=threads)
+        models = pycolmap.incremental_mapping(db, images, _mkdir(work / "models"), options=mapping,
+                                              initial_image_pair_callback=placing(2),
+                                              next_image_callback=placing(1))
+        seconds["mapping"] = round(time.perf_counter() - t, 2)
+        bar.update(1)
+    shutil.rmtree(work / "models", ignore_errors=True)
+    sizes = sorted((m.num_reg_images() for m in models.values()), reverse=True)
+    if len(sizes) > 1 and sizes[1] >= MIN_IMAGES:
+        log(f"pose: SfM made {len(sizes)} separate models ({', '.join(map(str, sizes))} images): the largest is kept; "
+            "the photos of the others overlap too little with it")
+    return max(models.values(), key=lambda m: m.num_reg_images(), default=None), seconds
