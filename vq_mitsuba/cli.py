@@ -36,17 +36,25 @@ def _config(args, run_dir: Path | None = None):
     from vq_mitsuba.run.run_dir import RunDir
 
     base = RunDir(run_dir).saved_config() if (args.resume and run_dir is not None) else None
+    return load_config(args.config, _capture_flags(args) + list(args.set), base=base, preset=args.preset)
+
+
+def _capture_flags(args) -> list[str]:
+    """The capture options given (--downscale, --max-size, ...) as config overrides `capture.KEY=VALUE`,
+    each checked alone, so that an error names the option, not --set."""
+    from vq_mitsuba.config import load_config
+
     flags = []
-    for key in ("downscale", "background_color", "holdout"):
+    for key in ("downscale", "max_size", "background_color", "holdout"):
         value = getattr(args, key, None)
         if value is None:
             continue
         flags.append(f"capture.{key}={value}")
-        try:  # alone first, so that an error names the option, not --set
+        try:
             load_config(None, flags[-1:])
         except InputError as exc:
             raise InputError(None, f"--{key.replace('_', '-')} {value}: {exc.message}") from None
-    return load_config(args.config, flags + list(args.set), base=base, preset=args.preset)
+    return flags
 
 
 def _cmd_fit(args) -> int:
@@ -116,6 +124,7 @@ def _cmd_pose(args) -> int:
 
 def _cmd_render(args) -> int:
     """Reads the finished run through RunDir and renders it: no training module is imported."""
+    from vq_mitsuba.config import load_config
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
     from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
@@ -126,7 +135,8 @@ def _cmd_render(args) -> int:
     out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
     check_writable(out)
     fitted = run.load()
-    cameras, world, _ = load_cameras(args.cameras)  # input checks before any rendering
+    size = load_config(None, _capture_flags(args)).capture  # --downscale, --max-size
+    cameras, world, _ = load_cameras(args.cameras, size)  # input checks before any rendering
     envmaps = [load_envmap(p) for p in args.envmap]
     names = [Path(p).stem for p in args.envmap]
     if len(set(names)) < len(names):
@@ -141,6 +151,7 @@ def _cmd_render(args) -> int:
             "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
             "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
             "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
+            "downscale": size.downscale, "max_size": size.max_size,
         })
     print(f"rendered views in {out}/")
     return 0
@@ -211,8 +222,13 @@ def _cmd_eval(args) -> int:
     if args.output is not None and (Path(args.output).is_dir() or args.output.endswith(("/", "\\"))):
         raise InputError(args.output, "is a folder; eval -o names the metrics JSON file (e.g. -o OUT/metrics.json)")
     check_writable(Path(args.output).parent if args.output else args.run_dir)
+    size = {k: getattr(args, k) for k in ("downscale", "max_size") if getattr(args, k) is not None}
+    _capture_flags(args)  # checked before any work
+    if args.gt is not None and size:
+        raise InputError(None, "--downscale and --max-size resize the held-out photos of a real capture (eval "
+                               "without --gt); a synthetic dataset's ground truth is scored at its own size")
     if args.gt is None:  # a real capture: the held-out views
-        metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output)
+        metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output, **size)
         print(f"held-out views ({len(metrics['views'])}): novel view PSNR {metrics['novel_view']['psnr']:.2f} dB, "
               f"SSIM {metrics['novel_view']['ssim']:.4f} (inside the masks)")
     else:
@@ -342,19 +358,23 @@ def _shared_parents() -> dict[str, argparse.ArgumentParser]:
     config.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one config key, e.g. train.iterations=500 (repeatable)")
     config.add_argument("--help-config", action="store_true", help="list every config key and preset")
-    capture = _parent()  # the capture, and how its images are read (config section capture)
+    size = _parent()  # how large the photos are read (config section capture): fit, geometry, render, eval
+    size.add_argument("--downscale", type=_positive_int, metavar="N",
+                      help="divide the photos' width and height by N (capture.downscale)")
+    size.add_argument("--max-size", type=int, metavar="N",
+                      help="shrink each photo as it is read to at most N pixels a side (capture.max_size)")
+    # the capture, and how its images are read (config section capture)
+    capture = argparse.ArgumentParser(add_help=False, parents=[size])
     capture.add_argument("capture", nargs="?", help="a scene XML, transforms_*.json, cameras_sphere.npz, COLMAP "
                                                     "folder, or the folder holding one; a folder of photos or "
                                                     "a video (posed first, see `pose`)")
-    capture.add_argument("--downscale", type=_positive_int, metavar="N",
-                         help="divide the photos' width and height by N (capture.downscale)")
     capture.add_argument("--background-color", metavar="R,G,B",
                          help="key out a plain backdrop of this sRGB colour (0..1) as the mask")
     capture.add_argument("--holdout", type=_positive_int, metavar="K",
                          help="keep every K-th view out of training, for `eval RUN_DIR` (capture.holdout)")
     resume = _parent()
     resume.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
-    return {"threads": threads, "quiet": quiet, "config": config, "capture": capture, "resume": resume}
+    return {"threads": threads, "quiet": quiet, "config": config, "size": size, "capture": capture, "resume": resume}
 
 
 RUN_DIR_OUTPUT = "run directory (default: runs/<capture folder name>)"
@@ -410,16 +430,18 @@ def _add_pose(sub, shared) -> None:
 
 def _add_render(sub, shared) -> None:
     r = sub.add_parser(
-        "render", parents=[shared["threads"], _output("output folder (default: RUN_DIR/renders)"), shared["quiet"]],
+        "render", parents=[shared["threads"], _output("output folder (default: RUN_DIR/renders)"), shared["quiet"],
+                           shared["size"]],
         help="render novel views, material maps and relighting of a fitted run",
         description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, NAME_metallic.exr, "
                     "NAME_roughness.exr, NAME_normal.exr, NAME_alpha.png, and with the discrete branch "
                     "NAME_material.png (ids) and NAME_segmentation.png (overlay). An envmap is a lat-long HDR "
                     "image in the capture's world convention (Blender's for NeRF/Blender captures). With several "
                     "--envmap, the first lighting's views go to OUT and each further one's to OUT/<file name>, "
-                    "rendered in one pass.")
+                    "rendered in one pass. --downscale / --max-size shrink the cameras' images (a 1600x1200 "
+                    "photo capture rendered smaller).")
     r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
-    r.add_argument("--cameras", required=True, help="transforms_*.json or Mitsuba XML with sensors")
+    r.add_argument("--cameras", required=True, help="any capture (its cameras only): transforms json, XML, ...")
     r.add_argument("--envmap", action="append", default=[],
                    help="relight with this lat-long HDR image (EXR); repeatable")
     r.add_argument("--env-rotate", type=_finite(1e6), default=0.0, metavar="DEG",
@@ -493,7 +515,7 @@ def _add_ui(sub, shared) -> None:
 def _add_eval(sub, shared) -> None:
     e = sub.add_parser(
         "eval", parents=[shared["threads"], _output("metrics JSON path (default: RUN_DIR/metrics.json)"),
-                         shared["quiet"]],
+                         shared["quiet"], shared["size"]],
         help="score a fitted run against a synthetic dataset's ground truth",
         description="Render the dataset's test views (transforms_test.json) and compare inside the ground-truth "
                     "foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after per-channel scale alignment, "
@@ -502,7 +524,8 @@ def _add_eval(sub, shared) -> None:
                     "(scene.json, transforms_test.json, images/, gt/, relit/, envmaps/); without --gt, the run's "
                     "held-out views (fit --holdout K) are scored. --meanshift gives the bandwidths of the "
                     "MeanShift segmentation baseline on the continuous branch's BRDF maps ('none' skips it); it "
-                    "needs ground-truth material ids.")
+                    "needs ground-truth material ids. --downscale / --max-size set the held-out photos' size "
+                    "(default: the fit's).")
     e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     e.add_argument("--gt", metavar="DATASET", help="the ground-truth dataset folder (default: the held-out views)")
     e.add_argument("--spp", type=_positive_int, help="render samples per pixel (default: render.spp of the run's config)")
@@ -521,13 +544,14 @@ def _add_make_scene(sub, shared) -> None:
                     "bpy in .venv-cycles, `make cycles`; same layout, plus relit views under Blender's eight "
                     "studio-light probes): training and test views in both capture formats, ground-truth maps and "
                     "relit test views. --photo-formats also writes the training views as a NeuS/IDR capture "
-                    "(neus/) and COLMAP captures (colmap/: binary, pinhole; colmap_opencv/: text, distorted "
-                    "OPENCV lens).")
+                    "(neus/), COLMAP captures (colmap/: binary, pinhole; colmap_opencv/: text, distorted "
+                    "OPENCV lens), a nerfstudio capture (nerfstudio/: transforms.json, per-frame OPENCV lenses) "
+                    "and an LLFF capture (llff/: poses_bounds.npy).")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
     m.add_argument("--resolution", type=_resolution, metavar="N|WxH",
                    help="image size in pixels: N for N x N, or W x H (default per scene)")
     m.add_argument("--photo-formats", action="store_true",
-                   help="also write the training views as NeuS/IDR and COLMAP captures")
+                   help="also write the training views as NeuS/IDR, COLMAP, nerfstudio and LLFF captures")
     m.add_argument("--spp", type=_positive_int,
                    help="path-tracing samples per pixel (default: the scene's for mitsuba, 128 for cycles)")
     m.add_argument("--renderer", choices=["mitsuba", "cycles"], default="mitsuba",

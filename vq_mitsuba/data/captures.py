@@ -480,6 +480,7 @@ def _xml_images(xml: Path, cameras: list[Camera], shrink: Shrink) -> tuple[np.nd
                 raise InputError(img_path, f"image size {w}x{h} differs from the film size "
                                            f"{cam.width}x{cam.height} of sensor '{cam.name}' in {xml.name}")
             entries.append(_shrunk_entry(shrink, img_path, rgb, alpha))
+            del rgb, alpha  # the full-size photo goes before the next one is read
         except InputError as exc:
             problems.append(exc)
     raise_all(problems, xml)
@@ -725,6 +726,7 @@ def _load_json_capture(path: Path, mesh_arg: str | Path | None, shrink: Shrink |
                 raise InputError(img_path, f"image size {w}x{h} differs from {first[0].name} "
                                            f"({first[1]}x{first[2]}); all frames must share one size")
             entries.append(_shrunk_entry(shrink, img_path, rgb, alpha))
+            del rgb, alpha  # the full-size photo goes before the next one is read
         except InputError as exc:
             problems.append(exc)
     raise_all(problems, path)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -582,7 +582,8 @@ def format_table(metrics: dict) -> str:
 
 
 def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool = True,
-                     output: str | Path | None = None) -> dict:
+                     output: str | Path | None = None, downscale: int | None = None,
+                     max_size: int | None = None) -> dict:
     """Score a run fitted with capture.holdout K on the views it kept out of training: novel-view
     PSNR / SSIM (sRGB) inside each view's mask, its own images being the reference. For captures
     without ground-truth maps; writes RUN_DIR/metrics.json (or `output`)."""
@@ -597,7 +598,10 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
         raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
                                   "of a real capture, or give --gt DATASET for a synthetic one")
     info = run.source().info()
-    held = load_capture(info["capture"], options=cfg.capture, split="holdout", cache_dir=run.undistorted_dir)
+    # the held-out photos at the fit's size, or at the `downscale` / `max_size` given
+    sizes = {k: v for k, v in (("downscale", downscale), ("max_size", max_size)) if v is not None}
+    options = replace(cfg.capture, **sizes)
+    held = load_capture(info["capture"], options=options, split="holdout", cache_dir=run.undistorted_dir)
     fitted = run.load()
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp
