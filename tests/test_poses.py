@@ -131,6 +131,11 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
     assert resolve_capture_path(photos) == photos and capture_kind(photos) == "photos"
     assert resolve_capture_path(video) == video and capture_kind(video) == "video"
     assert poses.is_unposed(photos) and poses.is_unposed(video)
+    from argparse import Namespace
+
+    from vq_mitsuba.cli import _run_dir
+    assert _run_dir(Namespace(capture=str(photos), output=None), "fit") == Path("runs") / "photos"
+    assert _run_dir(Namespace(capture=str(video), output=None), "fit") == Path("runs") / "clip"
     for source in (photos, video):
         with pytest.raises(InputError, match="vq-mitsuba pose"):
             load_capture(source)
