@@ -289,3 +289,45 @@ def test_mutated_neus_archives_load_or_are_refused(folder, edits, garbage):
     if garbage is not None:  # a damaged archive
         npz.write_bytes(npz.read_bytes()[:len(garbage) * 20] + garbage)
     _check_photo(folder)
+
+
+# nerfstudio transforms.json: any value for any intrinsic key, at the top level or per frame
+ns_keys = st.sampled_from(["fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
+                           "camera_model", "camera_angle_x", "mask_path", "applied_transform"])
+ns_values = st.sampled_from([30.0, 0.0, -1.0, 1e12, float("nan"), 24, 16, "OPENCV", "OPENCV_FISHEYE", "PINHOLE",
+                             "FOV", "image.png", 0.05, [[1, 0, 0, 0]]]) | json_values
+
+
+@FUZZ
+@given(top=st.dictionaries(ns_keys, ns_values, max_size=5),
+       per_frame=st.lists(st.dictionaries(ns_keys, ns_values, max_size=3), min_size=3, max_size=3))
+def test_mutated_nerfstudio_json_loads_or_is_refused(folder, top, per_frame):
+    from vq_mitsuba.data.cameras import camera_to_nerf
+
+    _photos(folder, "images", ["000.png", "001.png", "002.png"])
+    frames = [{"file_path": f"images/{i:03d}.png", "transform_matrix": camera_to_nerf(c)[0].tolist(), **extra}
+              for i, (c, extra) in enumerate(zip(_photo_cameras(), per_frame))]
+    data = {"camera_model": "OPENCV", "fl_x": 20.0, "fl_y": 20.0, "cx": PHOTO_W / 2, "cy": PHOTO_H / 2, **top,
+            "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(data, allow_nan=True))
+    _check_photo(folder)
+
+
+@FUZZ
+@given(shape=st.just((3, 17)) | st.tuples(st.integers(0, 4), st.integers(14, 18)),
+       edits=st.lists(st.tuples(st.integers(0, 2), st.integers(0, 16),
+                                st.floats(allow_nan=True, allow_infinity=True)), max_size=3))
+def test_mutated_llff_poses_load_or_are_refused(folder, shape, edits):
+    from vq_mitsuba.data.llff import write_poses_bounds
+
+    _photos(folder, "images", ["000.png", "001.png", "002.png"])
+    npy = folder / "poses_bounds.npy"
+    write_poses_bounds(npy, _photo_cameras(), [(0.5, 6.0)] * 3)
+    rows = np.load(npy)
+    for i, j, value in edits:
+        rows[i, j] = value
+    n, m = shape
+    out = np.zeros((n, m))
+    out[:min(n, 3), :min(m, 17)] = rows[:min(n, 3), :min(m, 17)]
+    np.save(npy, out if (n, m) != (3, 17) else rows)
+    _check_photo(folder)

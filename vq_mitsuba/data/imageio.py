@@ -181,10 +181,12 @@ def read_mask(path: str | Path) -> np.ndarray:
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of an image file, reading only what its format needs."""
     path = Path(path)
-    if path.suffix.lower() == ".exr":
-        data = read_exr(path)
-        return int(data.shape[1]), int(data.shape[0])
+    if not path.is_file():
+        raise InputError(path, "image file not found")
     try:
+        if path.suffix.lower() == ".exr":
+            data = read_exr(path)
+            return int(data.shape[1]), int(data.shape[0])
         from PIL import Image
 
         with Image.open(path) as im:
