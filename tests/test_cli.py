@@ -13,8 +13,8 @@ from vq_mitsuba import cli
 from vq_mitsuba.errors import InputError
 
 # Which commands take -o and --quiet (from the shared parents).
-OUTPUT = {"fit", "geometry", "render", "edit", "export", "eval", "make-scene"}
-QUIET = {"fit", "geometry", "render", "export", "eval"}
+OUTPUT = {"fit", "geometry", "pose", "render", "edit", "export", "eval", "make-scene"}
+QUIET = {"fit", "geometry", "pose", "render", "export", "eval"}
 CONFIG = {"fit", "geometry"}  # --preset, --config, --set, --help-config of the config system
 
 
@@ -29,7 +29,7 @@ def _option(parser: argparse.ArgumentParser, flag: str):
 
 def test_every_command_has_the_shared_options_where_expected():
     subs = _subparsers()
-    assert set(subs) == {"fit", "geometry", "render", "edit", "export", "ui", "eval", "make-scene"}
+    assert set(subs) == {"fit", "geometry", "pose", "render", "edit", "export", "ui", "eval", "make-scene"}
     for name, parser in subs.items():
         out = _option(parser, "-o")
         assert (out is not None) == (name in OUTPUT), name
