@@ -117,7 +117,10 @@ def test_photos_that_do_not_overlap_are_refused_naming_how_many_were_placed(tmp_
 
 
 def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypatch):
+    from argparse import Namespace
+
     import vq_mitsuba.geometry.poses as poses
+    from vq_mitsuba.cli import _run_dir
     from vq_mitsuba.data.captures import capture_kind, load_cameras, load_capture, resolve_capture_path
     from vq_mitsuba.data.imageio import write_png
 
@@ -131,9 +134,6 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
     assert resolve_capture_path(photos) == photos and capture_kind(photos) == "photos"
     assert resolve_capture_path(video) == video and capture_kind(video) == "video"
     assert poses.is_unposed(photos) and poses.is_unposed(video)
-    from argparse import Namespace
-
-    from vq_mitsuba.cli import _run_dir
     assert _run_dir(Namespace(capture=str(photos), output=None), "fit") == Path("runs") / "photos"
     assert _run_dir(Namespace(capture=str(video), output=None), "fit") == Path("runs") / "clip"
     for source in (photos, video):

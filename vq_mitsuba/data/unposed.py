@@ -104,7 +104,7 @@ def sharpness(rgb: np.ndarray) -> float:
 def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
                 log: Callable[[str], None] = print) -> dict:
     """Decode `video` once, keep the sharpest frame of each of `count` equal time windows and write
-    them to folder/frame_NNNN.jpg (NNNN the frame's index in the video). Returns what was done:
+    them to folder/frame_NNNNNN.jpg (NNNNNN the frame's index in the video). Returns what was done:
     frames decoded, fps, duration, the kept frames' indices, times and sharpness."""
     import imageio_ffmpeg
     from PIL import Image
@@ -127,7 +127,7 @@ def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
     def flush(window: int) -> None:
         score, index, pixels = best[window]
         if pixels is not None:
-            Image.fromarray(pixels).save(folder / f"frame_{index:05d}.jpg", quality=95)
+            Image.fromarray(pixels).save(folder / f"frame_{index:06d}.jpg", quality=95)
             best[window] = (score, index, None)
 
     try:
