@@ -144,10 +144,13 @@ def _previous(out: Path) -> dict | None:
         if any(out.iterdir()):
             raise InputError(out, "holds other files and no posed capture (pose.json): choose a new or empty folder")
         return None
-    summary = read_json(out / SUMMARY, "missing")
+    try:
+        summary = read_json(out / SUMMARY, "missing")
+    except InputError:
+        return {}  # a damaged result: made again
     model = out / "sparse" / "0"
     if summary.get("version") != SUMMARY_VERSION or not any((model / f"cameras.{e}").is_file() for e in ("bin", "txt")):
-        return {}  # an older or damaged result: made again
+        return {}  # an older or incomplete result: made again
     return summary
 
 
