@@ -751,7 +751,8 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
     relit test views). None for resolution / n_train / n_test / spp takes the scene's default
     (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
-    training views as NeuS/IDR (neus/) and COLMAP (colmap/, colmap_opencv/) captures. Returns out_dir."""
+    training views as NeuS/IDR (neus/), COLMAP (colmap/, colmap_opencv/), nerfstudio (nerfstudio/) and
+    LLFF (llff/) captures. Returns out_dir."""
     _ensure_variant()
     t_start = time.time()
     spec = load_scene_spec(name)
