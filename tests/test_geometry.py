@@ -239,8 +239,8 @@ def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
 
 
 def test_neus_needs_masks_and_foreground():
-    with pytest.raises(InputError, match="alpha"):
-        NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg())
+    with pytest.raises(InputError, match="alpha"):  # without masks only when neus.background allows it
+        NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))
     empty = sphere_capture(n_views=4, size=16)
     empty.alpha[:] = 0.0
     with pytest.raises(InputError, match="empty"):

@@ -284,7 +284,8 @@ def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
         assert between < max(errors["colmap"], errors[name], 0.02), (name, between, errors)
 
 
-def test_reconstruction_without_masks_says_what_is_needed(tmp_path, capsys):
+def test_reconstruction_refused_without_masks_says_what_is_needed(tmp_path, capsys):
+    """With neus.background masks (auto reconstructs without them: tests/test_maskfree.py)."""
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.imageio import write_png
     from vq_mitsuba.data.photo_formats import write_idr
@@ -293,9 +294,10 @@ def test_reconstruction_without_masks_says_what_is_needed(tmp_path, capsys):
     for i in range(3):
         write_png(tmp_path / "idr" / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
     write_idr(tmp_path / "idr" / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
-    assert main(["fit", str(tmp_path / "idr"), "-o", str(tmp_path / "run"), "--quiet"]) == 2
+    assert main(["fit", str(tmp_path / "idr"), "-o", str(tmp_path / "run"), "--quiet",
+                 "--set", "neus.background=masks"]) == 2
     err = capsys.readouterr().err
-    assert "needs masks" in err and "--background-color" in err and "mask/" in err
+    assert "neus.background is masks" in err and "--background-color" in err and "mask/" in err
 
 
 # --------------------------------------------------------------------------------------------

@@ -231,10 +231,15 @@ class NeuSConfig:
     coarse_to_fine: float = setting(0.3, "share of training over which finer grid levels fade in", "[0,1]")
     init: str = setting("hull", "SDF initialisation: hull (smoothed visual-hull distance) or sphere",
                                 ("hull", "sphere"))
-    init_radius: float = setting(0.6, "radius of the sphere initialisation (normalised box units)", ">0")
+    init_radius: float = setting(0.0, "radius of the sphere initialisation (normalised box units; 0: 0.6 with "
+                                      "masks, 0.3 of the bounding sphere without)", ">=0")
     init_variance: float = setting(0.5, "initial log-sharpness / 10 (s = exp(10 * variance))", "any")
     w_eikonal: float = setting(0.1, "eikonal loss weight")
     w_mask: float = setting(0.1, "mask loss weight (BCE on the accumulated opacity)")
+    background: str = setting(
+        "auto", "what tells the object from the backdrop: masks (the capture's alpha or masks), model (no "
+                "masks: the object in a sphere framed from the cameras, a background model outside it) or auto "
+                "(masks when the capture has them)", ("auto", "masks", "model"))
     hull_resolution: int = setting(128, "visual-hull / occupancy grid resolution", ">0")
     hull_threshold: float = setting(0.5, "alpha above which a pixel is foreground for carving", "[0,1]")
     hull_min_views: float = setting(0.75, "share of the views whose frusta must hold a voxel for it to be carved in",

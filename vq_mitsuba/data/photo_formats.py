@@ -389,6 +389,52 @@ def _read_images_bin(path: Path) -> list[ColmapImage]:
     return out
 
 
+def read_colmap_points(model: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sparse points of a model (points3D.bin, else .txt): positions (N, 3) in the cameras' world
+    and the number of images seeing each (its track length); None without a points file."""
+    binary, text = model / "points3D.bin", model / "points3D.txt"
+    path = binary if binary.is_file() else text if text.is_file() else None
+    if path is None:
+        return None
+    return _read_colmap_file(path, _read_points_bin if path is binary else _read_points_txt)
+
+
+def _read_points_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    xyz, track = [], []
+    with open(path, "rb") as f:
+        (n,) = _read(f, "<Q")
+        for _ in range(n):
+            values = _read(f, "<QdddBBBdQ")
+            xyz.append(values[1:4])
+            track.append(values[8])
+            f.seek(8 * values[8], 1)  # (image id, point index) pairs
+    return _points(path, xyz, track)
+
+
+def _read_points_txt(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    xyz, track = [], []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            xyz.append([float(v) for v in parts[1:4]])
+            if len(xyz[-1]) != 3 or len(parts) < 8:
+                raise ValueError
+        except ValueError:
+            raise InputError(path, f"line {number} ('{line[:60]}') is not POINT3D_ID X Y Z R G B ERROR TRACK[]") \
+                from None
+        track.append((len(parts) - 8) // 2)
+    return _points(path, xyz, track)
+
+
+def _points(path: Path, xyz: list, track: list) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.asarray(xyz, np.float64).reshape(-1, 3)
+    if not np.isfinite(pts).all():
+        raise InputError(path, "holds a point with a non-finite coordinate")
+    return pts, np.asarray(track, np.int64)
+
+
 def colmap_to_world(img: ColmapImage) -> np.ndarray:
     """(4, 4) camera-to-world matrix, in OpenCV camera axes, of one registered image."""
     r = qvec_to_matrix(img.qvec)
@@ -467,6 +513,17 @@ def read_idr(path: Path, count: int) -> tuple[list[tuple[np.ndarray, np.ndarray]
             views.append(_decompose(path, i, p))
             scales.append(scale)
     return views, scales
+
+
+def read_idr_sphere(path: Path) -> tuple[np.ndarray, float] | None:
+    """(centre, radius) in the world of the sphere that scale_mat_0 maps the unit sphere to: the
+    region of interest IDR and NeuS normalise to; None when the archive has no scale_mat_0."""
+    with _open_npz(path) as data:
+        if "scale_mat_0" not in data.files:
+            return None
+        scale = _idr_matrix(path, data, "scale_mat_0", ((4, 4),))
+    _check_invertible(path, "scale_mat_0", scale[:3, :3])
+    return scale[:3, 3].copy(), float(abs(np.linalg.det(scale[:3, :3])) ** (1.0 / 3.0))
 
 
 @contextmanager

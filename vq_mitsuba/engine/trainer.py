@@ -28,6 +28,7 @@ from vq_mitsuba.engine.ranking import rank_materials
 from vq_mitsuba.engine.residual import residual_stage
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
+from vq_mitsuba.geometry.pipeline import masked_by_mesh
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models import losses
@@ -351,6 +352,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
                          "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from masked images "
                          "with `fit --geometry neus` or `vq-mitsuba geometry`)")
+    if not capture.has_alpha and run.masks_from_mesh():
+        capture = masked_by_mesh(capture)
     if resume:
         info = run.info()
         if Path(info["capture"]) != Path(capture.source).resolve():

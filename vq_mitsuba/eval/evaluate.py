@@ -586,7 +586,9 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
                      max_size: int | None = None) -> dict:
     """Score a run fitted with capture.holdout K on the views it kept out of training: novel-view
     PSNR / SSIM (sRGB) inside each view's mask, its own images being the reference. For captures
-    without ground-truth maps; writes RUN_DIR/metrics.json (or `output`)."""
+    without ground-truth maps; writes RUN_DIR/metrics.json (or `output`). A run whose mesh NeuS
+    made without masks is scored inside the mesh's coverage, as it was fitted (its coverage_iou is
+    then 1 by construction)."""
     from tqdm import tqdm
 
     from vq_mitsuba.data.captures import load_capture
@@ -602,6 +604,10 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     sizes = {k: v for k, v in (("downscale", downscale), ("max_size", max_size)) if v is not None}
     options = replace(cfg.capture, **sizes)
     held = load_capture(info["capture"], options=options, split="holdout", cache_dir=run.undistorted_dir)
+    if not held.has_alpha and run.source().masks_from_mesh():  # masked as the fit was: by the mesh's coverage
+        from vq_mitsuba.geometry.pipeline import masked_by_mesh
+
+        held = masked_by_mesh(held, run.mesh())
     fitted = run.load()
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp

@@ -70,6 +70,87 @@ def clean_mesh(mesh, min_component: float = 0.05, keep_largest: bool = False, sm
     return out
 
 
+def mesh_coverage(mesh, cameras, samples: int = 2) -> np.ndarray:
+    """Each camera's coverage by the mesh: the share of samples x samples stratified rays per pixel
+    whose primary ray hits it (Mitsuba ray casting), (N, H, W) float32 in [0, 1], as an alpha mask."""
+    import mitsuba as mi
+
+    from vq_mitsuba.backend import init_mitsuba
+    from vq_mitsuba.data.cameras import camera_rays
+
+    init_mitsuba()
+    vertices = np.ascontiguousarray(np.asarray(mesh.vertices), dtype=np.float32)
+    faces = np.ascontiguousarray(np.asarray(mesh.faces), dtype=np.uint32)
+    shape = mi.Mesh("coverage", len(vertices), len(faces))
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(vertices.ravel())
+    params["faces"] = mi.UInt32(faces.ravel())
+    params.update()
+    scene = mi.load_dict({"type": "scene", "mesh": shape})
+    k = max(int(samples), 1)
+    out = []
+    for cam in cameras:
+        n_px = cam.width * cam.height
+        hits = np.zeros(n_px, np.float32)
+        for sy in range(k):
+            for sx in range(k):
+                jitter = np.broadcast_to(np.array([(sx + 0.5) / k, (sy + 0.5) / k]), (n_px, 2))
+                o, d = camera_rays(cam, jitter)
+                ray = mi.Ray3f(mi.Point3f(*(o[:, i] for i in range(3))), mi.Vector3f(*(d[:, i] for i in range(3))))
+                hits += np.array(scene.ray_test(ray), dtype=np.float32)
+        out.append((hits / (k * k)).reshape(cam.height, cam.width))
+    return np.stack(out).astype(np.float32)
+
+
+def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float = 0.02, min_share: float = 0.15,
+                  seed: int = 0) -> tuple[np.ndarray, float] | None:
+    """The plane of a supporting surface (a table) in a mesh cropped to the sphere of `radius` at the
+    origin: (unit normal n towards the viewpoints, offset c; the plane is n.x = c), or None.
+
+    The plane holding the most surface area (faces within tol of it and facing along it; candidates
+    from 300 faces drawn by area) counts as a support when it holds at least min_share of the area,
+    runs out to the crop (its faces' 95th-percentile distance from the centre is at least 0.9 radius:
+    a table goes on beyond the object, a flat face of the object stops short of the sphere), and
+    nine in ten of the viewpoints (N, 3) lie on one side of it (cameras look down on a table; a
+    face of the object is seen from both sides of its plane)."""
+    faces = np.asarray(mesh.faces)
+    if len(faces) == 0 or len(viewpoints) == 0:
+        return None
+    centroids = np.asarray(mesh.triangles_center)
+    normals = np.asarray(mesh.face_normals)
+    area = np.asarray(mesh.area_faces)
+    total = float(area.sum())
+    if total <= 0:
+        return None
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(len(faces), size=min(300, len(faces)), replace=False, p=area / total)
+    best, best_area = None, 0.0
+    for i in picks:
+        n = normals[i]
+        c = float(n @ centroids[i])
+        inlier = (np.abs(centroids @ n - c) < tol) & (np.abs(normals @ n) > 0.9)
+        a = float(area[inlier].sum())
+        if a > best_area:
+            best, best_area = (n, c, inlier), a
+    if best is None or best_area < min_share * total:
+        return None
+    n, c, inlier = best
+    # refit to the inliers (area-weighted least squares), then test the two other conditions
+    w = area[inlier] / area[inlier].sum()
+    mean = (w[:, None] * centroids[inlier]).sum(0)
+    cov = ((centroids[inlier] - mean) * w[:, None]).T @ (centroids[inlier] - mean)
+    n_fit = np.linalg.eigh(cov)[1][:, 0]
+    n = n_fit if n_fit @ n >= 0 else -n_fit
+    c = float(n @ mean)
+    reach = float(np.percentile(np.linalg.norm(centroids[inlier], axis=1), 95))
+    side = np.sign(np.asarray(viewpoints, np.float64) @ n - c)
+    if reach < 0.9 * radius or max(np.mean(side > 0), np.mean(side < 0)) < 0.9:
+        return None
+    if np.mean(side > 0) < 0.5:
+        n, c = -n, -c
+    return n, c
+
+
 def smooth_vertex_normals(mesh, iterations: int, max_angle_deg: float = 180.0):
     """The mesh with the same vertices and faces and smoothed vertex normals: each step replaces a
     vertex's normal by the renormalised mean of its own and those of its edge neighbours whose

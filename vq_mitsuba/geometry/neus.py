@@ -16,6 +16,15 @@ What makes it fast enough for two CPU cores:
   only placed where the ray crosses the occupancy grid: from its entry into the (dilated) hull to
   just past the first cell the current SDF marks as deep inside (refreshed during training);
 - every ray batch is drawn from the foreground-dilated pixels of all views.
+
+Without masks (`neus.background`: model, or auto on a capture without alpha or masks), as NeuS
+trains DTU "w/o mask": the object lives in a bounding sphere framed from the cameras (and the
+sparse points of a COLMAP model, or an IDR capture's scale_mat_0), which is the normalised box's
+unit sphere and takes the hull's place (occupancy, SDF crop); the SDF starts as a sphere; rays come
+from every pixel; behind the foreground each ray composites a NeRF++ background (density and colour
+of points outside the sphere from their inverted-sphere coordinates (x/r, 1/r) and the view
+direction); the colour loss is on every pixel and there is no mask loss. The exported mesh keeps
+the largest piece inside the sphere, without a supporting plane (`support_plane`).
 """
 
 from __future__ import annotations
@@ -36,6 +45,10 @@ from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 from vq_mitsuba.config import check as validate
+
+
+BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
+INIT_RADIUS, INIT_RADIUS_WITHOUT_MASKS = 0.6, 0.3  # the sphere initialisation when neus.init_radius is 0
 
 
 
@@ -71,6 +84,62 @@ def _look_center(cameras) -> np.ndarray:
     if np.linalg.cond(a) > 1e8:
         return np.mean([c.origin for c in cameras], 0)
     return np.linalg.solve(a, b)
+
+
+def _frame_margins(cam, points: np.ndarray) -> np.ndarray:
+    """Distance (world units) of each point (N, 3) from the nearest side plane of the camera's
+    frustum: positive inside the frustum, negative outside (or behind the camera)."""
+    inv = np.linalg.inv(cam.to_world)
+    local = points @ inv[:3, :3].T + inv[:3, 3]
+    fx, fy, cx, cy = cam.intrinsics()
+    # Inward normals of the four side planes (camera space: +X left, +Y up, +Z forward; as camera_rays).
+    normals = np.array([[-1.0, 0.0, cx / fx], [1.0, 0.0, (cam.width - cx) / fx],
+                        [0.0, -1.0, cy / fy], [0.0, 1.0, (cam.height - cy) / fy]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    margin = (local @ normals.T).min(1)
+    return np.where(local[:, 2] > 0, margin, -np.abs(margin) - 1e-9)
+
+
+def uses_background_model(capture, cfg: NeuSConfig) -> bool:
+    """Whether NeuS trains without masks (a bounding sphere and a background model): with
+    `neus.background` model, or auto on a capture without alpha or masks (a `capture.background_color`
+    key makes masks, so a keyed capture has them)."""
+    return cfg.background == "model" or (cfg.background == "auto" and not capture.has_alpha)
+
+
+def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray | None = None,
+                    min_views: float = 0.75) -> tuple[np.ndarray, float, str]:
+    """(centre, radius, what framed it) of the sphere the object is taken to live in, without masks.
+
+    From the cameras: centred on the point closest to all optical axes, the largest sphere there
+    that at least `min_views` of the views frame whole (the region the cameras all look at).
+    With sparse points (N, 3) (and their track lengths: points seen by fewer than 3 images are
+    left out when tracks are known): the points inside the frusta of at least `min_views` of the
+    views, when there are 20 or more, give the sphere instead: centred between their 2nd and 98th
+    percentiles per axis, radius 1.1 x their 95th-percentile distance from it, at most twice the
+    cameras' sphere (stray points far off are background)."""
+    center = _look_center(cameras)
+    need = max(1, int(math.ceil(min_views * len(cameras))))
+    margins = np.array([_frame_margins(cam, center[None])[0] for cam in cameras])
+    # the need-th largest margin: the sphere that `need` views frame whole
+    r_cam = float(np.sort(margins)[::-1][need - 1])
+    if r_cam <= 0:  # the look centre is outside too many views: frame what most views hold
+        r_cam = 0.5 * min(float(np.linalg.norm(c.origin - center)) for c in cameras)
+    source = "cameras"
+    if points is not None and len(points):
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if track is not None and len(track) == len(pts) and np.max(track) > 0:
+            pts = pts[np.asarray(track) >= 3]
+        if len(pts):
+            seen = np.sum([_frame_margins(cam, pts) > 0 for cam in cameras], 0)
+            pts = pts[seen >= need]
+        if len(pts) >= 20:
+            lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
+            c = 0.5 * (lo + hi)
+            r = 1.1 * float(np.percentile(np.linalg.norm(pts - c, axis=1), 95))
+            if r > 0:
+                return c, min(r, 2.0 * r_cam), "sparse points"
+    return center, r_cam, source
 
 
 def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
@@ -207,7 +276,7 @@ class DenseGrid(nn.Module):
 class SDFNetwork(nn.Module):
     """SDF = base(x) + MLP(x, grid(x))[0]; the other outputs are features for the colour network."""
 
-    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None):
+    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None, init_radius: float = 0.6):
         super().__init__()
         self.encoding = DenseGrid(cfg.levels, cfg.base_res, cfg.max_res, cfg.features)
         d_in = 3 + cfg.levels * cfg.features
@@ -217,7 +286,7 @@ class SDFNetwork(nn.Module):
         nn.init.normal_(self.out.weight, 0.0, 1e-4)
         nn.init.zeros_(self.out.bias)
         self.act = nn.Softplus(beta=100)
-        self.init_radius = cfg.init_radius
+        self.init_radius = init_radius
         if base_grid is not None:
             self.register_buffer("base_grid", base_grid.reshape(-1, 1).contiguous())
             self.base_res = int(round(base_grid.numel() ** (1 / 3)))
@@ -262,12 +331,44 @@ class ColorNetwork(nn.Module):
         return torch.sigmoid(self.net(torch.cat([feat, normal] + enc, -1)))
 
 
-class NeuSModel(nn.Module):
-    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None):
+def frequency_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """x and sin / cos of 2^k pi x for k < freqs."""
+    enc = [x]
+    for k in range(freqs):
+        enc += [torch.sin((2.0 ** k) * math.pi * x), torch.cos((2.0 ** k) * math.pi * x)]
+    return torch.cat(enc, -1)
+
+
+class BackgroundNetwork(nn.Module):
+    """NeRF++'s model of what lies outside the unit sphere: density and colour of a point from its
+    inverted-sphere coordinates (x / r, 1 / r) and the view direction, each frequency-encoded."""
+
+    POINT_FREQS, VIEW_FREQS = 6, 3
+
+    def __init__(self, hidden: int):
         super().__init__()
-        self.sdf = SDFNetwork(cfg, base_grid)
+        self.trunk = nn.Sequential(nn.Linear(4 * (1 + 2 * self.POINT_FREQS), hidden), nn.ReLU(),
+                                   nn.Linear(hidden, hidden), nn.ReLU())
+        self.sigma = nn.Linear(hidden, 1)
+        self.rgb = nn.Sequential(nn.Linear(hidden + 3 * (1 + 2 * self.VIEW_FREQS), hidden // 2), nn.ReLU(),
+                                 nn.Linear(hidden // 2, 3))
+
+    def forward(self, x4: torch.Tensor, view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.trunk(frequency_encoding(x4, self.POINT_FREQS))
+        rgb = torch.sigmoid(self.rgb(torch.cat([h, frequency_encoding(view, self.VIEW_FREQS)], -1)))
+        return F.softplus(self.sigma(h)[:, 0] - 1.0), rgb
+
+
+class NeuSModel(nn.Module):
+    def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None, background: bool = False):
+        super().__init__()
+        # Without masks the sphere is the bounding sphere, larger than the object: a small start
+        # leaves less surface to recede, on which the colour network would paint the backdrop.
+        radius = cfg.init_radius or (INIT_RADIUS_WITHOUT_MASKS if background else INIT_RADIUS)
+        self.sdf = SDFNetwork(cfg, base_grid, radius)
         self.color = ColorNetwork(cfg)
         self.variance = nn.Parameter(torch.tensor(float(cfg.init_variance)))
+        self.background = BackgroundNetwork(cfg.hidden) if background else None
 
     def inv_s(self) -> torch.Tensor:
         return torch.exp(10.0 * self.variance).clamp(1e-6, 1e6)
@@ -290,26 +391,61 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
 
 
 class NeuS:
-    """A NeuS model bound to a capture's cameras, in the normalised box around the visual hull."""
+    """A NeuS model bound to a capture's cameras, in the normalised box around the visual hull, or
+    without masks (`uses_background_model`) in the box around the bounding sphere (`sphere`:
+    (centre, radius, what framed it); default `bounding_sphere` of the cameras)."""
 
-    def __init__(self, capture, cfg: NeuSConfig):
+    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None):
         validate(cfg)
         self.cfg = cfg
         self.capture = capture
         self.source = capture.source
+        self.mask_free = uses_background_model(capture, cfg)
+        self.support = None  # the supporting plane the mesh export cut away (without masks)
         if len(capture.cameras) == 0:
             raise InputError(capture.source, "the capture has no images")
-        if not capture.has_alpha:
-            raise InputError(capture.source, "reconstructing geometry (NeuS) needs masks: the images have no alpha "
-                                             "channel and there is no mask folder (give RGBA PNG/EXR images, masks/ "
-                                             "for COLMAP or mask/ for NeuS/IDR, --background-color R,G,B for a plain "
-                                             "backdrop, or known geometry with --mesh)")
+        if not capture.has_alpha and not self.mask_free:
+            raise InputError(capture.source, "neus.background is masks, but the images have no alpha channel and "
+                                             "there is no mask folder (give RGBA PNG/EXR images, masks/ for COLMAP or "
+                                             "mask/ for NeuS/IDR, --background-color R,G,B for a plain backdrop, or "
+                                             "leave neus.background at auto to reconstruct without masks)")
         alpha = torch.from_numpy(np.ascontiguousarray(capture.alpha))
-        if float(alpha.max()) <= cfg.hull_threshold:
+        if not self.mask_free and float(alpha.max()) <= cfg.hull_threshold:
             raise InputError(capture.source, "the alpha masks are empty: no foreground pixel in any image")
         torch.manual_seed(cfg.seed)
         with _threads(cfg.threads):
-            self._setup(capture, cfg, alpha)
+            if self.mask_free:
+                self._setup_sphere(capture, cfg, sphere or bounding_sphere(capture.cameras,
+                                                                           min_views=cfg.hull_min_views))
+            else:
+                self.sphere_source = None
+                self._setup(capture, cfg, alpha)
+
+    def _setup_sphere(self, capture, cfg: NeuSConfig, sphere: tuple) -> None:
+        """Without masks: the bounding sphere is the unit sphere of the box and stands in for the
+        visual hull; the SDF starts as a sphere; every pixel of every view is a training ray."""
+        t0 = time.perf_counter()
+        center, radius, self.sphere_source = sphere
+        if not (np.all(np.isfinite(center)) and math.isfinite(radius) and radius > 0):
+            raise InputError(capture.source, f"the bounding sphere (centre {center}, radius {radius}, from "
+                                             f"{self.sphere_source}) is degenerate: check the camera poses")
+        self.center, self.half = np.asarray(center, dtype=np.float64), float(radius)
+        res = cfg.hull_resolution
+        axis = (torch.arange(res, dtype=torch.float32) + 0.5) / res * 2.0 - 1.0
+        grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
+        self.hull_sdf = grid.norm(dim=-1) - 1.0
+        self.hull = self.hull_sdf < 0
+        from scipy import ndimage
+
+        self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(self.hull.numpy(), iterations=2))
+        self.hull_seconds = time.perf_counter() - t0
+        self.model = NeuSModel(cfg, None, background=True)
+        self.deep = torch.zeros_like(self.hull)
+        origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
+        self.rays_o = self.to_box(torch.from_numpy(np.concatenate(origins)))
+        self.rays_d = torch.from_numpy(np.concatenate(dirs))
+        self.rays_rgb = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3))
+        self.rays_alpha = None
 
     def _setup(self, capture, cfg: NeuSConfig, alpha: torch.Tensor) -> None:
         masks = alpha > cfg.hull_threshold
@@ -423,6 +559,36 @@ class NeuS:
     # ---- rendering
     def render(self, o, d, level_weights, n_samples: int, perturb: bool, create_graph: bool,
                cos_anneal: float = 1.0, near=None, far=None) -> dict:
+        """Rays (box units) through the SDF: colour `rgb`, foreground opacity `acc`, the eikonal
+        term and (without create_graph) depth and normal. With a background model, `rgb` is the
+        foreground composited over the background and `rgb_fg` the foreground alone."""
+        out = self._foreground(o, d, level_weights, n_samples, perturb, create_graph, cos_anneal, near, far)
+        if self.model.background is not None:
+            out["rgb_fg"] = out["rgb"]
+            out["rgb"] = out["rgb"] + (1.0 - out["acc"])[:, None] * self._background(o, d, perturb)
+        return out
+
+    def _background(self, o: torch.Tensor, d: torch.Tensor, perturb: bool) -> torch.Tensor:
+        """Colour behind the unit sphere along each ray (NeRF++): samples from the sphere's exit (the
+        closest approach for a ray that misses it) to far away, uniform in inverse distance."""
+        n = BACKGROUND_SAMPLES
+        b = (o * d).sum(-1)
+        disc = b * b - ((o * o).sum(-1) - 1.0)
+        t0 = torch.where(disc > 0, -b + disc.clamp(min=0.0).sqrt(), (-b).clamp(min=0.0)).clamp(min=1e-3)
+        u = torch.rand(len(o), n) if perturb else torch.full((len(o), n), 0.5)
+        inv = 1.0 - (torch.arange(n, dtype=torch.float32) + u) / n * (1.0 - 1e-3)  # 1 (the exit) .. 1e-3
+        t = t0[:, None] / inv  # increasing
+        pts = o[:, None] + d[:, None] * t[..., None]
+        r = pts.norm(dim=-1, keepdim=True).clamp(min=1.0)
+        x4 = torch.cat([pts / r, 1.0 / r], -1).reshape(-1, 4)
+        sigma, color = self.model.background(x4, d[:, None].expand(-1, n, 3).reshape(-1, 3))
+        dists = torch.cat([t[:, 1:] - t[:, :-1], t.new_full((len(o), 1), 1e10)], 1)
+        alpha = 1.0 - torch.exp(-sigma.view(-1, n) * dists)
+        trans = torch.cumprod(torch.cat([alpha.new_ones(len(o), 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
+        return ((alpha * trans)[..., None] * color.view(-1, n, 3)).sum(1)
+
+    def _foreground(self, o, d, level_weights, n_samples: int, perturb: bool, create_graph: bool,
+                    cos_anneal: float = 1.0, near=None, far=None) -> dict:
         if near is None or far is None:
             near, far = self.intervals(o, d)
         valid = far > near + 1e-6
@@ -477,7 +643,7 @@ class NeuS:
         rgb, acc = [], []
         for i in range(0, len(o), chunk):
             r = self.render(o[i:i + chunk], d[i:i + chunk], lw, self.cfg.n_samples, False, False)
-            rgb.append(r["rgb"].detach())
+            rgb.append(r.get("rgb_fg", r["rgb"]).detach())
             acc.append(r["acc"].detach())
         return (torch.cat(rgb).reshape(cam.height, cam.width, 3).numpy(),
                 torch.cat(acc).reshape(cam.height, cam.width).numpy())
@@ -505,6 +671,29 @@ class NeuS:
             vol[i] = s.view(res, res)
         return vol.numpy()
 
+    def _without_support(self, vol: np.ndarray, mesh):
+        """The mesh (box units) cut above a supporting plane (`support_plane`), when it has one: the
+        volume below the plane plus two grid cells is made empty and the surface extracted again.
+        Sets self.support to the plane in world units ({normal, point}) or None."""
+        from vq_mitsuba.geometry.mesh import marching_cubes, support_plane
+
+        res = vol.shape[0]
+        cell = 2.0 / (res - 1)
+        views = self.to_box(torch.tensor(np.array([c.origin for c in self.capture.cameras]))).numpy()
+        plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed)
+        if plane is None:
+            return mesh
+        n, c = plane
+        axis = np.linspace(-1.0, 1.0, res)
+        x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+        above = (c + 2.0 * cell) - (n[0] * x + n[1] * y + n[2] * z)  # positive (empty) below the cut
+        try:
+            cut = marching_cubes(np.maximum(vol, above.astype(np.float32)), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+        except ValueError:  # nothing stands on the plane: keep the surface as it is
+            return mesh
+        self.support = {"normal": n.tolist(), "point": self.to_world(n * c).tolist()}
+        return cut
+
     def extract_mesh(self, res: int | None = None, clean: bool = True):
         from vq_mitsuba.geometry.mesh import clean_mesh, marching_cubes, smooth_vertex_normals
 
@@ -512,12 +701,17 @@ class NeuS:
         vol = self.sdf_volume(res)
         try:
             mesh = marching_cubes(vol, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+            self.support = None
+            if self.mask_free and clean:
+                mesh = self._without_support(vol, mesh)
         except ValueError as exc:
             raise InputError(self.source, f"NeuS produced no surface ({exc}); check the masks and cameras") from exc
         mesh.vertices = self.to_world(mesh.vertices)
         if clean:
             c = self.cfg
-            mesh = clean_mesh(mesh, c.min_component, c.keep_largest, c.smooth_iterations, c.max_faces)
+            # without masks only the largest piece is the object (the rest: background the SDF took)
+            mesh = clean_mesh(mesh, c.min_component, c.keep_largest or self.mask_free, c.smooth_iterations,
+                              c.max_faces)
             if c.normal_smoothing > 0:
                 mesh = smooth_vertex_normals(mesh, c.normal_smoothing, c.normal_smoothing_angle)
         return mesh
@@ -571,7 +765,8 @@ class _NeuSFit:
         self.neus, self.model = neus, neus.model
         model = neus.model
         mlp = [p for name, p in model.sdf.named_parameters() if not name.startswith("encoding")]
-        groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()),
+        background = list(model.background.parameters()) if model.background is not None else []
+        groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()) + background,
                    "base_lr": cfg.lr},
                   {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
                   {"params": [model.variance], "base_lr": cfg.lr_variance}]
@@ -586,6 +781,11 @@ class _NeuSFit:
             return
         state = torch.load(self.ckpt, map_location="cpu", weights_only=False)
         _check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
+        if state.get("background_model", False) != self.neus.mask_free:
+            made = "without masks (neus.background model)" if state.get("background_model") else "with masks"
+            raise InputError(self.ckpt, f"this NeuS checkpoint was made {made}, this capture and neus.background "
+                                        "ask for the other; resume with the same setting, or start over without "
+                                        "--resume")
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
         self.gen.set_state(state["generator"])
@@ -596,7 +796,8 @@ class _NeuSFit:
         if self.ckpt is not None:
             save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                         "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
-                        "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg)}, self.ckpt)
+                        "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
+                        "background_model": self.neus.mask_free}, self.ckpt)
 
     def loop_step(self, p: Progress) -> dict | None:
         cfg, neus = self.cfg, self.neus
@@ -606,10 +807,13 @@ class _NeuSFit:
         idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
         out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
                           near=neus.ray_near[idx], far=neus.ray_far[idx])
-        target, alpha = neus.rays_rgb[idx], neus.rays_alpha[idx]
+        target = neus.rays_rgb[idx]
         color_loss = (out["rgb"] - target).abs().mean()
-        acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
-        mask_loss = F.binary_cross_entropy(acc, alpha)
+        if neus.rays_alpha is None:  # no masks: the colour of every pixel, fore- and background
+            mask_loss = out["acc"].new_zeros(())
+        else:
+            acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
+            mask_loss = F.binary_cross_entropy(acc, neus.rays_alpha[idx])
         loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -707,18 +911,21 @@ class Reconstruction:
 
 
 def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
-                progress: bool = True, callback=None, callback_every_s: float = 0.0) -> Reconstruction:
+                progress: bool = True, callback=None, callback_every_s: float = 0.0,
+                sphere: tuple | None = None) -> Reconstruction:
     """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
-    geometry_loss.png (and the NeuS checkpoint neus.pt)."""
+    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`: the bounding sphere when NeuS
+    runs without masks (`NeuS`)."""
     cfg = cfg or NeuSConfig()
     run = run if isinstance(run, RunDir) else RunDir(run)
     with _threads(cfg.threads):
-        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s)
+        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere)
 
 
-def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s) -> Reconstruction:
+def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
+                 sphere=None) -> Reconstruction:
     t0 = time.perf_counter()
-    neus = NeuS(capture, cfg)
+    neus = NeuS(capture, cfg, sphere)
     run.create()
     setup_s = time.perf_counter() - t0
     summary = train(neus, run, resume=resume, progress=progress, callback=callback,
@@ -744,6 +951,10 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "final_sharpness_s": last.get("s"),
         "box_center": neus.center.tolist(),
         "box_half_size": neus.half,
+        "background": "model" if neus.mask_free else "masks",
+        "bounding_sphere": {"center": neus.center.tolist(), "radius": neus.half, "from": neus.sphere_source}
+        if neus.mask_free else None,
+        "support_plane": neus.support,
         "training_rays": len(neus.rays_o),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                  "watertight": bool(mesh.is_watertight)},

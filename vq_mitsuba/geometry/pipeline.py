@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+import numpy as np
 
 from vq_mitsuba.config import CaptureConfig, NeuSConfig, PoseConfig
 from vq_mitsuba.run.run_dir import RunDir
@@ -24,6 +27,36 @@ def capture_has_geometry(path: str | Path) -> bool:
     return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
+def framing_sphere(capture_path, cameras, min_views: float = 0.75) -> tuple[np.ndarray, float, str]:
+    """The sphere NeuS without masks puts the object in (centre, radius, what framed it): an IDR
+    capture's scale_mat_0 (the region of interest NeuS normalises to), else `bounding_sphere` of the
+    cameras and, for a COLMAP capture, its sparse points (sparse/0/points3D.bin or .txt)."""
+    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
+    from vq_mitsuba.data.photo_formats import colmap_model_dir, read_colmap_points, read_idr_sphere
+    from vq_mitsuba.geometry.neus import bounding_sphere
+
+    source = resolve_capture_path(capture_path)
+    kind = capture_kind(source)
+    if kind == "idr":
+        sphere = read_idr_sphere(source)
+        if sphere is not None:
+            return sphere[0], sphere[1], "scale_mat_0"
+    points = read_colmap_points(colmap_model_dir(source)) if kind == "colmap" else None
+    if points is None:
+        return bounding_sphere(cameras, min_views=min_views)
+    return bounding_sphere(cameras, points[0], points[1], min_views=min_views)
+
+
+def masked_by_mesh(capture, mesh=None):
+    """The capture with each view's alpha the coverage of `mesh` (default: the capture's own) seen
+    from its camera (`mesh_coverage`), has_alpha True: masks for a capture that has none, from the
+    mesh NeuS reconstructed without them."""
+    from vq_mitsuba.geometry.mesh import mesh_coverage
+
+    mesh = capture.mesh if mesh is None else mesh
+    return dataclasses.replace(capture, alpha=mesh_coverage(mesh, capture.cameras), has_alpha=True)
+
+
 def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
                  progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None,
                  pose_cfg: PoseConfig | None = None):
@@ -31,7 +64,7 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
     mesh export into the run; score against gt_mesh if given. Returns the `Reconstruction` (its
     summary is the run's geometry.json)."""
     from vq_mitsuba.data.captures import load_capture, load_mesh
-    from vq_mitsuba.geometry.neus import reconstruct
+    from vq_mitsuba.geometry.neus import reconstruct, uses_background_model
     from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
@@ -39,7 +72,9 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
-    result = reconstruct(capture, run, cfg, resume=resume, progress=progress)
+    sphere = framing_sphere(capture_path, capture.cameras, cfg.hull_min_views) \
+        if uses_background_model(capture, cfg) else None
+    result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 

@@ -377,6 +377,15 @@ class RunDir:
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
 
+    def masks_from_mesh(self) -> bool:
+        """Whether the run's mesh comes from NeuS without masks (geometry.json's background is
+        "model"): the capture then has no masks, and its views are masked by the mesh's coverage.
+        (An edited run: ask its source().)"""
+        path = self.dir / self.GEOMETRY
+        if not path.is_file():
+            return False
+        return read_json(path, "").get("background") == "model"
+
     @property
     def neus_checkpoint_path(self) -> Path:
         return self.dir / self.NEUS_CHECKPOINT
