@@ -277,10 +277,12 @@ def test_mask_free_neus_masks_agree_with_the_true_alpha(backdrop_views):
 
 @pytest.mark.slow
 def test_mask_free_neus_masks_converge_towards_the_true_alpha(backdrop_views):
+    """1500 steps (about 3 minutes): mask IoU 0.913 with the true alpha (seed 0), foreground opacity
+    0.004 on the backdrop and 0.993 on the object."""
     images, true_alpha, cams, _ = backdrop_views
     summary, derived, acc = _mask_free_run(images, true_alpha, cams, 1500)
     truth = true_alpha > 0.5
-    assert iou(derived, truth) > 0.82
+    assert iou(derived, truth) > 0.87
     assert np.percentile(acc[true_alpha < 0.01], 90) < 0.05 and acc[true_alpha > 0.99].mean() > 0.95
 
 
