@@ -269,7 +269,8 @@ def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monke
 
     monkeypatch.setattr(ShadingScene, "shade", spy)
     cfg = load_config(None, ["train.iterations=12", "train.batch_rays=64", "train.spp=8", "train.bounces=1",
-                             f"train.bounce_after={bounce_after}"], preset="continuous")
+                             f"train.bounce_after={bounce_after}", "train.bounce=on", "train.stop=iterations"],
+                      preset="continuous")
     fit(sphere_capture, tmp_path / "run", cfg, progress=False)
     assert len(calls) == 12
     assert sum(calls) == with_bounce
@@ -282,7 +283,7 @@ def test_resume_after_the_envmap_grew(tmp_path):
     from vq_mitsuba.run.run_dir import RunDir
 
     base = ["--quiet", "--set", "envmap.height=64", "--set", "field.pe_anneal=0.5", "--set", "train.batch_rays=128",
-            "--set", "vq.enabled=false", "--set", "train.checkpoint_every=2"]
+            "--set", "vq.enabled=false", "--set", "train.checkpoint_every=2", "--set", "envmap.final_height=full"]
     capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=16, known_envmap=False)
     run = tmp_path / "run"
     assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=4"]) == 0
@@ -299,7 +300,7 @@ def five_step_run(tmp_path):
     """(capture, run folder, settings) of a 5-step fit with a learned envmap grown to 128 rows."""
     capture = write_sphere_capture(tmp_path / "capture", size=16, n_views=4, spp=8, known_envmap=False)
     run = tmp_path / "run"
-    base = ["--quiet", "--set", "train.batch_rays=128", "--set", "vq.warmup_frac=0.3"]
+    base = ["--quiet", "--set", "train.batch_rays=128", "--set", "vq.warmup_frac=0.3", "--set", "envmap.final_height=full"]
     assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=5"]) == 0
     assert torch.load(run / "checkpoint.pt", weights_only=False)["envmap"]["log_radiance"].shape[0] == 128
     return capture, run, base

@@ -114,6 +114,9 @@ class EnvmapConfig:
     init_scale: float = setting(2.0, "initial radiance as a multiple of the mean foreground pixel value", ">0")
     lr: float = setting(0.02, "Adam learning rate of the log-radiance texels", ">0")
     tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
+    final_height: str = setting(
+        "auto", "the learned envmap's last rung: auto stops growing at the rows the fitted roughness can resolve "
+                "(decided where the ladder would grow), full grows to envmap.height", ("auto", "full"))
 
 
 @dataclass
@@ -185,6 +188,16 @@ class TrainConfig:
     pixel_jitter: int = setting(4, "primary hits traced per pixel, stratified (0: the pixel centre)", "square")
     bounces: int = setting(1, "interreflections simulated (0: direct light only)")
     bounce_after: int = setting(300, "steps of direct light only before the bounce is simulated")
+    bounce: str = setting(
+        "auto", "the bounce of train.bounces: auto turns it off where under 1 % of secondary rays from the training "
+                "hits meet the object (decided at start-up)", ("auto", "on", "off"))
+    stop: str = setting(
+        "auto", "when the fit ends: auto runs the schedule faster each time held-aside pixels stop improving and "
+                "ends when it is done (train.iterations the ceiling), iterations after train.iterations steps",
+        ("auto", "iterations"))
+    sampling: str = setting(
+        "auto", "which pixels a step draws: auto by their running error with a 30 % uniform share "
+                "(importance-weighted), uniform all alike", ("auto", "uniform"))
     time_limit_s: float = setting(0.0, "stop after this many seconds (0: no limit)")
     snapshot_s: str = setting("", "comma-separated fit seconds at which a copy of the state is kept in snapshots/")
 
@@ -318,6 +331,8 @@ def to_dict(cfg) -> dict:
 
 
 def _coerce(value, typ, key: str, source):
+    if typ is str and isinstance(value, bool):  # YAML reads on / off (and yes / no) as booleans
+        return "on" if value else "off"
     if typ is bool:
         if isinstance(value, str):
             if value.lower() in ("1", "true", "yes", "on"):

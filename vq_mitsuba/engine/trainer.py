@@ -21,12 +21,13 @@ import torch
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture, load_capture
-from vq_mitsuba.data.pixels import neighbour_pairs, trace_training_pixels
+from vq_mitsuba.data.pixels import ErrorSampler, hold_aside, neighbour_pairs, sampler_tile, trace_training_pixels
 from vq_mitsuba.engine.checks import mesh_scale_warning
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
 from vq_mitsuba.engine.residual import residual_stage
 from vq_mitsuba.run.run_dir import RunDir
+from vq_mitsuba.engine import skips
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.geometry.pipeline import masked_by_mesh
 from vq_mitsuba.run.loop import Budget, Loop, Progress
@@ -53,14 +54,19 @@ def parse_snapshot_times(text: str) -> list[float]:
     return times
 
 
-def envmap_height_at(cfg: Config, progress: float) -> int:
-    """Rows of the learned envmap at this training progress: envmap.height halved while it stays
-    at least 32 rows at the start, doubled at even steps over the first field.pe_anneal share of
-    training (the sharp light is fitted after the coarse light and materials, as the encoding's
-    frequencies open)."""
+def envmap_ladder(cfg: Config) -> list[int]:
+    """The learned envmap's rungs: envmap.height halved while it stays at least 32 rows."""
     ladder = [cfg.envmap.height]
     while ladder[0] % 2 == 0 and ladder[0] // 2 >= ENVMAP_START_HEIGHT:
         ladder.insert(0, ladder[0] // 2)
+    return ladder
+
+
+def envmap_height_at(cfg: Config, progress: float) -> int:
+    """Rows of the learned envmap at this training progress: the ladder (`envmap_ladder`) climbed
+    at even steps over the first field.pe_anneal share of training (the sharp light is fitted
+    after the coarse light and materials, as the encoding's frequencies open)."""
+    ladder = envmap_ladder(cfg)
     anneal = cfg.field.pe_anneal
     if anneal <= 0:
         return ladder[-1]
@@ -107,6 +113,34 @@ class Trainer:
         self.batch = min(cfg.train.batch_rays, len(self.pool))
         self.history: list[dict] = []
         self.step, self.elapsed_before = 0, 0.0
+        self._decide_at_start()
+
+    def _decide_at_start(self) -> None:
+        """The rules of `vq_mitsuba.engine.skips` that the scene decides before the first step: the
+        bounce, the held-aside pixels of the pace, the pixel sampler; the envmap's rung is decided
+        as the ladder would grow."""
+        cfg, pool, t = self.cfg, self.pool, self.cfg.train
+        seed = t.seed
+        self.bounce_on, bounce = skips.decide_bounce(t.bounce, t.bounces, self.scene, pool.position, pool.wi,
+                                                     skips.np_seed(seed, 1))
+        self.decisions = {"bounce": bounce}
+        w, h = self.capture.width, self.capture.height
+        n_pixels = int((pool.copy == 0).sum())
+        self.pace = skips.Pace(t.iterations, t.stop == "auto")
+        self.held = self.train_idx = None
+        if self.pace.active:
+            self.held, self.train_idx = hold_aside(pool, w, h, skips.stop_pixels(n_pixels), skips.np_seed(seed, 2))
+        self.sampler = None
+        if t.sampling == "auto":
+            candidates = self.train_idx if self.train_idx is not None else torch.arange(len(pool))
+            drawable = n_pixels - (0 if self.held is None else len(self.held))
+            tile = sampler_tile(drawable, self.batch * t.iterations, skips.SAMPLER_VISITS)
+            self.sampler = ErrorSampler(pool, candidates, w, h, tile, skips.SAMPLER_FLOOR)
+        self.env_auto = self.learn_env and cfg.envmap.final_height == "auto"
+        ladder = envmap_ladder(cfg)
+        self.env_cap, self.env_decided, self.env_choices = ladder[0], 0, []
+        gen = torch.Generator().manual_seed(skips.np_seed(seed, 3))
+        self.rough_idx = torch.randperm(len(pool), generator=gen)[:skips.ROUGHNESS_HITS].to(self.device)
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
@@ -143,7 +177,8 @@ class Trainer:
     def checkpoint(self, elapsed: float) -> None:
         """The fitted state plus what resuming needs, and config.yaml with the same configuration."""
         self.run.save_state({**self.fitted_state(elapsed), "optim": self.optim.state_dict(),
-                             "generator": self.gen.get_state(), "history": self.history})
+                             "generator": self.gen.get_state(), "history": self.history,
+                             "skips": self.skips_state()})
         self.run.write_config(self.cfg)
 
     def snapshot(self, elapsed: float) -> None:
@@ -161,6 +196,33 @@ class Trainer:
         self.optim.load_state_dict(state["optim"])
         self.gen.set_state(state["generator"])
         self.history, self.step, self.elapsed_before = state["history"], state["step"], state["elapsed_s"]
+        self.load_skips_state(state.get("skips"))
+
+    def skips_state(self) -> dict:
+        """What the rules decided and measured so far (`vq_mitsuba.engine.skips`), for resuming."""
+        return {"bounce_on": self.bounce_on, "decisions": self.decisions, "pace": self.pace.state_dict(),
+                "sampler": self.sampler.state_dict() if self.sampler is not None else None,
+                "envmap": {"cap": self.env_cap, "decided": self.env_decided, "choices": self.env_choices}}
+
+    def load_skips_state(self, state: dict | None) -> None:
+        """Resume the rules: a run keeps the bounce decided at its start, the pace, the envmap's
+        rung and the sampler's errors. A checkpoint without them (older, or fitted before the
+        rules) ran every step at pace 1: its schedule position is its step."""
+        if state is None:
+            self.pace.position = float(self.step)
+            return
+        self.bounce_on = bool(state["bounce_on"])
+        if self.cfg.train.bounces > 0 and self.cfg.train.bounce == state["decisions"]["bounce"]["setting"]:
+            self.decisions["bounce"] = state["decisions"]["bounce"]
+        else:  # the setting changed on resume: the new one holds
+            self.bounce_on = self.decisions["bounce"]["choice"] == "on"
+        self.pace.load_state_dict(state["pace"])
+        if not self.pace.active:
+            self.pace.rate = 1
+        if self.sampler is not None and state["sampler"] is not None:
+            self.sampler.load_state_dict(state["sampler"])
+        env = state["envmap"]
+        self.env_cap, self.env_decided, self.env_choices = int(env["cap"]), int(env["decided"]), list(env["choices"])
 
     # --- one step -------------------------------------------------------------------------------
     @torch.no_grad()
@@ -188,9 +250,12 @@ class Trainer:
         logit = out["metallic_logit"] if s.metallic_barrier else None
         return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit)
 
-    def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool) -> tuple[dict, torch.Tensor]:
-        """The weighted loss terms of one batch (Eq. 10: their sum is the loss) and the
-        continuous branch's pixel colours."""
+    def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool,
+                   weight: torch.Tensor | None = None) -> tuple[dict, torch.Tensor, torch.Tensor | None]:
+        """The weighted loss terms of one batch (Eq. 10: their sum is the loss), the continuous
+        branch's pixel colours and, when the sampler needs them, its per-pixel squared errors.
+        `weight`: importance weights of the pixels (the error-driven sampler's), applied to the
+        reconstruction terms; the priors, chromaticity and VQ terms are means over the batch."""
         cfg, pool, ab = self.cfg, self.pool, self.cfg.ablation
         gamma = cfg.loss.gamma
         out = self.model(pool.position[idx])
@@ -214,12 +279,17 @@ class Trainer:
             fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
             samples_both = self._render(torch.cat([idx, idx]), both, env, bounce_fn, fixed)
             samples, samples_d = samples_both[:n], samples_both[n:]
+        per_pixel = None
+        if self.sampler is not None:
+            with torch.no_grad():
+                per_pixel = losses.decorrelated_error(samples, target, gamma)
         terms = {
-            "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target, gamma),
+            "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
+                                                                                                     gamma, weight),
             "lam_c": s.w_lam * self._lambertian(out, s),
         }
         if discrete_on:
-            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma)
+            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
                                                                                            out["basecolor"])
             terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
@@ -234,7 +304,43 @@ class Trainer:
                                                                          cfg.loss.sm_beta)
         if self.learn_env and cfg.envmap.tv_weight > 0:
             terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
-        return terms, samples.mean(1)
+        return terms, samples.mean(1), per_pixel
+
+    def draw(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The step's pixels (pool indices) and their importance weights (None: drawn uniformly)."""
+        if self.sampler is not None:
+            if self.step % skips.SAMPLER_REFRESH == 0:
+                self.sampler.refresh()
+            return self.sampler.draw(self.batch, self.gen)
+        if self.train_idx is not None:  # all but the held-aside pixels
+            pick = torch.randint(0, len(self.train_idx), (self.batch,), generator=self.gen, device=self.device)
+            return self.train_idx[pick], None
+        return torch.randint(0, len(self.pool), (self.batch,), generator=self.gen, device=self.device), None
+
+    def envmap_height(self, progress: float) -> int:
+        """The ladder's rows at `progress` (`envmap_height_at`), no higher than the rung the fitted
+        roughness asks for when envmap.final_height is auto: decided each time the ladder reaches
+        a rung it has not reached before (the rung kept never goes down)."""
+        want = envmap_height_at(self.cfg, progress)
+        if not self.env_auto:
+            return want
+        ladder = envmap_ladder(self.cfg)
+        k = ladder.index(want)
+        if k > self.env_decided:
+            self.env_decided = k
+            with torch.no_grad():
+                roughness = self.model(self.pool.position[self.rough_idx])["roughness"]
+            rows, why = skips.envmap_rung(ladder, roughness)
+            self.env_cap = max(self.env_cap, rows)
+            self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
+                                     "reason": why})
+            self._say(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
+        return min(want, self.env_cap)
+
+    def _say(self, text: str) -> None:
+        from tqdm import tqdm
+
+        tqdm.write(text)
 
     def train_step(self, s: StepSchedule) -> tuple[bool, float, float]:
         """One optimisation step; (finite, loss, sRGB MSE of the continuous branch). A step whose
@@ -245,10 +351,9 @@ class Trainer:
             self.start_discrete()
         self.model.set_progress(s.progress, self.cfg.field.pe_anneal)
         if self.learn_env:
-            self.set_envmap_height(envmap_height_at(self.cfg, s.progress))
-        idx = torch.randint(0, len(self.pool), (self.batch,), generator=self.gen, device=self.device)
-        bounce = self.cfg.train.bounces > 0 and self.step >= self.cfg.train.bounce_after
-        terms, rgb = self.loss_terms(idx, s, bounce)
+            self.set_envmap_height(self.envmap_height(s.progress))
+        idx, weight = self.draw()
+        terms, rgb, per_pixel = self.loss_terms(idx, s, self.bounce_active(), weight)
         loss = sum(terms.values())
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -258,9 +363,41 @@ class Trainer:
         if not finite:
             return False, math.nan, math.nan
         self.optim.step()
+        if self.sampler is not None:
+            self.sampler.update(idx, per_pixel)
         with torch.no_grad():
             mse = float(losses.srgb_mse(rgb.detach(), self.pool.rgb[idx]))
         return True, float(loss.detach()), mse
+
+    def bounce_active(self) -> bool:
+        """The bounce is simulated at this step: decided on (`skips.decide_bounce`) and past
+        train.bounce_after."""
+        return self.bounce_on and self.step >= self.cfg.train.bounce_after
+
+    @torch.no_grad()
+    def held_loss(self) -> float:
+        """The reconstruction loss (gamma-encoded L2) of the held-aside pixels, with the same light
+        samples each time: the continuous branch's, plus the discrete branch's once it trains."""
+        cfg, pool, idx = self.cfg, self.pool, self.held
+        out = self.model(pool.position[idx])
+        mats = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
+        discrete_on = self.discrete is not None and bool(self.discrete.initialised)
+        if discrete_on:
+            was_training = self.discrete.training
+            self.discrete.eval()  # no codebook (EMA) update from a measurement
+            od = self.discrete(out["z"])
+            self.discrete.train(was_training)
+            mats = {k: torch.cat([mats[k], od[k]]) for k in mats}
+            idx = torch.cat([idx, idx])
+        gen = torch.Generator(device=self.device).manual_seed(skips.np_seed(cfg.train.seed, 4))
+        rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats["basecolor"],
+                               mats["metallic"], mats["roughness"], self.envmap().detach(), cfg.train.spp,
+                               generator=gen, material_fn=self.model if self.bounce_active() else None)
+        n = len(self.held)
+        loss = float(losses.reconstruction_l2(rgb[:n], pool.rgb[self.held], cfg.loss.gamma))
+        if discrete_on:
+            loss += float(losses.reconstruction_l2(rgb[n:], pool.rgb[self.held], cfg.loss.gamma))
+        return loss
 
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:
@@ -273,21 +410,79 @@ class Trainer:
                     start_step=self.step, start_seconds=self.elapsed_before,
                     checkpoint=lambda p: self.checkpoint(p.seconds), checkpoint_every=cfg.train.checkpoint_every,
                     snapshot=lambda p, label: self.snapshot(p.seconds),
-                    snapshot_times=parse_snapshot_times(cfg.train.snapshot_s), progress_bar=progress)
+                    snapshot_times=parse_snapshot_times(cfg.train.snapshot_s), progress_bar=progress,
+                    done=lambda: self.pace.finished)
         self._clock = loop.clock
+        self._phase = self._stage()
+        for name in ("bounce",):
+            self._say(f"{name} {self.decisions[name]['choice']}: {self.decisions[name]['reason']}")
         result = loop.run()
         if result.stopped_by_time:
             print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
+        elif result.stopped_early:
+            print(f"schedule done at step {self.step} of {cfg.train.iterations} (train.stop = {cfg.train.stop})")
         return {"iterations": self.step, "seconds": result.seconds,
                 "iterations_per_s": self.step / result.seconds if result.seconds > 0 else math.nan,
                 "final_psnr_train_batch": self.history[-1]["psnr"] if self.history else None,
                 "training_pixels": len(self.pool), "steps_this_call": result.steps_this_call,
-                "nonfinite_steps_skipped": self._acc["nonfinite"]}
+                "nonfinite_steps_skipped": self._acc["nonfinite"], "decisions": self.final_decisions()}
+
+    def _stage(self) -> tuple[bool, bool]:
+        """(the discrete branch trains, the bounce is on): a change starts a new phase of the pace."""
+        return self.discrete is not None and bool(self.discrete.initialised), self.bounce_active()
+
+    def final_decisions(self) -> dict:
+        """fit.json's `decisions`: each rule's setting, choice and reason."""
+        cfg = self.cfg
+        out = dict(self.decisions)
+        held = 0 if self.held is None else len(self.held)
+        out["stop"] = self.pace.decision(cfg.train.stop, self.step, held)
+        out["stop"]["pace"] = self.pace.state_dict()
+        setting = cfg.envmap.final_height
+        if not self.learn_env:
+            out["envmap"] = skips.decision(setting, "known", "the capture's envmap lights the fit")
+        else:
+            rows, top = int(self.env_module.log_radiance.shape[0]), envmap_ladder(cfg)[-1]
+            if not self.env_auto:
+                reason = f"envmap.final_height = {setting}: the ladder's {top} rows"
+            elif self.env_choices:
+                last = self.env_choices[-1]
+                reason = f"decided at step {last['step']}: {last['reason']}"
+            else:
+                reason = "the fit ended before the ladder grew"
+            out["envmap"] = skips.decision(setting, rows, reason)
+            out["envmap"]["ladder"] = envmap_ladder(cfg)
+            out["envmap"]["checks"] = list(self.env_choices)
+        if self.sampler is None:
+            out["sampling"] = skips.decision(cfg.train.sampling, "uniform", f"train.sampling = {cfg.train.sampling}")
+        else:
+            info = self.sampler.summary()
+            share = info["top10_tiles_draw_share"]
+            out["sampling"] = skips.decision(
+                cfg.train.sampling, "error",
+                f"by the running error of {info['tiles']} tiles of {info['tile_px']} x {info['tile_px']} px, "
+                f"{100 * skips.SAMPLER_FLOOR:g} % uniform, importance-weighted"
+                + ("" if share is None else f"; the 10 % of tiles with the largest error drew {100 * share:.0f} % "
+                                             "of the rays"))
+            out["sampling"].update(info)
+        return out
 
     def _loop_step(self, p: Progress) -> dict | None:
         """One step of the loop: the optimisation step, the non-finite guard and the loss curve."""
         acc = self._acc
+        # The schedule follows the pace's schedule steps (the time share under a time limit, if larger).
+        p = Progress(p.step, p.seconds, self.pace.share(), p.time_share)
         finite, loss, mse = self.train_step(schedule_at(self.cfg, p))
+        self.pace.advance()
+        stage = self._stage()
+        if stage != self._phase:
+            self._phase = stage
+            self.pace.new_phase()
+        if finite and self.pace.due(self.step):
+            if self.pace.observe(self.step, self.held_loss()):
+                self._say(f"step {self.step}: the held-aside loss improved by under "
+                          f"{100 * skips.STOP_TOLERANCE:g} % in {skips.STOP_PATIENCE} measurements; the schedule "
+                          f"runs {self.pace.rate}x from here")
         if not finite:
             acc["nonfinite"] += 1
             acc["run"] += 1
@@ -301,12 +496,23 @@ class Trainer:
             return None
         acc["run"] = 0
         acc["loss"], acc["mse"], acc["n"] = acc["loss"] + loss, acc["mse"] + mse, acc["n"] + 1
-        if self.step % self.cfg.train.log_every == 0 or self.step == self.cfg.train.iterations:
+        if self.step % self.cfg.train.log_every == 0 or self.step == self.cfg.train.iterations or self.pace.finished:
             self.history.append({"step": self.step, "seconds": self._clock(), "loss": acc["loss"] / acc["n"],
                                  "psnr": losses.psnr(acc["mse"] / acc["n"])})
             acc["loss"], acc["mse"], acc["n"] = 0.0, 0.0, 0
-            return {"loss": f"{self.history[-1]['loss']:.4g}", "psnr": f"{self.history[-1]['psnr']:.2f}"}
+            return {"loss": f"{self.history[-1]['loss']:.4g}", "psnr": f"{self.history[-1]['psnr']:.2f}",
+                    **self.progress_notes()}
         return None
+
+    def progress_notes(self) -> dict:
+        """The rules' state for the progress line: bounce, envmap rows, sampling, pace."""
+        notes = {"bounce": "on" if self.bounce_on else "off"}
+        if self.learn_env:
+            notes["env"] = f"{self.env_module.log_radiance.shape[0]}/{envmap_ladder(self.cfg)[-1]}"
+        notes["rays"] = "error" if self.sampler is not None else "uniform"
+        if self.pace.active:
+            notes["pace"] = f"{self.pace.rate}x"
+        return notes
 
     def finish(self, summary: dict) -> None:
         """Rank the codewords (when the discrete branch ran), fit the residual of novel views
@@ -369,13 +575,15 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
         init_mitsuba()
         state = run.load_state(device=torch_device())  # read once: the trainer resumes from it below
         done = int(state.get("step", 0))
-        if done >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
+        # the schedule steps done (more than the steps where the pace ran faster: train.stop)
+        position = float((state.get("skips") or {}).get("pace", {}).get("position", done))
+        if position >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
             if run.fit_summary().get("iterations") == done:
                 print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
                       "asks for no more): nothing to do, the run is unchanged")
                 return run.fit_summary()
             cfg = copy.deepcopy(cfg)
-            cfg.train.iterations = done
+            cfg.train.iterations = max(done, int(math.floor(position)))
     run.create()
     if not resume:  # a resumed run's config.yaml is written with its next checkpoint
         run.write_config(cfg)
@@ -397,7 +605,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                     "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})
     if resume:
         trainer.resume(state)
-        if trainer.step >= cfg.train.iterations:
+        if trainer.step >= cfg.train.iterations or trainer.pace.finished:
             print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
     startup = time.perf_counter() - t_start
     summary = trainer.train(progress)

@@ -16,18 +16,32 @@ def reconstruction_l2(rgb_pred: torch.Tensor, rgb_target: torch.Tensor, gamma: f
     return torch.mean((encode_gamma(rgb_pred, gamma) - encode_gamma(rgb_target, gamma)) ** 2)
 
 
-def reconstruction_l2_decorrelated(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: float) -> torch.Tensor:
+def reconstruction_l2_decorrelated(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: float,
+                                   weight: torch.Tensor | None = None) -> torch.Tensor:
     """L_rec from Monte Carlo samples (N, S, 3) without the variance bias of a plain L2.
 
     E[(X - t)^2] = (E[X] - t)^2 + Var[X]: a plain L2 on a noisy estimate X also rewards
     materials that are cheap to sample (rough, dull). Two independent half-estimates A and B
     give E[(A - t)(B - t)] = (E[X] - t)^2 (up to the gamma encoding's curvature).
+    `weight` (N,): importance weights of the pixels (the mean of weight x per-pixel term).
     """
+    if weight is not None:
+        return torch.mean(weight * decorrelated_error(samples, rgb_target, gamma))
     half = samples.shape[1] // 2
     t = encode_gamma(rgb_target, gamma)
     a = encode_gamma(samples[:, :half].mean(1), gamma) - t
     b = encode_gamma(samples[:, half:].mean(1), gamma) - t
     return torch.mean(a * b)
+
+
+def decorrelated_error(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: float) -> torch.Tensor:
+    """(N,) each pixel's term of `reconstruction_l2_decorrelated` (mean over the channels): an
+    unbiased estimate of its squared error, negative at times from the noise."""
+    half = samples.shape[1] // 2
+    t = encode_gamma(rgb_target, gamma)
+    a = encode_gamma(samples[:, :half].mean(1), gamma) - t
+    b = encode_gamma(samples[:, half:].mean(1), gamma) - t
+    return (a * b).mean(1)
 
 
 def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,

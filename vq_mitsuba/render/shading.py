@@ -207,6 +207,28 @@ class ShadingScene:
         wi = -torch.as_tensor(directions, device=dev)
         return Hits(valid_t, pos.float(), nrm.float(), wi.float())
 
+    def secondary_hits(self, position: np.ndarray, wi: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whether cosine-distributed rays from surface points meet the object: (valid, hit), (N,)
+        bools. `position` (N, 3) are hits seen along -`wi` (unit, towards the viewer); each is traced
+        again along -wi for its geometric normal (not the interpolated one, whose hemisphere dips
+        under the facets of a coarse mesh), and one ray leaves it in the hemisphere on the viewer's
+        side with a cosine-weighted direction from `u` (2, N) in [0, 1). `valid`: the point was
+        found again."""
+        position = np.ascontiguousarray(position, dtype=np.float32)
+        wi = np.ascontiguousarray(wi, dtype=np.float32)
+        eps = 1e-4 * float(np.linalg.norm(np.ptp(position, axis=0)) + 1e-3)
+        with dr.suspend_grad():
+            p = mi.Point3f(*[mi.Float(position[:, i]) for i in range(3)])
+            w = mi.Vector3f(*[mi.Float(wi[:, i]) for i in range(3)])
+            si = self.scene.ray_intersect(mi.Ray3f(p + w * eps, -w))
+            valid = si.is_valid()
+            n = dr.select(dr.dot(si.n, w) < 0, -si.n, si.n)
+            local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[0]), mi.Float(u[1])))
+            ray = si.spawn_ray(mi.Frame3f(n).to_world(local))
+            hit = valid & self.scene.ray_test(ray, valid)
+            dr.eval(valid, hit)
+        return np.array(valid, dtype=bool), np.array(hit, dtype=bool)
+
     # -- shading ------------------------------------------------------------------------
     def _make_shade(self):
         """The shading kernel (returned) and the bounce kernel (kept as self._bounce), both Dr.Jit

@@ -69,6 +69,7 @@ class LoopResult:
     seconds: float  # training seconds in all
     steps_this_call: int
     stopped_by_time: bool  # the time limit ended the loop before the step budget
+    stopped_early: bool = False  # the fit's `done` ended the loop before the step budget
 
 
 class Loop:
@@ -78,14 +79,17 @@ class Loop:
     every `checkpoint_every` steps, at the end, and when a step raises (so that an interrupted
     fit resumes from where it stopped; not after a refused write, a `WriteError`, which would fail
     again: the last checkpoint written stays); `snapshot(progress, label_s)` runs once the clock
-    passes each of `snapshot_times` (label_s is that time) and every `snapshot_every_s` seconds."""
+    passes each of `snapshot_times` (label_s is that time) and every `snapshot_every_s` seconds.
+    `done()`, asked before each step, ends the loop early when true (a fit that decides its own
+    length)."""
 
     def __init__(self, name: str, budget: Budget, step: Callable[[Progress], dict | None], *,
                  start_step: int = 0, start_seconds: float = 0.0,
                  checkpoint: Callable[[Progress], None] | None = None, checkpoint_every: int = 0,
                  snapshot: Callable[[Progress, float], None] | None = None, snapshot_times: Iterable[float] = (),
-                 snapshot_every_s: float = 0.0, progress_bar: bool = True):
+                 snapshot_every_s: float = 0.0, progress_bar: bool = True, done: Callable[[], bool] | None = None):
         self.name, self.budget, self.step_fn = name, budget, step
+        self.done_fn = done
         self.step, self.start_step = start_step, start_step
         self.clock = Clock(start_seconds)
         self.checkpoint_fn, self.checkpoint_every = checkpoint, checkpoint_every
@@ -129,9 +133,12 @@ class Loop:
 
         bar = tqdm(total=self.budget.steps or None, initial=self.step, desc=self.name,
                    disable=not self.progress_bar, dynamic_ncols=True)
-        stopped_by_time = False
+        stopped_by_time = stopped_early = False
         try:
             while self._steps_left():
+                if self.done_fn is not None and self.done_fn():
+                    stopped_early = True
+                    break
                 if self._time_up():
                     stopped_by_time = True
                     break
@@ -150,7 +157,7 @@ class Loop:
         with self.clock.paused():
             if self.checkpoint_fn is not None:
                 self.checkpoint_fn(self.progress())
-        return LoopResult(self.step, self.clock(), self.step - self.start_step, stopped_by_time)
+        return LoopResult(self.step, self.clock(), self.step - self.start_step, stopped_by_time, stopped_early)
 
     def _checkpoint_after_error(self) -> None:
         if self.checkpoint_fn is None:

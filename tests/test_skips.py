@@ -1,0 +1,211 @@
+"""The rules that fit a fit to its scene (vq_mitsuba/engine/skips.py): the bounce, the envmap's last
+rung, the pace of the schedule (early stop) and the error-driven pixel sampler, each deciding
+both ways."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tiny_scene import write_sphere_capture
+from vq_mitsuba.config import load_config
+from vq_mitsuba.engine import skips
+from vq_mitsuba.engine.trainer import Trainer, fit
+
+QUICK = ["train.batch_rays=64", "residual.iterations=0", "vq.enabled=false"]
+
+
+@pytest.fixture(scope="module")
+def small_sphere(tmp_path_factory):
+    return write_sphere_capture(tmp_path_factory.mktemp("sphere"), size=16, n_views=4, spp=8)
+
+
+# --- bounce ----------------------------------------------------------------------------------------
+def _bounce_decision(mesh, setting="auto"):
+    """The bounce rule on the hits of rays from 300 random cameras around `mesh`."""
+    from vq_mitsuba.render.shading import ShadingScene
+
+    scene = ShadingScene(mesh.vertices, mesh.faces, np.ones((8, 16, 3), np.float32), np.eye(4),
+                         normals=mesh.vertex_normals)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    origins = 4.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    dirs = rng.normal(scale=0.3, size=(3000, 3)) - origins
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    hits = scene.trace(origins.astype(np.float32), dirs.astype(np.float32))
+    return skips.decide_bounce(setting, 1, scene, hits.position[hits.valid], hits.wi[hits.valid], seed=0)
+
+
+def test_the_bounce_is_off_for_a_lone_sphere_and_on_where_surfaces_face_each_other():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)  # coarse: facets far from the normals
+    on, info = _bounce_decision(sphere)
+    assert not on and info["choice"] == "off" and info["reason"].startswith("0.0 % of ")
+    floor = trimesh.creation.box(extents=[2.0, 0.02, 2.0])
+    floor.apply_translation([0, -0.52, 0])
+    on, info = _bounce_decision(trimesh.util.concatenate([sphere, floor]))
+    assert on and info["choice"] == "on"
+    near, far = (trimesh.creation.box(extents=[1.0, 1.0, 0.02]) for _ in range(2))
+    near.apply_translation([0, 0, -0.3])
+    far.apply_translation([0, 0, 0.3])
+    on, info = _bounce_decision(trimesh.util.concatenate([near, far]))
+    share = float(info["reason"].split(" %")[0])
+    assert on and share > 5.0
+    assert _bounce_decision(sphere, "on")[0] and not _bounce_decision(floor, "off")[0]  # forced
+
+
+# --- envmap ----------------------------------------------------------------------------------------
+def test_the_envmap_stops_lower_for_matte_materials_than_for_glossy_ones():
+    ladder = [32, 64, 128]
+    matte = torch.full((1000,), 0.8)
+    glossy = torch.cat([torch.full((900,), 0.8), torch.full((100,), 0.12)])  # one glossy part, 10 % of the hits
+    satin = torch.full((1000,), 0.2)
+    assert skips.envmap_rung(ladder, matte)[0] == 32
+    assert skips.envmap_rung(ladder, satin)[0] == 64
+    rows, why = skips.envmap_rung(ladder, glossy)
+    assert rows == 128 and "quantile 0.120" in why
+    # the bundled scenes' sharpest materials: balls' polished silver needs the top rung, demo's metal the first
+    assert skips.rows_for_roughness(0.15) > 64 and skips.rows_for_roughness(0.3) < 32
+
+
+def test_a_fit_records_its_envmap_rung_and_keeps_it_on_resume(tmp_path, monkeypatch):
+    """A learned envmap on a matte sphere: the ladder (32, 64) would grow at step 4 of 8; the fitted
+    roughness (here the field's, near 1) keeps it at 32 rows, recorded in fit.json and the checkpoint."""
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
+    cfg = load_config(None, QUICK + ["train.iterations=8", "envmap.height=64", "field.pe_anneal=1.0"])
+    real = Trainer.envmap_height
+
+    def matte(self, progress):  # the material field reads as matte whatever it has learned in 4 steps
+        forward = self.model.forward
+        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), 0.9)}
+        try:
+            return real(self, progress)
+        finally:
+            del self.model.forward
+
+    monkeypatch.setattr(Trainer, "envmap_height", matte)
+    summary = fit(capture, tmp_path / "run", cfg, progress=False)
+    env = summary["decisions"]["envmap"]
+    assert env["choice"] == 32 and env["ladder"] == [32, 64] and env["checks"][0]["step"] == 4
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    assert state["envmap"]["log_radiance"].shape[0] == 32 and state["skips"]["envmap"]["cap"] == 32
+
+
+# --- pace ------------------------------------------------------------------------------------------
+def test_the_pace_doubles_on_plateaus_and_not_while_the_loss_improves():
+    flat = skips.Pace(600, active=True)
+    assert flat.every == 10
+    for step in range(1, 601):
+        flat.advance()
+        if flat.finished:
+            break
+        if flat.due(step):
+            flat.observe(step, 1.0)
+    # plateau after the first measurement: 2x at step 40, 4x at 70, 8x at 100, then 8x to the end
+    assert [r for _, r in flat.speedups] == [2, 4, 8] and flat.speedups[0][0] == 40
+    assert step == 100 + math.ceil((600 - 40 - 30 * 2 - 30 * 4) / 8) and flat.finished
+    improving = skips.Pace(600, active=True)
+    for step in range(1, 601):
+        improving.advance()
+        if improving.due(step):
+            improving.observe(step, 0.98 ** step)  # 18 % better at each measurement
+    assert improving.speedups == [] and improving.position == 600
+    # a new stage (the discrete branch) starts its plateau count again
+    pace = skips.Pace(600, active=True)
+    for step, loss in ((10, 1.0), (20, 1.0), (30, 1.0)):
+        pace.observe(step, loss)
+    pace.new_phase()
+    assert not pace.observe(40, 2.0) and pace.rate == 1
+
+
+def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path, capsys):
+    """Learning rates so small that nothing changes: the held-aside loss never improves, the
+    schedule speeds up and ends before train.iterations; fit.json says so; resuming with the same
+    iterations has nothing to do, with more it goes on at the pace it had."""
+    run = tmp_path / "run"
+    settings = QUICK + ["train.iterations=60", "train.lr=1e-9", "train.checkpoint_every=1000"]
+    summary = fit(small_sphere, run, load_config(None, settings), progress=False)
+    stop = json.loads((run / "fit.json").read_text())["decisions"]["stop"]
+    assert summary["iterations"] < 60 and stop["choice"] == "early"
+    assert f"schedule done at step {summary['iterations']} of 60" in stop["reason"] and "2x from step 40" in stop["reason"]
+    assert "bounce off" in capsys.readouterr().out  # a lone sphere
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert state["skips"]["pace"]["position"] >= 60 and state["step"] == summary["iterations"]
+    # the schedule ran to its end: the last step's learning rate is the decayed one
+    assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-9 * 0.1, rel=0.2)
+    again = fit(small_sphere, run, load_config(None, settings), resume=True, progress=False)
+    assert again["iterations"] == summary["iterations"] and "nothing to do" in capsys.readouterr().out
+    more = fit(small_sphere, run, load_config(None, settings + ["train.iterations=120"]), resume=True, progress=False)
+    rate = state["skips"]["pace"]["rate"]
+    assert summary["iterations"] < more["iterations"] <= summary["iterations"] + math.ceil(60 / rate)
+
+
+def test_a_fit_that_keeps_improving_runs_every_step(small_sphere, tmp_path, monkeypatch):
+    losses = iter(0.9 ** k for k in range(1000))
+    monkeypatch.setattr(Trainer, "held_loss", lambda self: next(losses))
+    summary = fit(small_sphere, tmp_path / "run", load_config(None, QUICK + ["train.iterations=40"]), progress=False)
+    stop = summary["decisions"]["stop"]
+    assert summary["iterations"] == 40 and stop["choice"] == "iterations" and stop["pace"]["speedups"] == []
+    assert len(stop["pace"]["evals"]) == 4
+    off = fit(small_sphere, tmp_path / "off", load_config(None, QUICK + ["train.iterations=12", "train.stop=iterations",
+                                                                        "train.sampling=uniform"]), progress=False)
+    assert off["decisions"]["stop"]["pace"]["evals"] == [] and off["decisions"]["sampling"]["choice"] == "uniform"
+
+
+def test_held_aside_pixels_are_never_drawn(small_sphere, tmp_path):
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.run.run_dir import RunDir
+
+    cfg = load_config(None, QUICK + ["train.iterations=10"])
+    capture = load_capture(small_sphere, split="train")
+    trainer = Trainer(capture, RunDir(tmp_path / "run"), cfg)
+    pool = trainer.pool
+    key = pool.view * capture.width * capture.height + pool.pixel
+    held = set(key[trainer.held.cpu()].tolist())
+    assert len(held) == len(trainer.held) > 0
+    drawn = torch.cat([trainer.draw()[0] for _ in range(50)])
+    assert not held & set(key[drawn.cpu()].tolist())
+
+
+# --- sampler ---------------------------------------------------------------------------------------
+def _pool(width=8, height=8, views=2, copies=1):
+    from vq_mitsuba.data.pixels import PixelPool
+
+    pix = torch.arange(width * height).repeat(views * copies)
+    view = torch.arange(views).repeat_interleave(width * height).repeat(copies)
+    copy = torch.arange(copies).repeat_interleave(views * width * height)
+    n = len(pix)
+    return PixelPool(torch.randn(n, 3), torch.randn(n, 3), torch.randn(n, 3), torch.rand(n, 3), view, pix, copy)
+
+
+def test_the_error_sampler_draws_where_the_error_is_with_a_floor_for_every_pixel():
+    from vq_mitsuba.data.pixels import ErrorSampler, sampler_tile
+
+    pool = _pool()
+    sampler = ErrorSampler(pool, torch.arange(len(pool)), 8, 8, tile=1, floor=0.3)
+    n = len(pool)
+    bad = torch.arange(10)  # ten pixels 100x worse than the rest
+    err = torch.full((n,), 0.001)
+    err[bad] = 0.1
+    for _ in range(30):
+        sampler.update(torch.arange(n), err)
+    sampler.refresh()
+    p = sampler.probabilities()
+    assert float(p.min()) >= 0.3 / n * (1 - 1e-9)  # the floor
+    gen = torch.Generator().manual_seed(0)
+    idx, weight = sampler.draw(20000, gen)
+    share_bad = float(torch.isin(idx, bad).float().mean())
+    expected = 0.3 * 10 / n + 0.7 * 10 * 10 / (10 * 10 + (n - 10) * 1)  # sqrt(100) = 10x the RMS error
+    assert share_bad == pytest.approx(expected, abs=0.02) and share_bad > 3 * 10 / n
+    assert torch.bincount(idx, minlength=n).min() > 0  # no pixel starved
+    # importance weights: the weighted mean of any per-pixel value is the uniform mean
+    value = torch.rand(n, dtype=torch.float64)
+    assert float((weight.double() * value[idx]).mean()) == pytest.approx(float(value.mean()), rel=0.03)
+    assert float(weight.max()) <= 1 / 0.3 + 1e-6
+    # tiles: every hit of a tile shares its error; the tile grows when the fit's draws are few
+    tiled = ErrorSampler(_pool(copies=4), torch.arange(4 * n), 8, 8, tile=4)
+    assert tiled.num_tiles == 2 * 2 * 2 and int(tiled.counts.sum()) == 4 * n
+    assert sampler_tile(100_000, 2048 * 3000) == 1 and sampler_tile(2_000_000, 2048 * 3000) == 4
