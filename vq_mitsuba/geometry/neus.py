@@ -107,6 +107,59 @@ def uses_background_model(capture, cfg: NeuSConfig) -> bool:
     return cfg.background == "model" or (cfg.background == "auto" and not capture.has_alpha)
 
 
+def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.ndarray | None = None,
+                        min_share: float = 0.2, seed: int = 0) -> tuple[np.ndarray, float] | None:
+    """A supporting plane (a table) among sparse points: (unit normal towards the cameras, offset c;
+    the plane is n.x = c) in the world, or None.
+
+    RANSAC (400 planes through three points) over the points within 1.5 radii of the sphere's centre
+    (those seen by 3 or more images, when tracks are known); a plane's inliers lie within 2% of the
+    radius of it. The plane with the most inliers among those that nine in ten cameras look down on
+    counts as a support when it holds at least min_share of the points, crosses the sphere, and its
+    inliers run out to the sphere (95th-percentile distance from the centre at least 0.9 radii: a
+    table goes on beyond the object, a flat top of the object stops short)."""
+    center, radius = np.asarray(sphere[0], np.float64), float(sphere[1])
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if track is not None and len(track) == len(pts) and np.max(track, initial=0) > 0:
+        pts = pts[np.asarray(track) >= 3]
+    pts = pts[np.linalg.norm(pts - center, axis=1) < 1.5 * radius]
+    if len(pts) < 20:
+        return None
+    rng = np.random.default_rng(seed)
+    if len(pts) > 20000:
+        pts = pts[rng.choice(len(pts), 20000, replace=False)]
+    views = np.array([c.origin for c in cameras])
+    tol = 0.02 * radius
+    best, best_count = None, 0
+    for _ in range(400):
+        a, b, c = pts[rng.choice(len(pts), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        if np.linalg.norm(n) < 1e-12:
+            continue
+        n /= np.linalg.norm(n)
+        off = float(n @ a)
+        side = np.sign(views @ n - off)
+        if max(np.mean(side > 0), np.mean(side < 0)) < 0.9:
+            continue
+        count = int(np.sum(np.abs(pts @ n - off) < tol))
+        if count > best_count:
+            best, best_count = (n, off), count
+    if best is None or best_count < min_share * len(pts):
+        return None
+    n, off = best
+    inliers = pts[np.abs(pts @ n - off) < tol]
+    mean = inliers.mean(0)
+    n_fit = np.linalg.eigh(np.cov((inliers - mean).T))[1][:, 0]  # least-squares refit
+    n = n_fit if n_fit @ n >= 0 else -n_fit
+    off = float(n @ mean)
+    if np.mean(views @ n - off > 0) < 0.5:
+        n, off = -n, -off
+    reach = float(np.percentile(np.linalg.norm(inliers - center, axis=1), 95))
+    if abs(float(n @ center) - off) >= 0.9 * radius or reach < 0.9 * radius:
+        return None
+    return n, off
+
+
 def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray | None = None,
                     min_views: float = 0.75) -> tuple[np.ndarray, float, str]:
     """(centre, radius, what framed it) of the sphere the object is taken to live in, without masks.
@@ -393,15 +446,19 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
 class NeuS:
     """A NeuS model bound to a capture's cameras, in the normalised box around the visual hull, or
     without masks (`uses_background_model`) in the box around the bounding sphere (`sphere`:
-    (centre, radius, what framed it); default `bounding_sphere` of the cameras)."""
+    (centre, radius, what framed it); default `bounding_sphere` of the cameras). `support`: a
+    known supporting plane without masks ((unit normal towards the cameras, offset) in the world,
+    e.g. `support_from_points`): the foreground is what lies inside the sphere above it, and the
+    background model takes the plane and what lies below."""
 
-    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None):
+    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None, support: tuple | None = None):
         validate(cfg)
         self.cfg = cfg
         self.capture = capture
         self.source = capture.source
         self.mask_free = uses_background_model(capture, cfg)
         self.support = None  # the supporting plane the mesh export cut away (without masks)
+        self.plane = None  # a known supporting plane in box units: (normal, offset)
         if len(capture.cameras) == 0:
             raise InputError(capture.source, "the capture has no images")
         if not capture.has_alpha and not self.mask_free:
@@ -416,14 +473,15 @@ class NeuS:
         with _threads(cfg.threads):
             if self.mask_free:
                 self._setup_sphere(capture, cfg, sphere or bounding_sphere(capture.cameras,
-                                                                           min_views=cfg.hull_min_views))
+                                                                           min_views=cfg.hull_min_views), support)
             else:
                 self.sphere_source = None
                 self._setup(capture, cfg, alpha)
 
-    def _setup_sphere(self, capture, cfg: NeuSConfig, sphere: tuple) -> None:
-        """Without masks: the bounding sphere is the unit sphere of the box and stands in for the
-        visual hull; the SDF starts as a sphere; every pixel of every view is a training ray."""
+    def _setup_sphere(self, capture, cfg: NeuSConfig, sphere: tuple, support: tuple | None) -> None:
+        """Without masks: the bounding sphere (above a known support) is the unit sphere of the box
+        and stands in for the visual hull; the SDF starts as a sphere; every pixel of every view is
+        a training ray."""
         t0 = time.perf_counter()
         center, radius, self.sphere_source = sphere
         if not (np.all(np.isfinite(center)) and math.isfinite(radius) and radius > 0):
@@ -434,6 +492,14 @@ class NeuS:
         axis = (torch.arange(res, dtype=torch.float32) + 0.5) / res * 2.0 - 1.0
         grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
         self.hull_sdf = grid.norm(dim=-1) - 1.0
+        if support is not None:
+            length = float(np.linalg.norm(support[0]))
+            n = np.asarray(support[0], np.float64) / length
+            c = (float(support[1]) / length - float(n @ self.center)) / self.half
+            if c > 0.9:
+                raise InputError(capture.source, "the supporting plane passes above the bounding sphere")
+            self.plane = (torch.tensor(n, dtype=torch.float32), c)
+            self.hull_sdf = torch.maximum(self.hull_sdf, c - grid @ self.plane[0])
         self.hull = self.hull_sdf < 0
         from scipy import ndimage
 
@@ -554,7 +620,22 @@ class NeuS:
         far = t_in + (end + 1) * dt + dt
         near = torch.where(any_occ, near.clamp(min=0), t_in)
         far = torch.where(any_occ, far, near)
+        if self.plane is not None:  # the foreground ends where the ray meets the support
+            far = torch.maximum(torch.minimum(far, self._foreground_end(o, d)), near)
         return near, far
+
+    def _foreground_end(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Where each ray leaves the foreground region (box units): the unit sphere's exit (the
+        closest approach for a ray that misses it), or, sooner, a known support's plane."""
+        b = (o * d).sum(-1)
+        disc = b * b - ((o * o).sum(-1) - 1.0)
+        t = torch.where(disc > 0, -b + disc.clamp(min=0.0).sqrt(), (-b).clamp(min=0.0))
+        if self.plane is not None:
+            n, c = self.plane
+            nd = d @ n
+            t_plane = (c - o @ n) / torch.where(nd.abs() < 1e-9, torch.full_like(nd, -1e-9), nd)
+            t = torch.where((nd < 0) & (t_plane > 0) & (t_plane < t), t_plane, t)
+        return t.clamp(min=1e-3)
 
     # ---- rendering
     def render(self, o, d, level_weights, n_samples: int, perturb: bool, create_graph: bool,
@@ -570,11 +651,10 @@ class NeuS:
 
     def _background(self, o: torch.Tensor, d: torch.Tensor, perturb: bool) -> torch.Tensor:
         """Colour behind the unit sphere along each ray (NeRF++): samples from the sphere's exit (the
-        closest approach for a ray that misses it) to far away, uniform in inverse distance."""
+        closest approach for a ray that misses it, or a known support's plane) to far away, uniform
+        in inverse distance. A point inside the sphere (on the support) is encoded as (x, 1)."""
         n = BACKGROUND_SAMPLES
-        b = (o * d).sum(-1)
-        disc = b * b - ((o * o).sum(-1) - 1.0)
-        t0 = torch.where(disc > 0, -b + disc.clamp(min=0.0).sqrt(), (-b).clamp(min=0.0)).clamp(min=1e-3)
+        t0 = self._foreground_end(o, d)
         u = torch.rand(len(o), n) if perturb else torch.full((len(o), n), 0.5)
         inv = 1.0 - (torch.arange(n, dtype=torch.float32) + u) / n * (1.0 - 1e-3)  # 1 (the exit) .. 1e-3
         t = t0[:, None] / inv  # increasing
@@ -672,15 +752,19 @@ class NeuS:
         return vol.numpy()
 
     def _without_support(self, vol: np.ndarray, mesh):
-        """The mesh (box units) cut above a supporting plane (`support_plane`), when it has one: the
-        volume below the plane plus two grid cells is made empty and the surface extracted again.
-        Sets self.support to the plane in world units ({normal, point}) or None."""
+        """The mesh (box units) cut above a supporting plane, the known one or the one the mesh
+        shows (`support_plane`): the volume below the plane plus two grid cells is made empty and
+        the surface extracted again. Sets self.support to the plane in world units ({normal,
+        point, from}) or None."""
         from vq_mitsuba.geometry.mesh import marching_cubes, support_plane
 
         res = vol.shape[0]
         cell = 2.0 / (res - 1)
-        views = self.to_box(torch.tensor(np.array([c.origin for c in self.capture.cameras]))).numpy()
-        plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed)
+        if self.plane is not None:
+            plane = (self.plane[0].numpy().astype(np.float64), self.plane[1])
+        else:
+            views = self.to_box(torch.tensor(np.array([c.origin for c in self.capture.cameras]))).numpy()
+            plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed)
         if plane is None:
             return mesh
         n, c = plane
@@ -691,7 +775,8 @@ class NeuS:
             cut = marching_cubes(np.maximum(vol, above.astype(np.float32)), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
         except ValueError:  # nothing stands on the plane: keep the surface as it is
             return mesh
-        self.support = {"normal": n.tolist(), "point": self.to_world(n * c).tolist()}
+        self.support = {"normal": [float(v) for v in n], "point": self.to_world(n * c).tolist(),
+                        "from": "sparse points" if self.plane is not None else "mesh"}
         return cut
 
     def extract_mesh(self, res: int | None = None, clean: bool = True):
@@ -912,20 +997,20 @@ class Reconstruction:
 
 def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
                 progress: bool = True, callback=None, callback_every_s: float = 0.0,
-                sphere: tuple | None = None) -> Reconstruction:
+                sphere: tuple | None = None, support: tuple | None = None) -> Reconstruction:
     """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
-    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`: the bounding sphere when NeuS
-    runs without masks (`NeuS`)."""
+    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`, `support`: the bounding sphere
+    and a known supporting plane when NeuS runs without masks (`NeuS`)."""
     cfg = cfg or NeuSConfig()
     run = run if isinstance(run, RunDir) else RunDir(run)
     with _threads(cfg.threads):
-        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere)
+        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere, support)
 
 
 def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
-                 sphere=None) -> Reconstruction:
+                 sphere=None, support=None) -> Reconstruction:
     t0 = time.perf_counter()
-    neus = NeuS(capture, cfg, sphere)
+    neus = NeuS(capture, cfg, sphere, support)
     run.create()
     setup_s = time.perf_counter() - t0
     summary = train(neus, run, resume=resume, progress=progress, callback=callback,

@@ -27,24 +27,28 @@ def capture_has_geometry(path: str | Path) -> bool:
     return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
-def framing_sphere(capture_path, cameras, min_views: float = 0.75) -> tuple[np.ndarray, float, str]:
-    """The sphere NeuS without masks puts the object in (centre, radius, what framed it): an IDR
-    capture's scale_mat_0 (the region of interest NeuS normalises to), else `bounding_sphere` of the
-    cameras and, for a COLMAP capture, its sparse points (sparse/0/points3D.bin or .txt)."""
+def framing(capture_path, cameras, min_views: float = 0.75, seed: int = 0) -> tuple[tuple, tuple | None]:
+    """Where NeuS without masks looks for the object: (the sphere (centre, radius, what framed it),
+    a supporting plane (normal, offset) or None). The sphere: an IDR capture's scale_mat_0 (the
+    region of interest NeuS normalises to), else `bounding_sphere` of the cameras and, for a COLMAP
+    capture, its sparse points (sparse/0/points3D.bin or .txt), which may also show the table the
+    object stands on (`support_from_points`)."""
     from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
     from vq_mitsuba.data.photo_formats import colmap_model_dir, read_colmap_points, read_idr_sphere
-    from vq_mitsuba.geometry.neus import bounding_sphere
+    from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points
 
     source = resolve_capture_path(capture_path)
     kind = capture_kind(source)
-    if kind == "idr":
-        sphere = read_idr_sphere(source)
-        if sphere is not None:
-            return sphere[0], sphere[1], "scale_mat_0"
     points = read_colmap_points(colmap_model_dir(source)) if kind == "colmap" else None
-    if points is None:
-        return bounding_sphere(cameras, min_views=min_views)
-    return bounding_sphere(cameras, points[0], points[1], min_views=min_views)
+    sphere = read_idr_sphere(source) if kind == "idr" else None
+    if sphere is not None:
+        sphere = (sphere[0], sphere[1], "scale_mat_0")
+    elif points is not None:
+        sphere = bounding_sphere(cameras, points[0], points[1], min_views=min_views)
+    else:
+        sphere = bounding_sphere(cameras, min_views=min_views)
+    support = support_from_points(points[0], cameras, sphere, points[1], seed=seed) if points is not None else None
+    return sphere, support
 
 
 def masked_by_mesh(capture, mesh=None):
@@ -72,9 +76,9 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
-    sphere = framing_sphere(capture_path, capture.cameras, cfg.hull_min_views) \
-        if uses_background_model(capture, cfg) else None
-    result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere)
+    sphere, support = framing(capture_path, capture.cameras, cfg.hull_min_views, cfg.seed) \
+        if uses_background_model(capture, cfg) else (None, None)
+    result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 
