@@ -446,3 +446,22 @@ def test_mask_free_neus_on_a_table_with_the_table_known(tmp_path):
     assert neus.support is not None and neus.support["from"] == "sparse points"
     assert np.asarray(mesh.vertices)[:, 1].min() > -0.275
     assert iou(mesh_coverage(mesh, cams) > 0.5, true_alpha > 0.5) > 0.72
+
+
+def test_a_checkpoint_resumes_only_in_its_own_mode(tmp_path):
+    from vq_mitsuba.geometry.neus import reconstruct
+
+    cams = orbit(6, 2.5, 16)
+    images = np.full((6, 16, 16, 3), 0.3, np.float32)
+    images[:, 5:11, 5:11] = 0.8
+    bare = unmasked(images, cams)
+    cfg = tiny_cfg(iterations=2, checkpoint_every=1, mesh_resolution=24, hull_resolution=24, normal_smoothing=0)
+    result = reconstruct(bare, tmp_path, cfg, progress=False)
+    summary = json.loads((tmp_path / "geometry.json").read_text())
+    assert summary["background"] == "model" and summary["bounding_sphere"]["from"] == "cameras"
+    assert summary["bounding_sphere"]["radius"] == pytest.approx(result.neus.half)
+    masked = dataclasses.replace(bare, alpha=(images[..., 0] > 0.5).astype(np.float32), has_alpha=True)
+    with pytest.raises(InputError, match="made without masks"):
+        reconstruct(masked, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True, progress=False)
+    again = reconstruct(bare, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True, progress=False)
+    assert again.summary["iterations"] == 3
