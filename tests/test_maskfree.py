@@ -375,18 +375,25 @@ def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tm
     neus = dict(iterations=40, batch_rays=128, n_samples=12, levels=2, base_res=8, max_res=16, hidden=16,
                 hull_resolution=32, march_steps=32, mesh_resolution=32, checkpoint_every=0, warmup=5)
     settings = [f"neus.{k}={v}" for k, v in neus.items()] + [
-        "train.iterations=4", "train.batch_rays=256", "train.checkpoint_every=1000", "train.bounce_after=1000"]
+        "train.iterations=4", "train.batch_rays=256", "train.checkpoint_every=1000", "train.bounce_after=1000",
+        "capture.holdout=4", "render.spp=4"]
     cfg = load_config(None, settings)
     run = RunDir(tmp_path / "run")
     fit_capture(xml, run.dir, cfg, progress=False, log=lambda _: None)
     geometry = json.loads((run.dir / RunDir.GEOMETRY).read_text())
     assert geometry["background"] == "model" and geometry["bounding_sphere"]["from"] == "cameras"
     assert run.masks_from_mesh()
-    coverage = mesh_coverage(run.mesh(), cams)
+    train = [c for i, c in enumerate(cams) if i % 4 != 3]
+    coverage = mesh_coverage(run.mesh(), train)
     info = run.info()
     # the fit's opaque pixels are the mesh's coverage, not every pixel of the views
     assert info["opaque_pixels"] == int((coverage >= cfg.train.alpha_threshold).sum())
-    assert info["opaque_pixels"] < 0.6 * images[..., 0].size and info["geometry_coverage"] > 0.95
+    assert info["opaque_pixels"] < 0.6 * coverage.size and info["geometry_coverage"] > 0.95
+    # the held-out views are scored inside the mesh's coverage too
+    from vq_mitsuba.eval.evaluate import evaluate_holdout
+
+    metrics = evaluate_holdout(run.dir, progress=False)
+    assert len(metrics["views"]) == 4 and metrics["coverage_iou"] > 0.9
 
 
 def table_scene(out: Path, n_views: int = 16, size: int = 40, spp: int = 32):
