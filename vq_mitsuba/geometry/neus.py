@@ -602,6 +602,11 @@ class NeuS:
         t_in = torch.minimum(t1, t2).amax(-1).clamp(min=0.0)
         t_out = torch.maximum(t1, t2).amin(-1)
         hit = t_out > t_in
+        if not bool(hit.all()):  # march only the rays that cross the box (without masks: often half)
+            near, far = t_in.clone(), t_in.clone()
+            if bool(hit.any()):
+                near[hit], far[hit] = self.intervals(o[hit], d[hit])
+            return near, far
         k = self.cfg.march_steps
         steps = (torch.arange(k, dtype=torch.float32) + 0.5) / k
         t = t_in[:, None] + (t_out - t_in).clamp(min=0)[:, None] * steps
