@@ -240,19 +240,21 @@ def plot(rows: list[dict], out: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS)
+    ap.add_argument("--scenes", nargs="+", default=SCENES, help="bundled Cycles scenes to fit")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="train.seed of each fit")
+    ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS,
+                    help="old: every rule off; one rule alone; all: the defaults")
     ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles200",
                     help="folder of the Cycles datasets (DATA/NAME)")
-    ap.add_argument("--resolution", type=int, default=200)
-    ap.add_argument("--n-train", type=int, default=100)
-    ap.add_argument("--n-test", type=int, default=20)
+    ap.add_argument("--resolution", type=int, default=200, help="image side of the rendered scenes, px")
+    ap.add_argument("--n-train", type=int, default=100, help="training views per scene")
+    ap.add_argument("--n-test", type=int, default=20, help="test views per scene")
     ap.add_argument("--iterations", type=int, default=0, help="train.iterations of every fit (0: the config's)")
     ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
     ap.add_argument("--warmup", action="store_true", help="a short unscored fit first")
     ap.add_argument("--plot", type=Path, metavar="JSON", help="no fit: the table and plots of this skip_study.json")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "skip_study")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "skip_study",
+                    help="folder of the runs, skip_study.json and the plots")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.plot:
