@@ -169,9 +169,9 @@ def test_metallic_barrier_stops_at_its_progress(sphere_capture, tmp_path, monkey
 
     real, seen = losses.lambertian_prior, []
 
-    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None):
+    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None, weight=None):
         seen.append(metallic_logit is not None)
-        return real(metallic, roughness, metallic_weight, metallic_logit)
+        return real(metallic, roughness, metallic_weight, metallic_logit, weight)
 
     monkeypatch.setattr(losses, "lambertian_prior", spy)
     run = tmp_path / "run"

@@ -17,11 +17,13 @@ reason go into fit.json (`decisions`) and the progress line.
 - **Pace** (`train.stop`): the schedule (learning-rate decay, prior decay, barrier, encoding
   frequencies, envmap ladder, discrete start) runs on schedule steps; each training step advances
   them by the pace (1 at first). Every `Pace.every` steps the loss of held-aside training pixels
-  (never drawn for a step; shaded with the same samples each time) is measured; when it has not
-  improved on its best by `STOP_TOLERANCE` (relative) for `STOP_PATIENCE` measurements, the pace
-  doubles (up to `MAX_PACE`): the schedule moves on instead of spending steps on a plateau. The
-  fit ends when the schedule is done (every stage finished, the learning rate at its end), or
-  at train.iterations steps.
+  (never drawn for a step; shaded with the same samples each time) is measured. Once every stage
+  of the schedule has begun (`Pace.start_share`: the encoding fully open, the envmap at its last
+  rung, the barrier over, the discrete branch training; the bounce on), when the mean of the last
+  `STOP_WINDOW` measurements is not `STOP_TOLERANCE` (relative) below the mean of the
+  `STOP_WINDOW` before, the pace doubles (up to `MAX_PACE`): the rest of the schedule (the
+  learning-rate and prior decay) runs faster instead of spending steps on a plateau. The fit ends
+  when the schedule is done (the learning rate at its end), or at train.iterations steps.
 - **Sampling** (`train.sampling`): `vq_mitsuba.data.pixels.ErrorSampler`, tiles of
   `sampler_tile` pixels, `SAMPLER_FLOOR` uniform share.
 """
@@ -46,7 +48,7 @@ STOP_PIXELS = 2048  # held-aside pixels (at most STOP_PIXELS_SHARE of the pixels
 STOP_PIXELS_SHARE = 0.05
 STOP_EVALS = 60  # measurements over train.iterations (every iterations / STOP_EVALS steps) ...
 STOP_MIN_EVERY = 10  # ... but no more often than every this many steps
-STOP_PATIENCE = 3
+STOP_WINDOW = 3  # measurements averaged on each side of the comparison
 STOP_TOLERANCE = 0.01
 MAX_PACE = 8
 
@@ -101,7 +103,7 @@ def envmap_rung(ladder: list[int], roughness: torch.Tensor) -> tuple[int, str]:
     rows = next((h for h in ladder if h >= need), ladder[-1])
     lobe = math.degrees(2.6 * max(ALPHA_MIN, r * r))
     return rows, (f"{100 * ROUGHNESS_QUANTILE:g} % roughness quantile {r:.3f}: lobes about {lobe:.1f} deg wide "
-                  f"need {need:.0f} rows; {rows} rows ({180 / rows:.1f} deg a row)")
+                  f"need {need:.0f} rows: the {rows}-row rung ({180 / rows:.1f} deg a row)")
 
 
 # --- pace ----------------------------------------------------------------------------------------
@@ -110,13 +112,13 @@ class Pace:
     stops improving (see the module's docstring). Without measurements (train.stop =
     iterations) schedule steps are training steps."""
 
-    def __init__(self, iterations: int, active: bool):
+    def __init__(self, iterations: int, active: bool, start_share: float = 0.0):
         self.iterations, self.active = int(iterations), bool(active)
+        self.start_share = float(start_share)
         self.every = max(STOP_MIN_EVERY, round(iterations / STOP_EVALS))
         self.position = 0.0  # schedule steps done
         self.rate = 1
-        self.best = math.inf
-        self.bad = 0
+        self.window: list[float] = []  # losses measured since the stages began (or the last speed-up)
         self.evals: list[list[float]] = []  # [step, loss]
         self.speedups: list[list[int]] = []  # [step, new pace]
 
@@ -136,41 +138,42 @@ class Pace:
     def new_phase(self) -> None:
         """A stage that changes the loss began (the discrete branch, the bounce): its plateau is
         measured from here."""
-        self.best, self.bad = math.inf, 0
+        self.window = []
 
     def observe(self, step: int, loss: float) -> bool:
         """Take the held-aside loss at `step`; True when the pace doubled."""
         self.evals.append([step, loss])
-        if not math.isfinite(loss):
+        if not math.isfinite(loss) or self.share() < self.start_share:
             return False
-        if loss < self.best * (1 - STOP_TOLERANCE):
-            self.best, self.bad = loss, 0
+        self.window.append(loss)
+        w = STOP_WINDOW
+        if len(self.window) < 2 * w or self.rate >= MAX_PACE:
             return False
-        self.best = min(self.best, loss)
-        self.bad += 1
-        if self.bad < STOP_PATIENCE or self.rate >= MAX_PACE:
+        recent, before = sum(self.window[-w:]) / w, sum(self.window[-2 * w:-w]) / w
+        if recent < before * (1 - STOP_TOLERANCE):
             return False
-        self.rate, self.bad = self.rate * 2, 0
+        self.rate *= 2
+        self.window = []
         self.speedups.append([step, self.rate])
         return True
 
     def state_dict(self) -> dict:
-        """The pace's state (JSON-safe: `best` is None before the first measurement of a phase)."""
-        return {"position": self.position, "rate": self.rate, "every": self.every,
-                "best": self.best if math.isfinite(self.best) else None, "bad": self.bad,
+        """The pace's state (JSON-safe)."""
+        return {"position": self.position, "rate": self.rate, "every": self.every, "start_share": self.start_share,
+                "window": list(self.window),
                 "evals": [[s, v if math.isfinite(v) else None] for s, v in self.evals], "speedups": self.speedups}
 
     def load_state_dict(self, state: dict) -> None:
         self.position, self.rate = float(state["position"]), int(state["rate"])
-        self.best = math.inf if state["best"] is None else float(state["best"])
-        self.bad = int(state["bad"])
+        self.window = [float(v) for v in state.get("window", [])]
         self.evals, self.speedups = [list(e) for e in state["evals"]], [list(s) for s in state["speedups"]]
 
     def decision(self, setting: str, step: int, held_pixels: int) -> dict:
         if not self.active:
             return decision(setting, "iterations", f"train.stop = {setting}: {step} of {self.iterations} steps")
-        measured = (f"the loss of {held_pixels} held-aside pixels, measured every {self.every} steps, improving by "
-                    f"under {100 * STOP_TOLERANCE:g} % in {STOP_PATIENCE} measurements in a row")
+        measured = (f"the loss of {held_pixels} held-aside pixels, measured every {self.every} steps, its mean over "
+                    f"{STOP_WINDOW} measurements under {100 * STOP_TOLERANCE:g} % below the {STOP_WINDOW} before "
+                    f"(from {100 * self.start_share:.0f} % of the schedule)")
         if not self.speedups:
             return decision(setting, "iterations", f"all {step} steps: {measured} never happened")
         sped = ", ".join(f"{r}x from step {s}" for s, r in self.speedups)

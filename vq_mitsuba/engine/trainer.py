@@ -126,7 +126,9 @@ class Trainer:
         self.decisions = {"bounce": bounce}
         w, h = self.capture.width, self.capture.height
         n_pixels = int((pool.copy == 0).sum())
-        self.pace = skips.Pace(t.iterations, t.stop == "auto")
+        # no speed-up before every stage of the schedule has begun
+        stages = [cfg.field.pe_anneal, cfg.loss.metallic_barrier_until] + ([cfg.vq.warmup_frac] if cfg.vq.enabled else [])
+        self.pace = skips.Pace(t.iterations, t.stop == "auto", start_share=max(stages))
         self.held = self.train_idx = None
         if self.pace.active:
             self.held, self.train_idx = hold_aside(pool, w, h, skips.stop_pixels(n_pixels), skips.np_seed(seed, 2))
@@ -245,10 +247,10 @@ class Trainer:
                                 generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2,
                                 fixed_light=fixed_light)
 
-    def _lambertian(self, out: dict, s: StepSchedule) -> torch.Tensor:
+    def _lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None) -> torch.Tensor:
         """Eq. (9), L_lam, with the metallic barrier early in training."""
         logit = out["metallic_logit"] if s.metallic_barrier else None
-        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit)
+        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit, weight)
 
     def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool,
                    weight: torch.Tensor | None = None) -> tuple[dict, torch.Tensor, torch.Tensor | None]:
@@ -269,7 +271,7 @@ class Trainer:
         else:
             z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
             drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
-            od = self.discrete(z, drop)
+            od = self.discrete(z, drop, weight=weight)
             # Both branches are shaded in one call. The discrete branch is lit by the envmap and
             # bounce that the continuous branch fits, without training them: a few materials
             # cannot explain a texture, and their residual would otherwise bend the shared light
@@ -286,14 +288,14 @@ class Trainer:
         terms = {
             "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
                                                                                                      gamma, weight),
-            "lam_c": s.w_lam * self._lambertian(out, s),
+            "lam_c": s.w_lam * self._lambertian(out, s, weight),
         }
         if discrete_on:
             terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
-                                                                                           out["basecolor"])
+                                                                                           out["basecolor"], weight)
             terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
-            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s)
+            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, weight)
         if self.pairs is not None and len(self.pairs) > 0:
             pick = self.pairs[torch.randint(0, len(self.pairs), (max(self.batch // 4, 1),), generator=self.gen,
                                             device=self.device)]
@@ -331,6 +333,8 @@ class Trainer:
             with torch.no_grad():
                 roughness = self.model(self.pool.position[self.rough_idx])["roughness"]
             rows, why = skips.envmap_rung(ladder, roughness)
+            if rows < self.env_cap:
+                why += f"; kept at {self.env_cap} rows (a rung reached is kept)"
             self.env_cap = max(self.env_cap, rows)
             self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
                                      "reason": why})
@@ -366,7 +370,7 @@ class Trainer:
         if self.sampler is not None:
             self.sampler.update(idx, per_pixel)
         with torch.no_grad():
-            mse = float(losses.srgb_mse(rgb.detach(), self.pool.rgb[idx]))
+            mse = float(losses.srgb_mse(rgb.detach(), self.pool.rgb[idx], weight))  # of all pixels, by weight
         return True, float(loss.detach()), mse
 
     def bounce_active(self) -> bool:
@@ -480,8 +484,8 @@ class Trainer:
             self.pace.new_phase()
         if finite and self.pace.due(self.step):
             if self.pace.observe(self.step, self.held_loss()):
-                self._say(f"step {self.step}: the held-aside loss improved by under "
-                          f"{100 * skips.STOP_TOLERANCE:g} % in {skips.STOP_PATIENCE} measurements; the schedule "
+                self._say(f"step {self.step}: the held-aside loss of the last {skips.STOP_WINDOW} measurements is "
+                          f"not {100 * skips.STOP_TOLERANCE:g} % below the {skips.STOP_WINDOW} before; the schedule "
                           f"runs {self.pace.rate}x from here")
         if not finite:
             acc["nonfinite"] += 1

@@ -45,14 +45,18 @@ def decorrelated_error(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: f
 
 
 def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,
-                     metallic_logit: torch.Tensor | None = None) -> torch.Tensor:
+                     metallic_logit: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> torch.Tensor:
     """L_lam: pulls materials towards Lambertian (metallic 0, roughness 1) unless the images object.
 
     `metallic_weight` scales the metallic term against the roughness one (the paper weighs them
     equally). With `metallic_logit` (metallic = sigmoid(logit)) the metallic term is
     softplus(logit) = -log(1 - metallic): its pull on the logit tends to
     the full weight where metallic saturates at 1, where the paper's linear term's pull vanishes
-    with the sigmoid's slope (a saturated wrong metal then never comes back)."""
+    with the sigmoid's slope (a saturated wrong metal then never comes back). `weight` (N,):
+    importance weights of the points (the mean of weight x per-point term)."""
+    if weight is not None:
+        m = torch.nn.functional.softplus(metallic_logit) if metallic_logit is not None else metallic
+        return torch.mean(weight * (metallic_weight * m + 1.0 - roughness))
     if metallic_logit is not None:
         m_term = torch.mean(torch.nn.functional.softplus(metallic_logit))
     else:
@@ -60,12 +64,15 @@ def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_w
     return metallic_weight * m_term + torch.mean(1.0 - roughness)
 
 
-def srgb_mse(rgb_pred: torch.Tensor, rgb_target: torch.Tensor) -> torch.Tensor:
+def srgb_mse(rgb_pred: torch.Tensor, rgb_target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared error of sRGB-encoded (IEC 61966-2-1, clipped to [0, 1]) colours, in torch:
-    the figure behind the progress bar's PSNR, comparable with `vq-mitsuba eval`."""
+    the figure behind the progress bar's PSNR, comparable with `vq-mitsuba eval`. `weight` (N,):
+    importance weights of the pixels (a batch drawn by error then estimates the uniform mean)."""
     def enc(x):
         x = x.clamp(0.0, 1.0)
         return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(1e-12) ** (1.0 / 2.4) - 0.055)
+    if weight is not None:
+        return torch.mean(weight * ((enc(rgb_pred) - enc(rgb_target)) ** 2).mean(-1))
     return torch.mean((enc(rgb_pred) - enc(rgb_target)) ** 2)
 
 
@@ -79,10 +86,13 @@ def chromaticity(rgb: torch.Tensor) -> torch.Tensor:
     return rgb / (rgb.sum(-1, keepdim=True) + 1e-4)
 
 
-def chromaticity_loss(basecolor_d: torch.Tensor, basecolor_c: torch.Tensor) -> torch.Tensor:
+def chromaticity_loss(basecolor_d: torch.Tensor, basecolor_c: torch.Tensor,
+                      weight: torch.Tensor | None = None) -> torch.Tensor:
     """L_chr: the discrete basecolor keeps the continuous one's chromaticity (shading and
-    intensity ambiguities do not change chromaticity, so it anchors the material's colour)."""
-    return torch.mean((chromaticity(basecolor_d) - chromaticity(basecolor_c.detach())) ** 2)
+    intensity ambiguities do not change chromaticity, so it anchors the material's colour).
+    `weight` (N,): importance weights of the points."""
+    sq = (chromaticity(basecolor_d) - chromaticity(basecolor_c.detach())) ** 2
+    return torch.mean(sq) if weight is None else torch.mean(weight[:, None] * sq)
 
 
 def colour_aware_smoothness(brdf_a: dict, brdf_b: dict, rgb_a: torch.Tensor, rgb_b: torch.Tensor,

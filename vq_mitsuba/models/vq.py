@@ -57,17 +57,19 @@ class VectorQuantizerEMA(nn.Module):
         return sim.argmax(-1)
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                n_codes: int | None = None, weight: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns (z_q with straight-through gradient, codeword indices, VQ loss).
 
         Latents that dropout forced onto another codeword than their nearest get no
         straight-through gradient (the identity z_q ~ z that the estimator
-        assumes does not hold for them); they still train the decoder and the codebook."""
+        assumes does not hold for them); they still train the decoder and the codebook.
+        `weight` (N,): importance weights of the latents (in the EMA statistics and the loss)."""
         z_unit = F.normalize(z, dim=-1)
         idx = self.nearest(z_unit.detach(), drop_mask, n_codes)
         e = self.codebook[idx]
         if self.training:
-            self.ema_update(z_unit.detach(), idx)
+            self.ema_update(z_unit.detach(), idx, weight)
         z_q = z_unit + (e - z_unit).detach()
         own = None
         if drop_mask is not None:
@@ -76,12 +78,14 @@ class VectorQuantizerEMA(nn.Module):
         sq = torch.sum((z_unit - e.detach()) ** 2, -1)
         if own is not None:  # commitment towards the latent's own codeword only
             sq = sq * own
-        loss = self.commitment * torch.mean(sq)
+        loss = self.commitment * torch.mean(sq if weight is None else weight * sq)
         return z_q, idx, loss
 
     @torch.no_grad()
-    def ema_update(self, z_unit: torch.Tensor, idx: torch.Tensor) -> None:
+    def ema_update(self, z_unit: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor | None = None) -> None:
         onehot = F.one_hot(idx, self.num_codes).to(z_unit.dtype)  # (N, K)
+        if weight is not None:
+            onehot = onehot * weight[:, None].to(z_unit.dtype)
         count = onehot.sum(0)
         total = onehot.t() @ z_unit  # (K, D)
         self.ema_count.mul_(self.decay).add_(count, alpha=1 - self.decay)
@@ -212,8 +216,8 @@ class DiscreteBranch(nn.Module):
         self.latent_scale.fill_(float(latents.norm(dim=-1).mean().clamp_min(1e-6)))
 
     def forward(self, z: torch.Tensor, drop_mask: torch.Tensor | None = None,
-                n_codes: int | None = None) -> dict[str, torch.Tensor]:
-        z_q, idx, loss = self.vq(z, drop_mask, n_codes)
+                n_codes: int | None = None, weight: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        z_q, idx, loss = self.vq(z, drop_mask, n_codes, weight)
         out = self.decoder(z_q * self.latent_scale)
         out["index"] = idx
         out["vq_loss"] = loss
