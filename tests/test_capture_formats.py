@@ -10,6 +10,8 @@ from vq_mitsuba.data.cameras import Camera, camera_to_nerf, look_at
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError
 
+from test_photo_captures import _refused  # one check of a refusal for every capture loader
+
 
 def _cameras(n=3, width=40, height=28, centred=False):
     """Cameras around the origin; off-centre principal points unless `centred`."""
@@ -35,14 +37,6 @@ def _smooth(width, height, seed=0):
     ys, xs = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
     return np.stack([np.sin(xs / 9.0 + seed) * 0.4 + 0.5, np.cos(ys / 7.0) * 0.4 + 0.5,
                      (xs + ys) / (width + height)], -1).astype(np.float32)
-
-
-def _refused(call, path, *parts):
-    with pytest.raises(InputError) as info:
-        call()
-    assert info.value.path == path, (info.value.path, path)
-    for part in parts:
-        assert part in info.value.message, (part, info.value.message)
 
 
 # --------------------------------------------------------------------------------------------

@@ -41,6 +41,22 @@ def textured_env(height: int = 32, seed: int = 3) -> np.ndarray:
     return (env * (0.6 + 0.8 * (1 - v))).astype(np.float32)
 
 
+def _box_ball_and_env(out: Path, ball_y: float):
+    """The box and the ball (written as out/box.ply, out/ball.ply) and the busy environment
+    (out/env.exr) as a Mitsuba emitter: (box, ball, env)."""
+    from vq_mitsuba.data.imageio import write_exr
+
+    out.mkdir(parents=True, exist_ok=True)
+    box = trimesh.creation.box((0.5, 0.35, 0.5))
+    box.apply_translation((0.2, -0.1, 0.05))
+    ball = trimesh.creation.icosphere(3, 0.28)
+    ball.apply_translation((-0.22, ball_y, -0.05))
+    box.export(out / "box.ply")
+    ball.export(out / "ball.ply")
+    write_exr(out / "env.exr", textured_env())
+    return box, ball, {"type": "envmap", "filename": str(out / "env.exr")}
+
+
 def textured_backdrop_scene(out: Path, n_views: int = 16, size: int = 40, spp: int = 32):
     """A box and a ball (Mitsuba world) under a busy environment that is also the visible backdrop.
     Each view is rendered twice (the objects with alpha, and the environment alone) and composited,
@@ -48,18 +64,9 @@ def textured_backdrop_scene(out: Path, n_views: int = 16, size: int = 40, spp: i
     import mitsuba as mi
 
     from vq_mitsuba.backend import init_mitsuba
-    from vq_mitsuba.data.imageio import write_exr
 
     init_mitsuba()
-    out.mkdir(parents=True, exist_ok=True)
-    box = trimesh.creation.box((0.5, 0.35, 0.5))
-    box.apply_translation((0.2, -0.1, 0.05))
-    ball = trimesh.creation.icosphere(3, 0.28)
-    ball.apply_translation((-0.22, 0.1, -0.05))
-    box.export(out / "box.ply")
-    ball.export(out / "ball.ply")
-    write_exr(out / "env.exr", textured_env())
-    env = {"type": "envmap", "filename": str(out / "env.exr")}
+    box, ball, env = _box_ball_and_env(out, ball_y=0.1)
 
     def principled(rgb, roughness):
         return {"type": "principled", "base_color": {"type": "rgb", "value": rgb}, "roughness": roughness}
@@ -403,18 +410,9 @@ def table_scene(out: Path, n_views: int = 16, size: int = 40, spp: int = 32):
     import mitsuba as mi
 
     from vq_mitsuba.backend import init_mitsuba
-    from vq_mitsuba.data.imageio import write_exr
 
     init_mitsuba()
-    out.mkdir(parents=True, exist_ok=True)
-    box = trimesh.creation.box((0.5, 0.35, 0.5))
-    box.apply_translation((0.2, -0.1, 0.05))
-    ball = trimesh.creation.icosphere(3, 0.28)
-    ball.apply_translation((-0.22, 0.005, -0.05))
-    box.export(out / "box.ply")
-    ball.export(out / "ball.ply")
-    write_exr(out / "env.exr", textured_env())
-    env = {"type": "envmap", "filename": str(out / "env.exr")}
+    box, ball, env = _box_ball_and_env(out, ball_y=0.005)
 
     def rgb(value):
         return {"type": "rgb", "value": value}
