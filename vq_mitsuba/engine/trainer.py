@@ -196,7 +196,7 @@ class Trainer:
             self.set_envmap_height(state["envmap"]["log_radiance"].shape[0], resample=False)
             self.env_module.load_state_dict(state["envmap"])
         self.optim.load_state_dict(state["optim"])
-        self.gen.set_state(state["generator"])
+        self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
         self.history, self.step, self.elapsed_before = state["history"], state["step"], state["elapsed_s"]
         self.load_skips_state(state.get("skips"))
 
