@@ -572,13 +572,8 @@ class NeuS:
         deep[flat] = sdf < -margin
         self.deep = deep.reshape(res, res, res)
         self.codes = self.hull_dilated.to(torch.uint8) + (self.deep & self.hull_dilated).to(torch.uint8)
-        # Cache every training ray's interval (they only change with the occupancy grid).
-        near, far = [], []
-        for i in range(0, len(self.rays_o), 8192):
-            n, f = self.intervals(self.rays_o[i:i + 8192], self.rays_d[i:i + 8192])
-            near.append(n)
-            far.append(f)
-        self.ray_near, self.ray_far = torch.cat(near), torch.cat(far)
+        # Each batch's ray intervals are marched when drawn: caching them for every training ray
+        # costs minutes and gigabytes per refresh on a capture of many large photos.
 
     def _lookup(self, grid: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         res = grid.shape[0]
@@ -878,8 +873,8 @@ class _NeuSFit:
                                         "--resume")
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
-        self.gen.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
+        self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
+        torch.set_rng_state(state["torch_rng"].cpu())
         self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
 
     def save(self, p: Progress) -> None:
@@ -895,8 +890,9 @@ class _NeuSFit:
         for group in self.optim.param_groups:
             group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.step_share)
         idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
-        out = neus.render(neus.rays_o[idx], neus.rays_d[idx], lw, cfg.n_samples, True, True,
-                          near=neus.ray_near[idx], far=neus.ray_far[idx])
+        o, d = neus.rays_o[idx], neus.rays_d[idx]
+        near, far = neus.intervals(o, d)
+        out = neus.render(o, d, lw, cfg.n_samples, True, True, near=near, far=far)
         target = neus.rays_rgb[idx]
         color_loss = (out["rgb"] - target).abs().mean()
         if neus.rays_alpha is None:  # no masks: the colour of every pixel, fore- and background
