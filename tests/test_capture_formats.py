@@ -330,6 +330,49 @@ def test_max_size_shrinks_each_photo_and_its_camera_alike(tmp_path, kind):
         assert [c.intrinsics() for c in only] == [c.intrinsics() for c in small.cameras]
 
 
+def test_large_jpegs_are_decoded_at_a_fraction_of_their_size(tmp_path):
+    """JPEG photos and masks (LLFF) read with max_size are decoded at 1/2, 1/4 or 1/8 scale by the
+    decoder, then area-averaged: the same size, cameras and (nearly) the same pixels as decoding
+    them whole; sides the factor does not divide are decoded whole."""
+    from PIL import Image
+
+    from vq_mitsuba.config import CaptureConfig
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import read_image
+    from vq_mitsuba.data.llff import write_poses_bounds
+    from vq_mitsuba.data.resize import Shrink, area_resize
+
+    w, h = 128, 96
+    cams = _cameras(3, w, h, centred=True)
+    folder = tmp_path / "llff"
+    (folder / "images").mkdir(parents=True)
+    (folder / "masks").mkdir()
+    for i, c in enumerate(cams):
+        rgb = (_smooth(w, h, i) * 255).astype(np.uint8)
+        Image.fromarray(rgb).save(folder / "images" / f"{c.name}.jpg", quality=95)
+        mask = np.zeros((h, w), np.uint8)
+        mask[20:80, 30:100] = 255
+        Image.fromarray(mask).save(folder / "masks" / f"{c.name}.jpg", quality=95)
+    write_poses_bounds(folder / "poses_bounds.npy", cams, [(0.5, 5.0)] * 3)
+    shrink = Shrink(1, 30)
+    assert shrink.decode_reduction(folder / "images" / f"{cams[0].name}.jpg") == 4  # 128 / 4 = 32 >= 30
+    assert Shrink(1, 70).decode_reduction(folder / "images" / f"{cams[0].name}.jpg") == 1  # 128 / 2 = 64 < 70
+    assert Shrink(3, 0).decode_reduction(folder / "images" / f"{cams[0].name}.jpg") == 1  # 3 is no multiple of 2
+    full = load_capture(folder)
+    small = load_capture(folder, options=CaptureConfig(max_size=30))
+    assert small.images.shape == (3, 22, 30, 3)
+    for a, b in zip(full.cameras, small.cameras):
+        assert _max_pixel_error(a, b, (30 / w, 22 / h)) < 1e-6
+    for i in range(3):
+        exact = area_resize(full.images[i], 30, 22)
+        assert np.abs(small.images[i] - exact).max() < 0.03
+        assert np.abs(small.alpha[i] - area_resize(full.alpha[i], 30, 22)).mean() < 0.01
+    odd = tmp_path / "odd.jpg"  # 130 is no multiple of 4: decoded whole
+    Image.fromarray((_smooth(130, 96) * 255).astype(np.uint8)).save(odd, quality=95)
+    assert Shrink(1, 30).decode_reduction(odd) == 2 and read_image(odd, 2)[0].shape == (48, 65, 3)
+    assert Shrink(1, 16).decode_reduction(odd) == 2
+
+
 @pytest.mark.parametrize("kind", ["idr", "json"])
 def test_large_photos_are_never_all_held_at_full_size(tmp_path, kind):
     """Peak memory of loading 8 photos of 480 x 360 with max_size 48 stays near that of reading

@@ -21,8 +21,11 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
-def _read_8_or_16_bit(path: Path) -> np.ndarray:
-    """PNG / JPEG pixels as stored: uint8, or uint16 for 16-bit PNGs (which Pillow would cut to 8 bits)."""
+def _read_8_or_16_bit(path: Path, reduce: int = 1) -> np.ndarray:
+    """PNG / JPEG pixels as stored: uint8, or uint16 for 16-bit PNGs (which Pillow would cut to 8 bits).
+
+    `reduce` 2, 4 or 8 asks a JPEG whose sides it divides for 1/reduce of its width and height,
+    decoded at that scale by the JPEG decoder itself (each pixel the mean of a reduce x reduce block)."""
     import imageio.v3 as iio  # ships with scikit-image
 
     with open(path, "rb") as f:
@@ -31,6 +34,16 @@ def _read_8_or_16_bit(path: Path) -> np.ndarray:
     if path.suffix.lower() == ".png" and not png or path.suffix.lower() != ".png" and head[:2] != b"\xff\xd8":
         raise InputError(path, f"not a {path.suffix[1:].upper()} image (the file does not start like one; "
                                "truncated, or another kind of file renamed?)")
+    if reduce > 1 and not png:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            w, h = im.size
+            if w % reduce == 0 and h % reduce == 0:
+                im.draft(im.mode, (w // reduce, h // reduce))
+                if im.size == (w // reduce, h // reduce):
+                    return np.asarray(im)
+        raise ValueError(f"cannot decode at 1/{reduce} scale")  # callers ask only where jpeg_reduction allows
     if png and len(head) > 24 and head[24] == 16:
         import mitsuba as mi
 
@@ -47,10 +60,11 @@ def _read_8_or_16_bit(path: Path) -> np.ndarray:
     return np.asarray(iio.imread(path))
 
 
-def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+def read_image(path: str | Path, reduce: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
     """Read an image as linear float32 RGB (H, W, 3) and its alpha (H, W) or None.
 
     PNG/JPEG are decoded from sRGB; EXR is taken as linear. Raises InputError naming the file.
+    `reduce` > 1: a JPEG decoded at 1/reduce scale (see `jpeg_reduction`).
     """
     path = Path(path)
     if not path.is_file():
@@ -60,7 +74,7 @@ def read_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         if suffix == ".exr":
             data = read_exr(path)
         elif suffix in (".png", ".jpg", ".jpeg"):
-            raw = _read_8_or_16_bit(path)
+            raw = _read_8_or_16_bit(path, reduce)
             scale = 65535.0 if raw.dtype == np.uint16 else 255.0
             data = raw.astype(np.float32) / scale
             if data.ndim == 2:
@@ -155,9 +169,10 @@ def write_png(path: str | Path, image: np.ndarray, alpha: np.ndarray | None = No
     iio.imwrite(path, out)
 
 
-def read_mask(path: str | Path) -> np.ndarray:
+def read_mask(path: str | Path, reduce: int = 1) -> np.ndarray:
     """A mask image (PNG/JPEG grey, RGB or RGBA; EXR) as (H, W) float32 in [0, 1], read as data
-    (no sRGB decoding): the brightest colour channel, times alpha when there is one."""
+    (no sRGB decoding): the brightest colour channel, times alpha when there is one; `reduce` as
+    for `read_image`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "mask file not found")
@@ -165,7 +180,7 @@ def read_mask(path: str | Path) -> np.ndarray:
         if path.suffix.lower() == ".exr":
             data = read_exr(path)
         else:
-            raw = _read_8_or_16_bit(path)
+            raw = _read_8_or_16_bit(path, reduce)
             data = raw.astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)
     except Exception as exc:
         raise InputError(path, f"cannot read mask ({type(exc).__name__}: {exc})") from exc
@@ -193,3 +208,14 @@ def image_size(path: str | Path) -> tuple[int, int]:
             return int(im.size[0]), int(im.size[1])
     except Exception as exc:
         raise InputError(path, f"cannot read image ({type(exc).__name__}: {exc})") from exc
+
+
+def jpeg_reduction(path: str | Path, width: int, height: int, target: tuple[int, int]) -> int:
+    """The largest of 8, 4, 2 (else 1) by which the JPEG decoder may shrink a width x height JPEG
+    still at least `target` (width, height) pixels: it must divide both sides exactly."""
+    if Path(path).suffix.lower() not in (".jpg", ".jpeg"):
+        return 1
+    for r in (8, 4, 2):
+        if width % r == 0 and height % r == 0 and width // r >= target[0] and height // r >= target[1]:
+            return r
+    return 1

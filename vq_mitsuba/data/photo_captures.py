@@ -183,15 +183,20 @@ def read_views(source: Path, cameras: list[Camera], paths: list[Path], masks: li
     has_alpha = any(m is not None for m in masks)
     for cam, path, mask_path, lens in zip(cameras, paths, masks, lenses):
         try:
-            rgb, alpha = read_image(path)
-            if rgb.shape[:2] != (cam.height, cam.width):
-                raise InputError(path, f"image is {rgb.shape[1]}x{rgb.shape[0]} but its camera says "
+            distorted = lens is not None and lens.distorted
+            r = 1 if distorted else shrink.decode_reduction(path)  # large JPEGs: decoded at a fraction
+            rgb, alpha = read_image(path, r)
+            if (rgb.shape[0] * r, rgb.shape[1] * r) != (cam.height, cam.width):
+                raise InputError(path, f"image is {rgb.shape[1] * r}x{rgb.shape[0] * r} but its camera says "
                                        f"{cam.width}x{cam.height}")
             if mask_path is not None:
-                mask = read_mask(mask_path)
-                if mask.shape != rgb.shape[:2]:
-                    raise InputError(mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]}, its image "
-                                                f"{rgb.shape[1]}x{rgb.shape[0]}")
+                rm = r if r == 1 or shrink.decode_reduction(mask_path) >= r else 1
+                mask = read_mask(mask_path, rm)
+                if (mask.shape[0] * rm, mask.shape[1] * rm) != (cam.height, cam.width):
+                    raise InputError(mask_path, f"mask is {mask.shape[1] * rm}x{mask.shape[0] * rm}, its image "
+                                                f"{cam.width}x{cam.height}")
+                if rm != r:  # a mask the decoder cannot shrink alike: brought to the image's scale
+                    mask = Shrink(r).image(mask, mask_path)
                 alpha = mask if alpha is None else alpha * mask
             if alpha is not None:
                 has_alpha = True
@@ -199,7 +204,7 @@ def read_views(source: Path, cameras: list[Camera], paths: list[Path], masks: li
             if lens is not None and lens.distorted:
                 rgb, alpha = _undistorted(path, rgb, alpha, lens, cache, shrink)
             elif shrink.active:
-                rgb, alpha = shrink.image(rgb, path), shrink.image(alpha, path)
+                rgb, alpha = shrink.after(r).image(rgb, path), shrink.after(r).image(alpha, path)
             images.append(rgb)
             alphas.append(alpha)
         except InputError as exc:
