@@ -138,7 +138,7 @@ def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path
     iterations has nothing to do, with more it goes on at the pace it had."""
     monkeypatch.setattr(skips, "STOP_MIN_EVERY", 5)  # a measurement every 5 steps: a short fit
     run = tmp_path / "run"
-    settings = QUICK + ["train.iterations=60", "train.lr=1e-9", "train.checkpoint_every=1000", "field.pe_anneal=0.1",
+    settings = QUICK + ["train.stop=auto", "train.iterations=60", "train.lr=1e-9", "train.checkpoint_every=1000", "field.pe_anneal=0.1",
                         "loss.metallic_barrier_until=0.1"]
     summary = fit(small_sphere, run, load_config(None, settings), progress=False)
     stop = json.loads((run / "fit.json").read_text())["decisions"]["stop"]
@@ -160,7 +160,8 @@ def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path
 def test_a_fit_that_keeps_improving_runs_every_step(small_sphere, tmp_path, monkeypatch):
     losses = iter(0.9 ** k for k in range(1000))
     monkeypatch.setattr(Trainer, "held_loss", lambda self: next(losses))
-    summary = fit(small_sphere, tmp_path / "run", load_config(None, QUICK + ["train.iterations=40"]), progress=False)
+    summary = fit(small_sphere, tmp_path / "run", load_config(None, QUICK + ["train.iterations=40", "train.stop=auto"]),
+                  progress=False)
     stop = summary["decisions"]["stop"]
     assert summary["iterations"] == 40 and stop["choice"] == "iterations" and stop["pace"]["speedups"] == []
     assert len(stop["pace"]["evals"]) == 4
@@ -173,7 +174,7 @@ def test_held_aside_pixels_are_never_drawn(small_sphere, tmp_path):
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.run.run_dir import RunDir
 
-    cfg = load_config(None, QUICK + ["train.iterations=10"])
+    cfg = load_config(None, QUICK + ["train.iterations=10", "train.stop=auto"])
     capture = load_capture(small_sphere, split="train")
     trainer = Trainer(capture, RunDir(tmp_path / "run"), cfg)
     pool = trainer.pool

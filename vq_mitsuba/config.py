@@ -192,11 +192,11 @@ class TrainConfig:
         "auto", "the bounce of train.bounces: auto turns it off where under 1 % of secondary rays from the training "
                 "hits meet the object (decided at start-up)", ("auto", "on", "off"))
     stop: str = setting(
-        "auto", "when the fit ends: auto runs the schedule faster each time held-aside pixels stop improving and "
+        "iterations", "when the fit ends: auto runs the schedule faster each time held-aside pixels stop improving and "
                 "ends when it is done (train.iterations the ceiling), iterations after train.iterations steps",
         ("auto", "iterations"))
     sampling: str = setting(
-        "auto", "which pixels a step draws: auto by their running error with a 30 % uniform share "
+        "uniform", "which pixels a step draws: auto by their running error with a 30 % uniform share "
                 "(importance-weighted), uniform all alike", ("auto", "uniform"))
     time_limit_s: float = setting(0.0, "stop after this many seconds (0: no limit)")
     snapshot_s: str = setting("", "comma-separated fit seconds at which a copy of the state is kept in snapshots/")
