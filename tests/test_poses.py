@@ -206,21 +206,27 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_fit_of_a_photo_folder_end_to_end(orbit, tmp_path, monkeypatch, capsys):
-    """Photos on a plain black backdrop: poses, NeuS and the material fit, then a resumed fit that
-    does not run SfM again."""
+@pytest.mark.parametrize("source", ["photos", "video"])
+def test_fit_of_a_photo_folder_end_to_end(orbit, tmp_path, monkeypatch, capsys, source):
+    """Photos (or a video of them) on a plain black backdrop: poses, NeuS and the material fit, then
+    a resumed fit that does not run SfM again."""
     import vq_mitsuba.geometry.poses as poses
     from vq_mitsuba import cli
     from vq_mitsuba.run.run_dir import RunDir
 
     photos, _ = orbit
+    if source == "video":
+        photos = tmp_path / "orbit.mp4"
+        write_video(photos, sorted(orbit[0].glob("*.png")), blurred=0)
     run = RunDir(tmp_path / "run")
     quick = ["--quiet", "--background-color", "0,0,0", "--set", "neus.iterations=30", "--set",
              "neus.hull_resolution=64", "--set", "neus.mesh_resolution=64", "--set", "train.batch_rays=128",
-             "--set", "residual.iterations=1"]
+             "--set", "residual.iterations=1"] + (["--set", "pose.frames=24"] if source == "video" else [])
     assert cli.main(["fit", str(photos), "-o", str(run.dir), "--set", "train.iterations=4", *quick]) == 0
     assert (run / RunDir.POSE_SUMMARY).is_file() and run.has_mesh() and run.has_checkpoint()
     assert Path(run.info()["capture"]) == (run / RunDir.POSE).resolve()
+    summary = json.loads((run / RunDir.POSE_SUMMARY).read_text())
+    assert summary["kind"] == source and summary["registered"] == N_VIEWS
     monkeypatch.setattr(poses, "_sfm", _fails)
     assert cli.main(["fit", str(photos), "-o", str(run.dir), "--resume", "--set", "train.iterations=6", *quick]) == 0
     assert "pose: reusing" in capsys.readouterr().out
