@@ -8,8 +8,11 @@ scored with `vq-mitsuba eval`. This script reads them and prints, beside the mac
 - the camera centres SfM found against the reference's, after the best similarity (Umeyama), as a
   share of the reference's object radius (`scale_mat_0` of a NeuS/IDR capture, else the cameras'
   distance to their centroid);
-- each run's held-out novel-view PSNR / SSIM (with and without the residual) and the wall time of
-  each stage the runs recorded.
+- each run's held-out novel-view PSNR / SSIM (with and without the residual) as `eval` scored it,
+  and the wall time of each stage the runs recorded;
+- with `--reference-masks`, both runs' held-out views rendered again and scored inside the
+  reference's own masks (`mask/` or `masks/` of the reference capture), so that the photos run, which
+  `eval` scores inside its own mesh's coverage, and the posed run are compared like for like.
 """
 
 from __future__ import annotations
@@ -52,12 +55,58 @@ def _run_figures(run: Path) -> dict:
     }
 
 
+def _reference_mask(folder: Path, name: str) -> Path:
+    """The reference's mask of the view `name` (a NeuS/IDR capture numbers its views 000, 001...)."""
+    for sub in ("mask", "masks"):
+        for stem in ([f"{int(name):03d}", name] if name.isdigit() else [name]):
+            for suffix in (".png", ".jpg", ".JPG"):
+                if (folder / sub / (stem + suffix)).is_file():
+                    return folder / sub / (stem + suffix)
+    raise FileNotFoundError(f"no mask of view {name} under {folder}/mask or masks")
+
+
+def held_out_in_reference_masks(run_dir: Path, reference: Path, spp: int = 64) -> dict:
+    """Novel-view PSNR / SSIM of a run's held-out views inside the reference capture's masks."""
+
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import read_mask
+    from vq_mitsuba.data.resize import Shrink
+    from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.render.views import Renderer
+    from vq_mitsuba.run.run_dir import RunDir
+
+    run = RunDir(run_dir)
+    cfg = run.config()
+    held = load_capture(run.info()["capture"], options=cfg.capture, split="holdout",
+                        cache_dir=run.undistorted_dir)
+    renderer = Renderer(run.load())
+    rows = []
+    for cam, image in zip(held.cameras, held.images):
+        path = _reference_mask(reference, cam.name)
+        mask = read_mask(path)
+        mask = Shrink(1, max(image.shape[:2])).image(mask) if mask.shape != image.shape[:2] else mask
+        mask = mask > 0.5
+        out = renderer.render(cam, spp=spp)
+        straight = lambda rgb: rgb / np.maximum(out["alpha"], 1e-6)[..., None]  # noqa: E731
+        row = {"view": cam.name, "mask": path.name,
+               **M.image_metrics(straight(out.get("rgb_physical", out["rgb"])), image, mask)}
+        if "rgb_physical" in out:
+            row.update({"residual_" + k: v for k, v in M.image_metrics(straight(out["rgb"]), image, mask).items()})
+        rows.append(row)
+    mean = lambda key: float(np.mean([r[key] for r in rows])) if rows and key in rows[0] else None  # noqa: E731
+    return {"spp": spp, "psnr": mean("psnr"), "ssim": mean("ssim"), "residual_psnr": mean("residual_psnr"),
+            "residual_ssim": mean("residual_ssim"), "views": rows}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--photos-run", type=Path, required=True, help="run fitted from the photos alone")
     parser.add_argument("--posed-run", type=Path, help="run fitted from the reference capture")
     parser.add_argument("--reference", type=Path, required=True, help="the capture with the reference cameras")
     parser.add_argument("-o", "--out", type=Path, required=True, help="JSON file written")
+    parser.add_argument("--reference-masks", action="store_true",
+                        help="also score both runs' held-out views inside the reference capture's masks")
+    parser.add_argument("--spp", type=int, default=64, help="samples per pixel of those renders")
     args = parser.parse_args(argv)
 
     from vq_mitsuba.data.captures import load_cameras
@@ -88,6 +137,10 @@ def main(argv: list[str] | None = None) -> int:
         "photos_run": _run_figures(args.photos_run),
         "posed_run": _run_figures(args.posed_run) if args.posed_run else None,
     }
+    if args.reference_masks:
+        for key, run_dir in (("photos_run", args.photos_run), ("posed_run", args.posed_run)):
+            if run_dir is not None:
+                result[key]["in_reference_masks"] = held_out_in_reference_masks(run_dir, args.reference, args.spp)
     write_result(args.out, result)
     print(describe())
     c = result["centres"]
@@ -96,7 +149,12 @@ def main(argv: list[str] | None = None) -> int:
           f"{100 * c['max_share']:.2f} % at most of the object radius ({c['matched']} views)")
     for key in ("photos_run", "posed_run"):
         if result[key]:
-            print(f"{key}: {json.dumps(result[key])}")
+            scored = {k: v for k, v in result[key].items() if k != "in_reference_masks"}
+            print(f"{key}: {json.dumps(scored)}")
+            inside = result[key].get("in_reference_masks")
+            if inside:
+                print(f"{key} held-out inside the reference masks: {inside['psnr']:.2f} dB / {inside['ssim']:.3f}"
+                      + (f" ({inside['residual_psnr']:.2f} dB with the residual)" if inside["residual_psnr"] else ""))
     return 0
 
 
