@@ -185,6 +185,30 @@ def test_held_aside_pixels_are_never_drawn(small_sphere, tmp_path):
     assert not held & set(key[drawn.cpu()].tolist())
 
 
+def test_the_training_pool_keeps_to_its_hit_budget(small_sphere, tmp_path):
+    """train.max_hits: first fewer jittered hits per pixel, then a share of the pixels; every
+    opaque pixel keeps its hits under the budget."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.run.run_dir import RunDir
+
+    capture = load_capture(small_sphere, split="train")
+
+    def pool(max_hits):
+        cfg = load_config(None, QUICK + ["train.iterations=10", f"train.max_hits={max_hits}"])
+        trainer = Trainer(capture, RunDir(tmp_path / f"run{max_hits}"), cfg)
+        return trainer.pool, trainer.pool_stats
+
+    full, stats = pool(0)
+    n = stats["opaque_pixels"]
+    assert stats["hits_per_pixel"] == 4 and stats["pixel_share"] == 1.0 and len(full) > 3 * stats["used_pixels"]
+    fewer, stats = pool(2 * n)  # 4 per pixel would exceed it: one each
+    assert stats["hits_per_pixel"] == 1 and stats["pixel_share"] == 1.0
+    assert len(fewer) == stats["used_pixels"] and int(fewer.copy.max()) == 0
+    part, stats = pool(n // 2)
+    assert stats["hits_per_pixel"] == 1 and stats["pixel_share"] == pytest.approx(0.5, abs=1e-3)
+    assert 0.4 * len(fewer) < len(part) < 0.6 * len(fewer)
+
+
 # --- sampler ---------------------------------------------------------------------------------------
 def _pool(width=8, height=8, views=2, copies=1):
     from vq_mitsuba.data.pixels import PixelPool

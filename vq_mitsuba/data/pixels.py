@@ -34,32 +34,53 @@ class PixelPool:
 
 
 def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitter: int = 0,
-                          seed: int = 0) -> tuple[PixelPool, dict]:
+                          seed: int = 0, max_hits: int = 0) -> tuple[PixelPool, dict]:
     """Primary hits of all views' opaque pixels: the pixel centre, or `jitter` random positions
-    inside each pixel (a pixel's value is an area average; centres alias thin highlights)."""
+    inside each pixel (a pixel's value is an area average; centres alias thin highlights).
+
+    `max_hits` > 0 caps the pool (72 bytes a hit): where the opaque pixels times `jitter` exceed
+    it, fewer jittered hits per pixel are traced (16, 9, 4, then 1), and where the pixels alone do,
+    a random share of each view's pixels is kept."""
     rng = np.random.default_rng(seed)
-    parts, n_alpha, n_hit = [], 0, 0
+    opaque_of = [np.flatnonzero(capture.alpha[v].reshape(-1) >= alpha_threshold) for v in range(len(capture.cameras))]
+    n_alpha = sum(len(o) for o in opaque_of)
+    copies, share = max(jitter, 1), 1.0
+    if max_hits > 0 and n_alpha * copies > max_hits:
+        while copies > 1 and n_alpha * copies > max_hits:
+            copies = (math.isqrt(copies) - 1) ** 2
+        copies = max(copies, 1)
+        share = min(1.0, max_hits / max(n_alpha, 1))
+    jitter = copies if jitter > 0 else 0
+    fields = [[] for _ in range(7)]
+    n_hit = n_traced = 0
     for v, cam in enumerate(capture.cameras):
-        opaque = np.flatnonzero(capture.alpha[v].reshape(-1) >= alpha_threshold)  # only these are traced
+        opaque = opaque_of[v]  # only these are traced
+        if share < 1.0:
+            opaque = opaque[rng.random(len(opaque)) < share]
+        n_traced += len(opaque)
         rgb = torch.as_tensor(capture.images[v].reshape(-1, 3)[opaque])
-        n_alpha += len(opaque)
-        for k in range(max(jitter, 1)):
+        for k in range(copies):
             # the jitter is drawn for every pixel, so a pixel's offsets do not depend on the mask
             offsets = pixel_jitter(cam.width * cam.height, k, jitter, rng) if jitter > 0 else None
             o, d = camera_rays(cam, None if offsets is None else offsets[opaque], pixels=opaque)
             hits = scene.trace(o, d)
             keep = hits.valid
-            if k == 0:
-                n_hit += int(keep.sum())
             n_keep = int(keep.sum())
+            if k == 0:
+                n_hit += n_keep
             keep_cpu = keep.cpu()
-            parts.append((hits.position[keep], hits.normal[keep], hits.wi[keep], rgb.to(keep.device)[keep],
-                          torch.full((n_keep,), v, dtype=torch.int64),
-                          torch.as_tensor(opaque)[keep_cpu], torch.full((n_keep,), k, dtype=torch.int64)))
-    cat = [torch.cat(x) for x in zip(*parts)]
+            for field, part in zip(fields, (hits.position[keep], hits.normal[keep], hits.wi[keep],
+                                            rgb.to(keep.device)[keep], torch.full((n_keep,), v, dtype=torch.int64),
+                                            torch.as_tensor(opaque)[keep_cpu],
+                                            torch.full((n_keep,), k, dtype=torch.int64))):
+                field.append(part)
+    cat = []
+    for field in fields:  # one field at a time: the parts of the others are not copied alongside
+        cat.append(torch.cat(field))
+        field.clear()
     pool = PixelPool(*cat)
-    stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit,
-             "geometry_coverage": n_hit / max(n_alpha, 1)}
+    stats = {"opaque_pixels": n_alpha, "used_pixels": n_hit, "geometry_coverage": n_hit / max(n_traced, 1),
+             "hits_per_pixel": copies, "pixel_share": share}
     return pool, stats
 
 

@@ -94,7 +94,13 @@ class Trainer:
             env_init = capture.envmap
         self.scene = scene_for_mesh(capture.mesh, env_init, capture.envmap_to_world)
         self.pool, self.pool_stats = trace_training_pixels(self.scene, capture, cfg.train.alpha_threshold,
-                                                           cfg.train.pixel_jitter, cfg.train.seed)
+                                                           cfg.train.pixel_jitter, cfg.train.seed, cfg.train.max_hits)
+        stats = self.pool_stats
+        if stats["hits_per_pixel"] < max(cfg.train.pixel_jitter, 1) or stats["pixel_share"] < 1.0:
+            print(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} hit(s) each "
+                  f"instead of {max(cfg.train.pixel_jitter, 1)}"
+                  + (f", {100 * stats['pixel_share']:.0f} % of them" if stats["pixel_share"] < 1.0 else "")
+                  + f" (train.max_hits {cfg.train.max_hits:,})")
         if len(self.pool) == 0:
             raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh "
                                              "and the alpha masks")
