@@ -38,6 +38,7 @@ SUMMARY = "pose.json"
 MIN_IMAGES = 3  # SfM needs three images to place any of them with confidence
 EXHAUSTIVE_MAX = 100  # photos up to which `auto` matches every pair (4950 pairs); over it, neighbours in name order
 SIFT_MAX_SIDE = 2000  # SIFT runs on images scaled down to this long side (phone photos: 4032 px, 4x the time)
+SIFT_MAX_FEATURES = 4096  # per image; matching a pair costs the product of two images' counts
 CAMERA_MODEL = "SIMPLE_RADIAL"  # focal length, principal point, one radial term: what a phone needs, few unknowns
 SUMMARY_VERSION = 1
 
@@ -229,6 +230,7 @@ def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callab
         bar.set_postfix_str(f"SIFT features of {len(names)} images")
         reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
         extraction = pycolmap.FeatureExtractionOptions(num_threads=threads, max_image_size=SIFT_MAX_SIDE)
+        extraction.sift.max_num_features = SIFT_MAX_FEATURES
         pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         seconds["features"] = round(time.perf_counter() - t, 2)
