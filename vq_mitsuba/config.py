@@ -186,7 +186,7 @@ class TrainConfig:
     log_every: int = setting(50, "steps between loss-curve entries", ">0")
     alpha_threshold: float = setting(0.99, "pixels with alpha below this are not fitted", "[0,1]")
     pixel_jitter: int = setting(4, "primary hits traced per pixel, stratified (0: the pixel centre)", "square")
-    max_hits: int = setting(1 << 25, "most training hits kept (72 bytes each): fewer per pixel, then fewer pixels, "
+    max_hits: int = setting(1 << 24, "most training hits kept (72 bytes each): fewer per pixel, then fewer pixels, "
                                      "above it (0: no limit)")
     bounces: int = setting(1, "interreflections simulated (0: direct light only)")
     bounce_after: int = setting(300, "steps of direct light only before the bounce is simulated")
