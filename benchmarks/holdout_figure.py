@@ -35,19 +35,14 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.resize import Shrink
     from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.eval.evaluate import held_out_capture, straight_colours
     from vq_mitsuba.render.views import Renderer
     from vq_mitsuba.run.run_dir import RunDir
 
     run = RunDir(args.run)
-    cfg = run.config()
-    held = load_capture(run.info()["capture"], options=cfg.capture, split="holdout", cache_dir=run.undistorted_dir)
-    if not held.has_alpha and run.source().masks_from_mesh():
-        from vq_mitsuba.geometry.pipeline import masked_by_mesh
-
-        held = masked_by_mesh(held, run.mesh())
+    held = held_out_capture(run)
     picks = np.unique(np.linspace(0, len(held.cameras) - 1, min(args.views, len(held.cameras))).round().astype(int))
     renderer = Renderer(run.load())
     shrink = Shrink(1, args.size)
@@ -55,14 +50,13 @@ def main(argv=None) -> int:
     for i in picks:
         cam, photo, alpha = held.cameras[i], held.images[i], held.alpha[i]
         out = renderer.render(cam, spp=args.spp)
-        cover = np.maximum(out["alpha"], 1e-6)[..., None]
         mask = alpha > 0.5
-        physical = out.get("rgb_physical", out["rgb"]) / cover
+        physical, with_residual = straight_colours(out)
         panels = {"photo": np.where(mask[..., None], photo, 0.5 * photo + 0.1), "render": physical}
         row = {"view": cam.name, "psnr": M.image_metrics(physical, photo, mask)["psnr"]}
-        if "rgb_physical" in out:
-            panels["with residual"] = out["rgb"] / cover
-            row["residual_psnr"] = M.image_metrics(panels["with residual"], photo, mask)["psnr"]
+        if with_residual is not None:
+            panels["with residual"] = with_residual
+            row["residual_psnr"] = M.image_metrics(with_residual, photo, mask)["psnr"]
         if "basecolor" in out:
             panels["basecolor"] = out["basecolor"]
         columns = list(panels)

@@ -67,18 +67,15 @@ def _reference_mask(folder: Path, name: str) -> Path:
 
 def held_out_in_reference_masks(run_dir: Path, reference: Path, spp: int = 64) -> dict:
     """Novel-view PSNR / SSIM of a run's held-out views inside the reference capture's masks."""
-
-    from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import read_mask
     from vq_mitsuba.data.resize import Shrink
     from vq_mitsuba.eval import metrics as M
+    from vq_mitsuba.eval.evaluate import held_out_capture, straight_colours
     from vq_mitsuba.render.views import Renderer
     from vq_mitsuba.run.run_dir import RunDir
 
     run = RunDir(run_dir)
-    cfg = run.config()
-    held = load_capture(run.info()["capture"], options=cfg.capture, split="holdout",
-                        cache_dir=run.undistorted_dir)
+    held = held_out_capture(run)
     renderer = Renderer(run.load())
     rows = []
     for cam, image in zip(held.cameras, held.images):
@@ -86,12 +83,10 @@ def held_out_in_reference_masks(run_dir: Path, reference: Path, spp: int = 64) -
         mask = read_mask(path)
         mask = Shrink(1, max(image.shape[:2])).image(mask) if mask.shape != image.shape[:2] else mask
         mask = mask > 0.5
-        out = renderer.render(cam, spp=spp)
-        straight = lambda rgb: rgb / np.maximum(out["alpha"], 1e-6)[..., None]  # noqa: E731
-        row = {"view": cam.name, "mask": path.name,
-               **M.image_metrics(straight(out.get("rgb_physical", out["rgb"])), image, mask)}
-        if "rgb_physical" in out:
-            row.update({"residual_" + k: v for k, v in M.image_metrics(straight(out["rgb"]), image, mask).items()})
+        physical, with_residual = straight_colours(renderer.render(cam, spp=spp))
+        row = {"view": cam.name, "mask": path.name, **M.image_metrics(physical, image, mask)}
+        if with_residual is not None:
+            row.update({"residual_" + k: v for k, v in M.image_metrics(with_residual, image, mask).items()})
         rows.append(row)
     mean = lambda key: float(np.mean([r[key] for r in rows])) if rows and key in rows[0] else None  # noqa: E731
     return {"spp": spp, "psnr": mean("psnr"), "ssim": mean("ssim"), "residual_psnr": mean("residual_psnr"),

@@ -210,11 +210,9 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise InputError(path, f"cannot read image ({type(exc).__name__}: {exc})") from exc
 
 
-def jpeg_reduction(path: str | Path, width: int, height: int, target: tuple[int, int]) -> int:
+def jpeg_reduction(width: int, height: int, target: tuple[int, int]) -> int:
     """The largest of 8, 4, 2 (else 1) by which the JPEG decoder may shrink a width x height JPEG
     still at least `target` (width, height) pixels: it must divide both sides exactly."""
-    if Path(path).suffix.lower() not in (".jpg", ".jpeg"):
-        return 1
     for r in (8, 4, 2):
         if width % r == 0 and height % r == 0 and width // r >= target[0] and height // r >= target[1]:
             return r

@@ -201,7 +201,7 @@ def read_views(source: Path, cameras: list[Camera], paths: list[Path], masks: li
             if alpha is not None:
                 has_alpha = True
             alpha = np.ones(rgb.shape[:2], np.float32) if alpha is None else alpha
-            if lens is not None and lens.distorted:
+            if distorted:
                 rgb, alpha = _undistorted(path, rgb, alpha, lens, cache, shrink)
             elif shrink.active:
                 rgb, alpha = shrink.after(r).image(rgb, path), shrink.after(r).image(alpha, path)

@@ -81,7 +81,7 @@ class Shrink:
 
         width, height = image_size(path)
         target = self.size(width, height, path)
-        r = jpeg_reduction(path, width, height, target)
+        r = jpeg_reduction(width, height, target)
         while r > 1 and self.downscale > 1 and self.downscale % r:
             r //= 2
         return r

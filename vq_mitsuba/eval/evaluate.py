@@ -581,6 +581,35 @@ def format_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def held_out_capture(run: RunDir, downscale: int | None = None, max_size: int | None = None):
+    """The views a run fitted with capture.holdout K kept out of training, at the fit's size (or
+    the `downscale` / `max_size` given), masked as the fit was: by their masks, or by the mesh's
+    coverage for a run whose mesh NeuS made without masks."""
+    from vq_mitsuba.data.captures import load_capture
+
+    cfg = run.source().config()
+    if cfg.capture.holdout <= 0:
+        raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
+                                  "of a real capture, or give --gt DATASET for a synthetic one")
+    sizes = {k: v for k, v in (("downscale", downscale), ("max_size", max_size)) if v is not None}
+    held = load_capture(run.source().info()["capture"], options=replace(cfg.capture, **sizes), split="holdout",
+                        cache_dir=run.undistorted_dir)
+    if not held.has_alpha and run.source().masks_from_mesh():
+        from vq_mitsuba.geometry.pipeline import masked_by_mesh
+
+        held = masked_by_mesh(held, run.mesh())
+    return held
+
+
+def straight_colours(out: dict) -> tuple[np.ndarray, np.ndarray | None]:
+    """(physically based colour, colour with the run's residual or None) of a render, divided by
+    its coverage as a photo's straight colours are."""
+    cover = np.maximum(out["alpha"], 1e-6)[..., None]
+    if "rgb_physical" in out:  # the run's residual: rgb has it, rgb_physical not
+        return out["rgb_physical"] / cover, out["rgb"] / cover
+    return out["rgb"] / cover, None
+
+
 def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool = True,
                      output: str | Path | None = None, downscale: int | None = None,
                      max_size: int | None = None) -> dict:
@@ -591,23 +620,11 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     then 1 by construction)."""
     from tqdm import tqdm
 
-    from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.render.views import Renderer, check_finite
 
     run = RunDir(run_dir)
     cfg = run.source().config()
-    if cfg.capture.holdout <= 0:
-        raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
-                                  "of a real capture, or give --gt DATASET for a synthetic one")
-    info = run.source().info()
-    # the held-out photos at the fit's size, or at the `downscale` / `max_size` given
-    sizes = {k: v for k, v in (("downscale", downscale), ("max_size", max_size)) if v is not None}
-    options = replace(cfg.capture, **sizes)
-    held = load_capture(info["capture"], options=options, split="holdout", cache_dir=run.undistorted_dir)
-    if not held.has_alpha and run.source().masks_from_mesh():  # masked as the fit was: by the mesh's coverage
-        from vq_mitsuba.geometry.pipeline import masked_by_mesh
-
-        held = masked_by_mesh(held, run.mesh())
+    held = held_out_capture(run, downscale, max_size)
     fitted = run.load()
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp
@@ -617,11 +634,11 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
         out = renderer.render(cam, spp=spp)
         check_finite(out, cam.name)
         mask = alpha > 0.5
-        straight = lambda rgb: rgb / np.maximum(out["alpha"], 1e-6)[..., None]  # noqa: E731 (as the photo's)
-        row = {"view": cam.name, **M.image_metrics(straight(out.get("rgb_physical", out["rgb"])), image, mask),
+        physical, with_residual = straight_colours(out)
+        row = {"view": cam.name, **M.image_metrics(physical, image, mask),
                "coverage_iou": float((mask & (out["alpha"] > 0.5)).sum() / max((mask | (out["alpha"] > 0.5)).sum(), 1))}
-        if "rgb_physical" in out:  # the run's residual: rgb has it, rgb_physical not
-            row.update({"residual_" + k: v for k, v in M.image_metrics(straight(out["rgb"]), image, mask).items()})
+        if with_residual is not None:
+            row.update({"residual_" + k: v for k, v in M.image_metrics(with_residual, image, mask).items()})
         rows.append(row)
     metrics = {"run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
                "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
