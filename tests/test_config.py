@@ -40,7 +40,7 @@ OUT_OF_RANGE = [
     ("square>0", "render.aa", "0", "render.aa must be a square number > 0"),
     ("choices", "neus.init", "box", "neus.init must be one of 'hull', 'sphere'"),
     ("cross", "neus.base_res", "1", "neus.base_res must be >= 2"),
-    ("cross", "neus.max_res", "8", "neus.max_res >= neus.base_res"),
+    ("cross", "neus.max_res", "8", "neus.max_res 0 or >= neus.base_res"),
     ("cross", "capture.background_color", "'2,0,0'", "capture.background_color must be R,G,B"),
 ]
 

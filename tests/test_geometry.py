@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 import json
 from pathlib import Path
 
@@ -16,7 +17,8 @@ from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import ColorNetwork, DenseGrid, NeuS, camera_rays, rate_spread, reconstruct, train
+from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, ColorNetwork, DenseGrid, NeuS, _hull_box,
+                                      camera_rays, choose_grid, rate_spread, reconstruct, train)
 
 RADIUS = 0.5
 
@@ -88,6 +90,85 @@ def test_dense_grid_is_trilinear_and_twice_differentiable():
     assert grid.table.grad is not None and grid.table.grad.abs().sum() > 0
     # A disabled level contributes nothing.
     assert torch.all(grid(p.detach(), [1.0, 0.0])[:, 1] == 0)
+
+
+def test_hashed_levels_look_up_their_spatial_hash_and_are_twice_differentiable():
+    torch.manual_seed(0)
+    dense = DenseGrid(2, 4, 16, 1)
+    hashed = DenseGrid(2, 4, 16, 1, hash_log2=9)  # 16^3 points > 2^9: the fine level is hashed
+    assert dense.table.shape[0] == 4 ** 3 + 16 ** 3 and hashed.table.shape[0] == 4 ** 3 + 2 ** 9
+    assert DenseGrid(2, 4, 16, 1, hash_log2=12).table.shape[0] == dense.table.shape[0]  # 2^12 holds 16^3
+    with torch.no_grad():
+        hashed.table.normal_()
+    # At a fine level's grid point, the lookup is the table row its coordinates hash to.
+    ijk = torch.tensor([[3, 7, 12], [0, 0, 0], [15, 2, 9], [14, 14, 14]])
+    p = (ijk.float() + 0.5) / 16 * 2 - 1
+    out = hashed(p, [0.0, 1.0])[:, 1]
+    rows = (ijk[:, 0] * HASH_PRIMES[0]) ^ (ijk[:, 1] * HASH_PRIMES[1]) ^ (ijk[:, 2] * HASH_PRIMES[2])
+    assert torch.allclose(out, hashed.table[4 ** 3 + (rows & (2 ** 9 - 1)), 0], atol=1e-6)
+    # Between grid points it stays continuous, and the eikonal-style loss reaches hashed rows.
+    q = (torch.rand(300, 3) * 1.4 - 0.7).requires_grad_(True)
+    eps = 1e-3
+    step = torch.tensor([eps, 0.0, 0.0])
+    fd = (hashed(q.detach() + step, [1.0, 1.0]).sum(1) - hashed(q.detach() - step, [1.0, 1.0]).sum(1)) / (2 * eps)
+    g = torch.autograd.grad(hashed(q, [1.0, 1.0]).sum(), q, create_graph=True)[0]
+    # away from either level's cell faces along x, where the derivative jumps
+    inside = torch.stack([((q.detach()[:, 0] + 1) * (r / 2) - 0.5).frac().sub(0.5).abs() < 0.49 for r in (4, 16)]).all(0)
+    assert torch.allclose(g[inside, 0], fd[inside], rtol=1e-2, atol=1e-2)
+    ((g.norm(dim=-1) - 1) ** 2).mean().backward()
+    assert hashed.table.grad[4 ** 3:].abs().sum() > 0
+
+
+def test_the_grid_is_finer_when_the_object_spans_more_pixels():
+    """The auto grid: the coarse dense grid for a small image of the object, the hashed fine grid
+    when the working box spans hundreds of pixels; given values are kept."""
+    center, half = np.zeros(3), 0.8
+    small = sphere_capture(n_views=6, size=64).cameras
+    large = [c.scaled(1024, 1024) for c in small]
+    auto = NeuSConfig()
+    (cfg_small, grid_small), (cfg_large, grid_large) = (choose_grid(auto, cams, center, half) for cams in (small, large))
+    assert (cfg_small.levels, cfg_small.max_res) == COARSE_GRID and grid_small["box_footprint_px"] < 256
+    assert (cfg_large.levels, cfg_large.max_res) == FINE_GRID and grid_large["box_footprint_px"] > 256
+    assert "over 256" in grid_large["reason"] and "at most 256" in grid_small["reason"]
+    given, info = choose_grid(replace(auto, levels=3, max_res=24), large, center, half)
+    assert (given.levels, given.max_res) == (3, 24) and info["reason"] == "neus.levels and neus.max_res given"
+    # the coarse grid is dense, the fine one hashes its finest levels
+    assert not any(DenseGrid(COARSE_GRID[0], 16, COARSE_GRID[1], 2, auto.hash_log2).hashed)
+    assert any(DenseGrid(FINE_GRID[0], 16, FINE_GRID[1], 2, auto.hash_log2).hashed)
+
+
+def test_the_hull_keeps_an_object_wider_than_most_frames():
+    """A bar longer than most views' frames (as a real object that fills close-up photos): its
+    ends, seen by a minority of the views and never as background, stay in the visual hull."""
+    half = np.array([1.5, 0.2, 0.2])
+    cams = []
+    golden = np.pi * (3 - np.sqrt(5))
+    for i in range(30):
+        z = 0.9 - 1.8 * (i + 0.5) / 30
+        r = np.sqrt(1 - z * z)
+        d = np.array([z, r * np.cos(golden * i), r * np.sin(golden * i)])
+        cams.append(Camera(f"v{i}", look_at(3.0 * d, [0, 0, 0], [0, 0, 1] if abs(d[2]) < 0.9 else [0, 1, 0]),
+                           40.0, 48, 48))
+    masks = []
+    for cam in cams:
+        o, d = camera_rays(cam)
+        inv = 1.0 / np.where(np.abs(d) < 1e-9, 1e-9, d)
+        t1, t2 = (-half - o) * inv, (half - o) * inv
+        hit = np.minimum(t1, t2).max(1) < np.maximum(t1, t2).min(1)
+        masks.append(hit.reshape(48, 48))
+    masks = torch.from_numpy(np.stack(masks))
+    ends = np.array([[1.35, 0.0, 0.0], [-1.35, 0.0, 0.0]])
+    framed = np.mean([[0 <= x < 48 and 0 <= y < 48 for x, y in cam.project(ends)] for cam in cams], 0)
+    assert np.all(framed < 0.75)  # the ends are in the frame of fewer than 3 views in 4
+
+    def kept(min_views: float) -> bool:
+        c, h, occ = _hull_box(cams, masks, NeuSConfig(hull_resolution=48, hull_min_views=min_views), "bar")
+        idx = np.floor(((ends - c) / h + 1) / 2 * occ.shape[0]).astype(int)
+        inside = np.all((idx >= 0) & (idx < occ.shape[0]), 1)
+        return bool(inside.all() and occ.numpy()[idx[:, 0], idx[:, 1], idx[:, 2]].all())
+
+    assert kept(NeuSConfig().hull_min_views)
+    assert not kept(0.75)
 
 
 def test_marching_cubes_on_analytic_sphere_gives_radius():

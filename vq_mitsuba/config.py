@@ -236,10 +236,12 @@ class NeuSConfig:
     lr_end_cosine: float = setting(
         0.1, "learning-rate factor reached at the last step (cosine in the steps done)", "(0,1]")
     warmup: int = setting(100, "steps of linear learning-rate warm-up")
-    levels: int = setting(4, "resolution levels of the dense feature grid", ">0")
+    levels: int = setting(0, "resolution levels of the feature grid (0: auto, from the capture's resolution)", ">=0")
     base_res: int = setting(16, "coarsest grid resolution (points per axis)", ">0")
-    max_res: int = setting(64, "finest grid resolution", ">0")
+    max_res: int = setting(0, "finest grid resolution (0: auto, from the capture's resolution)", ">=0")
     features: int = setting(2, "features per grid level", ">0")
+    hash_log2: int = setting(19, "a grid level with more points keeps 2^hash_log2 hashed entries (0: every level "
+                                 "dense)", ">=0")
     hidden: int = setting(64, "width of the SDF and colour MLPs", ">0")
     geo_features: int = setting(15, "SDF-network features passed to the colour network")
     reflect: bool = setting(True, "the colour network sees the reflected view direction instead of the view direction")
@@ -257,7 +259,7 @@ class NeuSConfig:
                 "(masks when the capture has them)", ("auto", "masks", "model"))
     hull_resolution: int = setting(128, "visual-hull / occupancy grid resolution", ">0")
     hull_threshold: float = setting(0.5, "alpha above which a pixel is foreground for carving", "[0,1]")
-    hull_min_views: float = setting(0.75, "share of the views whose frusta must hold a voxel for it to be carved in",
+    hull_min_views: float = setting(0.3, "share of the views whose frusta must hold a voxel for it to be carved in",
                                           "[0,1]")
     occupancy_every: int = setting(500, "steps between occupancy-grid refreshes from the SDF")
     march_steps: int = setting(128, "coarse steps per ray that find its occupied interval", ">0")
@@ -423,8 +425,8 @@ def check(cfg, source=None, prefix: str | None = None) -> None:
         message = _value_error(prefix + f.name, value, f.metadata.get("range"))
         if message:
             raise InputError(source, message)
-    if isinstance(cfg, NeuSConfig) and (cfg.base_res < 2 or cfg.max_res < cfg.base_res):
-        raise InputError(source, f"{prefix}base_res must be >= 2 and {prefix}max_res >= {prefix}base_res, got "
+    if isinstance(cfg, NeuSConfig) and (cfg.base_res < 2 or 0 < cfg.max_res < cfg.base_res):
+        raise InputError(source, f"{prefix}base_res must be >= 2 and {prefix}max_res 0 or >= {prefix}base_res, got "
                                  f"{prefix}base_res={cfg.base_res}, {prefix}max_res={cfg.max_res}")
     if isinstance(cfg, CaptureConfig) and cfg.background_color:
         background_rgb(cfg, source)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -195,6 +195,36 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
     return center, r_cam, source
 
 
+# The feature grid, when neus.levels / neus.max_res are 0 (auto): the coarse dense grid while the
+# working box spans at most FINE_GRID_FROM_PX pixels in the median view (the 200 px synthetic
+# captures it was tuned on, cells of about 2 pixels), else finer levels up to 512 points a side,
+# hashed beyond 2^neus.hash_log2 points (photographed captures; benchmarks/results/neus_dtu/).
+COARSE_GRID = (4, 64)  # (levels, max_res)
+FINE_GRID = (8, 512)
+FINE_GRID_FROM_PX = 256
+
+
+def box_footprint_px(cameras, center: np.ndarray, half: float) -> float:
+    """The working box's width in pixels in the median view (its size over the distance to its centre)."""
+    return float(np.median([2.0 * half * cam.focal_px() / max(float(np.linalg.norm(cam.origin - center)), 1e-12)
+                            for cam in cameras]))
+
+
+def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float) -> tuple[NeuSConfig, dict]:
+    """The config with neus.levels and neus.max_res decided (when 0), and what decided them."""
+    footprint = box_footprint_px(cameras, center, half)
+    fine = footprint > FINE_GRID_FROM_PX
+    levels, max_res = FINE_GRID if fine else COARSE_GRID
+    chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res)
+    if cfg.levels and cfg.max_res:
+        reason = "neus.levels and neus.max_res given"
+    else:
+        reason = (f"the box spans {footprint:.0f} px in the median view ({'over' if fine else 'at most'} "
+                  f"{FINE_GRID_FROM_PX})")
+    return chosen, {"levels": chosen.levels, "max_res": chosen.max_res, "hash_log2": chosen.hash_log2,
+                    "box_footprint_px": footprint, "reason": reason}
+
+
 def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
           candidates: torch.Tensor | None = None) -> torch.Tensor:
     """Visual hull on a res^3 grid of cell centres in the box [lo, hi]: (res, res, res) bool.
@@ -290,23 +320,46 @@ def trilinear(grid: torch.Tensor, res: int, p: torch.Tensor) -> torch.Tensor:
     return (vals * w[..., None]).sum(1)
 
 
-class DenseGrid(nn.Module):
-    """Multi-resolution dense feature grids (resolutions geometric from base_res to max_res), all
-    levels stored in one table and looked up with one gather (few, large tensor ops: fast on a CPU)."""
+# Instant-NGP's spatial hash: each integer coordinate times its own large prime, XOR-ed.
+HASH_PRIMES = (1, 2654435761, 805459861)
 
-    def __init__(self, levels: int, base_res: int, max_res: int, features: int):
+
+class DenseGrid(nn.Module):
+    """Multi-resolution feature grids (resolutions geometric from base_res to max_res), all levels
+    stored in one table and looked up with one gather (few, large tensor ops: fast on a CPU). A
+    level with more than 2^hash_log2 points keeps 2^hash_log2 entries, indexed by a spatial hash of
+    the point (Instant-NGP); coarser levels are dense."""
+
+    def __init__(self, levels: int, base_res: int, max_res: int, features: int, hash_log2: int = 0):
         super().__init__()
         growth = (max_res / base_res) ** (1.0 / max(levels - 1, 1))
         self.res = [int(round(base_res * growth ** level)) for level in range(levels)]
         self.features = features
-        offsets = np.cumsum([0] + [r ** 3 for r in self.res])
+        cap = 2 ** hash_log2 if hash_log2 > 0 else None
+        hashed = [cap is not None and r ** 3 > cap for r in self.res]
+        sizes = [cap if h else r ** 3 for r, h in zip(self.res, hashed)]
+        offsets = np.cumsum([0] + sizes)
         self.table = nn.Parameter(torch.empty(int(offsets[-1]), features).uniform_(-1e-4, 1e-4))
         r = torch.tensor(self.res, dtype=torch.long)
         self.register_buffer("res_l", r, persistent=False)
         self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long), persistent=False)
         corners = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+        self.register_buffer("corners", corners, persistent=False)
         self.register_buffer("corner_offs", (corners[None, :, 0] * r[:, None] ** 2 + corners[None, :, 1] * r[:, None]
                                              + corners[None, :, 2]), persistent=False)  # (L, 8)
+        self.hashed = hashed
+        self.register_buffer("hashed_l", torch.tensor(hashed), persistent=False)
+        self.hash_mask = (cap or 1) - 1
+
+    def _indices(self, i0: torch.Tensor) -> torch.Tensor:
+        """Table rows (N, L, 8) of the 8 corners of each point's cell at each level."""
+        r = self.res_l[None, :]
+        dense = ((i0[..., 0] * r + i0[..., 1]) * r + i0[..., 2])[..., None] + self.corner_offs[None]
+        if any(self.hashed):
+            c = i0[:, :, None, :] + self.corners[None, None]  # (N, L, 8, 3)
+            h = (c[..., 0] * HASH_PRIMES[0]) ^ (c[..., 1] * HASH_PRIMES[1]) ^ (c[..., 2] * HASH_PRIMES[2])
+            dense = torch.where(self.hashed_l[None, :, None], h & self.hash_mask, dense)
+        return self.offsets[None, :, None] + dense
 
     def forward(self, p: torch.Tensor, level_weights: list[float]) -> torch.Tensor:
         n, levels = len(p), len(self.res)
@@ -314,9 +367,7 @@ class DenseGrid(nn.Module):
         u = torch.minimum(((p[:, None, :] + 1.0) * (0.5 * res) - 0.5).clamp(min=0.0), res - 1.0)  # (N, L, 3)
         i0 = torch.minimum(u.detach().floor(), res - 2.0).long()
         f = u - i0
-        r = self.res_l[None, :]
-        base = self.offsets[None, :] + (i0[..., 0] * r + i0[..., 1]) * r + i0[..., 2]  # (N, L)
-        idx = (base[..., None] + self.corner_offs[None]).reshape(-1)
+        idx = self._indices(i0).reshape(-1)
         vals = self.table.index_select(0, idx).view(n, levels, 8, self.features)
         wx = torch.stack([1 - f[..., 0], f[..., 0]], -1)
         wy = torch.stack([1 - f[..., 1], f[..., 1]], -1)
@@ -331,7 +382,7 @@ class SDFNetwork(nn.Module):
 
     def __init__(self, cfg: NeuSConfig, base_grid: torch.Tensor | None, init_radius: float = 0.6):
         super().__init__()
-        self.encoding = DenseGrid(cfg.levels, cfg.base_res, cfg.max_res, cfg.features)
+        self.encoding = DenseGrid(cfg.levels, cfg.base_res, cfg.max_res, cfg.features, cfg.hash_log2)
         d_in = 3 + cfg.levels * cfg.features
         self.l1 = nn.Linear(d_in, cfg.hidden)
         self.l2 = nn.Linear(cfg.hidden, cfg.hidden)
@@ -472,8 +523,7 @@ class NeuS:
         torch.manual_seed(cfg.seed)
         with _threads(cfg.threads):
             if self.mask_free:
-                self._setup_sphere(capture, cfg, sphere or bounding_sphere(capture.cameras,
-                                                                           min_views=cfg.hull_min_views), support)
+                self._setup_sphere(capture, cfg, sphere or bounding_sphere(capture.cameras), support)
             else:
                 self.sphere_source = None
                 self._setup(capture, cfg, alpha)
@@ -505,7 +555,8 @@ class NeuS:
 
         self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(self.hull.numpy(), iterations=2))
         self.hull_seconds = time.perf_counter() - t0
-        self.model = NeuSModel(cfg, None, background=True)
+        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half)
+        self.model = NeuSModel(self.cfg, None, background=True)
         self.deep = torch.zeros_like(self.hull)
         origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
         self.rays_o = self.to_box(torch.from_numpy(np.concatenate(origins)))
@@ -526,7 +577,8 @@ class NeuS:
 
         self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(occ.numpy(), iterations=2))
         self.hull_seconds = time.perf_counter() - t0
-        self.model = NeuSModel(cfg, self.hull_sdf if cfg.init == "hull" else None)
+        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half)
+        self.model = NeuSModel(self.cfg, self.hull_sdf if cfg.init == "hull" else None)
         self.deep = torch.zeros_like(occ)  # cells the current SDF marks as well inside the object
 
         # Training rays: pixels within a few pixels of the foreground, from every view.
@@ -815,7 +867,7 @@ def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
 # Keys that shape the networks: a checkpoint resumes only under the same values. A checkpoint
 # written before a key existed was made with the value given here.
 _ARCHITECTURE = {"levels": None, "base_res": None, "max_res": None, "features": None, "hidden": None,
-                 "geo_features": None, "reflect": False}
+                 "geo_features": None, "reflect": False, "hash_log2": None}
 
 
 def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
@@ -1044,7 +1096,8 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "training_rays": len(neus.rays_o),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                  "watertight": bool(mesh.is_watertight)},
-        "config": asdict(cfg),
+        "grid": neus.grid,
+        "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
     }
     run.write_geometry_summary(info)

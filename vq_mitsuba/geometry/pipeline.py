@@ -27,7 +27,7 @@ def capture_has_geometry(path: str | Path) -> bool:
     return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
-def framing(capture_path, cameras, min_views: float = 0.75, seed: int = 0) -> tuple[tuple, tuple | None]:
+def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None]:
     """Where NeuS without masks looks for the object: (the sphere (centre, radius, what framed it),
     a supporting plane (normal, offset) or None). The sphere: an IDR capture's scale_mat_0 (the
     region of interest NeuS normalises to), else `bounding_sphere` of the cameras and, for a COLMAP
@@ -44,9 +44,9 @@ def framing(capture_path, cameras, min_views: float = 0.75, seed: int = 0) -> tu
     if sphere is not None:
         sphere = (sphere[0], sphere[1], "scale_mat_0")
     elif points is not None:
-        sphere = bounding_sphere(cameras, points[0], points[1], min_views=min_views)
+        sphere = bounding_sphere(cameras, points[0], points[1])
     else:
-        sphere = bounding_sphere(cameras, min_views=min_views)
+        sphere = bounding_sphere(cameras)
     support = support_from_points(points[0], cameras, sphere, points[1], seed=seed) if points is not None else None
     return sphere, support
 
@@ -76,7 +76,7 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
-    sphere, support = framing(capture_path, capture.cameras, cfg.hull_min_views, cfg.seed) \
+    sphere, support = framing(capture_path, capture.cameras, cfg.seed) \
         if uses_background_model(capture, cfg) else (None, None)
     result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support)
     if gt is not None:
