@@ -130,6 +130,9 @@ def test_the_grid_is_finer_when_the_object_spans_more_pixels():
     assert (cfg_small.levels, cfg_small.max_res) == COARSE_GRID and grid_small["box_footprint_px"] < 256
     assert (cfg_large.levels, cfg_large.max_res) == FINE_GRID and grid_large["box_footprint_px"] > 256
     assert "over 256" in grid_large["reason"] and "at most 256" in grid_small["reason"]
+    # without masks the background model shares the steps: the coarse grid whatever the size
+    cfg_free, grid_free = choose_grid(auto, large, center, half, masks=False)
+    assert (cfg_free.levels, cfg_free.max_res) == COARSE_GRID and "without masks" in grid_free["reason"]
     given, info = choose_grid(replace(auto, levels=3, max_res=24), large, center, half)
     assert (given.levels, given.max_res) == (3, 24) and info["reason"] == "neus.levels and neus.max_res given"
     # the coarse grid is dense, the fine one hashes its finest levels

@@ -189,6 +189,23 @@ def test_support_from_points_finds_the_table_not_the_top_of_the_object():
     assert support_from_points(np.concatenate([table, box]), above, sphere, track) is None
 
 
+def test_the_wide_flat_top_of_an_object_is_no_support():
+    """A slab wider than the sphere (DTU scan37's brick): its top is flat, runs out to the sphere and
+    faces the cameras like a table, but the cameras see its sides beneath it; the table under it is
+    the support."""
+    rng = np.random.default_rng(3)
+    slab = trimesh.creation.box((2.4, 0.6, 2.4))
+    slab.apply_translation((0.0, -0.3, 0.0))
+    pts, faces = trimesh.sample.sample_surface(slab, 1500, seed=4)
+    pts = pts[slab.face_normals[faces][:, 1] > -0.5]  # its underside is not seen
+    above = orbit(12, 3.0, 32, y_range=(0.85, 0.2))
+    sphere = (np.zeros(3), 1.0, "test")
+    assert support_from_points(pts, above, sphere) is None
+    table, _ = table_points(rng, n_table=1500, top=-0.6)
+    n, c = support_from_points(np.concatenate([table, pts]), above, sphere)
+    assert n[1] > 0.999 and c == pytest.approx(-0.6, abs=0.01)
+
+
 def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
     from vq_mitsuba.data.photo_formats import read_colmap_points, write_colmap, write_idr
     from vq_mitsuba.geometry.pipeline import framing
@@ -203,9 +220,9 @@ def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
         np.testing.assert_allclose(xyz, pts)
         assert (track == 0).all()  # written without tracks
         (folder / "images").mkdir()
-        (c, r, source), support = framing(folder, cams)
+        (c, r, source), support, seen = framing(folder, cams)
         assert source == "sparse points" and np.linalg.norm(c - [0.1, 0.0, 0.2]) < 0.05 and 0.3 < r < 0.5
-        assert support is None
+        assert support is None and len(seen) == len(pts)  # no tracks: every point
     assert read_colmap_points(tmp_path) is None
     # A model of an object on a table, photographed from above: the table is found as the support.
     above = orbit(12, 3.0, 32, y_range=(0.85, 0.2))
@@ -213,12 +230,12 @@ def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
     write_colmap(tmp_path / "table" / "sparse" / "0", above, [f"{c.name}.png" for c in above],
                  points=np.concatenate([table, box]))
     (tmp_path / "table" / "images").mkdir()
-    (c, r, source), (n, off) = framing(tmp_path / "table", above)
+    (c, r, source), (n, off), _ = framing(tmp_path / "table", above)
     assert source == "sparse points" and n[1] > 0.999 and off == pytest.approx(-0.3, abs=0.01)
     (tmp_path / "idr").mkdir()
     write_idr(tmp_path / "idr" / "cameras_sphere.npz", cams, np.array([0.5, -0.25, 1.0]), 0.75)
-    (c, r, source), support = framing(tmp_path / "idr" / "cameras_sphere.npz", cams)
-    assert source == "scale_mat_0" and r == pytest.approx(0.75) and support is None
+    (c, r, source), support, seen = framing(tmp_path / "idr" / "cameras_sphere.npz", cams)
+    assert source == "scale_mat_0" and r == pytest.approx(0.75) and support is None and seen is None
     np.testing.assert_allclose(c, [0.5, -0.25, 1.0])
 
 
@@ -283,6 +300,18 @@ def test_a_supporting_plane_is_found_and_cut_and_an_object_face_is_not():
     assert plane is not None
     n, c = plane
     assert n[2] > 0.99 and c == pytest.approx(-0.3, abs=0.03)
+    # Sparse points on the ball and the top keep it a support; points the cameras found on the
+    # slab's sides, beneath its top, make it the flat top of a wide object, and the support is the
+    # plane of its underside, which nothing was seen beneath (DTU scan37's brick on its table).
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 2 * np.pi, 300)
+    on_top = np.stack([0.9 * np.cos(a) * rng.uniform(size=300), 0.9 * np.sin(a) * rng.uniform(size=300), np.full(300, -0.3)], 1)
+    sides = np.stack([0.8 * np.cos(a[:60]), 0.8 * np.sin(a[:60]), rng.uniform(-0.6, -0.35, 60)], 1)
+    plane = support_plane(mesh, above, tol=0.05, points=on_top)
+    assert plane is not None and plane[0][2] > 0.99
+    n, c = support_plane(mesh, above, tol=0.05, points=np.concatenate([on_top, sides]))
+    assert n[2] > 0.99 and c == pytest.approx(-0.6, abs=0.03)
+    assert support_plane(mesh, above, tol=0.05, points=np.concatenate([on_top, sides, sides - [0, 0, 0.3]])) is None
     # Cameras all around (below the plane too): a face of the object, not a table.
     around = np.concatenate([above, above * [1, 1, -1]])
     assert support_plane(mesh, around, tol=0.05) is None

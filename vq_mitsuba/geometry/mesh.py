@@ -103,7 +103,8 @@ def mesh_coverage(mesh, cameras, samples: int = 2) -> np.ndarray:
 
 
 def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float = 0.02, min_share: float = 0.15,
-                  seed: int = 0) -> tuple[np.ndarray, float] | None:
+                  seed: int = 0, points: np.ndarray | None = None,
+                  max_below: float = 0.05) -> tuple[np.ndarray, float] | None:
     """The plane of a supporting surface (a table) in a mesh cropped to the sphere of `radius` at the
     origin: (unit normal n towards the viewpoints, offset c; the plane is n.x = c), or None.
 
@@ -112,7 +113,10 @@ def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float 
     runs out to the crop (its faces' 95th-percentile distance from the centre is at least 0.9 radius:
     a table goes on beyond the object, a flat face of the object stops short of the sphere), and
     nine in ten of the viewpoints (N, 3) lie on one side of it (cameras look down on a table; a
-    face of the object is seen from both sides of its plane)."""
+    face of the object is seen from both sides of its plane). With the capture's sparse points
+    (M, 3) (SfM's, in the mesh's units), a candidate plane with more than max_below of those within
+    1.5 radii beneath it (by over max(tol, 0.02 radius)) is no support: the cameras saw under it, so
+    it is the flat top of a wide object (`support_from_points`)."""
     faces = np.asarray(mesh.faces)
     if len(faces) == 0 or len(viewpoints) == 0:
         return None
@@ -124,10 +128,24 @@ def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float 
         return None
     rng = np.random.default_rng(seed)
     picks = rng.choice(len(faces), size=min(300, len(faces)), replace=False, p=area / total)
+    views = np.asarray(viewpoints, np.float64)
+    if points is not None:
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        points = points[np.linalg.norm(points, axis=1) < 1.5 * radius]
+    below_tol = max(tol, 0.02 * radius)
+
+    def seen_beneath(n: np.ndarray, c: float) -> bool:
+        if points is None or len(points) == 0:
+            return False
+        up = 1.0 if np.mean(views @ n - c > 0) >= 0.5 else -1.0
+        return float(np.mean(up * (points @ n - c) < -below_tol)) > max_below
+
     best, best_area = None, 0.0
     for i in picks:
         n = normals[i]
         c = float(n @ centroids[i])
+        if seen_beneath(n, c):
+            continue
         inlier = (np.abs(centroids @ n - c) < tol) & (np.abs(normals @ n) > 0.9)
         a = float(area[inlier].sum())
         if a > best_area:
@@ -143,8 +161,8 @@ def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float 
     n = n_fit if n_fit @ n >= 0 else -n_fit
     c = float(n @ mean)
     reach = float(np.percentile(np.linalg.norm(centroids[inlier], axis=1), 95))
-    side = np.sign(np.asarray(viewpoints, np.float64) @ n - c)
-    if reach < 0.9 * radius or max(np.mean(side > 0), np.mean(side < 0)) < 0.9:
+    side = np.sign(views @ n - c)
+    if reach < 0.9 * radius or max(np.mean(side > 0), np.mean(side < 0)) < 0.9 or seen_beneath(n, c):
         return None
     if np.mean(side > 0) < 0.5:
         n, c = -n, -c

@@ -108,16 +108,19 @@ def uses_background_model(capture, cfg: NeuSConfig) -> bool:
 
 
 def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.ndarray | None = None,
-                        min_share: float = 0.2, seed: int = 0) -> tuple[np.ndarray, float] | None:
+                        min_share: float = 0.2, max_below: float = 0.05,
+                        seed: int = 0) -> tuple[np.ndarray, float] | None:
     """A supporting plane (a table) among sparse points: (unit normal towards the cameras, offset c;
     the plane is n.x = c) in the world, or None.
 
     RANSAC (400 planes through three points) over the points within 1.5 radii of the sphere's centre
     (those seen by 3 or more images, when tracks are known); a plane's inliers lie within 2% of the
     radius of it. The plane with the most inliers among those that nine in ten cameras look down on
-    counts as a support when it holds at least min_share of the points, crosses the sphere, and its
-    inliers run out to the sphere (95th-percentile distance from the centre at least 0.9 radii: a
-    table goes on beyond the object, a flat top of the object stops short)."""
+    and that have at most max_below of the points beneath them (the cameras cannot see under a
+    table; they do see the sides of a wide object under its flat top) counts as a support when it
+    holds at least min_share of the points, crosses the sphere, and its inliers run out to the
+    sphere (95th-percentile distance from the centre at least 0.9 radii: a table goes on beyond the
+    object, a flat top of a small object stops short)."""
     center, radius = np.asarray(sphere[0], np.float64), float(sphere[1])
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if track is not None and len(track) == len(pts) and np.max(track, initial=0) > 0:
@@ -141,7 +144,10 @@ def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.nd
         side = np.sign(views @ n - off)
         if max(np.mean(side > 0), np.mean(side < 0)) < 0.9:
             continue
-        count = int(np.sum(np.abs(pts @ n - off) < tol))
+        dist = (pts @ n - off) * (1.0 if np.mean(side > 0) >= 0.5 else -1.0)  # positive towards the cameras
+        if np.mean(dist < -tol) > max_below:
+            continue
+        count = int(np.sum(np.abs(dist) < tol))
         if count > best_count:
             best, best_count = (n, off), count
     if best is None or best_count < min_share * len(pts):
@@ -155,22 +161,24 @@ def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.nd
     if np.mean(views @ n - off > 0) < 0.5:
         n, off = -n, -off
     reach = float(np.percentile(np.linalg.norm(inliers - center, axis=1), 95))
-    if abs(float(n @ center) - off) >= 0.9 * radius or reach < 0.9 * radius:
+    if abs(float(n @ center) - off) >= 0.9 * radius or reach < 0.9 * radius or np.mean(pts @ n - off < -tol) > max_below:
         return None
     return n, off
 
 
 def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray | None = None,
-                    min_views: float = 0.75) -> tuple[np.ndarray, float, str]:
+                    min_views: float = 0.75, point_views: float = 0.3) -> tuple[np.ndarray, float, str]:
     """(centre, radius, what framed it) of the sphere the object is taken to live in, without masks.
 
     From the cameras: centred on the point closest to all optical axes, the largest sphere there
     that at least `min_views` of the views frame whole (the region the cameras all look at).
     With sparse points (N, 3) (and their track lengths: points seen by fewer than 3 images are
-    left out when tracks are known): the points inside the frusta of at least `min_views` of the
+    left out when tracks are known): the points inside the frusta of at least `point_views` of the
     views, when there are 20 or more, give the sphere instead: centred between their 2nd and 98th
     percentiles per axis, radius 1.1 x their 95th-percentile distance from it, at most twice the
-    cameras' sphere (stray points far off are background)."""
+    cameras' sphere (stray points far off are background). `point_views` is lower than
+    `min_views` because close-ups crop the object: asking 3 in 4 views to frame a point leaves out
+    the ends of an object wider than most frames (as the visual hull's `neus.hull_min_views`)."""
     center = _look_center(cameras)
     need = max(1, int(math.ceil(min_views * len(cameras))))
     margins = np.array([_frame_margins(cam, center[None])[0] for cam in cameras])
@@ -185,7 +193,7 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
             pts = pts[np.asarray(track) >= 3]
         if len(pts):
             seen = np.sum([_frame_margins(cam, pts) > 0 for cam in cameras], 0)
-            pts = pts[seen >= need]
+            pts = pts[seen >= max(1, int(math.ceil(point_views * len(cameras))))]
         if len(pts) >= 20:
             lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
             c = 0.5 * (lo + hi)
@@ -199,6 +207,8 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
 # working box spans at most FINE_GRID_FROM_PX pixels in the median view (the 200 px synthetic
 # captures it was tuned on, cells of about 2 pixels), else finer levels up to 512 points a side,
 # hashed beyond 2^neus.hash_log2 points (photographed captures; benchmarks/results/neus_dtu/).
+# Without masks the coarse grid stays: the background model shares the steps, and the fine grid
+# fitted DTU scan37's photos worse in the same time (benchmarks/results/neus_dtu/).
 COARSE_GRID = (4, 64)  # (levels, max_res)
 FINE_GRID = (8, 512)
 FINE_GRID_FROM_PX = 256
@@ -210,14 +220,18 @@ def box_footprint_px(cameras, center: np.ndarray, half: float) -> float:
                             for cam in cameras]))
 
 
-def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float) -> tuple[NeuSConfig, dict]:
-    """The config with neus.levels and neus.max_res decided (when 0), and what decided them."""
+def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
+                masks: bool = True) -> tuple[NeuSConfig, dict]:
+    """The config with neus.levels and neus.max_res decided (when 0), and what decided them;
+    `masks` False: NeuS trains without masks (the coarse grid whatever the size)."""
     footprint = box_footprint_px(cameras, center, half)
-    fine = footprint > FINE_GRID_FROM_PX
+    fine = masks and footprint > FINE_GRID_FROM_PX
     levels, max_res = FINE_GRID if fine else COARSE_GRID
     chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res)
     if cfg.levels and cfg.max_res:
         reason = "neus.levels and neus.max_res given"
+    elif not masks:
+        reason = f"without masks (the box spans {footprint:.0f} px in the median view)"
     else:
         reason = (f"the box spans {footprint:.0f} px in the median view ({'over' if fine else 'at most'} "
                   f"{FINE_GRID_FROM_PX})")
@@ -500,11 +514,14 @@ class NeuS:
     (centre, radius, what framed it); default `bounding_sphere` of the cameras). `support`: a
     known supporting plane without masks ((unit normal towards the cameras, offset) in the world,
     e.g. `support_from_points`): the foreground is what lies inside the sphere above it, and the
-    background model takes the plane and what lies below."""
+    background model takes the plane and what lies below. `points`: the capture's sparse points
+    (N, 3) in the world, which the mesh export's search for a support checks its planes against."""
 
-    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None, support: tuple | None = None):
+    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None, support: tuple | None = None,
+                 points: np.ndarray | None = None):
         validate(cfg)
         self.cfg = cfg
+        self.points = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
         self.capture = capture
         self.source = capture.source
         self.mask_free = uses_background_model(capture, cfg)
@@ -555,7 +572,7 @@ class NeuS:
 
         self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(self.hull.numpy(), iterations=2))
         self.hull_seconds = time.perf_counter() - t0
-        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half)
+        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half, masks=False)
         self.model = NeuSModel(self.cfg, None, background=True)
         self.deep = torch.zeros_like(self.hull)
         origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
@@ -816,7 +833,8 @@ class NeuS:
             plane = (self.plane[0].numpy().astype(np.float64), self.plane[1])
         else:
             views = self.to_box(torch.tensor(np.array([c.origin for c in self.capture.cameras]))).numpy()
-            plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed)
+            points = None if self.points is None else self.to_box(torch.from_numpy(self.points)).numpy()
+            plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed, points=points)
         if plane is None:
             return mesh
         n, c = plane
@@ -1050,20 +1068,22 @@ class Reconstruction:
 
 def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
                 progress: bool = True, callback=None, callback_every_s: float = 0.0,
-                sphere: tuple | None = None, support: tuple | None = None) -> Reconstruction:
+                sphere: tuple | None = None, support: tuple | None = None,
+                points: np.ndarray | None = None) -> Reconstruction:
     """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
-    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`, `support`: the bounding sphere
-    and a known supporting plane when NeuS runs without masks (`NeuS`)."""
+    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`, `support`, `points`: the
+    bounding sphere, a known supporting plane and the sparse points when NeuS runs without masks
+    (`NeuS`)."""
     cfg = cfg or NeuSConfig()
     run = run if isinstance(run, RunDir) else RunDir(run)
     with _threads(cfg.threads):
-        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere, support)
+        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere, support, points)
 
 
 def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
-                 sphere=None, support=None) -> Reconstruction:
+                 sphere=None, support=None, points=None) -> Reconstruction:
     t0 = time.perf_counter()
-    neus = NeuS(capture, cfg, sphere, support)
+    neus = NeuS(capture, cfg, sphere, support, points)
     run.create()
     setup_s = time.perf_counter() - t0
     summary = train(neus, run, resume=resume, progress=progress, callback=callback,

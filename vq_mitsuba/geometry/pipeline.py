@@ -27,12 +27,13 @@ def capture_has_geometry(path: str | Path) -> bool:
     return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
-def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None]:
+def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, np.ndarray | None]:
     """Where NeuS without masks looks for the object: (the sphere (centre, radius, what framed it),
-    a supporting plane (normal, offset) or None). The sphere: an IDR capture's scale_mat_0 (the
-    region of interest NeuS normalises to), else `bounding_sphere` of the cameras and, for a COLMAP
-    capture, its sparse points (sparse/0/points3D.bin or .txt), which may also show the table the
-    object stands on (`support_from_points`)."""
+    a supporting plane (normal, offset) or None, the sparse points seen by 3 or more images or None).
+    The sphere: an IDR capture's scale_mat_0 (the region of interest NeuS normalises to), else
+    `bounding_sphere` of the cameras and, for a COLMAP capture, its sparse points
+    (sparse/0/points3D.bin or .txt), which may also show the table the object stands on
+    (`support_from_points`)."""
     from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
     from vq_mitsuba.data.photo_formats import colmap_model_dir, read_colmap_points, read_idr_sphere
     from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points
@@ -47,8 +48,12 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None]:
         sphere = bounding_sphere(cameras, points[0], points[1])
     else:
         sphere = bounding_sphere(cameras)
-    support = support_from_points(points[0], cameras, sphere, points[1], seed=seed) if points is not None else None
-    return sphere, support
+    if points is None:
+        return sphere, None, None
+    support = support_from_points(points[0], cameras, sphere, points[1], seed=seed)
+    xyz, track = points[0], points[1]
+    seen = xyz[np.asarray(track) >= 3] if len(track) == len(xyz) and np.max(track, initial=0) > 0 else xyz
+    return sphere, support, seen
 
 
 def masked_by_mesh(capture, mesh=None):
@@ -76,9 +81,10 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
-    sphere, support = framing(capture_path, capture.cameras, cfg.seed) \
-        if uses_background_model(capture, cfg) else (None, None)
-    result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support)
+    sphere, support, points = framing(capture_path, capture.cameras, cfg.seed) \
+        if uses_background_model(capture, cfg) else (None, None, None)
+    result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support,
+                         points=points)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 
