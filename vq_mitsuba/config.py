@@ -271,7 +271,7 @@ class NeuSConfig:
     normal_smoothing_angle: float = setting(15.0, "neighbours whose normals differ by more (degrees) are not averaged")
     max_faces: int = setting(200000, "quadric decimation to this many faces (0: none)")
     checkpoint_every: int = setting(500, "steps between NeuS checkpoints")
-    threads: int = setting(1, "torch CPU threads for NeuS (0: torch's default)")
+    threads: int = setting(0, "torch CPU threads for NeuS (0: torch's count, every core or --threads)")
 
 
 @dataclass

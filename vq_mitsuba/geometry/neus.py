@@ -54,7 +54,7 @@ INIT_RADIUS, INIT_RADIUS_WITHOUT_MASKS = 0.6, 0.3  # the sphere initialisation w
 
 class _threads:
     """Use n torch CPU threads inside the block (n <= 0: unchanged), then restore the previous count.
-    One thread is much faster than two when the cores are shared with other work (no spinning barriers)."""
+    On cores shared with other work one thread can be faster than several (`neus.threads` 1)."""
 
     def __init__(self, n: int):
         self.n = n
