@@ -102,6 +102,15 @@ def mesh_coverage(mesh, cameras, samples: int = 2) -> np.ndarray:
     return np.stack(out).astype(np.float32)
 
 
+def share_beneath(points: np.ndarray, n: np.ndarray, c: float, viewpoints: np.ndarray, tol: float) -> float:
+    """The share of points (M, 3) more than tol beneath the plane n.x = c, on the side away from
+    most of the viewpoints (N, 3): what the cameras saw under it (0 without points)."""
+    if len(points) == 0:
+        return 0.0
+    up = 1.0 if np.mean(viewpoints @ n - c > 0) >= 0.5 else -1.0
+    return float(np.mean(up * (points @ n - c) < -tol))
+
+
 def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float = 0.02, min_share: float = 0.15,
                   seed: int = 0, points: np.ndarray | None = None,
                   max_below: float = 0.05) -> tuple[np.ndarray, float] | None:
@@ -135,10 +144,7 @@ def support_plane(mesh, viewpoints: np.ndarray, radius: float = 1.0, tol: float 
     below_tol = max(tol, 0.02 * radius)
 
     def seen_beneath(n: np.ndarray, c: float) -> bool:
-        if points is None or len(points) == 0:
-            return False
-        up = 1.0 if np.mean(views @ n - c > 0) >= 0.5 else -1.0
-        return float(np.mean(up * (points @ n - c) < -below_tol)) > max_below
+        return points is not None and share_beneath(points, n, c, views, below_tol) > max_below
 
     best, best_area = None, 0.0
     for i in picks:

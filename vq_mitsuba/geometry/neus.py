@@ -107,6 +107,15 @@ def uses_background_model(capture, cfg: NeuSConfig) -> bool:
     return cfg.background == "model" or (cfg.background == "auto" and not capture.has_alpha)
 
 
+def well_seen(points: np.ndarray, track: np.ndarray | None = None) -> np.ndarray:
+    """Sparse points (N, 3) as float64, without those seen by fewer than 3 images when their track
+    lengths are known (a track per point, not all 0)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if track is not None and len(track) == len(pts) and np.max(track, initial=0) > 0:
+        pts = pts[np.asarray(track) >= 3]
+    return pts
+
+
 def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.ndarray | None = None,
                         min_share: float = 0.2, max_below: float = 0.05,
                         seed: int = 0) -> tuple[np.ndarray, float] | None:
@@ -121,10 +130,10 @@ def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.nd
     holds at least min_share of the points, crosses the sphere, and its inliers run out to the
     sphere (95th-percentile distance from the centre at least 0.9 radii: a table goes on beyond the
     object, a flat top of a small object stops short)."""
+    from vq_mitsuba.geometry.mesh import share_beneath
+
     center, radius = np.asarray(sphere[0], np.float64), float(sphere[1])
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    if track is not None and len(track) == len(pts) and np.max(track, initial=0) > 0:
-        pts = pts[np.asarray(track) >= 3]
+    pts = well_seen(points, track)
     pts = pts[np.linalg.norm(pts - center, axis=1) < 1.5 * radius]
     if len(pts) < 20:
         return None
@@ -144,10 +153,9 @@ def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.nd
         side = np.sign(views @ n - off)
         if max(np.mean(side > 0), np.mean(side < 0)) < 0.9:
             continue
-        dist = (pts @ n - off) * (1.0 if np.mean(side > 0) >= 0.5 else -1.0)  # positive towards the cameras
-        if np.mean(dist < -tol) > max_below:
+        if share_beneath(pts, n, off, views, tol) > max_below:
             continue
-        count = int(np.sum(np.abs(dist) < tol))
+        count = int(np.sum(np.abs(pts @ n - off) < tol))
         if count > best_count:
             best, best_count = (n, off), count
     if best is None or best_count < min_share * len(pts):
@@ -161,7 +169,8 @@ def support_from_points(points: np.ndarray, cameras, sphere: tuple, track: np.nd
     if np.mean(views @ n - off > 0) < 0.5:
         n, off = -n, -off
     reach = float(np.percentile(np.linalg.norm(inliers - center, axis=1), 95))
-    if abs(float(n @ center) - off) >= 0.9 * radius or reach < 0.9 * radius or np.mean(pts @ n - off < -tol) > max_below:
+    if (abs(float(n @ center) - off) >= 0.9 * radius or reach < 0.9 * radius
+            or share_beneath(pts, n, off, views, tol) > max_below):
         return None
     return n, off
 
@@ -188,9 +197,7 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
         r_cam = 0.5 * min(float(np.linalg.norm(c.origin - center)) for c in cameras)
     source = "cameras"
     if points is not None and len(points):
-        pts = np.asarray(points, np.float64).reshape(-1, 3)
-        if track is not None and len(track) == len(pts) and np.max(track) > 0:
-            pts = pts[np.asarray(track) >= 3]
+        pts = well_seen(points, track)
         if len(pts):
             seen = np.sum([_frame_margins(cam, pts) > 0 for cam in cameras], 0)
             pts = pts[seen >= max(1, int(math.ceil(point_views * len(cameras))))]
@@ -208,7 +215,7 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
 # captures it was tuned on, cells of about 2 pixels), else finer levels up to 512 points a side,
 # hashed beyond 2^neus.hash_log2 points (photographed captures; benchmarks/results/neus_dtu/).
 # Without masks the coarse grid stays: the background model shares the steps, and the fine grid
-# fitted DTU scan37's photos worse in the same time (benchmarks/results/neus_dtu/).
+# fitted DTU scan37's photos worse in the same time (benchmarks/results/dtu_photos/).
 COARSE_GRID = (4, 64)  # (levels, max_res)
 FINE_GRID = (8, 512)
 FINE_GRID_FROM_PX = 256

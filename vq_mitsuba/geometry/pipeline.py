@@ -36,7 +36,7 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
     (`support_from_points`)."""
     from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
     from vq_mitsuba.data.photo_formats import colmap_model_dir, read_colmap_points, read_idr_sphere
-    from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points
+    from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points, well_seen
 
     source = resolve_capture_path(capture_path)
     kind = capture_kind(source)
@@ -51,9 +51,7 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
     if points is None:
         return sphere, None, None
     support = support_from_points(points[0], cameras, sphere, points[1], seed=seed)
-    xyz, track = points[0], points[1]
-    seen = xyz[np.asarray(track) >= 3] if len(track) == len(xyz) and np.max(track, initial=0) > 0 else xyz
-    return sphere, support, seen
+    return sphere, support, well_seen(points[0], points[1])
 
 
 def masked_by_mesh(capture, mesh=None):
