@@ -7,7 +7,7 @@
         [--warmup] [--out benchmarks/out/skip_study]
     python benchmarks/skip_study.py --plot OUT/skip_study.json [--out DIR]
 
-The rules (`vq_mitsuba/engine/skips.py`), each with one config key whose default is `auto`:
+The rules (`vq_mitsuba/engine/skips.py`), each with one config key (auto or forced):
 `train.bounce` (the bounce off where secondary rays (almost) never meet the object),
 `envmap.final_height` (the learned envmap stops at the rung the fitted roughness resolves),
 `train.stop` (the schedule speeds up on plateaus of held-aside pixels and ends when done) and
@@ -16,7 +16,8 @@ The rules (`vq_mitsuba/engine/skips.py`), each with one config key whose default
 - `old`: every rule forced off (train.bounce=on, envmap.final_height=full, train.stop=iterations,
   train.sampling=uniform): the fit before the rules;
 - `bounce`, `envmap`, `stop`, `sampling`: `old` with that one rule automatic;
-- `all`: every rule automatic (the defaults).
+- `all`: every rule automatic;
+- `default`: the shipped configuration, no key forced.
 
 Datasets: DATA/NAME, `vq-mitsuba make-scene NAME --renderer cycles` at --resolution with
 --n-train / --n-test views (rendered here when missing; Cycles needs `make cycles`). Each fit is
@@ -60,7 +61,7 @@ RULES = {  # variant -> (key, automatic value, forced-off value)
     "stop": ("train.stop", "auto", "iterations"),
     "sampling": ("train.sampling", "auto", "uniform"),
 }
-VARIANTS = ["old", *RULES, "all"]
+VARIANTS = ["old", *RULES, "all", "default"]
 
 COLUMNS = [("wall_s", "wall s", ".0f"), ("startup_s", "start-up s", ".1f"), ("iterations", "iters", ".0f"),
            ("novel_psnr", "view", ".2f"), ("basecolor_psnr", "basecolor", ".2f"), ("relit_psnr", "relit", ".2f"),
@@ -70,9 +71,11 @@ SCORES = ["novel_psnr", "basecolor_psnr", "relit_psnr", "seg_micro_f1", "materia
 
 def variant_overrides(variant: str) -> list[str]:
     """The --set items of a variant: each rule automatic when the variant names it (or is `all`),
-    forced off otherwise."""
+    forced off otherwise; none for `default` (the shipped configuration)."""
     if variant not in VARIANTS:
         raise SystemExit(f"unknown variant {variant!r} (known: {', '.join(VARIANTS)})")
+    if variant == "default":
+        return []
     return [f"{key}={auto if variant in (name, 'all') else off}" for name, (key, auto, off) in RULES.items()]
 
 
@@ -243,7 +246,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="+", default=SCENES, help="bundled Cycles scenes to fit")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="train.seed of each fit")
     ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS,
-                    help="old: every rule off; one rule alone; all: the defaults")
+                    help="old: every rule off; one rule alone; all: every rule automatic; default: no key forced")
     ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles200",
                     help="folder of the Cycles datasets (DATA/NAME)")
     ap.add_argument("--resolution", type=int, default=200, help="image side of the rendered scenes, px")
@@ -280,8 +283,8 @@ def main(argv=None) -> int:
               "variants": {v: variant_overrides(v) for v in args.variants}, "rows": rows}
     from vq_mitsuba.eval.evaluate import json_safe
 
-    for name in args.scenes:
-        for seed in args.seeds:
+    for seed in args.seeds:  # every scene once before the next seed: a stopped study covers them all
+        for name in args.scenes:
             for variant in args.variants:
                 rows.append(run_one(name, datasets[name], variant, seed, args))
                 write_result(path, json_safe(result), indent=1)  # after each fit: a stopped study keeps its rows
