@@ -5,7 +5,7 @@
         [--variants old bounce envmap stop sampling all] [--data benchmarks/out/cycles200]
         [--resolution 200] [--n-train 100] [--n-test 20] [--iterations N] [--eval-spp 64]
         [--warmup] [--out benchmarks/out/skip_study]
-    python benchmarks/skip_study.py --plot OUT/skip_study.json [--out DIR]
+    python benchmarks/skip_study.py --plot OUT/skip_study.json [OUT2/skip_study.json ...] [--out DIR]
 
 The rules (`vq_mitsuba/engine/skips.py`), each with one config key (auto or forced):
 `train.bounce` (the bounce off where secondary rays (almost) never meet the object),
@@ -255,14 +255,16 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=0, help="train.iterations of every fit (0: the config's)")
     ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
     ap.add_argument("--warmup", action="store_true", help="a short unscored fit first")
-    ap.add_argument("--plot", type=Path, metavar="JSON", help="no fit: the table and plots of this skip_study.json")
+    ap.add_argument("--plot", type=Path, nargs="+", metavar="JSON",
+                    help="no fit: the table and plots of these skip_study.json files, their rows together")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "skip_study",
                     help="folder of the runs, skip_study.json and the plots")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.plot:
-        rows = json.loads(args.plot.read_text())["rows"]
+        rows = [row for path in args.plot for row in json.loads(path.read_text())["rows"]]
         plot(rows, args.out)
+        (args.out / "skip_study.md").write_text(markdown(rows))
         print(markdown(rows))
         return 0
     record = provenance(command_line(argv, __file__))
