@@ -241,6 +241,14 @@ def plot(rows: list[dict], out: Path) -> None:
     plt.close(fig)
 
 
+def report(rows: list[dict], out: Path) -> None:
+    """OUT/skip_study.md and the plots of `rows`; the table printed."""
+    table = markdown(rows)
+    (out / "skip_study.md").write_text(table)
+    plot(rows, out)
+    print(table)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=SCENES, help="bundled Cycles scenes to fit")
@@ -262,10 +270,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.plot:
-        rows = [row for path in args.plot for row in json.loads(path.read_text())["rows"]]
-        plot(rows, args.out)
-        (args.out / "skip_study.md").write_text(markdown(rows))
-        print(markdown(rows))
+        report([row for path in args.plot for row in json.loads(path.read_text())["rows"]], args.out)
         return 0
     record = provenance(command_line(argv, __file__))
     print(f"$ {record['command']}\n{describe(record)}", flush=True)
@@ -290,9 +295,7 @@ def main(argv=None) -> int:
             for variant in args.variants:
                 rows.append(run_one(name, datasets[name], variant, seed, args))
                 write_result(path, json_safe(result), indent=1)  # after each fit: a stopped study keeps its rows
-    (args.out / "skip_study.md").write_text(markdown(rows))
-    plot(rows, args.out)
-    print(markdown(rows))
+    report(rows, args.out)
     print(f"wrote {path}, {args.out / 'skip_study.md'}, {args.out / 'skip_study.png'} and "
           f"{args.out / 'skip_study_curves.png'}")
     return 0
