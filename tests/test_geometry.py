@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 import trimesh
 
 from vq_mitsuba.data.cameras import Camera, look_at
@@ -17,7 +18,8 @@ from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, ColorNetwork, DenseGrid, NeuS, _hull_box,
+from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, ColorNetwork, DenseGrid, NeuS, NeuSModel,
+                                      _hull_box,
                                       camera_rays, choose_grid, rate_spread, reconstruct, train)
 
 RADIUS = 0.5
@@ -117,6 +119,47 @@ def test_hashed_levels_look_up_their_spatial_hash_and_are_twice_differentiable()
     assert torch.allclose(g[inside, 0], fd[inside], rtol=1e-2, atol=1e-2)
     ((g.norm(dim=-1) - 1) ** 2).mean().backward()
     assert hashed.table.grad[4 ** 3:].abs().sum() > 0
+
+
+@pytest.mark.parametrize("hull", [True, False])
+def test_the_closed_form_sdf_gradient_matches_autograd_and_so_do_its_parameter_gradients(hull):
+    """NeuS trains on the SDF gradient computed in closed form; it and every parameter gradient of a
+    loss on it (eikonal, normals into the colour) equal autograd's double backward through the plain
+    forward, with hashed and dense levels, the hull's base grid or a sphere, and points the grid clamps."""
+    torch.manual_seed(1)
+    cfg = small_cfg(levels=3, base_res=4, max_res=32, hash_log2=12, hidden=16, geo_features=5)
+    base = torch.randn(16 ** 3) * 0.1 if hull else None
+    model = NeuSModel(cfg, base).double()
+    assert model.sdf.encoding.hashed == [False, False, True]
+    with torch.no_grad():
+        model.sdf.encoding.table.normal_(0.0, 0.3)
+        model.sdf.out.weight.normal_(0.0, 0.3)
+    p = torch.rand(400, 3, dtype=torch.float64) * 2.2 - 1.1  # some beyond the grid's outer cell centres
+    view = F.normalize(torch.randn(400, 3, dtype=torch.float64), dim=-1)
+    lw = [1.0, 0.7, 0.3]
+
+    def loss_of(sdf, feat, grad):
+        normal = F.normalize(grad, dim=-1)
+        colour = model.color(feat, normal, view)
+        return ((grad.norm(dim=-1) - 1.0) ** 2).mean() + colour.square().mean() + (sdf * view[:, 0]).mean()
+
+    params = [q for q in model.parameters() if q.requires_grad]
+    sdf, feat, grad = model.sdf_grad(p, lw, create_graph=True)
+    closed = torch.autograd.grad(loss_of(sdf, feat, grad), params, allow_unused=True)
+    q = p.clone().requires_grad_(True)
+    sdf_ref, feat_ref = model.sdf(q, lw)
+    grad_ref = torch.autograd.grad(sdf_ref.sum(), q, create_graph=True)[0]
+    reference = torch.autograd.grad(loss_of(sdf_ref, feat_ref, grad_ref), params, allow_unused=True)
+    assert torch.allclose(sdf, sdf_ref, atol=1e-12) and torch.allclose(feat, feat_ref, atol=1e-12)
+    assert torch.allclose(grad, grad_ref, rtol=1e-9, atol=1e-9)
+    assert grad.abs().max() > 0.5  # the grid and the MLP do shape it
+    for a, b in zip(closed, reference):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.allclose(a, b, rtol=1e-8, atol=1e-10)
+    assert sum(float(a.abs().sum()) for a in closed if a is not None) > 0
+    # Without create_graph the gradient is data, not part of the graph.
+    assert not model.sdf_grad(p, lw, create_graph=False)[2].requires_grad
 
 
 def test_the_grid_is_finer_when_the_object_spans_more_pixels():

@@ -9,8 +9,8 @@ and the alpha mask.
 
 What makes it fast enough for two CPU cores:
 - the SDF network is a tiny MLP fed by a multi-resolution *dense* feature grid (plain torch
-  trilinear interpolation, twice differentiable for the eikonal loss), with finer levels faded in
-  coarse-to-fine;
+  trilinear interpolation), with finer levels faded in coarse-to-fine; its SDF gradient is
+  computed in closed form, so the eikonal loss back-propagates without a second derivative;
 - the masks give a visual hull; the object lives in the hull's bounding box (normalised to
   [-1, 1]^3), the SDF starts as the hull's smoothed signed distance (or a sphere), and samples are
   only placed where the ray crosses the occupancy grid: from its entry into the (dilated) hull to
@@ -322,23 +322,48 @@ def hull_sdf(occ: torch.Tensor) -> torch.Tensor:
 # Networks
 
 
-def trilinear(grid: torch.Tensor, res: int, p: torch.Tensor) -> torch.Tensor:
-    """Trilinear lookup of a (res^3, C) grid of values at cell centres of [-1, 1]^3, at points (N, 3).
+def corner_weights(f: torch.Tensor, du_dp: torch.Tensor | None = None) -> torch.Tensor:
+    """Trilinear weights of a cell's 8 corners (ordered dx, dy, dz, dz fastest) from the fractions
+    f (..., 3) within the cell: (..., 8, 1); given du/dp (..., 3), the cell units per box unit (0 on
+    an axis where the lookup is clamped to the grid), also their gradients in the point:
+    (..., 8, 4), [..., 0] the weight and [..., 1:] its gradient."""
+    w = torch.stack([1.0 - f, f], -1)  # (..., 3, 2): per axis, the weight of the lower / upper corner
 
-    Plain indexing and products, so autograd can differentiate it twice (eikonal loss)."""
-    u = ((p + 1.0) * (0.5 * res) - 0.5).clamp(0.0, res - 1.0)
-    i0 = u.detach().floor().clamp(max=res - 2).long()
-    f = u - i0
+    def outer(a, b, c):
+        return (a[..., :, None, None] * b[..., None, :, None] * c[..., None, None, :]).flatten(-3)
+
+    wx, wy, wz = w.unbind(-2)
+    if du_dp is None:
+        return outer(wx, wy, wz)[..., None]
+    dw = torch.stack([-du_dp, du_dp], -1)
+    return torch.stack([outer(wx, wy, wz), outer(dw[..., 0, :], wy, wz), outer(wx, dw[..., 1, :], wz),
+                        outer(wx, wy, dw[..., 2, :])], -1)
+
+
+def _cell(p: torch.Tensor, res: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For a grid of `res` points per axis at the cell centres of [-1, 1]^3: each point's lower
+    corner (long), its fractions in the cell (differentiable in p) and du/dp (0 where it is clamped
+    to the grid)."""
+    x = (p + 1.0) * (0.5 * res) - 0.5
+    if not torch.is_tensor(res):
+        res = torch.tensor(res, dtype=p.dtype)
+    u = torch.minimum(x.clamp(min=0.0), res - 1.0)
+    i0 = torch.minimum(u.floor(), res - 2.0)
+    du_dp = ((x > 0.0) & (x < res - 1.0)).to(p.dtype) * (0.5 * res)
+    return i0.long(), u - i0, du_dp
+
+
+def trilinear(grid: torch.Tensor, res: int, p: torch.Tensor, gradient: bool = False):
+    """Trilinear lookup of a (res^3, C) grid of values at cell centres of [-1, 1]^3, at points (N, 3),
+    and with `gradient` also its gradient in the points (N, C, 3)."""
+    i0, f, du_dp = _cell(p, float(res))
     base = (i0[:, 0] * res + i0[:, 1]) * res + i0[:, 2]
     offs = torch.tensor([dx * res * res + dy * res + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)],
                         device=p.device)
     vals = grid.index_select(0, (base[:, None] + offs).reshape(-1)).view(len(p), 8, -1)
-    fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2:3]
-    wx = torch.cat([1 - fx, fx], 1)
-    wy = torch.cat([1 - fy, fy], 1)
-    wz = torch.cat([1 - fz, fz], 1)
-    w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(len(p), 8)
-    return (vals * w[..., None]).sum(1)
+    w = corner_weights(f, du_dp if gradient else None)
+    out = (vals[..., None] * w[:, :, None, :]).sum(1)  # (N, C, 1 or 4)
+    return (out[..., 0], out[..., 1:]) if gradient else out[..., 0]
 
 
 # Instant-NGP's spatial hash: each integer coordinate times its own large prime, XOR-ed.
@@ -382,20 +407,22 @@ class DenseGrid(nn.Module):
             dense = torch.where(self.hashed_l[None, :, None], h & self.hash_mask, dense)
         return self.offsets[None, :, None] + dense
 
-    def forward(self, p: torch.Tensor, level_weights: list[float]) -> torch.Tensor:
+    def forward(self, p: torch.Tensor, level_weights: list[float], jacobian: bool = False):
+        """Features (N, L * F) at points (N, 3), each level scaled by its weight; with `jacobian`
+        also their derivatives in the points (N, L * F, 3), computed in closed form: the points
+        are data, so the features and the Jacobian are both linear in the table and the eikonal
+        loss needs no second derivative through the lookup."""
         n, levels = len(p), len(self.res)
         res = self.res_l.to(p.dtype)[None, :, None]  # (1, L, 1)
-        u = torch.minimum(((p[:, None, :] + 1.0) * (0.5 * res) - 0.5).clamp(min=0.0), res - 1.0)  # (N, L, 3)
-        i0 = torch.minimum(u.detach().floor(), res - 2.0).long()
-        f = u - i0
-        idx = self._indices(i0).reshape(-1)
-        vals = self.table.index_select(0, idx).view(n, levels, 8, self.features)
-        wx = torch.stack([1 - f[..., 0], f[..., 0]], -1)
-        wy = torch.stack([1 - f[..., 1], f[..., 1]], -1)
-        wz = torch.stack([1 - f[..., 2], f[..., 2]], -1)
-        w = (wx[..., :, None, None] * wy[..., None, :, None] * wz[..., None, None, :]).reshape(n, levels, 8, 1)
-        lw = torch.tensor(level_weights, dtype=p.dtype).view(1, levels, 1)
-        return ((vals * w).sum(2) * lw).reshape(n, levels * self.features)
+        i0, f, du_dp = _cell(p[:, None, :], res)  # (N, L, 3)
+        vals = self.table.index_select(0, self._indices(i0).reshape(-1)).view(n, levels, 8, self.features)
+        w = corner_weights(f, du_dp if jacobian else None)  # (N, L, 8, 4 or 1)
+        lw = torch.tensor(level_weights, dtype=p.dtype).view(1, levels, 1, 1)
+        k = w.shape[-1]
+        out = torch.bmm(vals.view(n * levels, 8, self.features).transpose(1, 2),
+                        (w * lw).view(n * levels, 8, k)).view(n, levels, self.features, k)
+        feats = out[..., 0].reshape(n, levels * self.features)
+        return (feats, out[..., 1:].reshape(n, levels * self.features, 3)) if jacobian else feats
 
 
 class SDFNetwork(nn.Module):
@@ -418,10 +445,16 @@ class SDFNetwork(nn.Module):
         else:
             self.base_grid = None
 
-    def base(self, p: torch.Tensor) -> torch.Tensor:
+    def base(self, p: torch.Tensor, gradient: bool = False):
+        """The initial SDF (the hull's smoothed distance or a sphere), with `gradient` also its
+        gradient in the points."""
         if self.base_grid is None:
-            return p.norm(dim=-1) - self.init_radius
-        return trilinear(self.base_grid, self.base_res, p)[:, 0]
+            r = p.norm(dim=-1)
+            return (r - self.init_radius, p / r.clamp(min=1e-12)[:, None]) if gradient else r - self.init_radius
+        if not gradient:
+            return trilinear(self.base_grid, self.base_res, p)[:, 0]
+        value, grad = trilinear(self.base_grid, self.base_res, p, gradient=True)
+        return value[:, 0], grad[:, 0]
 
     def forward(self, p: torch.Tensor, level_weights: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
         h = torch.cat([p, self.encoding(p, level_weights)], -1)
@@ -429,6 +462,22 @@ class SDFNetwork(nn.Module):
         h = self.act(self.l2(h))
         o = self.out(h)
         return self.base(p) + o[:, 0], o[:, 1:]
+
+    def forward_with_gradient(self, p: torch.Tensor, level_weights: list[float]):
+        """(SDF, features, SDF gradient in p) at data points p, the gradient in closed form (the
+        MLP's chain rule and the grid's Jacobian) as a graph in the parameters: its eikonal loss
+        back-propagates with first derivatives only, faster than autograd's double backward and the
+        same to rounding (tests/test_geometry.py)."""
+        enc, jac = self.encoding(p, level_weights, jacobian=True)
+        a1 = self.l1(torch.cat([p, enc], -1))
+        a2 = self.l2(self.act(a1))
+        o = self.out(self.act(a2))
+        beta = self.act.beta  # softplus(beta x)' = sigmoid(beta x), 1 to rounding past its threshold
+        g = (self.out.weight[0] * torch.sigmoid(beta * a2)) @ self.l2.weight
+        g = (g * torch.sigmoid(beta * a1)) @ self.l1.weight  # d sdf / d (p, features)
+        base, base_grad = self.base(p, gradient=True)
+        grad = g[:, :3] + torch.bmm(g[:, None, 3:], jac)[:, 0] + base_grad
+        return base + o[:, 0], o[:, 1:], grad
 
 
 class ColorNetwork(nn.Module):
@@ -499,11 +548,10 @@ class NeuSModel(nn.Module):
         return torch.exp(10.0 * self.variance).clamp(1e-6, 1e6)
 
     def sdf_grad(self, p: torch.Tensor, level_weights, create_graph: bool):
-        with torch.enable_grad():
-            p = p.detach().requires_grad_(True)
-            sdf, feat = self.sdf(p, level_weights)
-            grad = torch.autograd.grad(sdf.sum(), p, create_graph=create_graph)[0]
-        return sdf, feat, grad
+        """(SDF, features, gradient) at points p; the gradient is part of the graph with
+        create_graph (the eikonal loss and the normals' colour), detached without."""
+        sdf, feat, grad = self.sdf.forward_with_gradient(p.detach(), level_weights)
+        return sdf, feat, grad if create_graph else grad.detach()
 
 
 # --------------------------------------------------------------------------------------------
@@ -932,7 +980,7 @@ class _NeuSFit:
                    "base_lr": cfg.lr},
                   {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
                   {"params": [model.variance], "base_lr": cfg.lr_variance}]
-        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15)
+        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15, fused=True)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         torch.manual_seed(cfg.seed)
         self.step, self.elapsed, self.history = 0, 0.0, []
