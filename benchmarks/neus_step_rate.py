@@ -1,0 +1,102 @@
+"""Benchmark: NeuS training-step time of this checkout against an earlier commit's, in one process.
+
+    .venv/bin/python benchmarks/neus_step_rate.py CAPTURE [--ref COMMIT] [--set neus.KEY=VALUE ...]
+        [--rounds 5] [--steps 15] [--threads 2] [--out benchmarks/out/neus_step_rate]
+
+The reference is `vq_mitsuba/geometry/neus.py` as it was at COMMIT (`git show`), loaded beside this
+checkout's as a second module; both build a NeuS on the same capture with the same config and seed,
+open the occupancy grid at half-way, and take training steps (the full step: ray batch, occupancy
+march, render, losses, backward, optimiser) in alternating rounds of --steps steps, so that a
+neighbour's load falls on both alike. Printed and written to OUT/neus_step_rate.json with the
+machine and versions: the median seconds per step of each, their ratio, and each one's loss and
+training-ray PSNR over the last round (the same model, so close but not equal: the random ray
+batches are the same, the arithmetic is not). A whole-stage time against mesh error is
+`bench_geometry.py`'s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from provenance import ROOT, describe, provenance, write_result
+
+
+def load_reference(commit: str):
+    """vq_mitsuba/geometry/neus.py at `commit`, as a module of its own."""
+    source = subprocess.run(["git", "show", f"{commit}:vq_mitsuba/geometry/neus.py"], cwd=ROOT, check=True,
+                            capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / f"neus_{commit}.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[path.stem] = module  # dataclasses look their module up while the file executes
+    spec.loader.exec_module(module)
+    return module
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("capture", help="a capture with masks (transforms JSON, COLMAP or NeuS/IDR folder)")
+    ap.add_argument("--ref", default="aecf5d9", help="commit whose neus.py is the reference")
+    ap.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE", help="config override for both")
+    ap.add_argument("--downscale", type=int, default=1, help="shrink the capture's images by this factor")
+    ap.add_argument("--rounds", type=int, default=5, help="alternating rounds per implementation")
+    ap.add_argument("--steps", type=int, default=15, help="training steps per round")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--out", default="benchmarks/out/neus_step_rate", help="folder for the JSON")
+    args = ap.parse_args()
+
+    import torch
+
+    from vq_mitsuba.config import CaptureConfig, load_config
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.geometry import neus as current
+    from vq_mitsuba.run.loop import Progress
+
+    torch.set_num_threads(args.threads)
+    cfg = load_config(None, args.set).neus
+    capture = load_capture(args.capture, options=CaptureConfig(downscale=args.downscale))
+    fits = {}
+    for name, module in (("reference", load_reference(args.ref)), ("current", current)):
+        neus = module.NeuS(capture, cfg)
+        fit = module._NeuSFit(neus, None)
+        fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
+        neus.refresh_occupancy(neus.level_weights(0.5))
+        fits[name] = fit
+    seconds = {name: [] for name in fits}
+    last = {}
+    for r in range(args.rounds + 1):  # round 0 warms up and is not counted
+        for name, fit in fits.items():
+            t0 = time.perf_counter()
+            for i in range(args.steps):
+                fit.loop_step(Progress(step=1000 + r * args.steps + i, seconds=0.0, step_share=0.5, time_share=0.5))
+            if r > 0:
+                seconds[name].append((time.perf_counter() - t0) / args.steps)
+            recent = fit.history[-args.steps:]
+            last[name] = {"loss": statistics.mean(h["loss"] for h in recent),
+                          "psnr": statistics.mean(h["psnr"] for h in recent)}
+    med = {name: statistics.median(v) for name, v in seconds.items()}
+    result = {"reference_commit": args.ref, "threads": args.threads, "rounds": args.rounds, "steps": args.steps,
+              "grid": fits["current"].neus.grid, "sample_points_per_step": fits["current"].cfg.batch_rays
+              * fits["current"].cfg.n_samples,
+              "seconds_per_step": {name: {"median": med[name], "rounds": v} for name, v in seconds.items()},
+              "speedup": med["reference"] / med["current"], "last_round": last}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_result(out / f"neus_step_rate_{provenance()['commit']}.json", result)
+    print(describe())
+    for name in fits:
+        print(f"{name:>9}: {med[name] * 1000:7.1f} ms/step (median of {args.rounds}), last round loss "
+              f"{last[name]['loss']:.4f}, PSNR {last[name]['psnr']:.2f} dB")
+    print(f"speed-up {result['speedup']:.2f}x; grid {result['grid']['levels']} levels to {result['grid']['max_res']}")
+
+
+if __name__ == "__main__":
+    main()
