@@ -19,7 +19,8 @@ With --materials, the material stage then runs twice on the same training views 
 config and seed: once on the NeuS mesh (the pipeline from images alone) and once on the dataset's
 true mesh. Both runs are scored by `vq_mitsuba.eval.evaluate` on the test views, and the table gives
 their basecolor PSNR and its difference (target: within 1.5 dB). --seeds repeats the pair with
-other seeds; --reuse takes an existing NeuS mesh in the output folder instead of training again.
+other seeds; --reuse takes an existing NeuS mesh in the output folder instead of training again;
+--true-from REPORT takes the true-mesh fits of an earlier report (same dataset, config and seeds).
 
     .venv/bin/python benchmarks/bench_geometry.py --scenes demo --reuse --materials --seeds 0 1
 """
@@ -100,10 +101,15 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
     from vq_mitsuba.eval.evaluate import evaluate
     from vq_mitsuba.engine.trainer import fit
 
+    earlier = true_mesh_rows(name, args.true_from) if args.true_from else {}
     rows = []
     for seed in args.seeds:
         row = {"seed": seed}
+        if seed in earlier:
+            row["true"] = {**earlier[seed], "from": str(args.true_from)}
         for geometry, mesh in (("neus", neus_mesh), ("true", data / "mesh.ply")):
+            if geometry in row:
+                continue
             cfg, _ = scene_config(name, [f"train.time_limit_s={args.material_time_limit}", f"train.seed={seed}",
                                          *args.material_set])
             if args.material_iterations is not None:
@@ -126,6 +132,12 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
         row["basecolor_gap_db"] = row["true"]["basecolor_psnr"] - row["neus"]["basecolor_psnr"]
         rows.append(row)
     return rows
+
+
+def true_mesh_rows(name: str, report: Path) -> dict:
+    """{seed: true-mesh row} of a scene in an earlier report (the same dataset, config and seeds)."""
+    scenes = [r for r in json.loads(Path(report).read_text())["scenes"] if r["scene"] == name]
+    return {row["seed"]: row["true"] for r in scenes for row in r.get("materials", [])}
 
 
 def reused_scene(name: str, args) -> dict:
@@ -286,6 +298,8 @@ def main() -> int:
     p.add_argument("--materials", action="store_true",
                    help="fit and score the material stage on the NeuS mesh and on the true mesh")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="material-stage seeds (one pair of runs each)")
+    p.add_argument("--true-from", type=Path, default=None,
+                   help="an earlier report whose true-mesh fits of the same seeds are taken instead of fitting again")
     p.add_argument("--material-time-limit", type=float, default=600.0, help="material fit seconds per run")
     p.add_argument("--material-iterations", type=int, default=None, help="cap on material fit iterations")
     p.add_argument("--material-set", action="append", default=[], metavar="KEY=VALUE",
