@@ -18,9 +18,8 @@ from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, ColorNetwork, DenseGrid, NeuS, NeuSModel,
-                                      _hull_box,
-                                      camera_rays, choose_grid, rate_spread, reconstruct, train)
+from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid, NeuS,
+                                      NeuSModel, _hull_box, camera_rays, choose_grid, rate_spread, reconstruct, train)
 
 RADIUS = 0.5
 
@@ -163,14 +162,15 @@ def test_the_closed_form_sdf_gradient_matches_autograd_and_so_do_its_parameter_g
 
 
 def test_the_grid_is_finer_when_the_object_spans_more_pixels():
-    """The auto grid: the coarse dense grid for a small image of the object, the hashed fine grid
-    when the working box spans hundreds of pixels; given values are kept."""
+    """The auto grid with masks: 5 levels to 128 for a small image of the object, the fine grid
+    when the working box spans hundreds of pixels; without masks the coarse grid; given values are
+    kept."""
     center, half = np.zeros(3), 0.8
     small = sphere_capture(n_views=6, size=64).cameras
     large = [c.scaled(1024, 1024) for c in small]
     auto = NeuSConfig()
     (cfg_small, grid_small), (cfg_large, grid_large) = (choose_grid(auto, cams, center, half) for cams in (small, large))
-    assert (cfg_small.levels, cfg_small.max_res) == COARSE_GRID and grid_small["box_footprint_px"] < 256
+    assert (cfg_small.levels, cfg_small.max_res) == MASKED_GRID and grid_small["box_footprint_px"] < 256
     assert (cfg_large.levels, cfg_large.max_res) == FINE_GRID and grid_large["box_footprint_px"] > 256
     assert "over 256" in grid_large["reason"] and "at most 256" in grid_small["reason"]
     # without masks the background model shares the steps: the coarse grid whatever the size
@@ -178,8 +178,9 @@ def test_the_grid_is_finer_when_the_object_spans_more_pixels():
     assert (cfg_free.levels, cfg_free.max_res) == COARSE_GRID and "without masks" in grid_free["reason"]
     given, info = choose_grid(replace(auto, levels=3, max_res=24), large, center, half)
     assert (given.levels, given.max_res) == (3, 24) and info["reason"] == "neus.levels and neus.max_res given"
-    # the coarse grid is dense, the fine one hashes its finest levels
+    # the coarse grid is dense, the finer ones hash their finest levels
     assert not any(DenseGrid(COARSE_GRID[0], 16, COARSE_GRID[1], 2, auto.hash_log2).hashed)
+    assert DenseGrid(MASKED_GRID[0], 16, MASKED_GRID[1], 2, auto.hash_log2).hashed == [False] * 4 + [True]
     assert any(DenseGrid(FINE_GRID[0], 16, FINE_GRID[1], 2, auto.hash_log2).hashed)
 
 

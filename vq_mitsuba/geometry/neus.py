@@ -210,13 +210,16 @@ def bounding_sphere(cameras, points: np.ndarray | None = None, track: np.ndarray
     return center, r_cam, source
 
 
-# The feature grid, when neus.levels / neus.max_res are 0 (auto): the coarse dense grid while the
-# working box spans at most FINE_GRID_FROM_PX pixels in the median view (the 200 px synthetic
-# captures it was tuned on, cells of about 2 pixels), else finer levels up to 512 points a side,
-# hashed beyond 2^neus.hash_log2 points (photographed captures; benchmarks/results/neus_dtu/).
-# Without masks the coarse grid stays: the background model shares the steps, and the fine grid
-# fitted DTU scan37's photos worse in the same time (benchmarks/results/dtu_photos/).
+# The feature grid, when neus.levels / neus.max_res are 0 (auto). With masks: 5 levels to 128 points
+# a side while the working box spans at most FINE_GRID_FROM_PX pixels in the median view (the 200 px
+# synthetic captures: on tabletop better normals and materials than 4 levels to 64, in less time than
+# that grid took before the closed-form gradient; benchmarks/results/tabletop_stages/), else finer
+# levels up to 512 (photographed captures; benchmarks/results/neus_dtu/); levels beyond
+# 2^neus.hash_log2 points are hashed. Without masks the coarse grid stays: the background model
+# shares the steps, and the fine grid fitted DTU scan37's photos worse in the same time
+# (benchmarks/results/dtu_photos/).
 COARSE_GRID = (4, 64)  # (levels, max_res)
+MASKED_GRID = (5, 128)
 FINE_GRID = (8, 512)
 FINE_GRID_FROM_PX = 256
 
@@ -233,7 +236,7 @@ def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
     `masks` False: NeuS trains without masks (the coarse grid whatever the size)."""
     footprint = box_footprint_px(cameras, center, half)
     fine = masks and footprint > FINE_GRID_FROM_PX
-    levels, max_res = FINE_GRID if fine else COARSE_GRID
+    levels, max_res = FINE_GRID if fine else MASKED_GRID if masks else COARSE_GRID
     chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res)
     if cfg.levels and cfg.max_res:
         reason = "neus.levels and neus.max_res given"
