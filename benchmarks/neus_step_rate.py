@@ -7,7 +7,7 @@ The reference is `vq_mitsuba/geometry/neus.py` as it was at COMMIT (`git show`),
 checkout's as a second module; both build a NeuS on the same capture with the same config and seed,
 open the occupancy grid at half-way, and take training steps (the full step: ray batch, occupancy
 march, render, losses, backward, optimiser) in alternating rounds of --steps steps, so that a
-neighbour's load falls on both alike. Printed and written to OUT/neus_step_rate.json with the
+neighbour's load falls on both alike. Printed and written to OUT/neus_step_rate_<commit>.json with the
 machine and versions: the median seconds per step of each, their ratio, and each one's loss and
 training-ray PSNR over the last round (the same model, so close but not equal: the random ray
 batches are the same, the arithmetic is not). A whole-stage time against mesh error is

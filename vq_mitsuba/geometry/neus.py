@@ -983,7 +983,8 @@ class _NeuSFit:
                    "base_lr": cfg.lr},
                   {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
                   {"params": [model.variance], "base_lr": cfg.lr_variance}]
-        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15, fused=True)
+        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15,
+                                      fused=True)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         torch.manual_seed(cfg.seed)
         self.step, self.elapsed, self.history = 0, 0.0, []
