@@ -17,6 +17,7 @@ from vq_mitsuba.data.cameras import Camera, look_at
 from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
+from vq_mitsuba.geometry import grid_kernel
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid, NeuS,
                                       NeuSModel, _hull_box, camera_rays, choose_grid, rate_spread, reconstruct, train)
@@ -159,6 +160,70 @@ def test_the_closed_form_sdf_gradient_matches_autograd_and_so_do_its_parameter_g
     assert sum(float(a.abs().sum()) for a in closed if a is not None) > 0
     # Without create_graph the gradient is data, not part of the graph.
     assert not model.sdf_grad(p, lw, create_graph=False)[2].requires_grad
+
+
+needs_kernel = pytest.mark.skipif(grid_kernel.status() != "compiled kernel", reason=grid_kernel.status())
+
+
+@needs_kernel
+@pytest.mark.parametrize("jacobian", [False, True])
+def test_the_compiled_grid_lookup_matches_the_torch_lookup_and_its_table_gradient(jacobian):
+    """The CPU kernel against `DenseGrid.forward_torch`: features, their Jacobian and the table's
+    gradient of a random linear loss on both, with dense and hashed levels, a level faded out and
+    points the grid clamps or that lie far outside it."""
+    torch.manual_seed(2)
+    grid = DenseGrid(4, 4, 40, 3, hash_log2=12)
+    assert grid.hashed == [False, False, True, True]
+    with torch.no_grad():
+        grid.table.normal_()
+    p = torch.rand(3000, 3) * 2.6 - 1.3
+    p[:10] = torch.tensor([1e6, -1e6, 0.0])
+    lw = [1.0, 0.6, 0.25, 0.0]
+    out = grid(p, lw, jacobian=jacobian)
+    ref = grid.forward_torch(p, lw, jacobian=jacobian)
+    out, ref = (out, ref) if jacobian else ((out,), (ref,))
+    weights = [torch.randn_like(r) for r in ref]
+    grads = []
+    for values in (out, ref):
+        assert values[0].grad_fn is not None
+        grid.table.grad = None
+        sum((v * w).sum() for v, w in zip(values, weights)).backward()
+        grads.append(grid.table.grad.clone())
+    for a, b in zip(out, ref):
+        assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4)
+    assert grads[0].abs().max() > 1 and torch.all(out[0][:, 9:] == 0)  # the faded-out level: no feature
+    with torch.no_grad():
+        nan = grid(torch.tensor([[float("nan"), 0.0, 0.0], [0.2, 0.1, -0.3]]), lw, jacobian=True)
+    assert torch.isnan(nan[0][0]).any() and torch.isfinite(nan[0][1]).all()  # bad input stays in its row
+
+
+@needs_kernel
+def test_the_sdf_network_on_the_kernel_matches_it_on_torch_with_every_parameter_gradient(monkeypatch):
+    """A NeuS step's quantities (SDF, features, closed-form gradient, the hull's base grid) and the
+    parameter gradients of a loss on them are the same whichever lookup runs."""
+    torch.manual_seed(3)
+    cfg = small_cfg(levels=3, base_res=4, max_res=32, hash_log2=12, hidden=16, geo_features=5)
+    model = NeuSModel(cfg, torch.randn(16 ** 3) * 0.1)
+    with torch.no_grad():
+        model.sdf.encoding.table.normal_(0.0, 0.3)
+    p = torch.rand(500, 3) * 2.2 - 1.1
+    view = F.normalize(torch.randn(500, 3), dim=-1)
+    params = [q for q in model.parameters() if q.requires_grad]
+
+    def run():
+        sdf, feat, grad = model.sdf_grad(p, [1.0, 0.7, 0.3], create_graph=True)
+        loss = (((grad.norm(dim=-1) - 1.0) ** 2).mean() + model.color(feat, F.normalize(grad, dim=-1), view).mean()
+                + sdf.mean())
+        return [sdf, feat, grad], torch.autograd.grad(loss, params, allow_unused=True)
+
+    kernel_values, kernel_grads = run()
+    monkeypatch.setattr(grid_kernel, "usable", lambda *args: False)
+    torch_values, torch_grads = run()
+    for a, b in zip(kernel_values + list(kernel_grads), torch_values + list(torch_grads)):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
 def test_the_grid_is_finer_when_the_object_spans_more_pixels():

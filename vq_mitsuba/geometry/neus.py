@@ -41,6 +41,7 @@ import torch.nn.functional as F
 
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
+from vq_mitsuba.geometry import grid_kernel
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
@@ -399,6 +400,7 @@ class DenseGrid(nn.Module):
         self.hashed = hashed
         self.register_buffer("hashed_l", torch.tensor(hashed), persistent=False)
         self.hash_mask = (cap or 1) - 1
+        self.layout = grid_kernel.Layout(self.res, [int(o) for o in offsets[:-1]], hashed, self.hash_mask)
 
     def _indices(self, i0: torch.Tensor) -> torch.Tensor:
         """Table rows (N, L, 8) of the 8 corners of each point's cell at each level."""
@@ -414,13 +416,20 @@ class DenseGrid(nn.Module):
         """Features (N, L * F) at points (N, 3), each level scaled by its weight; with `jacobian`
         also their derivatives in the points (N, L * F, 3), computed in closed form: the points
         are data, so the features and the Jacobian are both linear in the table and the eikonal
-        loss needs no second derivative through the lookup."""
+        loss needs no second derivative through the lookup. On the CPU the compiled kernel does it
+        (`grid_kernel`), elsewhere `forward_torch`."""
+        if grid_kernel.usable(self.table, p, self.features):
+            return grid_kernel.lookup(self.table, p, self.layout, torch.tensor(level_weights), jacobian)
+        return self.forward_torch(p, level_weights, jacobian)
+
+    def forward_torch(self, p: torch.Tensor, level_weights: list[float], jacobian: bool = False):
+        """`forward` in torch operations (any device and dtype, differentiable in the points)."""
         n, levels = len(p), len(self.res)
         res = self.res_l.to(p.dtype)[None, :, None]  # (1, L, 1)
         i0, f, du_dp = _cell(p[:, None, :], res)  # (N, L, 3)
         vals = self.table.index_select(0, self._indices(i0).reshape(-1)).view(n, levels, 8, self.features)
         w = corner_weights(f, du_dp if jacobian else None)  # (N, L, 8, 4 or 1)
-        lw = torch.tensor(level_weights, dtype=p.dtype).view(1, levels, 1, 1)
+        lw = torch.tensor(level_weights, dtype=p.dtype, device=p.device).view(1, levels, 1, 1)
         k = w.shape[-1]
         out = torch.bmm(vals.view(n * levels, 8, self.features).transpose(1, 2),
                         (w * lw).view(n * levels, 8, k)).view(n, levels, self.features, k)
@@ -445,6 +454,7 @@ class SDFNetwork(nn.Module):
         if base_grid is not None:
             self.register_buffer("base_grid", base_grid.reshape(-1, 1).contiguous())
             self.base_res = int(round(base_grid.numel() ** (1 / 3)))
+            self.base_layout = grid_kernel.Layout([self.base_res], [0], [False], 0)
         else:
             self.base_grid = None
 
@@ -454,6 +464,9 @@ class SDFNetwork(nn.Module):
         if self.base_grid is None:
             r = p.norm(dim=-1)
             return (r - self.init_radius, p / r.clamp(min=1e-12)[:, None]) if gradient else r - self.init_radius
+        if grid_kernel.usable(self.base_grid, p, 1):
+            out = grid_kernel.lookup(self.base_grid, p, self.base_layout, torch.ones(1), gradient)
+            return (out[0][:, 0], out[1][:, 0]) if gradient else out[:, 0]
         if not gradient:
             return trilinear(self.base_grid, self.base_res, p)[:, 0]
         value, grad = trilinear(self.base_grid, self.base_res, p, gradient=True)
@@ -1178,6 +1191,7 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "grid": neus.grid,
         "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
+        "grid_lookup": grid_kernel.status(),
     }
     run.write_geometry_summary(info)
     return Reconstruction(mesh, neus, info)
