@@ -9,12 +9,12 @@
    the table's gradient; levels own disjoint table rows, so threads split the levels and never
    write the same row.
 
-   Plain C with POSIX threads: no Python or torch headers, so it compiles in a second. */
+   Plain C with OpenMP: no Python or torch headers, so it compiles in a second. */
 
 #include <math.h>
-#include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
 
 #define MAX_FEATURES 16
 #define MAX_THREADS 64
@@ -34,7 +34,8 @@ typedef struct {
     float *jac;         /* forward: (n, levels * features, 3) or NULL */
     const float *grad_feats; /* backward: (n, levels * features) */
     const float *grad_jac;   /* backward: (n, levels * features, 3) or NULL */
-    float *grad_table;  /* backward: (rows, features), accumulated into */
+    float *grad_table;  /* backward: (rows, features), zeroed and accumulated into */
+    int64_t rows;       /* the table's row count */
     int64_t begin, end; /* forward: this thread's points [begin, end); backward: its levels begin, begin + end, ... */
 } Job;
 
@@ -126,13 +127,16 @@ static void *forward_job(void *arg) {
 }
 
 /* Levels are dealt out in turn (thread t of T takes levels t, t + T, ...): the hashed fine levels,
-   whose rows miss the cache, are shared out rather than left to one thread. */
+   whose rows miss the cache, are shared out rather than left to one thread. Each thread zeroes its
+   levels' rows of the gradient before it adds into them. */
 static void *backward_job(void *arg) {
     const Job *job = (const Job *)arg;
     const int64_t F = job->features, L = job->levels;
     int64_t rows[BLOCK][8];
     float w[BLOCK][8][4];
     for (int64_t l = job->begin; l < L; l += job->end) {
+        const int64_t first = job->offsets[l], last = l + 1 < L ? job->offsets[l + 1] : job->rows;
+        memset(job->grad_table + first * F, 0, (size_t)(last - first) * (size_t)F * sizeof(float));
         if (job->level_weights[l] == 0.0f) continue; /* a level not yet faded in gets no gradient */
         for (int64_t n0 = 0; n0 < job->n; n0 += BLOCK) {
             const int64_t m = job->n - n0 < BLOCK ? job->n - n0 : BLOCK;
@@ -158,24 +162,21 @@ static void *backward_job(void *arg) {
     return NULL;
 }
 
-/* Run `fn` over [0, total) split into `threads` contiguous ranges. */
+/* Run `fn` on `threads` threads of OpenMP's pool (torch's own, libgomp, once torch has loaded it: a
+   second pool would spin against torch's between their parallel regions), the work split as
+   `interleave` says; without OpenMP, on this thread alone. */
 static int run_split(Job *base, void *(*fn)(void *), int64_t total, int threads, int interleave) {
     if (threads < 1) threads = 1;
     if (threads > MAX_THREADS) threads = MAX_THREADS;
     if (threads > total) threads = total > 0 ? (int)total : 1;
-    Job jobs[MAX_THREADS];
-    pthread_t ids[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
+#ifdef _OPENMP
+#pragma omp parallel for num_threads(threads) schedule(static, 1)
+#endif
     for (int t = 0; t < threads; ++t) {
-        jobs[t] = *base;
-        jobs[t].begin = interleave ? t : total * t / threads;
-        jobs[t].end = interleave ? threads : total * (t + 1) / threads;
-    }
-    for (int t = 1; t < threads; ++t) started[t] = pthread_create(&ids[t], NULL, fn, &jobs[t]) == 0;
-    fn(&jobs[0]);
-    for (int t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(ids[t], NULL);
-        else fn(&jobs[t]); /* no thread to be had: do its share here */
+        Job job = *base;
+        job.begin = interleave ? t : total * t / threads;
+        job.end = interleave ? threads : total * (t + 1) / threads;
+        fn(&job);
     }
     return 0;
 }
@@ -185,15 +186,15 @@ int grid_forward(const float *table, int64_t features, const float *points, int6
                  const float *level_weights, float *feats, float *jac, int threads) {
     if (features > MAX_FEATURES) return 1;
     Job job = {table, features, points, n, levels, res, offsets, hashed, hash_mask, level_weights,
-               feats, jac, NULL, NULL, NULL, 0, 0};
+               feats, jac, NULL, NULL, NULL, 0, 0, 0};
     return run_split(&job, forward_job, n, threads, 0);
 }
 
-int grid_backward(int64_t features, const float *points, int64_t n, int64_t levels, const int64_t *res,
+int grid_backward(int64_t rows, int64_t features, const float *points, int64_t n, int64_t levels, const int64_t *res,
                   const int64_t *offsets, const uint8_t *hashed, int64_t hash_mask, const float *level_weights,
                   const float *grad_feats, const float *grad_jac, float *grad_table, int threads) {
     if (features > MAX_FEATURES) return 1;
     Job job = {NULL, features, points, n, levels, res, offsets, hashed, hash_mask, level_weights,
-               NULL, NULL, grad_feats, grad_jac, grad_table, 0, 0};
+               NULL, NULL, grad_feats, grad_jac, grad_table, rows, 0, 0};
     return run_split(&job, backward_job, levels, threads, 1);
 }

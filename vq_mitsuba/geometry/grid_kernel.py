@@ -48,9 +48,12 @@ def _compile(target: Path) -> None:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(fd)
     try:
-        proc = subprocess.run([cc, "-O3", "-shared", "-fPIC", "-std=c99", "-pthread", str(SOURCE), "-o", tmp, "-lm"],
-                              capture_output=True, text=True)
-        if proc.returncode != 0:
+        for openmp in (["-fopenmp"], []):  # serial where the compiler has no OpenMP
+            proc = subprocess.run([cc, "-O3", "-shared", "-fPIC", "-std=gnu99", *openmp, str(SOURCE), "-o", tmp, "-lm"],
+                                  capture_output=True, text=True)
+            if proc.returncode == 0:
+                break
+        else:
             raise RuntimeError(f"{Path(cc).name} failed: {proc.stderr.strip()[-500:]}")
         os.replace(tmp, target)  # atomic: a concurrent process sees the old file or the whole new one
     finally:
@@ -81,7 +84,7 @@ def _load() -> ctypes.CDLL | None:
             return None
         p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
         lib.grid_forward.argtypes = [p, i64, p, i64, i64, p, p, p, i64, p, p, p, i32]
-        lib.grid_backward.argtypes = [i64, p, i64, i64, p, p, p, i64, p, p, p, p, i32]
+        lib.grid_backward.argtypes = [i64, i64, p, i64, i64, p, p, p, i64, p, p, p, p, i32]
         lib.grid_forward.restype = lib.grid_backward.restype = i32
         _lib, _reason = lib, "compiled kernel"
         return _lib
@@ -144,10 +147,10 @@ class _Lookup(torch.autograd.Function):
     def backward(ctx, grad_feats, grad_jac=None):
         points, level_weights = ctx.saved_tensors
         layout = ctx.layout
-        grad_table = torch.zeros(ctx.shape)
+        grad_table = torch.empty(ctx.shape)  # the kernel zeroes it
         gf = torch.zeros(len(points), layout.levels * ctx.shape[1]) if grad_feats is None else grad_feats.contiguous()
         gj = None if grad_jac is None else grad_jac.contiguous()
-        code = _lib.grid_backward(ctx.shape[1], _ptr(points), len(points), layout.levels, _ptr(layout.res),
+        code = _lib.grid_backward(ctx.shape[0], ctx.shape[1], _ptr(points), len(points), layout.levels, _ptr(layout.res),
                                   _ptr(layout.offsets), _ptr(layout.hashed), layout.hash_mask, _ptr(level_weights),
                                   _ptr(gf), _ptr(gj), _ptr(grad_table), torch.get_num_threads())
         if code:
