@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/neus_step_rate.py CAPTURE [--ref COMMIT] [--set neus.KEY=VALUE ...]
         [--rounds 5] [--steps 15] [--threads 2] [--out benchmarks/out/neus_step_rate]
 
-The reference is `vq_mitsuba/geometry/neus.py` as it was at COMMIT (`git show`), loaded beside this
-checkout's as a second module; both build a NeuS on the same capture with the same config and seed,
+The reference is NeuS as it was at COMMIT (`vq_mitsuba/geometry/neus.py`, or the package of that
+name; `git show`), loaded beside this checkout's as a second module; both build a NeuS on the same capture with the same config and seed,
 open the occupancy grid at half-way, and take training steps (the full step: ray batch, occupancy
 march, render, losses, backward, optimiser) in alternating rounds of --steps steps, so that a
 neighbour's load falls on both alike. Printed and written to OUT/neus_step_rate_<commit>.json with the
@@ -29,14 +29,30 @@ from provenance import ROOT, describe, provenance, write_result
 
 
 def load_reference(commit: str):
-    """vq_mitsuba/geometry/neus.py at `commit`, as a module of its own."""
-    source = subprocess.run(["git", "show", f"{commit}:vq_mitsuba/geometry/neus.py"], cwd=ROOT, check=True,
-                            capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / f"neus_{commit}.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location(path.stem, path)
+    """NeuS as it was at `commit`, as a module of its own: `vq_mitsuba/geometry/neus.py`, or the
+    `vq_mitsuba/geometry/neus/` package (its own imports pointed at the copy)."""
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+
+    folder = Path(tempfile.mkdtemp())
+    name = f"neus_{commit}"
+    single = git("show", f"{commit}:vq_mitsuba/geometry/neus.py")
+    if single.returncode == 0:
+        path = folder / f"{name}.py"
+        path.write_text(single.stdout)
+    else:
+        package = "vq_mitsuba/geometry/neus"
+        files = git("ls-tree", "--name-only", f"{commit}:{package}")
+        if files.returncode != 0:
+            raise SystemExit(f"{commit} has neither {package}.py nor {package}/")
+        (folder / name).mkdir()
+        for file in files.stdout.split():
+            text = git("show", f"{commit}:{package}/{file}").stdout
+            (folder / name / file).write_text(text.replace("vq_mitsuba.geometry.neus", name))
+        path = folder / name / "__init__.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
-    sys.modules[path.stem] = module  # dataclasses look their module up while the file executes
+    sys.modules[name] = module  # dataclasses (and a package's own imports) look the module up while it executes
     spec.loader.exec_module(module)
     return module
 
@@ -44,7 +60,7 @@ def load_reference(commit: str):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("capture", help="a capture with masks (transforms JSON, COLMAP or NeuS/IDR folder)")
-    ap.add_argument("--ref", default="aecf5d9", help="commit whose neus.py is the reference")
+    ap.add_argument("--ref", default="c9f7280", help="commit whose NeuS is the reference")
     ap.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE", help="config override for both")
     ap.add_argument("--downscale", type=int, default=1, help="shrink the capture's images by this factor")
     ap.add_argument("--rounds", type=int, default=5, help="alternating rounds per implementation")
@@ -57,16 +73,18 @@ def main() -> None:
 
     from vq_mitsuba.config import CaptureConfig, load_config
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry import neus as current
+    from vq_mitsuba.geometry.neus import fit as current_fit, renderer as current_renderer
     from vq_mitsuba.run.loop import Progress
 
     torch.set_num_threads(args.threads)
     cfg = load_config(None, args.set).neus
     capture = load_capture(args.capture, options=CaptureConfig(downscale=args.downscale))
     fits = {}
+    current = type("Current", (), {"NeuS": current_renderer.NeuS, "_NeuSFit": current_fit._NeuSFit})
     for name, module in (("reference", load_reference(args.ref)), ("current", current)):
         neus = module.NeuS(capture, cfg)
-        fit = module._NeuSFit(neus, None)
+        fit_class = module._NeuSFit if hasattr(module, "_NeuSFit") else module.fit._NeuSFit  # a package: fit.py
+        fit = fit_class(neus, None)
         fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
         neus.refresh_occupancy(neus.level_weights(0.5))
         fits[name] = fit

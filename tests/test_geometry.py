@@ -17,7 +17,7 @@ from vq_mitsuba.data.cameras import Camera, look_at
 from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
-from vq_mitsuba.geometry import grid_kernel
+from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid, NeuS,
                                       NeuSModel, _hull_box, camera_rays, choose_grid, rate_spread, reconstruct, train)

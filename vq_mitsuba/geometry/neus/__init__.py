@@ -1,0 +1,42 @@
+"""NeuS on a CPU: geometry (an SDF) and appearance from posed images with alpha masks.
+
+Model (NeuS, Wang et al. 2021; VQ-NeRF supplement Eq. 1-2): an SDF network f and a colour network
+c; along a ray, section i between samples has opacity
+    alpha_i = max((Phi_s(f_i - cos * d_i / 2) - Phi_s(f_i + cos * d_i / 2)) / Phi_s(f_i - cos * d_i / 2), 0)
+with Phi_s the logistic sigmoid of learned sharpness s, and the pixel colour is the
+alpha-composited c. Losses: L1 colour, eikonal (|grad f| = 1), BCE between accumulated opacity
+and the alpha mask.
+
+What makes it fast enough for two CPU cores:
+- the SDF network is a tiny MLP fed by a multi-resolution feature grid (dense levels, hashed past
+  2^neus.hash_log2 points), with finer levels faded in coarse-to-fine; its SDF gradient is
+  computed in closed form, so the eikonal loss back-propagates without a second derivative; on the
+  CPU one compiled kernel looks the grid up with its Jacobian and adds its table gradient;
+- the masks give a visual hull; the object lives in the hull's bounding box (normalised to
+  [-1, 1]^3), the SDF starts as the hull's smoothed signed distance (or a sphere), and samples are
+  only placed where the ray crosses the occupancy grid: from its entry into the (dilated) hull to
+  just past the first cell the current SDF marks as deep inside (refreshed during training);
+- every ray batch is drawn from the foreground-dilated pixels of all views.
+
+Without masks (`neus.background`: model, or auto on a capture without alpha or masks), as NeuS
+trains DTU "w/o mask": the object lives in a bounding sphere framed from the cameras (and the
+sparse points of a COLMAP model, or an IDR capture's scale_mat_0), which is the normalised box's
+unit sphere and takes the hull's place (occupancy, SDF crop); the SDF starts as a sphere; rays come
+from every pixel; behind the foreground each ray composites a NeRF++ background (density and colour
+of points outside the sphere from their inverted-sphere coordinates (x/r, 1/r) and the view
+direction); the colour loss is on every pixel and there is no mask loss. The exported mesh keeps
+the largest piece inside the sphere, without a supporting plane (`support_plane`).
+
+The rooms: `framing` (where the object is without masks), `hull` (the visual hull), `fields` (the
+grid and the networks; `grid_kernel` its CPU lookup), `renderer` (the model bound to a capture:
+rays, occupancy, volume rendering, mesh export), `fit` (training and the geometry stage).
+"""
+
+from vq_mitsuba.geometry.neus.fields import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, HASH_PRIMES, MASKED_GRID,
+                                             BackgroundNetwork, ColorNetwork, DenseGrid, NeuSModel, SDFNetwork,
+                                             choose_grid, trilinear)
+from vq_mitsuba.geometry.neus.fit import Reconstruction, _check_architecture, rate_spread, reconstruct, train
+from vq_mitsuba.geometry.neus.framing import (bounding_sphere, box_footprint_px, support_from_points,
+                                              uses_background_model, well_seen)
+from vq_mitsuba.geometry.neus.hull import _hull_box, carve, hull_sdf
+from vq_mitsuba.geometry.neus.renderer import NeuS, camera_rays, encode_srgb

@@ -1,0 +1,270 @@
+"""Training NeuS (its step, optimiser, checkpoint and schedule on the loop skeleton) and the geometry
+stage that wraps it: train, export the mesh, write the run's geometry files."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.geometry.neus import grid_kernel
+from vq_mitsuba.geometry.neus.renderer import NeuS, _threads
+from vq_mitsuba.run.loop import Budget, Loop, Progress
+from vq_mitsuba.run.run_dir import RunDir, save_torch
+
+
+def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
+    warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
+    cos = 0.5 * (1.0 + math.cos(math.pi * prog))
+    return warm * (cfg.lr_end_cosine + (1.0 - cfg.lr_end_cosine) * cos)
+
+
+# Keys that shape the networks: a checkpoint resumes only under the same values. A checkpoint
+# written before a key existed was made with the value given here.
+_ARCHITECTURE = {"levels": None, "base_res": None, "max_res": None, "features": None, "hidden": None,
+                 "geo_features": None, "reflect": False, "hash_log2": None}
+
+
+def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
+    diff = []
+    for key, before in _ARCHITECTURE.items():
+        now = getattr(cfg, key)
+        then = saved.get(key, now if before is None else before)
+        if then != now:
+            diff.append(f"neus.{key}={then} (now {now})")
+    if diff:
+        raise InputError(path, "this NeuS checkpoint was made with " + ", ".join(diff) + "; resume with "
+                         "the same values (--set neus.KEY=VALUE), or start over without --resume")
+
+
+def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress: bool = True,
+          callback=None, callback_every_s: float = 0.0) -> dict:
+    """Optimise the NeuS model; returns a summary. `callback(neus, step, train_seconds)` is called
+    every `callback_every_s` seconds of training (its own time is not counted)."""
+
+    with _threads(neus.cfg.threads):
+        return _NeuSFit(neus, run).run(resume, progress, callback, callback_every_s)
+
+
+class _NeuSFit:
+    """NeuS's step, optimiser and checkpoint for the loop skeleton (`vq_mitsuba.run.loop`). The
+    finer grid levels fade in with the share of whichever budget runs out first, so a clock-stopped
+    run has opened them all; the learning rate follows the step share alone, so a run that the
+    clock stops early keeps a large rate (benchmarks/results/neus_step_decay/)."""
+
+    def __init__(self, neus: NeuS, run: RunDir | None):
+        cfg = self.cfg = neus.cfg
+        self.neus, self.model = neus, neus.model
+        model = neus.model
+        mlp = [p for name, p in model.sdf.named_parameters() if not name.startswith("encoding")]
+        background = list(model.background.parameters()) if model.background is not None else []
+        groups = [{"params": list(model.sdf.encoding.parameters()) + list(model.color.parameters()) + background,
+                   "base_lr": cfg.lr},
+                  {"params": mlp, "base_lr": cfg.lr_sdf_mlp},
+                  {"params": [model.variance], "base_lr": cfg.lr_variance}]
+        self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15,
+                                      fused=True)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        torch.manual_seed(cfg.seed)
+        self.step, self.elapsed, self.history = 0, 0.0, []
+        self.ckpt = run.neus_checkpoint_path if run is not None else None
+
+    def resume(self) -> None:
+        if self.ckpt is None or not self.ckpt.is_file():
+            return
+        state = torch.load(self.ckpt, map_location="cpu", weights_only=False)
+        _check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
+        if state.get("background_model", False) != self.neus.mask_free:
+            made = "without masks (neus.background model)" if state.get("background_model") else "with masks"
+            raise InputError(self.ckpt, f"this NeuS checkpoint was made {made}, this capture and neus.background "
+                                        "ask for the other; resume with the same setting, or start over without "
+                                        "--resume")
+        self.model.load_state_dict(state["model"])
+        self.optim.load_state_dict(state["optim"])
+        self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
+        torch.set_rng_state(state["torch_rng"].cpu())
+        self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
+
+    def save(self, p: Progress) -> None:
+        if self.ckpt is not None:
+            save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
+                        "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
+                        "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
+                        "background_model": self.neus.mask_free}, self.ckpt)
+
+    def loop_step(self, p: Progress) -> dict | None:
+        cfg, neus = self.cfg, self.neus
+        lw = neus.level_weights(p.share)
+        for group in self.optim.param_groups:
+            group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.step_share)
+        idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
+        o, d = neus.rays_o[idx], neus.rays_d[idx]
+        near, far = neus.intervals(o, d)
+        out = neus.render(o, d, lw, cfg.n_samples, True, True, near=near, far=far)
+        target = neus.rays_rgb[idx]
+        color_loss = (out["rgb"] - target).abs().mean()
+        if neus.rays_alpha is None:  # no masks: the colour of every pixel, fore- and background
+            mask_loss = out["acc"].new_zeros(())
+        else:
+            acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
+            mask_loss = F.binary_cross_entropy(acc, neus.rays_alpha[idx])
+        loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optim.step()
+        step = p.step + 1
+        mse = float(((out["rgb"].detach() - target) ** 2).mean())
+        self.history.append({"step": step, "seconds": round(self.loop.clock(), 3), "loss": float(loss.detach()),
+                             "color": float(color_loss.detach()), "eikonal": float(out["eikonal"].detach()),
+                             "mask": float(mask_loss.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)),
+                             "s": float(self.model.inv_s().detach())})
+        if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
+            neus.refresh_occupancy(lw)
+        if step % 10 == 0:
+            h = self.history[-1]
+            return {"loss": f"{h['loss']:.4f}", "psnr": f"{h['psnr']:.1f}", "s": f"{h['s']:.0f}"}
+        return None
+
+    def run(self, resume: bool, progress: bool, callback, callback_every_s: float) -> dict:
+        cfg = self.cfg
+        if resume:
+            self.resume()
+        budget = Budget(cfg.iterations, cfg.time_limit_s)
+        periodic = callback is not None and callback_every_s > 0
+        self.loop = Loop("neus", budget, self.loop_step, start_step=self.step, start_seconds=self.elapsed,
+                         checkpoint=self.save, checkpoint_every=cfg.checkpoint_every,
+                         snapshot=(lambda p, label: callback(self.neus, p.step, p.seconds)) if periodic else None,
+                         snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress)
+        with self.loop.clock.paused():  # set-up work is not training time
+            self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
+            if periodic and self.step == 0:
+                callback(self.neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
+        result = self.loop.run()
+        return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
+                "stopped_by_time": result.stopped_by_time}
+
+
+def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
+    """Training steps per second over consecutive windows of about window_s training seconds:
+    min, median and max. A wide spread on a fixed-size step means that something else shared the
+    CPU (the step's cost hardly depends on the training's progress: a fixed number of rays and
+    samples per ray)."""
+    rates, start = [], None
+    for h in history:
+        if start is None:
+            start = h
+            continue
+        if h["seconds"] - start["seconds"] >= window_s:
+            rates.append((h["step"] - start["step"]) / (h["seconds"] - start["seconds"]))
+            start = h
+    last = history[-1] if history else None
+    if start is not None and last is not start and last["seconds"] - start["seconds"] >= 0.5 * window_s:
+        rates.append((last["step"] - start["step"]) / (last["seconds"] - start["seconds"]))  # the tail
+    if not rates:
+        return None
+    return {"window_s": window_s, "min": float(np.min(rates)), "median": float(np.median(rates)),
+            "max": float(np.max(rates))}
+
+
+def _plot_history(history: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not history:
+        return
+    steps = [h["step"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
+    for key in ("loss", "color", "mask", "eikonal"):
+        axes[0].semilogy(steps, [max(h[key], 1e-8) for h in history], label=key, lw=0.8)
+    axes[0].legend()
+    axes[0].set_xlabel("step")
+    axes[0].set_title("NeuS losses")
+    k = max(1, len(history) // 200)
+    psnr = np.convolve([h["psnr"] for h in history], np.ones(k) / k, mode="valid")
+    axes[1].plot(steps[k - 1:], psnr)
+    axes[1].set_xlabel("step")
+    axes[1].set_title("training-batch PSNR (dB, sRGB)")
+    axes[2].semilogy(steps, [h["s"] for h in history])
+    axes[2].set_xlabel("step")
+    axes[2].set_title("sharpness s")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+@dataclass
+class Reconstruction:
+    """What the geometry stage made: the exported mesh, the trained NeuS model and its summary
+    (the content of geometry.json)."""
+
+    mesh: object  # trimesh.Trimesh, in the capture's world
+    neus: NeuS
+    summary: dict
+
+
+def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
+                progress: bool = True, callback=None, callback_every_s: float = 0.0,
+                sphere: tuple | None = None, support: tuple | None = None,
+                points: np.ndarray | None = None) -> Reconstruction:
+    """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
+    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`, `support`, `points`: the
+    bounding sphere, a known supporting plane and the sparse points when NeuS runs without masks
+    (`NeuS`)."""
+    cfg = cfg or NeuSConfig()
+    run = run if isinstance(run, RunDir) else RunDir(run)
+    with _threads(cfg.threads):
+        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere, support, points)
+
+
+def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
+                 sphere=None, support=None, points=None) -> Reconstruction:
+    t0 = time.perf_counter()
+    neus = NeuS(capture, cfg, sphere, support, points)
+    run.create()
+    setup_s = time.perf_counter() - t0
+    summary = train(neus, run, resume=resume, progress=progress, callback=callback,
+                    callback_every_s=callback_every_s)
+    t1 = time.perf_counter()
+    mesh = neus.extract_mesh()
+    export_s = time.perf_counter() - t1
+    run.write_mesh(mesh)
+    if summary["history"]:
+        run.write_file(run.GEOMETRY_PLOT, lambda path: _plot_history(summary["history"], path))
+    last = summary["history"][-1] if summary["history"] else {}
+    info = {
+        "capture": str(Path(capture.source).resolve()),
+        "world": capture.world,
+        "iterations": summary["iterations"],
+        "stopped_by_time_limit": summary["stopped_by_time"],
+        "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(neus.hull_seconds, 2),
+                    "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
+                    "total": round(time.perf_counter() - t0, 2)},
+        "iterations_per_s": summary["iterations"] / max(summary["train_seconds"], 1e-9),
+        "iterations_per_s_spread": rate_spread(summary["history"]),
+        "final_train_psnr": last.get("psnr"),
+        "final_sharpness_s": last.get("s"),
+        "box_center": neus.center.tolist(),
+        "box_half_size": neus.half,
+        "background": "model" if neus.mask_free else "masks",
+        "bounding_sphere": {"center": neus.center.tolist(), "radius": neus.half, "from": neus.sphere_source}
+        if neus.mask_free else None,
+        "support_plane": neus.support,
+        "training_rays": len(neus.rays_o),
+        "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+                 "watertight": bool(mesh.is_watertight)},
+        "grid": neus.grid,
+        "config": asdict(neus.cfg),
+        "torch_threads": torch.get_num_threads(),
+        "grid_lookup": grid_kernel.status(),
+    }
+    run.write_geometry_summary(info)
+    return Reconstruction(mesh, neus, info)
