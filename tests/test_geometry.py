@@ -431,6 +431,27 @@ def test_reconstruct_smoke_writes_mesh_and_resumes(tmp_path):
     assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 6
 
 
+def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them():
+    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
+    from vq_mitsuba.geometry.pipeline import neus_psnr_line
+
+    capture = sphere_capture(n_views=8, size=24)
+    neus = NeuS(capture, small_cfg(iterations=80))
+    views = sample_views(len(capture.cameras), 3)
+    assert views == [0, 4, 7] and sample_views(2, 4) == [0, 1] and sample_views(0, 4) == []
+    neus.refresh_occupancy(neus.level_weights(1.0))
+    before = view_psnr(neus, capture, views)
+    train(neus, None, progress=False)
+    after = view_psnr(neus, capture, views)
+    assert set(after) == {capture.cameras[v].name for v in views}
+    assert np.mean(list(after.values())) > np.mean(list(before.values())) + 5.0
+    # Only the pixels inside the masks count: the backdrop may be anything.
+    painted = replace(capture, images=np.where(capture.alpha[..., None] > 0.5, capture.images, 1.0).astype(np.float32))
+    assert view_psnr(neus, painted, views) == pytest.approx(after, abs=1e-4)
+    line = neus_psnr_line({"train_views": 21.5, "holdout_views": 19.25, "inside_masks": True})
+    assert line == "NeuS renders its training views at 21.50 dB inside the masks, its held-out views at 19.25 dB"
+
+
 def test_neus_needs_masks_and_foreground():
     with pytest.raises(InputError, match="alpha"):  # without masks only when neus.background allows it
         NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))

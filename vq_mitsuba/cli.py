@@ -84,7 +84,7 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_geometry(args) -> int:
-    from vq_mitsuba.geometry.pipeline import run_geometry
+    from vq_mitsuba.geometry.pipeline import neus_psnr_line, run_geometry
     from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:
@@ -99,6 +99,7 @@ def _cmd_geometry(args) -> int:
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
+    print(neus_psnr_line(info["neus_psnr"]))
     if "metrics" in info:
         m = info["metrics"]
         print(f"against {args.gt_mesh}: Chamfer {100 * m['chamfer_rel']:.3f}% of the bounding-box diagonal, "

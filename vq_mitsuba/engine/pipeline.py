@@ -10,7 +10,7 @@ from typing import Callable
 from vq_mitsuba.config import Config
 from vq_mitsuba.engine.trainer import check_fit_target, fit
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry
+from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry, neus_psnr_line
 from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 from vq_mitsuba.run.run_dir import RunDir
 
@@ -55,4 +55,6 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
             reused = resume and run.has_mesh()
             mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
             log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
+            if not reused:
+                log(neus_psnr_line(run.read_geometry_summary()["neus_psnr"]))
         return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)

@@ -83,13 +83,37 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         if uses_background_model(capture, cfg) else (None, None, None)
     result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support,
                          points=points)
+    result.summary["neus_psnr"] = neus_psnr(result.neus, capture, capture_path, capture_cfg, run)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 
         result.summary["metrics"] = mesh_metrics(result.mesh, gt)
         result.summary["gt_mesh"] = str(Path(gt_mesh).resolve())
-        run.write_geometry_summary(result.summary)
+    run.write_geometry_summary(result.summary)
     return result
+
+
+TRAIN_VIEWS_SCORED = 4  # training views NeuS renders at the end of the stage
+
+
+def neus_psnr(neus, capture, capture_path, capture_cfg: CaptureConfig | None, run: RunDir) -> dict:
+    """How well NeuS renders the photos it trained on (a few views spread over them) and, with
+    `capture.holdout`, the views kept out of training: mean and per-view sRGB PSNR (inside the masks
+    where there are masks), for geometry.json."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
+
+    train = view_psnr(neus, capture, sample_views(len(capture.cameras), TRAIN_VIEWS_SCORED))
+    held = {}
+    if capture_cfg is not None and capture_cfg.holdout > 0:
+        holdout = load_capture(capture_path, options=capture_cfg, split="holdout", cache_dir=run.undistorted_dir)
+        held = view_psnr(neus, holdout, list(range(len(holdout.cameras))))
+
+    def mean(values: dict) -> float | None:
+        return float(np.mean(list(values.values()))) if values else None
+
+    return {"train_views": mean(train), "holdout_views": mean(held), "inside_masks": bool(capture.has_alpha),
+            "per_view": {**train, **held}}
 
 
 def ensure_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
@@ -99,3 +123,12 @@ def ensure_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig,
     if not (resume and run.has_mesh()):
         run_geometry(capture_path, run, cfg, resume=resume, progress=progress, capture_cfg=capture_cfg)
     return run / RunDir.MESH
+
+
+def neus_psnr_line(scores: dict) -> str:
+    """One line for people: how well NeuS renders its training and held-out views."""
+    where = " inside the masks" if scores["inside_masks"] else ""
+    line = f"NeuS renders its training views at {scores['train_views']:.2f} dB{where}"
+    if scores["holdout_views"] is not None:
+        line += f", its held-out views at {scores['holdout_views']:.2f} dB"
+    return line

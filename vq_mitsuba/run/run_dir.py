@@ -377,6 +377,9 @@ class RunDir:
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
 
+    def read_geometry_summary(self) -> dict:
+        return read_json(self.dir / self.GEOMETRY, "the geometry stage has not run here")
+
     def masks_from_mesh(self) -> bool:
         """Whether the run's mesh comes from NeuS without masks (geometry.json's background is
         "model"): the capture then has no masks, and its views are masked by the mesh's coverage.

@@ -13,9 +13,10 @@ import torch
 import torch.nn.functional as F
 
 from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus import grid_kernel
-from vq_mitsuba.geometry.neus.renderer import NeuS, _threads
+from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 
@@ -199,6 +200,37 @@ def _plot_history(history: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+@torch.no_grad()
+def view_psnr(neus: NeuS, capture, views: list[int], chunk: int = 8192) -> dict[str, float]:
+    """NeuS's own render of each of the capture's `views` (indices; the capture may be another split
+    than the one NeuS trained on, in the same world) against its image: sRGB PSNR inside the masks
+    when the capture has them, else over the whole image (composited over the background model).
+    {view name: dB}."""
+    out = {}
+    lw = [1.0] * neus.cfg.levels
+    with _threads(neus.cfg.threads):
+        for v in views:
+            cam = capture.cameras[v]
+            o, d = camera_rays(cam)
+            o, d = neus.to_box(torch.from_numpy(o)), torch.from_numpy(d)
+            rgb = torch.cat([neus.render(o[i:i + chunk], d[i:i + chunk], lw, neus.cfg.n_samples, False, False)["rgb"]
+                             for i in range(0, len(o), chunk)])
+            photo = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images[v])).reshape(-1, 3))
+            err = (rgb - photo) ** 2
+            if capture.has_alpha:
+                inside = torch.from_numpy(capture.alpha[v].reshape(-1) > 0.5)
+                if not bool(inside.any()):
+                    continue  # no foreground in this view: nothing to score
+                err = err[inside]
+            out[cam.name] = -10.0 * math.log10(max(float(err.mean()), 1e-10))
+    return out
+
+
+def sample_views(count: int, at_most: int) -> list[int]:
+    """Up to `at_most` view indices spread evenly over `count` views."""
+    return sorted({int(round(x)) for x in np.linspace(0, count - 1, min(at_most, count))}) if count else []
 
 
 @dataclass
