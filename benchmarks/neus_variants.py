@@ -36,7 +36,8 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
 
     from vq_mitsuba.config import CaptureConfig, NeuSConfig
     from vq_mitsuba.data.captures import load_capture, split_indices
-    from vq_mitsuba.geometry.neus import NeuS, encode_srgb
+    from vq_mitsuba.geometry.neus import NeuS
+    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
 
     options = CaptureConfig(downscale=downscale, holdout=holdout)
     train = load_capture(capture_path, options=options, split="train")
@@ -49,18 +50,12 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
     neus.refresh_occupancy([1.0] * cfg.levels)
     kept = split_indices(len(every.cameras), holdout, "train")
     held = split_indices(len(every.cameras), holdout, "holdout")
-    sample = [kept[i] for i in np.linspace(0, len(kept) - 1, min(train_views, len(kept))).round().astype(int)]
-    out = {"train_views": {}, "holdout_views": {}, "holdout_rendered_share": {}}
-    for group, views in (("train_views", sample), ("holdout_views", held)):
-        for v in views:
-            with torch.enable_grad():  # normals need the SDF's gradient
-                rgb, acc = neus.render_camera(every.cameras[v])
-            photo = encode_srgb(torch.from_numpy(every.images[v])).numpy()
-            inside = every.alpha[v] > 0.5
-            mse = float(((rgb - photo) ** 2)[inside].mean())
-            out[group][every.cameras[v].name] = -10.0 * np.log10(max(mse, 1e-10))
-            if group == "holdout_views":
-                out["holdout_rendered_share"][every.cameras[v].name] = float((acc[inside] > 0.5).mean())
+    sample = [kept[i] for i in sample_views(len(kept), train_views)]
+    out = {"train_views": view_psnr(neus, every, sample), "holdout_views": view_psnr(neus, every, held),
+           "holdout_rendered_share": {}}
+    for v in held:
+        _, acc = neus.render_camera(every.cameras[v])
+        out["holdout_rendered_share"][every.cameras[v].name] = float((acc[every.alpha[v] > 0.5] > 0.5).mean())
     return out
 
 
