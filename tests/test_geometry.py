@@ -469,6 +469,8 @@ def test_importance_samples_partition_the_interval_and_gather_at_the_surface():
     close = ((z - 0.5).abs() < 0.1).float().mean()
     assert close > 0.6  # uniform sampling would put 0.2 there
     assert (z < 0.3).any(1).all()  # the uniform share still reaches the rest of the interval
+    fixed, _ = neus._depths(o, d, near, far, [1.0] * neus.cfg.levels, 24, perturb=False)  # as renders for people
+    assert fixed.shape == (64, 24) and ((fixed - 0.5).abs() < 0.1).float().mean() > 0.6
     stratified = replace(neus.cfg, importance=False)
     neus.cfg = stratified
     z, dists = neus._depths(o, d, near, far, [1.0] * neus.cfg.levels, 24, perturb=False)

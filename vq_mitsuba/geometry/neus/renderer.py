@@ -285,7 +285,7 @@ class NeuS:
         stands for the section halfway to its neighbours."""
         m = len(o)
         span = (far - near)[:, None]
-        u = (torch.arange(n, dtype=torch.float32) + (torch.rand(m, n) if perturb else 0.5)) / n
+        u = (torch.arange(n, dtype=torch.float32) + (torch.rand(m, n) if perturb else torch.full((m, n), 0.5))) / n
         if not self.cfg.importance:
             return near[:, None] + span * u, (span / n).expand(m, n)
         k = IMPORTANCE_COARSE * n
