@@ -452,31 +452,6 @@ def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them()
     assert line == "NeuS renders its training views at 21.50 dB inside the masks, its held-out views at 19.25 dB"
 
 
-def test_importance_samples_partition_the_interval_and_gather_at_the_surface():
-    """neus.importance: sorted depths inside [near, far] whose sections tile it, most of them near
-    where the ray crosses the SDF's zero level once the sharpness is high, a share spread evenly."""
-    capture = sphere_capture(n_views=6, size=16)
-    neus = NeuS(capture, small_cfg(init="sphere", init_radius=0.5, importance=True))
-    with torch.no_grad():
-        neus.model.variance.fill_(0.6)  # s = e^6, about 400
-    o = torch.tensor([[0.0, 0.0, -1.0]]).repeat(64, 1) + torch.randn(64, 3) * 0.01
-    d = torch.tensor([[0.0, 0.0, 1.0]]).repeat(64, 1)
-    near, far = torch.full((64,), 0.0), torch.full((64,), 1.0)  # the sphere (r 0.5) is met at depth 0.5
-    z, dists = neus._depths(o, d, near, far, [1.0] * neus.cfg.levels, 24, perturb=True)
-    assert z.shape == dists.shape == (64, 24)
-    assert torch.all(z[:, 1:] >= z[:, :-1]) and torch.all(z >= 0) and torch.all(z <= 1)
-    assert torch.allclose(dists.sum(1), far - near, atol=1e-5) and torch.all(dists >= 0)
-    close = ((z - 0.5).abs() < 0.1).float().mean()
-    assert close > 0.6  # uniform sampling would put 0.2 there
-    assert (z < 0.3).any(1).all()  # the uniform share still reaches the rest of the interval
-    fixed, _ = neus._depths(o, d, near, far, [1.0] * neus.cfg.levels, 24, perturb=False)  # as renders for people
-    assert fixed.shape == (64, 24) and ((fixed - 0.5).abs() < 0.1).float().mean() > 0.6
-    stratified = replace(neus.cfg, importance=False)
-    neus.cfg = stratified
-    z, dists = neus._depths(o, d, near, far, [1.0] * neus.cfg.levels, 24, perturb=False)
-    assert torch.allclose(z[0], (torch.arange(24) + 0.5) / 24) and torch.allclose(dists, torch.full_like(dists, 1 / 24))
-
-
 def test_neus_needs_masks_and_foreground():
     with pytest.raises(InputError, match="alpha"):  # without masks only when neus.background allows it
         NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))

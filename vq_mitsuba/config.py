@@ -230,7 +230,6 @@ class NeuSConfig:
     time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
     batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
-    importance: bool = setting(False, "place the samples by the SDF's weights along the ray (NeuS's up-sampling)")
     lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", ">0")
     lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", ">0")
     lr_variance: float = setting(2e-3, "Adam learning rate of the sharpness parameter", ">0")

@@ -18,8 +18,6 @@ from vq_mitsuba.geometry.neus.fields import NeuSModel, choose_grid, trilinear
 from vq_mitsuba.geometry.neus.framing import bounding_sphere, uses_background_model
 from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
 
-IMPORTANCE_COARSE = 2  # SDF-only depths per sample that place the samples (neus.importance)
-IMPORTANCE_UNIFORM = 0.2  # share of the samples spread evenly over the ray's interval (neus.importance)
 BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
 
 
@@ -273,45 +271,6 @@ class NeuS:
         trans = torch.cumprod(torch.cat([alpha.new_ones(len(o), 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
         return ((alpha * trans)[..., None] * color.view(-1, n, 3)).sum(1)
 
-    def _depths(self, o, d, near, far, level_weights, n: int, perturb: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        """n sample depths along each ray in [near, far] (M, n), increasing, and the length of the
-        section of the ray each one stands for (M, n).
-
-        Stratified: one sample in each of n equal sections (jittered when `perturb`). With
-        `neus.importance`, as NeuS samples: the SDF alone (no gradient, no colour) at
-        IMPORTANCE_COARSE x n evenly spaced depths gives each coarse section NeuS's weight under the
-        current sharpness, and the n samples are drawn from those weights (a share
-        IMPORTANCE_UNIFORM spread evenly), so they gather where the ray meets the surface; each
-        stands for the section halfway to its neighbours."""
-        m = len(o)
-        span = (far - near)[:, None]
-        u = (torch.arange(n, dtype=torch.float32) + (torch.rand(m, n) if perturb else torch.full((m, n), 0.5))) / n
-        if not self.cfg.importance:
-            return near[:, None] + span * u, (span / n).expand(m, n)
-        k = IMPORTANCE_COARSE * n
-        with torch.no_grad():
-            edges = near[:, None] + span * (torch.arange(k + 1, dtype=torch.float32) / k)
-            sdf = self.model.sdf((o[:, None] + d[:, None] * edges[..., None]).reshape(-1, 3), level_weights)[0]
-            sdf = sdf.view(m, k + 1)
-            step = edges[:, 1:] - edges[:, :-1]
-            cos = ((sdf[:, 1:] - sdf[:, :-1]) / (step + 1e-5)).clamp(-1e3, 0.0)
-            mid = 0.5 * (sdf[:, 1:] + sdf[:, :-1])
-            inv_s = self.model.inv_s()
-            prev_cdf = torch.sigmoid((mid - cos * step * 0.5) * inv_s)
-            next_cdf = torch.sigmoid((mid + cos * step * 0.5) * inv_s)
-            alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
-            w = alpha * torch.cumprod(torch.cat([alpha.new_ones(m, 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
-            pdf = (1.0 - IMPORTANCE_UNIFORM) * w / w.sum(1, keepdim=True).clamp(min=1e-12) + IMPORTANCE_UNIFORM / k
-            pdf = pdf / pdf.sum(1, keepdim=True)
-            cdf = torch.cumsum(pdf, 1)
-            i = torch.searchsorted(cdf, u.contiguous(), right=True).clamp(max=k - 1)
-            below = torch.cat([cdf.new_zeros(m, 1), cdf[:, :-1]], 1).gather(1, i)
-            frac = ((u - below) / pdf.gather(1, i).clamp(min=1e-12)).clamp(0.0, 1.0)
-            z = edges.gather(1, i) + frac * step.gather(1, i)
-            bounds = torch.cat([near[:, None], 0.5 * (z[:, 1:] + z[:, :-1]), far[:, None]], 1)
-            dists = bounds[:, 1:] - bounds[:, :-1]
-        return z, dists
-
     def _foreground(self, o, d, level_weights, n_samples: int, perturb: bool, create_graph: bool,
                     cos_anneal: float = 1.0, near=None, far=None) -> dict:
         if near is None or far is None:
@@ -324,7 +283,10 @@ class NeuS:
             return out
         ov, dv, nv, fv = o[valid], d[valid], near[valid], far[valid]
         m = len(ov)
-        z, dists = self._depths(ov, dv, nv, fv, level_weights, n_samples, perturb)
+        jitter = torch.rand(m, n_samples) if perturb else torch.full((m, n_samples), 0.5)
+        steps = (torch.arange(n_samples, dtype=torch.float32) + jitter) / n_samples
+        z = nv[:, None] + (fv - nv)[:, None] * steps
+        dists = ((fv - nv) / n_samples)[:, None].expand(m, n_samples)
         pts = (ov[:, None] + dv[:, None] * z[..., None]).reshape(-1, 3)
         sdf, feat, grad = self.model.sdf_grad(pts, level_weights, create_graph)
         sdf = sdf.view(m, n_samples)
