@@ -3,6 +3,8 @@
     .venv/bin/python benchmarks/neus_profile.py CAPTURE [--downscale N] [--set neus.KEY=VALUE ...]
         [--steps 8] [--threads 2] [--out benchmarks/out/neus_profile]
 
+(`PYTHONPATH=FOLDER` profiles the checkout in FOLDER, e.g. a `git worktree` of an earlier commit.)
+
 Builds NeuS on the capture (its auto grid, occupancy opened at half-way), takes warm-up steps, then
 profiles --steps whole steps (ray batch, occupancy march, render, losses, backward, optimiser) with
 torch.profiler. Each operation's self time is put in one of four groups: the matrix products of the
@@ -10,17 +12,18 @@ networks (mm, addmm, bmm), the feature grid's lookup and its gradient (the compi
 torch lookup's gather and scatter), the optimiser, and everything else (elementwise passes,
 indexing, the march). The floor printed is the time of the matrix products plus the grid lookup:
 what a step costs with every elementwise pass fused away at the same network sizes. Printed and
-written to OUT/neus_profile_<commit>.json with the machine and versions.
+written to OUT/neus_profile_<capture folder>_<profiled commit>.json with the machine and versions.
 """
 
 from __future__ import annotations
 
 import argparse
+import subprocess
 import time
 from collections import defaultdict
 from pathlib import Path
 
-from provenance import describe, provenance, write_result
+from provenance import describe, write_result
 
 GROUPS = {
     "matrix products": ("aten::mm", "aten::addmm", "aten::bmm"),
@@ -49,9 +52,13 @@ def main() -> None:
 
     from vq_mitsuba.config import CaptureConfig, load_config
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus import NeuS, grid_kernel
-    from vq_mitsuba.geometry.neus.fit import _NeuSFit
+    from vq_mitsuba.geometry import neus as module
     from vq_mitsuba.run.loop import Progress
+
+    # An earlier checkout (PYTHONPATH=ITS_FOLDER) may have NeuS as one module, without the kernel.
+    NeuS = module.NeuS
+    _NeuSFit = module._NeuSFit if hasattr(module, "_NeuSFit") else module.fit._NeuSFit
+    lookup = module.grid_kernel.status() if hasattr(module, "grid_kernel") else "torch lookup"
 
     torch.set_num_threads(args.threads)
     cfg = load_config(None, args.set).neus
@@ -81,14 +88,17 @@ def main() -> None:
     top = sorted(ops.items(), key=lambda kv: -kv[1])[:15]
     floor = groups["matrix products"] + groups["grid lookup"]
     points = cfg.batch_rays * cfg.n_samples
-    result = {"capture": args.capture, "downscale": args.downscale, "threads": args.threads, "steps": args.steps,
-              "grid": neus.grid, "grid_lookup": grid_kernel.status(), "sample_points_per_step": points,
+    profiled = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(module.__file__).parent,
+                              capture_output=True, text=True).stdout.strip()
+    result = {"profiled_commit": profiled, "capture": args.capture, "downscale": args.downscale, "threads": args.threads, "steps": args.steps,
+              "grid": neus.grid, "grid_lookup": lookup, "sample_points_per_step": points,
               "ms_per_step_unprofiled": wall_ms, "ms_per_step_profiled": total,
               "groups_ms": dict(groups), "top_ops_ms": dict(top), "floor_ms": floor,
               "sample_points_per_s": points / (wall_ms / 1000)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_result(out / f"neus_profile_{provenance()['commit']}.json", result)
+    name = Path(args.capture).resolve().name if Path(args.capture).is_dir() else Path(args.capture).resolve().parent.name
+    write_result(out / f"neus_profile_{name}_{profiled}.json", result)
     print(describe())
     print(f"grid {neus.grid['levels']} levels to {neus.grid['max_res']} ({result['grid_lookup']}); "
           f"{points} sample points a step")

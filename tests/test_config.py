@@ -71,8 +71,8 @@ def test_every_range_kind_is_exercised_and_the_edges_are_inside():
                                  "capture.background_color=1,0.5,0"])
     assert cfg.train.pixel_jitter == 0 and cfg.neus.init_variance == -2
     # A section alone is checked under its own name.
-    with pytest.raises(InputError, match=r"neus\.iterations must be > 0"):
-        check(C.NeuSConfig(iterations=0))
+    with pytest.raises(InputError, match=r"neus\.batch_rays must be > 0"):
+        check(C.NeuSConfig(batch_rays=0))
 
 
 def test_every_key_has_one_line_of_help_and_a_valid_range():

@@ -452,6 +452,20 @@ def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them()
     assert line == "NeuS renders its training views at 21.50 dB inside the masks, its held-out views at 19.25 dB"
 
 
+def test_neus_takes_two_passes_over_its_training_rays_within_its_bounds_unless_told():
+    from vq_mitsuba.geometry.neus.renderer import choose_iterations
+
+    auto = NeuSConfig(batch_rays=512)
+    assert auto.iterations == 0
+    for rays, steps in ((100_000, 4000), (1_280_000, 5000), (3_443_727, 8000)):
+        cfg, info = choose_iterations(auto, rays)
+        assert cfg.iterations == info["iterations"] == steps and info["training_rays"] == rays
+    cfg, info = choose_iterations(replace(auto, iterations=123), 3_443_727)
+    assert cfg.iterations == 123 and info["reason"] == "neus.iterations given"
+    neus = NeuS(sphere_capture(n_views=6, size=16), small_cfg(iterations=0, batch_rays=64))
+    assert neus.cfg.iterations == neus.steps["iterations"] == 4000 and neus.steps["training_rays"] == len(neus.rays_o)
+
+
 def test_neus_needs_masks_and_foreground():
     with pytest.raises(InputError, match="alpha"):  # without masks only when neus.background allows it
         NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))

@@ -226,7 +226,7 @@ class NeuSConfig:
     """The geometry stage: NeuS on posed, masked images, then mesh export."""
 
     seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
-    iterations: int = setting(4000, "training steps", ">0")
+    iterations: int = setting(0, "training steps (0: auto, 2 passes over the training rays within 4000-8000)", ">=0")
     time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
     batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")

@@ -294,6 +294,7 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                  "watertight": bool(mesh.is_watertight)},
         "grid": neus.grid,
+        "steps": neus.steps,
         "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
         "grid_lookup": grid_kernel.status(),

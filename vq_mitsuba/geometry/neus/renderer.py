@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -36,6 +37,26 @@ class _threads:
     def __exit__(self, *exc):
         torch.set_num_threads(self.old)
         return False
+
+
+# Training steps when neus.iterations is 0 (auto): enough for PASSES passes over the training rays,
+# at least MIN_STEPS and at most MAX_STEPS. On DTU's photos (2-3.4 M rays at --downscale 4) 8000 steps
+# raised NeuS's own held-out renders 0.6-0.7 dB over 4000, in the time 4000 took before the grid
+# kernel; on tabletop (0.57 M rays, 3.6 passes at 4000) 8000 steps did not improve the mesh
+# (benchmarks/results/neus_step/).
+PASSES, MIN_STEPS, MAX_STEPS = 2.0, 4000, 8000
+
+
+def choose_iterations(cfg: NeuSConfig, training_rays: int) -> tuple[NeuSConfig, dict]:
+    """The config with neus.iterations decided (when 0), and what decided it."""
+    if cfg.iterations:
+        return cfg, {"iterations": cfg.iterations, "reason": "neus.iterations given"}
+    wanted = math.ceil(PASSES * training_rays / cfg.batch_rays)
+    steps = int(min(max(wanted, MIN_STEPS), MAX_STEPS))
+    return replace(cfg, iterations=steps), {
+        "iterations": steps, "training_rays": training_rays,
+        "reason": f"{PASSES:g} passes over {training_rays} training rays of {cfg.batch_rays} a step: {wanted} steps, "
+                  f"held within {MIN_STEPS}-{MAX_STEPS}"}
 
 
 def encode_srgb(x: torch.Tensor) -> torch.Tensor:
@@ -115,6 +136,7 @@ class NeuS:
         self.rays_d = torch.from_numpy(np.concatenate(dirs))
         self.rays_rgb = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3))
         self.rays_alpha = None
+        self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
 
     def _setup(self, capture, cfg: NeuSConfig, alpha: torch.Tensor) -> None:
         masks = alpha > cfg.hull_threshold
@@ -144,6 +166,7 @@ class NeuS:
         rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3)
         self.rays_rgb = encode_srgb(rgb[sel])
         self.rays_alpha = alpha.reshape(-1)[sel].clamp(0, 1)
+        self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
 
     # ---- coordinates
     def to_box(self, x_world: torch.Tensor) -> torch.Tensor:
