@@ -55,6 +55,7 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
             reused = resume and run.has_mesh()
             mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
             log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
-            if not reused:
-                log(neus_psnr_line(run.read_geometry_summary()["neus_psnr"]))
+            scores = run.neus_scores()
+            if not reused and scores:
+                log(neus_psnr_line(scores))
         return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)

@@ -377,8 +377,10 @@ class RunDir:
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
 
-    def read_geometry_summary(self) -> dict:
-        return read_json(self.dir / self.GEOMETRY, "the geometry stage has not run here")
+    def neus_scores(self) -> dict | None:
+        """geometry.json's `neus_psnr` (NeuS's own renders scored), None where NeuS has not scored."""
+        path = self.dir / self.GEOMETRY
+        return read_json(path, "").get("neus_psnr") if path.is_file() else None
 
     def masks_from_mesh(self) -> bool:
         """Whether the run's mesh comes from NeuS without masks (geometry.json's background is
