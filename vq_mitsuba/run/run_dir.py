@@ -377,19 +377,20 @@ class RunDir:
     def write_geometry_summary(self, summary: dict) -> None:
         write_json(self.dir / self.GEOMETRY, summary)
 
+    def _geometry_summary(self) -> dict:
+        """geometry.json, or {} where the geometry stage has not written one."""
+        path = self.dir / self.GEOMETRY
+        return read_json(path, "") if path.is_file() else {}
+
     def neus_scores(self) -> dict | None:
         """geometry.json's `neus_psnr` (NeuS's own renders scored), None where NeuS has not scored."""
-        path = self.dir / self.GEOMETRY
-        return read_json(path, "").get("neus_psnr") if path.is_file() else None
+        return self._geometry_summary().get("neus_psnr")
 
     def masks_from_mesh(self) -> bool:
         """Whether the run's mesh comes from NeuS without masks (geometry.json's background is
         "model"): the capture then has no masks, and its views are masked by the mesh's coverage.
         (An edited run: ask its source().)"""
-        path = self.dir / self.GEOMETRY
-        if not path.is_file():
-            return False
-        return read_json(path, "").get("background") == "model"
+        return self._geometry_summary().get("background") == "model"
 
     @property
     def neus_checkpoint_path(self) -> Path:

@@ -13,7 +13,6 @@ import torch
 import torch.nn.functional as F
 
 from vq_mitsuba.config import NeuSConfig
-from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
@@ -209,19 +208,15 @@ def view_psnr(neus: NeuS, capture, views: list[int], chunk: int = 8192) -> dict[
     when the capture has them, else over the whole image (composited over the background model).
     {view name: dB}."""
     out = {}
-    lw = [1.0] * neus.cfg.levels
     with _threads(neus.cfg.threads):
         for v in views:
             cam = capture.cameras[v]
-            o, d = camera_rays(cam)
-            o, d = neus.to_box(torch.from_numpy(o)), torch.from_numpy(d)
-            rgb = torch.cat([neus.render(o[i:i + chunk], d[i:i + chunk], lw, neus.cfg.n_samples, False, False)["rgb"]
-                             for i in range(0, len(o), chunk)])
-            photo = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images[v])).reshape(-1, 3))
+            rgb, _ = neus.render_camera(cam, chunk, composite=True)
+            photo = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images[v]))).numpy()
             err = (rgb - photo) ** 2
             if capture.has_alpha:
-                inside = torch.from_numpy(capture.alpha[v].reshape(-1) > 0.5)
-                if not bool(inside.any()):
+                inside = capture.alpha[v] > 0.5
+                if not inside.any():
                     continue  # no foreground in this view: nothing to score
                 err = err[inside]
             out[cam.name] = -10.0 * math.log10(max(float(err.mean()), 1e-10))

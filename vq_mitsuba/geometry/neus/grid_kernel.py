@@ -1,6 +1,6 @@
 """The feature grid's lookup as one compiled CPU kernel (grid_kernel.c), with a torch fallback.
 
-The torch lookup (`grid.DenseGrid`, `grid.trilinear`) builds the 8 corner weights and their
+The torch lookup (`fields.DenseGrid.forward_torch`, `fields.trilinear`) builds the 8 corner weights and their
 gradients as broadcast products, gathers the corners, blends them with a batched matrix product and
 scatters the gradient back: a dozen passes over arrays eight times the size of the batch, which took
 over half of a NeuS step on a photographed capture. The kernel does each point and level in one

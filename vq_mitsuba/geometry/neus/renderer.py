@@ -341,8 +341,9 @@ class NeuS:
         return out
 
     @torch.no_grad()
-    def render_camera(self, cam, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
-        """(sRGB colour (H, W, 3) on black, opacity (H, W)) of a camera, for novel-view PSNR."""
+    def render_camera(self, cam, chunk: int = 4096, composite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(sRGB colour (H, W, 3) on black, or with `composite` over the background model where there
+        is one; opacity (H, W)) of a camera, for novel-view PSNR."""
         o, d = camera_rays(cam)
         o = self.to_box(torch.from_numpy(o))
         d = torch.from_numpy(d)
@@ -350,7 +351,7 @@ class NeuS:
         rgb, acc = [], []
         for i in range(0, len(o), chunk):
             r = self.render(o[i:i + chunk], d[i:i + chunk], lw, self.cfg.n_samples, False, False)
-            rgb.append(r.get("rgb_fg", r["rgb"]).detach())
+            rgb.append(r["rgb"] if composite else r.get("rgb_fg", r["rgb"]))
             acc.append(r["acc"].detach())
         return (torch.cat(rgb).reshape(cam.height, cam.width, 3).numpy(),
                 torch.cat(acc).reshape(cam.height, cam.width).numpy())
