@@ -318,7 +318,7 @@ def test_two_concurrent_fits_on_one_folder(tmp_path, capsys):
 
 
 def test_disk_full_during_a_fit_keeps_the_last_checkpoint(tmp_path, monkeypatch, capsys):
-    """ENOSPC while the second checkpoint is written: one message naming the file (exit 2); the
+    """ENOSPC while the second checkpoint is written: one message naming the file (exit 3, mid-run); the
     first checkpoint stays whole and loadable, and no temporary file is left."""
     import errno
     from pathlib import Path
@@ -339,7 +339,7 @@ def test_disk_full_during_a_fit_keeps_the_last_checkpoint(tmp_path, monkeypatch,
                      "train.checkpoint_every=2", "--set", "train.batch_rays=128", "--set", "vq.enabled=false"])
     monkeypatch.undo()
     err = capsys.readouterr().err
-    assert code == 2 and len(saves) == 2  # no second try after the refused write
+    assert code == 3 and len(saves) == 2  # no second try after the refused write
     assert [line for line in err.splitlines() if line.startswith("error")] == [
         f"error: {run / RunDir.CHECKPOINT}: cannot be written: no space left on the device (files written before "
         "are kept)"]

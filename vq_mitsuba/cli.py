@@ -11,7 +11,7 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, UserError
 
 
 def _run_dir(args, command: str) -> Path:
@@ -625,9 +625,9 @@ def main(argv: list[str] | None = None) -> int:
         with _warnings_as_messages():
             set_threads(args.threads)
             return args.func(args)
-    except InputError as exc:
+    except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except OSError as exc:  # a write the machine refused outside RunDir's writers (images of render, make-scene)
         from vq_mitsuba.run.write_errors import as_write_error
 
@@ -635,7 +635,7 @@ def main(argv: list[str] | None = None) -> int:
         if error is None:
             raise
         print(f"error: {error}", file=sys.stderr)
-        return 2
+        return error.exit_code
     except KeyboardInterrupt:
         print("interrupted; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)", file=sys.stderr)
         return 130

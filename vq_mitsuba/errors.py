@@ -1,12 +1,18 @@
-"""Errors shown to users: one message naming the file and what is wrong with it."""
+"""Errors shown to users: one message naming the file and what is wrong with it.
+
+`InputError`: bad input, refused before any work (the command exits with 2).
+`RunFailure`: a run that could not go on mid-way (losses that are not finite, a full disk); what
+was written before it is kept (exit 3)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 
-class InputError(Exception):
-    """Bad user input, reported before any work is done."""
+class UserError(Exception):
+    """A failure told to the user as one line: the file it concerns (if any) and what is wrong."""
+
+    exit_code = 1
 
     def __init__(self, path: str | Path | None, message: str):
         self.path = None if path is None else Path(path)
@@ -14,7 +20,19 @@ class InputError(Exception):
         super().__init__(f"{self.path}: {message}" if self.path is not None else message)
 
 
-class NumericalError(InputError):
+class InputError(UserError):
+    """Bad user input, reported before any work is done."""
+
+    exit_code = 2
+
+
+class RunFailure(UserError):
+    """A command that stopped mid-way; the files it wrote before are kept."""
+
+    exit_code = 3
+
+
+class NumericalError(RunFailure):
     """A fit that cannot go on (losses or gradients not finite step after step); `path` is the
     run directory, whose checkpoint holds the last finite state."""
 

@@ -50,7 +50,7 @@ from vq_mitsuba.models.edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock
-from vq_mitsuba.run.write_errors import WriteError, as_write_error
+from vq_mitsuba.run.write_errors import WriteError, as_write_error  # WriteError: re-exported
 
 FORMAT_VERSION = 1
 
@@ -125,7 +125,7 @@ def check_writable(folder: str | Path) -> None:
         raise InputError(existing, "is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
         reason = "the file system is read-only" if _read_only(existing) else "permission denied"
-        raise WriteError(existing, f"cannot be written: {reason}")
+        raise InputError(existing, f"cannot be written: {reason}")
 
 
 def _read_only(path: Path) -> bool:

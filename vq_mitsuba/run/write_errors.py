@@ -5,7 +5,7 @@ from __future__ import annotations
 import errno
 from pathlib import Path
 
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import RunFailure
 
 # errno -> what the user is told; any other OSError is a bug or a missing input, reported as such
 DISK_ERRORS = {
@@ -17,7 +17,7 @@ DISK_ERRORS = {
 }
 
 
-class WriteError(InputError):
+class WriteError(RunFailure):
     """A file or folder that could not be written; the files written before it are kept."""
 
 

@@ -24,7 +24,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.ui.session import EditorSession
 
 DEFAULT_HOST = "127.0.0.1"
@@ -198,7 +198,7 @@ class _Handler(BaseHTTPRequestHandler):
             if not isinstance(body, dict):
                 raise InputError(None, "the request body is not a JSON object")
             result = handler(self.session, body)
-        except InputError as exc:
+        except UserError as exc:
             return self._json({"error": str(exc)}, 400)
         except (KeyError, TypeError, ValueError) as exc:
             return self._json({"error": f"bad request: {exc}"}, 400)

@@ -22,7 +22,7 @@ from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
 from vq_mitsuba.run.run_dir import RunDir
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.models.edits import Change, Edit, Selection, apply_edits, check_change, material_library, \
     preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
@@ -263,7 +263,7 @@ class EditorSession:
         try:
             result = fn()
             status = {"kind": kind, "state": "done", **result}
-        except InputError as exc:
+        except UserError as exc:
             status = {"kind": kind, "state": "failed", "error": str(exc)}
         except Exception as exc:
             status = {"kind": kind, "state": "failed", "error": f"{type(exc).__name__}: {exc}"}
