@@ -192,3 +192,46 @@ def test_geometry_is_refused_while_another_process_writes_the_run(tmp_path, no_g
     finally:
         holder.send_signal(signal.SIGKILL)
         holder.wait()
+
+
+def _help_text(parser: argparse.ArgumentParser) -> str:
+    return " ".join(parser.format_help().split())  # argparse's line breaks joined
+
+
+def test_help_says_what_the_commands_do():
+    """The help texts hold what the code does: no command that reads a capture says NeuS needs
+    masks (it runs without them), `fit` names every file it writes, `render --envmap` takes .hdr,
+    `eval` names its held-out mode and `--mesh` is for any posed capture."""
+    from vq_mitsuba.run.run_dir import RunDir
+
+    subs = _subparsers()
+    for name, parser in subs.items():
+        text = _help_text(parser).lower()
+        assert "needs alpha masks" not in text and "with alpha masks" not in text, name
+        assert "masked images" not in text, name
+    fit = _help_text(subs["fit"])
+    for file in (RunDir.INFO, RunDir.CONFIG, RunDir.CHECKPOINT, RunDir.MESH, RunDir.ENVMAP, RunDir.MATERIALS,
+                 RunDir.ERR_PLOT, RunDir.SHEET, RunDir.LOSS_PLOT, RunDir.FIT, RunDir.RESIDUAL):
+        assert file in fit, file
+    assert "NeRF" not in _option(subs["fit"], "--mesh").help
+    assert ".hdr" in _option(subs["render"], "--envmap").help
+    assert "render.json" in _help_text(subs["render"])
+    eval_help = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert "held-out" in next(c.help for c in eval_help._choices_actions if c.dest == "eval")
+
+
+@pytest.mark.parametrize("command, hint", [("fit", True), ("geometry", True), ("render", False), ("eval", False)])
+def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys, command, hint):
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    _subparsers_of = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    _subparsers_of[command].set_defaults(func=interrupted)
+    argv = {"fit": ["fit", "cap"], "geometry": ["geometry", "cap"], "render": ["render", "run", "--cameras", "c"],
+            "eval": ["eval", "run"]}[command]
+    assert cli.main(argv) == 130
+    err = capsys.readouterr().err
+    assert err.startswith("interrupted")
+    assert ("--resume" in err) == hint and (f"vq-mitsuba {command}" in err) == hint

@@ -395,12 +395,12 @@ def _add_fit(sub, shared) -> None:
         "fit", parents=_run_parents(shared), help="decompose a capture into materials and lighting (VQ-NeRF)",
         description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the continuous and "
                     "discrete material branches, the lighting if unknown, and the ranked materials. Writes RUN_DIR "
-                    "(docs/run_dir.md): config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
-                    "materials_err.png, materials_sheet.png, loss.png, fit.json. --geometry auto (the default) "
-                    "uses the capture's shapes, its mesh.ply or --mesh when there are any, and otherwise "
+                    "(docs/run_dir.md): run.json, config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
+                    "materials_err.png, materials_sheet.png, loss.png, fit.json, residual.pt. --geometry auto (the "
+                    "default) uses the capture's shapes, its mesh.ply or --mesh when there are any, and otherwise "
                     "reconstructs the mesh with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus always "
-                    "reconstructs it from the images (needs alpha masks); given never does.")
-    f.add_argument("--mesh", help="known geometry (PLY/OBJ) for a NeRF-synthetic capture")
+                    "reconstructs it from the images (with their masks when they have any); given never does.")
+    f.add_argument("--mesh", help="known geometry (PLY/OBJ) in the capture's world, for any posed capture")
     f.add_argument("--geometry", choices=["auto", "neus", "given"], default="auto",
                    help="where the mesh comes from: auto (default), neus or given (see above)")
     f.set_defaults(func=_cmd_fit)
@@ -408,8 +408,9 @@ def _add_fit(sub, shared) -> None:
 
 def _add_geometry(sub, shared) -> None:
     g = sub.add_parser(
-        "geometry", parents=_run_parents(shared), help="reconstruct a mesh from posed images with alpha masks (NeuS)",
-        description="NeuS on the capture's images and masks, then marching cubes and mesh clean-up. Writes "
+        "geometry", parents=_run_parents(shared), help="reconstruct a mesh from posed images, with or without masks (NeuS)",
+        description="NeuS on the capture's images (and masks, when it has any), then marching cubes and mesh "
+                    "clean-up. Writes "
                     "RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and the NeuS "
                     "checkpoint neus.pt. Known geometry in the capture is ignored. Of the config, the `neus` and "
                     "`capture` sections apply (e.g. --set neus.iterations=3000).")
@@ -444,11 +445,11 @@ def _add_render(sub, shared) -> None:
                     "image in the capture's world convention (Blender's for NeRF/Blender captures). With several "
                     "--envmap, the first lighting's views go to OUT and each further one's to OUT/<file name>, "
                     "rendered in one pass. --downscale / --max-size shrink the cameras' images (a 1600x1200 "
-                    "photo capture rendered smaller).")
+                    "photo capture rendered smaller). OUT/render.json records the run, cameras and lighting used.")
     r.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     r.add_argument("--cameras", required=True, help="any capture (its cameras only): transforms json, XML, ...")
     r.add_argument("--envmap", action="append", default=[],
-                   help="relight with this lat-long HDR image (EXR); repeatable")
+                   help="relight with this lat-long HDR image (EXR or Radiance .hdr); repeatable")
     r.add_argument("--env-rotate", type=_finite(1e6), default=0.0, metavar="DEG",
                    help="rotate the lighting about the up axis by DEG degrees")
     r.add_argument("--exposure", type=_finite(64), default=0.0, metavar="EV", help="scale the lighting by 2^EV")
@@ -521,7 +522,7 @@ def _add_eval(sub, shared) -> None:
     e = sub.add_parser(
         "eval", parents=[shared["threads"], _output("metrics JSON path (default: RUN_DIR/metrics.json)"),
                          shared["quiet"], shared["size"]],
-        help="score a fitted run against a synthetic dataset's ground truth",
+        help="score a fitted run: its held-out views, or a synthetic dataset's ground truth (--gt)",
         description="Render the dataset's test views (transforms_test.json) and compare inside the ground-truth "
                     "foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after per-channel scale alignment, "
                     "metallic/roughness PSNR, and relighting PSNR/SSIM under each held-aside envmap (albedo-scale "
@@ -637,7 +638,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt:
-        print("interrupted; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)", file=sys.stderr)
+        resumable = args.command in ("fit", "geometry")
+        print("interrupted" + (f"; the last checkpoint is kept (continue with `vq-mitsuba {args.command} ... --resume`)"
+                               if resumable else ""), file=sys.stderr)
         return 130
 
 

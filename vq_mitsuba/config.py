@@ -223,7 +223,7 @@ class RenderConfig:
 
 @dataclass
 class NeuSConfig:
-    """The geometry stage: NeuS on posed, masked images, then mesh export."""
+    """The geometry stage: NeuS on posed images (with masks or without), then mesh export."""
 
     seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
     iterations: int = setting(0, "training steps (0: auto, 2 passes over the training rays within 4000-8000)", ">=0")

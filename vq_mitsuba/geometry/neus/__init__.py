@@ -1,11 +1,11 @@
-"""NeuS on a CPU: geometry (an SDF) and appearance from posed images with alpha masks.
+"""NeuS on a CPU: geometry (an SDF) and appearance from posed images, with alpha masks or without.
 
 Model (NeuS, Wang et al. 2021; VQ-NeRF supplement Eq. 1-2): an SDF network f and a colour network
 c; along a ray, section i between samples has opacity
     alpha_i = max((Phi_s(f_i - cos * d_i / 2) - Phi_s(f_i + cos * d_i / 2)) / Phi_s(f_i - cos * d_i / 2), 0)
 with Phi_s the logistic sigmoid of learned sharpness s, and the pixel colour is the
 alpha-composited c. Losses: L1 colour, eikonal (|grad f| = 1), BCE between accumulated opacity
-and the alpha mask.
+and the alpha mask (with masks; without them a background model takes the rest of each ray).
 
 What makes it fast enough for two CPU cores:
 - the SDF network is a tiny MLP fed by a multi-resolution feature grid (dense levels, hashed past
