@@ -34,16 +34,19 @@ def _read_8_or_16_bit(path: Path, reduce: int = 1) -> np.ndarray:
     if path.suffix.lower() == ".png" and not png or path.suffix.lower() != ".png" and head[:2] != b"\xff\xd8":
         raise InputError(path, f"not a {path.suffix[1:].upper()} image (the file does not start like one; "
                                "truncated, or another kind of file renamed?)")
-    if reduce > 1 and not png:
+    if not png:
         from PIL import Image
 
         with Image.open(path) as im:
-            w, h = im.size
-            if w % reduce == 0 and h % reduce == 0:
+            if reduce > 1:
+                w, h = im.size
+                if w % reduce or h % reduce:  # callers ask only where jpeg_reduction allows
+                    raise ValueError(f"cannot decode at 1/{reduce} scale")
                 im.draft(im.mode, (w // reduce, h // reduce))
-                if im.size == (w // reduce, h // reduce):
-                    return np.asarray(im)
-        raise ValueError(f"cannot decode at 1/{reduce} scale")  # callers ask only where jpeg_reduction allows
+                if im.size != (w // reduce, h // reduce):
+                    raise ValueError(f"cannot decode at 1/{reduce} scale")
+            # A CMYK JPEG's fourth channel is black, not alpha: Pillow converts it to RGB.
+            return np.asarray(im if im.mode in ("L", "RGB") else im.convert("RGB"))
     if png and len(head) > 24 and head[24] == 16:
         import mitsuba as mi
 
