@@ -16,7 +16,7 @@ import math
 import struct
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -334,24 +334,52 @@ def _by_id(path: Path, entries: list[tuple[int, Lens]]) -> dict[int, Lens]:
 
 
 def _read_images_txt(path: Path) -> list[ColmapImage]:
-    lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    """images.txt: two lines per image, the image line and its POINTS2D line (X Y POINT3D_ID
+    triples, possibly empty). A second image line where a POINTS2D line belongs is refused: read
+    as its points, every second image would be lost."""
     out = []
-    i = 0
-    while i < len(lines):
-        if not lines[i].strip():
-            i += 1
+    points_of = None  # the image whose POINTS2D line comes next
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if line.startswith("#"):
             continue
-        parts = lines[i].split()
-        try:
-            if len(parts) < 10:
-                raise ValueError
-            out.append(ColmapImage(" ".join(parts[9:]), int(parts[8]), np.array(parts[1:5], np.float64),
-                                   np.array(parts[5:8], np.float64), int(parts[0])))
-        except ValueError:
-            raise InputError(path, f"line '{lines[i][:60]}' is not IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME") \
-                from None
-        i += 2  # the next line lists the image's 2D points (possibly empty)
+        parts = line.split()
+        if points_of is not None:
+            if not _points2d_line(parts):
+                if _image_line(parts) is not None:
+                    raise InputError(path, f"line {number} is an image line where the POINTS2D line of image "
+                                           f"{points_of} belongs: images.txt holds two lines per image (the second "
+                                           "lists X Y POINT3D_ID ... and may be empty)")
+                raise InputError(path, f"line {number} ('{line[:60]}') is not the POINTS2D line of image "
+                                       f"{points_of} (X Y POINT3D_ID triples, or empty)")
+            points_of = None
+            continue
+        if not parts:
+            continue
+        image = _image_line(parts)
+        if image is None:
+            raise InputError(path, f"line {number} ('{line[:60]}') is not IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID "
+                                   "NAME")
+        out.append(image)
+        points_of = image.image_id
     return out
+
+
+def _image_line(parts: list[str]) -> ColmapImage | None:
+    """An images.txt image line (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME), or None."""
+    try:
+        if len(parts) < 10:
+            raise ValueError
+        return ColmapImage(" ".join(parts[9:]), int(parts[8]), np.array(parts[1:5], np.float64),
+                           np.array(parts[5:8], np.float64), int(parts[0]))
+    except ValueError:
+        return None
+
+
+def _points2d_line(parts: list[str]) -> bool:
+    """Whether the tokens are X Y POINT3D_ID triples (none at all included). Only the ids are
+    looked at (whole numbers, -1 for none); an image line has them only by chance (integral QX and
+    TX and a name of three words or more)."""
+    return len(parts) % 3 == 0 and all(t.removeprefix("-").isdigit() for t in parts[2::3])
 
 
 def _read(f, fmt):
@@ -445,8 +473,10 @@ def colmap_to_world(img: ColmapImage) -> np.ndarray:
 
 
 def colmap_camera(img: ColmapImage, lens: Lens) -> Camera:
-    """The pinhole (undistorted) Mitsuba camera of one registered image."""
-    return camera_from_intrinsics(Path(img.name).stem, colmap_to_world(img) @ OPENCV_TO_MITSUBA, lens.fx, lens.fy,
+    """The pinhole (undistorted) Mitsuba camera of one registered image, named by the image's path
+    under images/ without its suffix (`a/000.png` is `a/000`, `b/000.png` `b/000`)."""
+    name = str(PurePosixPath(img.name).with_suffix("")) if PurePosixPath(img.name).suffix else img.name
+    return camera_from_intrinsics(name, colmap_to_world(img) @ OPENCV_TO_MITSUBA, lens.fx, lens.fy,
                                   lens.cx, lens.cy, lens.width, lens.height)
 
 
