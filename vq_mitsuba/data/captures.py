@@ -2,11 +2,13 @@
 
 A capture is a Mitsuba scene XML (sensors with `images/<id>.exr|png` beside the XML, optional
 `<shape>` geometry and `<emitter type="envmap">` lighting; Mitsuba world), a NeRF-synthetic
-`transforms_*.json` (OpenGL camera axes, Blender world with Z up; optional `mesh.ply` beside it or
-a `mesh=` argument), a nerfstudio `transforms.json` (pixel intrinsics, lens distortion, masks:
-vq_mitsuba.data.nerfstudio), or a photographed capture (COLMAP, NeuS/IDR, LLFF:
-vq_mitsuba.data.photo_captures). Images are shrunk as they are read (capture.downscale,
-capture.max_size: vq_mitsuba.data.resize). Everything is validated before returning, and every
+`transforms_*.json` (OpenGL camera axes, Blender world with Z up), a nerfstudio `transforms.json`
+(pixel intrinsics, lens distortion, masks: vq_mitsuba.data.nerfstudio), or a photographed capture
+(COLMAP, NeuS/IDR, LLFF: vq_mitsuba.data.photo_captures). Known geometry besides an XML's shapes:
+a `mesh=` argument, else a `mesh.ply` in the capture's folder (beside the json, in the COLMAP,
+NeuS/IDR or LLFF folder), in the capture's world. Images are shrunk as they are read
+(capture.downscale, capture.max_size: vq_mitsuba.data.resize). Views are named by
+vq_mitsuba.data.names (file-safe, unique). Everything is validated before returning, and every
 problem is an InputError naming the offending file.
 """
 
@@ -14,9 +16,10 @@ from __future__ import annotations
 
 import json
 import math
+import posixpath
 import re
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,6 +30,7 @@ from vq_mitsuba.errors import InputError, raise_all
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
 from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_pose, check_size, finite_number
 from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.data.names import view_names
 from vq_mitsuba.data.unposed import UNPOSED_KINDS, is_video, photo_files, unposed_error
 from vq_mitsuba.data.resize import Shrink, downscaled_camera  # noqa: F401 (downscaled_camera: public here too)
 
@@ -87,6 +91,7 @@ def load_capture(path: str | Path, mesh: str | Path | None = None, options: Capt
         mesh_file = mesh if mesh is not None else (folder / "mesh.ply" if (folder / "mesh.ply").is_file() else None)
         capture = Capture(source, cameras, images, alpha, has_alpha, load_mesh(mesh_file) if mesh_file else None,
                           None, env_to_world, "mitsuba")
+    capture.cameras = named_views(capture.cameras)
     return finish_capture(capture, options, split)
 
 
@@ -119,8 +124,15 @@ def load_cameras(path: str | Path, options: CaptureConfig | None = None,
 
         cameras, world = photo_cameras(source, kind), "mitsuba"
     shrink = Shrink.of(options)
-    cameras = [shrink.camera(c, source) for c in cameras]
+    cameras = [shrink.camera(c, source) for c in named_views(cameras)]
     return [cameras[i] for i in split_indices(len(cameras), options.holdout, split)], world, source
+
+
+def named_views(cameras: list[Camera]) -> list[Camera]:
+    """The cameras under their file-safe, unique view names (vq_mitsuba.data.names.view_names),
+    given to all views of a capture before any split. The loaders find each view's files by the
+    capture's own names; everything after loading knows a view by this name."""
+    return [replace(c, name=n) for c, n in zip(cameras, view_names([c.name for c in cameras]))]
 
 
 def capture_kind(source: Path) -> str:
@@ -597,7 +609,21 @@ def _json_frames(path: Path, data: dict) -> list[dict]:
             raise InputError(path, f"frames[{i}] has no 'file_path'")
         if "transform_matrix" not in frame:
             raise InputError(path, f"frames[{i}] ({frame['file_path']}) has no 'transform_matrix'")
+    first: dict[str, int] = {}
+    for i, frame in enumerate(frames):  # one image counted twice would weigh twice in the fit
+        key = _frame_key(frame["file_path"])
+        if key in first:
+            raise InputError(path, f"frames[{i}] ({frame['file_path']}) lists the image of frames[{first[key]}] "
+                                   f"({frames[first[key]]['file_path']}) again: each image may appear once")
+        first[key] = i
     return frames
+
+
+def _frame_key(file_path: str) -> str:
+    """A frame's image as a relative path spelled one way, without its image suffix (the frames
+    "./a/../b/r_0" and "b/r_0.png" name one image)."""
+    path = posixpath.normpath(file_path.replace("\\", "/"))
+    return path[: -len(Path(path).suffix)] if Path(path).suffix.lower() in IMAGE_EXTS else path
 
 
 def _frame_matrices(path: Path, frames: list[dict]) -> list[np.ndarray]:
@@ -628,11 +654,11 @@ def _json_cameras(path: Path, frames: list[dict], matrices: list[np.ndarray], an
 
 
 def _frame_names(frames: list[dict]) -> list[str]:
-    stems = [Path(f["file_path"]).name for f in frames]
-    stems = [s[: -len(Path(s).suffix)] if Path(s).suffix.lower() in IMAGE_EXTS else s for s in stems]
-    if len(set(stems)) == len(stems):
-        return stems
-    return [f"{i:04d}_{s}" for i, s in enumerate(stems)]
+    """The frames' names: their image file names without the image suffix, or, where two of these
+    agree (train/r_0 and test/r_0), the relative paths (made file names by `named_views`)."""
+    paths = [_frame_key(f["file_path"]) for f in frames]
+    stems = [posixpath.basename(p) for p in paths]
+    return stems if len(set(stems)) == len(stems) else paths
 
 
 def _frame_image_candidates(path: Path, frame: dict) -> list[Path]:

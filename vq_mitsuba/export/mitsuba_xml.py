@@ -7,11 +7,13 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import Sequence
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.imageio import write_exr
+from vq_mitsuba.data.names import unique_names
 from vq_mitsuba.export.bake import BakedMesh
 
 
@@ -40,8 +42,9 @@ def _matrix(m: np.ndarray) -> str:
     return " ".join(f"{x:.9g}" for x in np.asarray(m, np.float64).ravel())
 
 
-def sensor_xml(camera: Camera, spp: int) -> str:
-    return (f'  <sensor type="perspective" id="{camera.name}">\n'
+def sensor_xml(camera: Camera, spp: int, sensor_id: str | None = None) -> str:
+    """One perspective sensor; its id (`sensor_id`, else the camera's name) escaped for XML."""
+    return (f'  <sensor type="perspective" id={quoteattr(camera.name if sensor_id is None else sensor_id)}>\n'
             f'    <float name="fov" value="{camera.fov_x_deg:.9g}"/>\n'
             f'    <string name="fov_axis" value="x"/>\n'
             + principal_xml(camera, "    ") +
@@ -68,7 +71,7 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
 
     def texture(key: str) -> str:
         return (f'<texture type="bitmap" name="{"base_color" if key == "basecolor" else key}">'
-                f'<string name="filename" value="{name}_{key}.exr"/><boolean name="raw" value="true"/>'
+                f'<string name="filename" value={quoteattr(f"{name}_{key}.exr")}/><boolean name="raw" value="true"/>'
                 f'<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>')
 
     xml = "\n".join([
@@ -76,8 +79,9 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
         f'  <default name="spp" value="{int(spp)}"/>',
         f'  <integrator type="path"><integer name="max_depth" value="{int(max_depth)}"/>'
         '<boolean name="hide_emitters" value="true"/></integrator>',
-        *[sensor_xml(c, spp) for c in cameras],
-        f'  <shape type="ply" id="{name}"><string name="filename" value="{name}.ply"/>',
+        # Mitsuba wants every id once: the train and test views of a capture may share names.
+        *[sensor_xml(c, spp, sid) for c, sid in zip(cameras, unique_names([c.name for c in cameras]))],
+        f'  <shape type="ply" id={quoteattr(name)}><string name="filename" value={quoteattr(f"{name}.ply")}/>',
         '    <bsdf type="twosided"><bsdf type="principled">',
         *[f"      {texture(k)}" for k in ("basecolor", "metallic", "roughness")],
         '      <float name="specular" value="0.5"/>',
@@ -88,5 +92,5 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
         "  </emitter>",
         "</scene>",
     ]) + "\n"
-    (out / "scene.xml").write_text(xml)
+    (out / "scene.xml").write_text(xml, encoding="utf-8")
     return [out / "scene.xml"] + written

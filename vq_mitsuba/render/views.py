@@ -14,6 +14,7 @@ import torch
 
 from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
+from vq_mitsuba.data.names import view_names
 from vq_mitsuba.errors import InputError, NumericalError
 from vq_mitsuba.models.fitted import FittedModel
 from vq_mitsuba.models.residual import add_residual
@@ -272,15 +273,21 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     images are those a render under it alone gives (same seed)."""
     from tqdm import tqdm
 
+    for name, _ in more_envmaps:  # each lighting's folder lies inside OUT_DIR
+        if name in ("", ".", "..") or "/" in name or "\\" in name:
+            raise InputError(None, f"the lighting name {name!r} cannot name a folder inside {out_dir}")
+    # The loaders' names are file names already (vq_mitsuba.data.names); this keeps any other
+    # caller's inside OUT_DIR and apart.
+    files = view_names([cam.name for cam in cameras])
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
     others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
-    for cam in tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True):
+    for cam, file_name in zip(tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True), files):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
         relit = images.pop("relit", [])
         check_finite(images, cam.name)
         check_finite({f"{name} rgb": im for (name, _), im in zip(more_envmaps, relit)}, cam.name)
         if cameras_world != fitted.world:  # normals in the cameras' world
             images["normal"] = images["normal"] @ world_rotation(fitted.world, cameras_world).T
-        write_view(out_dir, cam.name, images)
+        write_view(out_dir, file_name, images)
         for (name, _), rgb in zip(more_envmaps, relit):
-            write_view(out_dir / name, cam.name, dict(images, rgb=rgb))
+            write_view(out_dir / name, file_name, dict(images, rgb=rgb))
