@@ -9,15 +9,18 @@ Ranges, a small vocabulary (RANGES):
     ">0"         a number above 0
     ">=0"        a number not below 0 (the default for numbers)
     "[0,1]"      0 <= x <= 1
-    "(0,1]"      0 < x <= 1
+    "(0,1]"      0 < x <= 1 (learning rates: Adam steps by about lr, so above 1 a fit only diverges)
     "[0,1)"      0 <= x < 1
+    ">=2"        a number not below 2
+    "[2,1024]"   2 <= x <= 1024 (a marching-cubes grid: its volume is res^3 floats)
     "any"        any finite number (numbers), any text (strings: the default; parsed where used)
     "square"     a square number or 0 (0, 1, 4, 9, ...)
     "square>0"   a square number above 0 (1, 4, 9, ...)
     ("a", "b")   a string that is one of these choices
     None         booleans (true/false)
 
-A few checks span keys (neus.base_res / neus.max_res, capture.background_color's R,G,B): they are
+Every integer lies within +-MAX_INT (booleans are not integers: `iterations: true` is refused), and
+every float is finite. A few checks span keys (neus.base_res / neus.max_res, capture.background_color's R,G,B): they are
 in `check` too. A saved config.yaml starts with `version:` (CONFIG_VERSION); `upgrade` brings an
 older mapping to the current names.
 """
@@ -42,10 +45,15 @@ RANGES: dict[str, tuple[typing.Callable[[float], bool], str]] = {
     "[0,1]": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "(0,1]": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "[0,1)": (lambda v: 0 <= v < 1, "in [0, 1)"),
+    ">=2": (lambda v: v >= 2, ">= 2"),
+    "[2,1024]": (lambda v: 2 <= v <= 1024, "in [2, 1024]"),
     "any": (lambda v: True, "any number"),
     "square": (lambda v: v >= 0 and round(v ** 0.5) ** 2 == v, "a square number or 0"),
     "square>0": (lambda v: v > 0 and round(v ** 0.5) ** 2 == v, "a square number > 0"),
 }
+
+
+MAX_INT = 2 ** 31 - 1  # the largest integer a key takes (steps, sizes, seeds: int32 everywhere they go)
 
 
 def _default_range(default):
@@ -110,9 +118,9 @@ class EnvmapConfig:
     """The learned lat-long environment map (used only when the capture's lighting is unknown)."""
 
     height: int = setting(
-        128, "rows of the learned envmap at the end of the fit (width is twice this); it grows from 32", ">0")
+        128, "rows of the learned envmap at the end of the fit (width is twice this); it grows from 32", ">=2")
     init_scale: float = setting(2.0, "initial radiance as a multiple of the mean foreground pixel value", ">0")
-    lr: float = setting(0.02, "Adam learning rate of the log-radiance texels", ">0")
+    lr: float = setting(0.02, "Adam learning rate of the log-radiance texels", "(0,1]")
     tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
     final_height: str = setting(
         "auto", "the learned envmap's last rung: auto stops growing at the rows the fitted roughness can resolve "
@@ -178,7 +186,7 @@ class TrainConfig:
     iterations: int = setting(3000, "optimisation steps", ">0")
     batch_rays: int = setting(2048, "random foreground pixels per step, drawn across all training views", ">0")
     spp: int = setting(8, "emitter + BSDF sample pairs per pixel and step", ">0")
-    lr: float = setting(2e-3, "Adam learning rate of the material networks", ">0")
+    lr: float = setting(2e-3, "Adam learning rate of the material networks", "(0,1]")
     lr_end_exponential: float = setting(
         0.1, "learning-rate factor reached at the last iteration (exponential in the steps done)", "(0,1]")
     seed: int = setting(0, "seed of the networks, batches and light samples")
@@ -230,9 +238,9 @@ class NeuSConfig:
     time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
     batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
-    lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", ">0")
-    lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", ">0")
-    lr_variance: float = setting(2e-3, "Adam learning rate of the sharpness parameter", ">0")
+    lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", "(0,1]")
+    lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", "(0,1]")
+    lr_variance: float = setting(2e-3, "Adam learning rate of the sharpness parameter", "(0,1]")
     lr_end_cosine: float = setting(
         0.1, "learning-rate factor reached at the last step (cosine in the steps done)", "(0,1]")
     warmup: int = setting(100, "steps of linear learning-rate warm-up")
@@ -263,7 +271,7 @@ class NeuSConfig:
                                           "[0,1]")
     occupancy_every: int = setting(500, "steps between occupancy-grid refreshes from the SDF")
     march_steps: int = setting(128, "coarse steps per ray that find its occupied interval", ">0")
-    mesh_resolution: int = setting(256, "marching-cubes grid resolution", ">0")
+    mesh_resolution: int = setting(256, "marching-cubes grid resolution", "[2,1024]")
     min_component: float = setting(0.05, "connected pieces smaller than this share of the largest are dropped", "[0,1]")
     keep_largest: bool = setting(False, "keep only the largest connected component")
     smooth_iterations: int = setting(0, "Taubin smoothing steps after marching cubes")
@@ -337,6 +345,8 @@ def to_dict(cfg) -> dict:
 def _coerce(value, typ, key: str, source):
     if typ is str and isinstance(value, bool):  # YAML reads on / off (and yes / no) as booleans
         return "on" if value else "off"
+    if typ in (int, float) and isinstance(value, bool):  # YAML's true / false are not numbers
+        raise InputError(source, f"'{key}' expects {typ.__name__}, got {str(value).lower()}")
     if typ is bool:
         if isinstance(value, str):
             if value.lower() in ("1", "true", "yes", "on"):
@@ -353,6 +363,8 @@ def _coerce(value, typ, key: str, source):
         raise InputError(source, f"'{key}' expects {typ.__name__}, got '{value}'") from None
     if typ is float and not math.isfinite(out):
         raise InputError(source, f"'{key}' must be a finite number, got {value}")
+    if typ is int and abs(out) > MAX_INT:
+        raise InputError(source, f"'{key}' must be a whole number within +-{MAX_INT}, got {value}")
     return out
 
 
