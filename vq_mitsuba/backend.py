@@ -41,6 +41,12 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def max_threads() -> int:
+    """The most threads `set_threads` takes: 4 per core of the machine (more only add switching,
+    and thousands of them exhaust the stacks Dr.Jit's pool allocates)."""
+    return 4 * max(1, os.cpu_count() or 1)
+
+
 def set_threads(n: int | None = None) -> int:
     """Use n CPU threads (default: the available cores) in torch and in Dr.Jit's LLVM backend.
 
@@ -48,6 +54,12 @@ def set_threads(n: int | None = None) -> int:
     imported first): spinning threads would fight a busy neighbour process for the same cores."""
     import drjit as dr
 
+    from vq_mitsuba.errors import InputError
+
+    most = max_threads()
+    if n is not None and not 0 <= int(n) <= most:
+        raise InputError(None, f"--threads {n}: expected 1 to {most} (4 per core of the {os.cpu_count() or 1} "
+                               "this machine has)")
     n = available_cores() if not n else int(n)
     torch.set_num_threads(n)
     dr.set_thread_count(n)
