@@ -15,6 +15,7 @@ from __future__ import annotations
 import hmac
 import ipaddress
 import json
+import math
 import secrets
 import signal
 import socket
@@ -55,6 +56,41 @@ def run_file(roots: list[Path], rel: str) -> Path | None:
         if path.is_relative_to(base) and path.is_file() and path.suffix.lower() in TYPES:
             return path
     return None
+
+
+def finite_json(data):
+    """`data` with every NaN or infinite float as None: the page parses strict JSON, which has no
+    literal for them (a value that is not a number is shown as missing)."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: finite_json(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [finite_json(v) for v in data]
+    return data
+
+
+def _refuse_constant(name: str):
+    raise InputError(None, f"the request body holds {name}, which is not a JSON number")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise InputError(None, f"the request body holds {text}, which is beyond the range of a number")
+    return value
+
+
+def parse_body(raw: bytes) -> dict:
+    """A request body as a JSON object of finite numbers (no NaN, Infinity or 1e400); InputError
+    otherwise."""
+    try:
+        body = json.loads(raw or b"{}", parse_constant=_refuse_constant, parse_float=_finite_float)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise InputError(None, "the request body is not JSON") from None
+    if not isinstance(body, dict):
+        raise InputError(None, "the request body is not a JSON object")
+    return body
 
 
 def _host_name(host: str) -> str:
@@ -109,7 +145,7 @@ class _Handler(BaseHTTPRequestHandler):
             pass
 
     def _json(self, data, status: int = 200) -> None:
-        self._send(status, json.dumps(data).encode(), "application/json")
+        self._send(status, json.dumps(finite_json(data), allow_nan=False).encode(), "application/json")
 
     def _not_found(self) -> None:
         self._send(HTTPStatus.NOT_FOUND, b"not found", "text/plain; charset=utf-8")
@@ -187,20 +223,19 @@ class _Handler(BaseHTTPRequestHandler):
         if handler is None:
             return self._not_found()
         try:
-            length = int(self.headers.get("Content-Length") or 0)
+            try:
+                length = int(self.headers.get("Content-Length") or 0)
+            except ValueError:
+                raise InputError(None, "Content-Length is not a whole number") from None
+            if length < 0:
+                raise InputError(None, f"Content-Length {length} is negative")
             if length > MAX_BODY:
                 raise InputError(None, "request too large")
-            raw = self.rfile.read(length) if length else b"{}"
-            try:
-                body = json.loads(raw or b"{}")
-            except json.JSONDecodeError:
-                raise InputError(None, "the request body is not JSON") from None
-            if not isinstance(body, dict):
-                raise InputError(None, "the request body is not a JSON object")
+            body = parse_body(self.rfile.read(length) if length else b"{}")
             result = handler(self.session, body)
         except UserError as exc:
             return self._json({"error": str(exc)}, 400)
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
             return self._json({"error": f"bad request: {exc}"}, 400)
         self._json({"ok": True, **(result or {}), "state": self.session.state()})
 
