@@ -155,6 +155,61 @@ def save_torch(obj, path: str | Path) -> Path:
 
 
 FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed")
+WORLDS = ("mitsuba", "blender")
+
+
+def check_info(info: dict, path: Path) -> dict:
+    """run.json's values as the readers need them (InputError naming the file and the key
+    otherwise): finite numbers only, `capture` a path, `world` one of WORLDS, `envmap_to_world` a
+    4 x 4 matrix, and in an edited run `edit_of` the fitted run's two paths."""
+    bad = _first_nonfinite(info)
+    if bad:
+        raise InputError(path, f"'{bad}' is not a finite number; fit the capture again")
+
+    def wrong(key: str, what: str):
+        value = info.get(key)
+        got = "missing" if key not in info else f"got {json.dumps(value)[:60]}"
+        return InputError(path, f"'{key}' must be {what} ({got}); fit the capture again")
+
+    if not isinstance(info.get("capture"), str) or not info["capture"]:
+        raise wrong("capture", "the capture's path")
+    if info.get("world") not in WORLDS:
+        raise wrong("world", " or ".join(f"'{w}'" for w in WORLDS))
+    matrix = info.get("envmap_to_world")
+    if not (isinstance(matrix, list) and len(matrix) == 4 and all(
+            isinstance(row, list) and len(row) == 4 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in row) for row in matrix)):
+        raise wrong("envmap_to_world", "a 4 x 4 matrix of numbers")
+    if "edit_of" in info:
+        ref = info["edit_of"]
+        if not (isinstance(ref, dict) and all(isinstance(ref.get(k), str) for k in ("absolute", "relative"))):
+            raise wrong("edit_of", "{\"absolute\": PATH, \"relative\": PATH}")
+    return info
+
+
+def check_edit_materials(edits: list[Edit], num_materials: int | None, path: Path) -> None:
+    """Refuse an edit list that selects a material the fitted run does not have (InputError naming
+    the file and the entry)."""
+    for i, edit in enumerate(edits):
+        missing = [k for k in edit.selection.materials if num_materials is None or k > num_materials]
+        if missing:
+            has = f"materials 1..{num_materials}" if num_materials else "no materials (no discrete branch)"
+            raise InputError(path, f"edit {i + 1} selects material {missing[0]}, but the fitted run has {has}")
+
+
+def load_module_state(module: torch.nn.Module, tensors, path: Path, part: str) -> None:
+    """`module.load_state_dict(tensors)`, or an InputError naming the state file when the tensors do
+    not fit the networks the config builds (another architecture, another file)."""
+    if not isinstance(tensors, dict):
+        raise InputError(path, f"'{part}' is not a state of networks: not a checkpoint of this run")
+    try:
+        module.load_state_dict(tensors)
+    except (RuntimeError, KeyError, TypeError, ValueError) as exc:
+        first = str(exc).strip().splitlines()
+        detail = next((line.strip() for line in first[1:] if line.strip()), first[0] if first else "")
+        raise InputError(path, f"'{part}' does not fit the networks of the run's config ({detail[:200]}): the "
+                               "file belongs to another run or configuration (field and vq settings must stay "
+                               "those of the fit)") from None
 
 
 def nonfinite_tensors(state: dict) -> list[str]:
@@ -261,7 +316,7 @@ class RunDir:
             if version != FORMAT_VERSION:
                 raise InputError(path, f"run-directory format {version!r} is not the format {FORMAT_VERSION} this "
                                        "version of vq-mitsuba reads; fit the capture again")
-            self._info = info
+            self._info = check_info(info, path)
         return self._info
 
     # --- edited runs ---------------------------------------------------------------------------
@@ -414,7 +469,10 @@ class RunDir:
             state = torch.load(path, map_location=device, weights_only=False)
         except Exception as exc:  # a torn or foreign file
             raise InputError(path, f"not a readable checkpoint ({type(exc).__name__}: {exc})") from None
-        bad = nonfinite_tensors(state) if isinstance(state, dict) else ["(not a state dictionary)"]
+        if not isinstance(state, dict):
+            raise InputError(path, f"not a vq-mitsuba state file (a torch file holding a {type(state).__name__}, "
+                                   "not a dictionary of states)")
+        bad = nonfinite_tensors(state)
         if bad:
             raise InputError(path, f"holds non-finite values in {', '.join(bad[:5])}: refusing to load it")
         return state
@@ -433,7 +491,10 @@ class RunDir:
         if not path.is_file():
             return None
         state = self.load_state(path, device)
-        return state["field"] if state.get("step") == step and isinstance(state.get("field"), dict) else None
+        if not isinstance(state.get("step"), int) or not isinstance(state.get("field"), dict):
+            raise InputError(path, "not a residual state ('step' and 'field' missing): fit the run again, or remove "
+                                   "the file")
+        return state["field"] if state["step"] == step else None
 
     def snapshot_path(self, elapsed_s: float, step: int) -> Path:
         (self.dir / self.SNAPSHOTS).mkdir(exist_ok=True)
@@ -473,32 +534,46 @@ class RunDir:
         if "edit_of" in info:
             edits = self.edits()
             fitted = self.source().load(checkpoint)
+            check_edit_materials(edits, fitted.num_materials, self.dir / self.EDITS)
             fitted.edits = edits
             return fitted
         cfg = self.config()
         init_mitsuba()
         device = torch_device()
+        state_path = Path(checkpoint) if checkpoint is not None else self.checkpoint_path
         state = self.load_state(checkpoint, device)
         mesh = self.mesh()
         model, discrete = material_networks(cfg, mesh, device)
-        model.load_state_dict(state["model"])
+        load_module_state(model, state.get("model"), state_path, "model")
         model.eval()
         if state.get("discrete") is None:
             discrete = None
         if discrete is not None:
-            discrete.load_state_dict(state["discrete"])
+            load_module_state(discrete, state["discrete"], state_path, "discrete")
             discrete.eval()
             if not bool(discrete.initialised):
                 discrete = None
-        if state.get("envmap") is not None:
-            envmap = torch.exp(state["envmap"]["log_radiance"]).cpu().numpy()
-        else:
-            envmap = state["envmap_fixed"].cpu().numpy()
+        envmap = _envmap_of(state, state_path)
         fitted = FittedModel(cfg, model, discrete, envmap, np.asarray(info["envmap_to_world"]), info["world"], mesh,
                              int(state.get("step", -1)))
         residual = self.residual_state(fitted.step, device) if checkpoint is None else None
         if residual is not None:
             fitted.residual = ResidualField(*mesh.bounds).to(device)
-            fitted.residual.load_state_dict(residual)
+            load_module_state(fitted.residual, residual, self.dir / self.RESIDUAL, "field")
             fitted.residual.eval()
         return fitted
+
+
+def _envmap_of(state: dict, path: Path) -> np.ndarray:
+    """The lat-long radiance (H, W, 3) of a state: the learned one, or the capture's own."""
+    learned = state.get("envmap")
+    if learned is not None:
+        log_radiance = learned.get("log_radiance") if isinstance(learned, dict) else None
+        envmap = torch.exp(log_radiance).cpu().numpy() if torch.is_tensor(log_radiance) else None
+    else:
+        fixed = state.get("envmap_fixed")
+        envmap = fixed.cpu().numpy() if torch.is_tensor(fixed) else None
+    if envmap is None or envmap.ndim != 3 or envmap.shape[2] != 3 or min(envmap.shape[:2]) < 2:
+        shape = "missing" if envmap is None else f"of shape {tuple(envmap.shape)}"
+        raise InputError(path, f"the envmap is {shape}, not a lat-long RGB map: not a checkpoint of this run")
+    return envmap
