@@ -31,8 +31,8 @@ def plot_err_k(errs: list[float], chosen: int, eps: float, path: Path) -> None:
 
 
 def plot_history(history: list[dict], path: Path) -> None:
-    if not history:
-        return
+    """The training loss and PSNR against the step (a fit that ended before its first logged step,
+    e.g. at its time limit, has empty axes)."""
     plt = _pyplot()
     steps = [h["step"] for h in history]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
@@ -40,6 +40,9 @@ def plot_history(history: list[dict], path: Path) -> None:
     ax[0].set_xlabel("iteration"); ax[0].set_ylabel("loss"); ax[0].set_title("training loss")
     ax[1].plot(steps, [h["psnr"] for h in history])
     ax[1].set_xlabel("iteration"); ax[1].set_ylabel("PSNR (dB, sRGB)"); ax[1].set_title("training-batch PSNR")
+    if not history:
+        for a in ax:
+            a.text(0.5, 0.5, "no step logged", ha="center", va="center", transform=a.transAxes)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

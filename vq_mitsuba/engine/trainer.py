@@ -54,6 +54,15 @@ def parse_snapshot_times(text: str) -> list[float]:
     return times
 
 
+def check_opaque_pixels(capture: Capture, alpha_threshold: float) -> None:
+    """Refuse a capture without a pixel to fit (every alpha below train.alpha_threshold) before
+    anything is traced."""
+    if capture.has_alpha and not bool((capture.alpha >= alpha_threshold).any()):
+        raise InputError(capture.source, f"no pixel of the {len(capture.cameras)} training views is opaque (alpha "
+                                         f">= train.alpha_threshold = {alpha_threshold:g}): nothing to fit; check the "
+                                         "alpha masks, or lower train.alpha_threshold")
+
+
 def envmap_ladder(cfg: Config) -> list[int]:
     """The learned envmap's rungs: envmap.height halved while it stays at least 32 rows."""
     ladder = [cfg.envmap.height]
@@ -78,6 +87,7 @@ class Trainer:
 
     def __init__(self, capture: Capture, run: RunDir, cfg: Config):
         self.cfg, self.run, self.capture = cfg, run, capture
+        check_opaque_pixels(capture, cfg.train.alpha_threshold)
         torch.manual_seed(cfg.train.seed)
         np.random.seed(cfg.train.seed)
         init_mitsuba()
@@ -240,6 +250,10 @@ class Trainer:
         pool = self.pool
         sub = torch.randint(0, len(pool), (min(KMEANS_LATENTS, len(pool)),), generator=self.gen, device=self.device)
         z_warm = self.model(pool.position[sub])["z"]
+        if not bool(torch.isfinite(z_warm).all()):
+            raise NumericalError(self.run.dir, f"step {self.step}: the material field's latents are not finite, so "
+                                               "the codebook cannot start from them; try a lower train.lr, or "
+                                               "--resume with another train.seed")
         self.discrete.vq.init_codebook(kmeans_codebook(z_warm, self.cfg.vq.num_codes, self.cfg.train.seed))
         self.discrete.warm_start(self.model.decoder, z_warm)
         self.discrete.initialised.fill_(True)
@@ -584,7 +598,8 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                                           "or choose another -o")
         init_mitsuba()
         state = run.load_state(device=torch_device())  # read once: the trainer resumes from it below
-        done = int(state.get("step", 0))
+        check_resumable(state, cfg, capture, run.checkpoint_path)
+        done = int(state["step"])
         # the schedule steps done (more than the steps where the pace ran faster: train.stop)
         position = float((state.get("skips") or {}).get("pace", {}).get("position", done))
         if position >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
@@ -592,6 +607,12 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                 print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
                       "asks for no more): nothing to do, the run is unchanged")
                 return run.fit_summary()
+            discrete = state.get("discrete")
+            if cfg.vq.enabled and not (isinstance(discrete, dict) and bool(discrete.get("initialised", False))):
+                raise InputError(run.dir, f"already has {done} steps, and its discrete branch has not started yet: "
+                                          f"train.iterations={cfg.train.iterations} asks for no more steps, so the "
+                                          "fit would end without materials; resume with train.iterations above "
+                                          f"{done}")
             cfg = copy.deepcopy(cfg)
             cfg.train.iterations = max(done, int(math.floor(position)))
     run.create()
@@ -614,7 +635,12 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
                     "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})
     if resume:
-        trainer.resume(state)
+        try:
+            trainer.resume(state)
+        except (RuntimeError, KeyError, TypeError, ValueError) as exc:  # the optimiser's or the rules' state
+            raise InputError(run.checkpoint_path, f"cannot be resumed with the config now ({type(exc).__name__}: "
+                                                  f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); resume "
+                                                  "with the run's own settings, or choose another -o") from None
         if trainer.step >= cfg.train.iterations or trainer.pace.finished:
             print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
     startup = time.perf_counter() - t_start
@@ -622,6 +648,26 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     summary["startup_s"] = startup
     trainer.finish(summary)
     return summary
+
+
+def check_resumable(state: dict, cfg: Config, capture: Capture, path: Path) -> None:
+    """Refuse, before any work, a checkpoint whose networks the config does not build (another
+    field or vq architecture, vq.enabled changed, another kind of state file): InputError naming it."""
+    from vq_mitsuba.run.run_dir import load_module_state
+
+    if not isinstance(state.get("step"), int) or "optim" not in state:
+        raise InputError(path, "not a checkpoint a fit resumes from ('step' or 'optim' missing)")
+    model, discrete = material_networks(cfg, capture.mesh, torch.device("cpu"))  # load_state_dict copies across devices
+    load_module_state(model, state.get("model"), path, "model")
+    if (discrete is None) != (state.get("discrete") is None):
+        raise InputError(path, f"was fitted with vq.enabled={str(discrete is None).lower()}, not "
+                               f"{str(cfg.vq.enabled).lower()}: resume with the run's own vq.enabled")
+    if discrete is not None:
+        load_module_state(discrete, state["discrete"], path, "discrete")
+    if (capture.envmap is None) != (state.get("envmap") is not None):
+        raise InputError(path, "was fitted with " + ("a learned" if state.get("envmap") is not None else "the "
+                               "capture's own") + " envmap, and the capture now says otherwise: resume with the "
+                               "run's capture, or choose another -o")
 
 
 def check_fit_target(run: RunDir, resume: bool) -> None:

@@ -188,6 +188,10 @@ class ShadingScene:
     # -- primary visibility -------------------------------------------------------------
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """First hits of rays (no gradients). Normals are flipped to face the ray origin."""
+        if len(origins) == 0:  # Dr.Jit aborts on a ray array of size 0 (e.g. a view with no opaque pixel)
+            dev = torch_device()
+            empty = torch.zeros((0, 3), device=dev)
+            return Hits(torch.zeros(0, dtype=torch.bool, device=dev), empty, empty.clone(), empty.clone())
         with dr.suspend_grad():
             ray = mi.Ray3f(mi.Point3f(*[mi.Float(origins[:, i]) for i in range(3)]),
                            mi.Vector3f(*[mi.Float(directions[:, i]) for i in range(3)]))
