@@ -622,8 +622,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
         from vq_mitsuba.backend import set_threads
+        from vq_mitsuba.run.loop import interrupt_signals
 
-        with _warnings_as_messages():
+        # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock
+        with _warnings_as_messages(), interrupt_signals():
             set_threads(args.threads)
             return args.func(args)
     except UserError as exc:
@@ -637,11 +639,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         resumable = args.command in ("fit", "geometry")
         print("interrupted" + (f"; the last checkpoint is kept (continue with `vq-mitsuba {args.command} ... --resume`)"
                                if resumable else ""), file=sys.stderr)
-        return 130
+        return 128 + getattr(exc, "signum", 2)  # 130 for SIGINT, 143 for SIGTERM
 
 
 if __name__ == "__main__":

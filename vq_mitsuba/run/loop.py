@@ -10,12 +10,43 @@ baseline's the time, NeuS the larger of the two).
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
 from vq_mitsuba.run.write_errors import WriteError
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM, raised in the main thread: a loop writes its checkpoint and the run's lock
+    is released on the way out, as for Ctrl-C. `signum` says which (the exit status is 128 + it)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextmanager
+def interrupt_signals():
+    """While inside, SIGINT and SIGTERM raise `Interrupted` in the main thread (SIGINT too when the
+    process inherited it ignored, as a command started in the background of a script does); the
+    previous handlers come back on the way out. Elsewhere than in the main thread: no change."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise Interrupted(signum)
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 @dataclass(frozen=True)
