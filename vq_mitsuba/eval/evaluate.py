@@ -63,6 +63,39 @@ def dataset_root(path: str | Path) -> Path:
     return root
 
 
+def _plain_name(value) -> bool:
+    return isinstance(value, str) and value not in ("", ".", "..") and not any(c in value for c in "/\\\0")
+
+
+def read_scene_meta(root: Path) -> dict:
+    """scene.json of a dataset, checked where evaluation reads it: an object whose `relight` (when
+    given) lists {"name": NAME, "file": PATH} with plain names, and whose `materials` list
+    {"id": N, "name": TEXT}; InputError naming the file and the entry otherwise."""
+    path = root / "scene.json"
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, "expected a JSON object (the dataset's description)")
+    relight = meta.get("relight")
+    if relight is not None:
+        if not isinstance(relight, list):
+            raise InputError(path, "'relight' must be a list of {\"name\": ..., \"file\": ...}")
+        for i, e in enumerate(relight):
+            if not isinstance(e, dict) or not _plain_name(e.get("name")) or not isinstance(e.get("file", ""), str):
+                raise InputError(path, f"relight[{i}] must be {{\"name\": NAME, \"file\": PATH}} with a plain name "
+                                       f"(no folders), got {json.dumps(e)[:80]}")
+    materials = meta.get("materials", [])
+    if not isinstance(materials, list):
+        raise InputError(path, "'materials' must be a list of {\"id\": N, \"name\": ...}")
+    for i, m in enumerate(materials):
+        if not isinstance(m, dict) or ("id" in m and (isinstance(m["id"], bool) or not isinstance(m["id"], int))):
+            raise InputError(path, f"materials[{i}] must be {{\"id\": N, \"name\": ...}} with a whole-number id, "
+                                   f"got {json.dumps(m)[:80]}")
+    return meta
+
+
 def relight_envs(root: Path, meta: dict) -> list[tuple[str, Path]]:
     """(name, envmap path) of every relighting condition with its envmap and relit views on disk."""
     entries = meta.get("relight")
@@ -82,7 +115,19 @@ def _read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     if not path.is_file():
         raise InputError(path, "ground-truth image missing")
     data = read_exr(path)
+    finite = np.isfinite(data)
+    if not finite.all():
+        raise InputError(path, f"{int((~finite).sum())} of its {finite.size} values are not finite numbers (NaN or "
+                               "infinite): not usable as ground truth")
     return data[..., :3].astype(np.float64), (data[..., 3].astype(np.float64) if data.shape[-1] > 3 else None)
+
+
+def _read_envmap(path: Path) -> np.ndarray:
+    """A relighting envmap of the dataset, finite radiance only."""
+    env = read_image(path)[0]
+    if not np.isfinite(env).all():
+        raise InputError(path, "holds values that are not finite numbers (NaN or infinite): not usable to relight")
+    return env
 
 
 def _read_map(path: Path) -> np.ndarray:
@@ -240,7 +285,7 @@ def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
     from vq_mitsuba.data.cameras import convert_world
 
     root = dataset_root(dataset_dir)
-    meta = json.loads((root / "scene.json").read_text())
+    meta = read_scene_meta(root)
     cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
     envs = relight_envs(root, meta)
     for env_name, _ in envs:
@@ -345,7 +390,7 @@ def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_sca
     """Relighting under each held-aside envmap, view by view (one pass per view renders all
     envmaps), in both alignment variants; adds each view's relit PSNRs to its per_view row."""
     envs = data.envs
-    renderers = [predictor.renderer(read_image(env_path)[0]) for _, env_path in envs]
+    renderers = [predictor.renderer(_read_envmap(env_path)) for _, env_path in envs]
     rows = {name: {"albedo_scale": [], "image_scale": []} for name, _ in envs}
     for i, (cam, view, gt) in enumerate(zip(data.cameras, data.views, data.gts)):
         m = gt["mask"]
@@ -452,7 +497,7 @@ def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarra
     None when the dataset has no material ids."""
     if not all("material" in g for g in gts):
         return None
-    names = {int(m["id"]): m["name"] for m in meta.get("materials", []) if "id" in m}
+    names = {int(m["id"]): str(m.get("name", m["id"])) for m in meta.get("materials", []) if "id" in m}
     ids = np.concatenate([g["material"][g["mask"]].ravel() for g in gts])
     rows = []
     for k in sorted(int(v) for v in np.unique(ids) if v > 0):
