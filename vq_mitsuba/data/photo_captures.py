@@ -155,12 +155,19 @@ def up_frame(cameras: list[Camera]) -> np.ndarray:
 
 def _undistorted(path: Path, rgb: np.ndarray, alpha: np.ndarray, lens: Lens, cache: Path | None, shrink: Shrink):
     """Undistort one photo and its mask, then shrink them, reusing the cached result for the same
-    file, lens and shrink."""
+    file, lens and shrink. A cached file that cannot be read back whole (torn, another file) is
+    made again; it is written under a temporary name and renamed, so a crash leaves none half-written."""
     key = hashlib.sha1(f"{path.resolve()}|{path.stat().st_mtime_ns}|{lens}|{shrink}".encode()).hexdigest()[:16]
     cached = cache / f"{path.stem}-{key}.npz" if cache is not None else None
     if cached is not None and cached.is_file():
-        data = np.load(cached)
-        return data["rgb"].astype(np.float32), data["alpha"].astype(np.float32)
+        try:
+            with np.load(cached) as data:
+                rgb_c, alpha_c = data["rgb"].astype(np.float32), data["alpha"].astype(np.float32)
+            if rgb_c.ndim == 3 and rgb_c.shape[2] == 3 and alpha_c.shape == rgb_c.shape[:2] \
+                    and np.isfinite(rgb_c).all() and np.isfinite(alpha_c).all():
+                return rgb_c, alpha_c
+        except Exception:  # any unreadable cache file is made again below
+            pass
     both, inside = undistort_image(np.concatenate([rgb, alpha[..., None]], -1), lens)
     del rgb, alpha
     both[..., 3] *= inside
@@ -168,7 +175,9 @@ def _undistorted(path: Path, rgb: np.ndarray, alpha: np.ndarray, lens: Lens, cac
     out_rgb, out_alpha = both[..., :3], both[..., 3]
     if cached is not None:
         cache.mkdir(parents=True, exist_ok=True)
-        np.savez(cached, rgb=out_rgb.astype(np.float16), alpha=out_alpha.astype(np.float16))
+        tmp = cached.with_name(f".{cached.stem}.tmp.npz")
+        np.savez(tmp, rgb=out_rgb.astype(np.float16), alpha=out_alpha.astype(np.float16))
+        tmp.replace(cached)
     return out_rgb, out_alpha
 
 
