@@ -47,6 +47,7 @@ R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = 
 FOV_X_DEG = 40.0
 FILL = 0.7  # fraction of the half-frame the bounding sphere's silhouette covers
 MAX_DEPTH = 4
+MAX_SEED = 2 ** 32 - 1  # numpy and Mitsuba take seeds from 0 to this
 # Stratified (multi-jittered) pixel samples: half the noise of `independent` at the same cost
 # under smooth sky lighting (Mitsuba may round the count up, e.g. 512 -> 528).
 SAMPLER = "multijitter"
@@ -753,6 +754,8 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
     training views as NeuS/IDR (neus/), COLMAP (colmap/, colmap_opencv/), nerfstudio (nerfstudio/) and
     LLFF (llff/) captures. Returns out_dir."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise InputError(None, f"--seed {seed}: a seed is a whole number from 0 to {MAX_SEED}")
     _ensure_variant()
     t_start = time.time()
     spec = load_scene_spec(name)
