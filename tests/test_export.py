@@ -294,7 +294,7 @@ def test_export_axes_undo_the_loaders_world_conversion():
     assert np.allclose(export_axes("mitsuba", "mitsuba"), np.eye(3))
 
 
-def test_export_refuses_to_overwrite_a_runs_files_and_leaves_no_empty_folder(nerf_run, tmp_path, capsys):
+def test_export_refuses_to_write_into_a_run_and_leaves_no_empty_folder(nerf_run, tmp_path, capsys):
     data, run = nerf_run
     envmap = next((data / "envmaps").glob("*.exr"))
     learned = (run.dir / "envmap.exr").read_bytes()
@@ -303,7 +303,7 @@ def test_export_refuses_to_overwrite_a_runs_files_and_leaves_no_empty_folder(ner
         assert cli.main(["export", str(run.dir), "--format", fmt, "--envmap", str(envmap), "-o", str(run.dir),
                          "--quiet"]) == 2
         err = capsys.readouterr().err
-        assert "envmap.exr" in err and "another -o" in err and str(run.dir) in err, err
+        assert "holds a fitted run" in err and "another -o" in err and str(run.dir) in err, err
     assert (run.dir / "envmap.exr").read_bytes() == learned
     assert sorted(p.name for p in run.dir.iterdir()) == before
     # a refused export leaves no folder behind

@@ -84,16 +84,17 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_geometry(args) -> int:
-    from vq_mitsuba.geometry.pipeline import neus_psnr_line, run_geometry
+    from vq_mitsuba.geometry.pipeline import check_geometry_target, neus_psnr_line, run_geometry
+    from vq_mitsuba.run.outputs import removed_on_refusal
     from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:
         return _help_config()
     run_dir = _run_dir(args, "geometry")
     _output_folder(run_dir)
-    RunDir(run_dir).check_not_foreign()
+    check_geometry_target(RunDir(run_dir))
     cfg = _config(args)
-    with RunDir(run_dir).lock("geometry"):
+    with RunDir(run_dir).lock("geometry"), removed_on_refusal(run_dir):
         info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
                             gt_mesh=args.gt_mesh, capture_cfg=cfg.capture, pose_cfg=cfg.pose).summary
     s = info["seconds"]
@@ -133,12 +134,14 @@ def _cmd_render(args) -> int:
     from vq_mitsuba.config import load_config
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
+    from vq_mitsuba.run.outputs import RENDER_MARKER, check_output_folder
     from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
     from vq_mitsuba.render.views import render_views
 
     _output_folder(args.output)
     run = RunDir(args.run_dir)
     out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
+    check_output_folder(out, "render", "render")
     check_writable(out)
     fitted = run.load()
     size = load_config(None, _capture_flags(args)).capture  # --downscale, --max-size
@@ -152,7 +155,7 @@ def _cmd_render(args) -> int:
         render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
                      env_rotate_deg=args.env_rotate, exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
                      more_envmaps=list(zip(names[1:], envmaps[1:])))
-        write_json(out / "render.json", {
+        write_json(out / RENDER_MARKER, {
             "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
             "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
             "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
@@ -173,6 +176,7 @@ def _edit_label(args) -> str:
 
 def _cmd_edit(args) -> int:
     from vq_mitsuba.edit import build_edit, edit_run
+    from vq_mitsuba.run.outputs import check_output_folder
     from vq_mitsuba.run.run_dir import RunDir, check_writable
     from vq_mitsuba.models.edits import material_library
 
@@ -183,6 +187,7 @@ def _cmd_edit(args) -> int:
     if args.output is None:
         raise InputError(None, "edit writes a new run: give it a folder with -o NEW_RUN")
     _output_folder(args.output)
+    check_output_folder(args.output, "edit", "edit")
     check_writable(args.output)
     run = RunDir(args.run_dir)
     fitted = run.load()
@@ -223,10 +228,11 @@ def _cmd_ui(args) -> int:
 
 def _cmd_eval(args) -> int:
     from vq_mitsuba.eval.evaluate import evaluate, evaluate_holdout, format_table
+    from vq_mitsuba.run.outputs import check_metrics_file
     from vq_mitsuba.run.run_dir import RunDir, check_writable
 
-    if args.output is not None and (Path(args.output).is_dir() or args.output.endswith(("/", "\\"))):
-        raise InputError(args.output, "is a folder; eval -o names the metrics JSON file (e.g. -o OUT/metrics.json)")
+    if args.output is not None:
+        check_metrics_file(args.output)
     check_writable(Path(args.output).parent if args.output else args.run_dir)
     size = {k: getattr(args, k) for k in ("downscale", "max_size") if getattr(args, k) is not None}
     _capture_flags(args)  # checked before any work
@@ -246,7 +252,8 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_make_scene(args) -> int:
-    from vq_mitsuba.run.run_dir import RunDir, check_writable
+    from vq_mitsuba.run.outputs import check_output_folder
+    from vq_mitsuba.run.run_dir import check_writable
     from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
     if args.list or args.name is None:
@@ -255,9 +262,7 @@ def _cmd_make_scene(args) -> int:
     if args.name not in synthetic.SCENES:
         raise InputError(None, f"unknown scene '{args.name}' (bundled: {', '.join(synthetic.SCENES)})")
     out = Path(args.output) if args.output else Path("data") / args.name
-    if RunDir(out).holds_run_files():  # as fit refuses a folder of other files
-        raise InputError(out, "holds a vq-mitsuba run: make-scene writes a dataset, it would replace the run's "
-                              "files; choose another -o")
+    check_output_folder(out, "scene", "make-scene")
     check_writable(out)
     kwargs = {k: v for k, v in (("resolution", args.resolution), ("spp", args.spp), ("n_train", args.n_train),
                                 ("n_test", args.n_test)) if v is not None}

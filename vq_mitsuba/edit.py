@@ -12,6 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.models.edits import Change, Edit, Selection, check_change, preset_changes
@@ -174,10 +175,10 @@ def check_box_selects_surface(fitted: FittedModel, selection: Selection) -> None
 
 
 def edit_run(run_dir: str | Path | RunDir, out_dir: str | Path, edit: Edit) -> RunDir:
-    """Write OUT_DIR: an edited run of RUN_DIR's fitted run, with RUN_DIR's edits and `edit`."""
+    """Write OUT_DIR, a new or empty folder: an edited run of RUN_DIR's fitted run, with RUN_DIR's
+    edits and `edit` (another run, edited or not, is never written over)."""
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     out = RunDir(out_dir)
-    if (out / RunDir.INFO).is_file() and not out.is_edit():
-        raise InputError(out.dir, "holds a fitted run: an edit writes a new folder (choose another -o)")
+    check_output_folder(out.dir, "edit", "edit")
     out.write_edit(run, run.edits() + [edit])
     return out

@@ -12,6 +12,7 @@ from vq_mitsuba.engine.trainer import check_fit_target, fit
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry, neus_psnr_line
 from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
+from vq_mitsuba.run.outputs import removed_on_refusal
 from vq_mitsuba.run.run_dir import RunDir
 
 GEOMETRY_MODES = ("auto", "neus", "given")
@@ -49,13 +50,19 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
     check_fit_target(run, resume)
     with run.lock("fit", log):
         check_fit_target(run, resume)  # again, now that no other process writes here
+        # A stage refused once it has read the capture (no pixel hits a --mesh, no geometry) removes
+        # what it wrote (undistorted/, config.yaml, mesh.ply); the stages finished before are kept.
         if unposed:
-            capture = ensure_poses(capture, run, cfg.pose, progress=progress, log=log)
+            with removed_on_refusal(run.dir):
+                capture = ensure_poses(capture, run, cfg.pose, progress=progress, log=log)
         if reconstruct:
             reused = resume and run.has_mesh()
-            mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress, capture_cfg=cfg.capture)
+            with removed_on_refusal(run.dir):
+                mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress,
+                                       capture_cfg=cfg.capture)
             log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
             scores = run.neus_scores()
             if not reused and scores:
                 log(neus_psnr_line(scores))
-        return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)
+        with removed_on_refusal(run.dir):
+            return fit(capture, run.dir, cfg, mesh_path=mesh, resume=resume, progress=progress)

@@ -39,6 +39,7 @@ from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
 from vq_mitsuba.eval.surface import evaluate_surface
 from vq_mitsuba.data.imageio import read_exr, read_image
+from vq_mitsuba.run.outputs import EVAL_MARK
 from vq_mitsuba.run.run_dir import RunDir, json_safe, write_json
 from vq_mitsuba.errors import InputError
 
@@ -258,6 +259,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
                               segmentation=segmentation, meanshift=meanshift, per_material=per_material,
                               fit_summary=fit_summary, t0=t0)
     result["surface_material"] = surface  # the materials at the true surface (eval/surface.py), or None
+    result = {**EVAL_MARK, **result}  # `eval -o` replaces only a file that holds this mark
     if output is not None:
         out_path = Path(output)
         out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -685,7 +687,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
         if with_residual is not None:
             row.update({"residual_" + k: v for k, v in M.image_metrics(with_residual, image, mask).items()})
         rows.append(row)
-    metrics = {"run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
+    metrics = {**EVAL_MARK, "run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
                "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
                "novel_view_residual": {"psnr": _mean(r["residual_psnr"] for r in rows),
                                        "ssim": _mean(r["residual_ssim"] for r in rows)}

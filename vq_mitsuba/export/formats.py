@@ -9,6 +9,7 @@ the run's world, in which its sensors and envmap frame are given.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import time
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.run.outputs import EXPORT_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.export.files import export_axes
@@ -36,15 +38,21 @@ def _planned_files(fmt: str, name: str) -> list[str]:
     return files + ["envmap.exr", "envmap.hdr", f"{name}_material_id.png", "export.json"]
 
 
-def _check_target(out: Path, fmt: str, name: str) -> None:
-    """Refuse an output folder holding a run whose own files the export would replace."""
-    if not (out / RunDir.INFO).is_file():
-        return
-    run_files = {v for k, v in vars(RunDir).items() if k.isupper() and isinstance(v, str)}
-    clash = sorted(set(_planned_files(fmt, name)) & run_files)
-    if clash:
-        raise InputError(out, f"holds a run, and the export would overwrite its {', '.join(clash)}: "
-                              "choose another -o (e.g. a new folder)")
+def check_export_target(out: str | Path, fmt: str) -> None:
+    """Refuse, before any work, an output folder that is neither new, empty, nor an export of the
+    same format (`run.outputs`): a run, a capture, another format's export, a user's files."""
+    if fmt in FORMATS:
+        check_output_folder(out, "export", "export", fmt=fmt)
+
+
+def _earlier_files(out: Path) -> list[str]:
+    """The files an earlier export into `out` wrote (its export.json), by their plain names."""
+    try:
+        files = json.loads((out / EXPORT_MARKER).read_text()).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [f for f in files if isinstance(f, str) and f == Path(f).name and f != EXPORT_MARKER] \
+        if isinstance(files, list) else []
 
 
 def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size: int = 1024,
@@ -55,6 +63,8 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
         raise InputError(None, f"unknown export format '{fmt}' (one of {', '.join(FORMATS)})")
     if not 16 <= int(texture_size) <= 8192:
         raise InputError(None, f"--texture-size must lie in 16..8192 texels, got {texture_size}")
+    out = Path(out_dir)
+    check_export_target(out, fmt)
     run = RunDir(run_dir)
     fitted = run.load()
     envmap = None
@@ -63,9 +73,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
 
         envmap = load_envmap(envmap_path)
     cameras = [c for split in run.cameras().values() for c in split] if fmt == "mitsuba" else []
-    out = Path(out_dir)
     name = _name(run)
-    _check_target(out, fmt, name)
     world = fitted.world  # a run keeps its capture's own world (loaders convert only other cameras)
     axes = export_axes(fitted.world, world)
 
@@ -76,6 +84,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
     bake_s = time.perf_counter() - t0
     missing = [p for p in (out, *out.parents) if not p.exists()]  # made here: removed again if writing fails
     out.mkdir(parents=True, exist_ok=True)
+    earlier = _earlier_files(out)  # an earlier export of this format into `out`: its files are replaced
     t0 = time.perf_counter()
     try:
         if fmt == "gltf":
@@ -113,7 +122,9 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
                         "write": round(time.perf_counter() - t0, 2)},
             "files": [str(Path(f).relative_to(out)) for f in files],
         }
-        write_json(out / "export.json", summary)
+        for stale in set(earlier) - set(summary["files"]):  # e.g. another run's name: no mix of two exports
+            (out / stale).unlink(missing_ok=True)
+        write_json(out / EXPORT_MARKER, summary)
     except BaseException:
         if missing:
             shutil.rmtree(missing[-1], ignore_errors=True)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.config import CaptureConfig, NeuSConfig, PoseConfig
+from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.run_dir import RunDir
 
 
@@ -64,6 +65,28 @@ def masked_by_mesh(capture, mesh=None):
     return dataclasses.replace(capture, alpha=mesh_coverage(mesh, capture.cameras), has_alpha=True)
 
 
+def check_geometry_target(run: RunDir) -> None:
+    """Refuse, before any work, a folder the geometry stage must not write its mesh into: one of
+    other files (`RunDir.check_not_foreign`), an edited run, or a run whose materials were fitted
+    on its mesh.ply (checkpoint.pt): a new mesh under that checkpoint would be rendered, exported
+    and resumed as if it were the one fitted (also with --resume, which exports the mesh again)."""
+    run.check_not_foreign("geometry")
+    if run.is_run() and "edit_of" in (_read_info(run) or {}):
+        raise InputError(run.dir, "holds an edited run (run.json, edits.json): the geometry stage writes into a new "
+                                  "folder or a run of its own; choose another -o")
+    if run.has_checkpoint():
+        raise InputError(run.dir, f"holds a fitted run ({RunDir.CHECKPOINT}) whose materials were fitted on its "
+                                  f"{RunDir.MESH}: the geometry stage would replace that mesh under them; choose a new "
+                                  "-o (then fit that run)")
+
+
+def _read_info(run: RunDir) -> dict | None:
+    try:
+        return run.info()
+    except InputError:
+        return None
+
+
 def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
                  progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None,
                  pose_cfg: PoseConfig | None = None):
@@ -75,6 +98,7 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
     from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
+    check_geometry_target(run)
     if is_unposed(capture_path):
         capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None

@@ -72,11 +72,13 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
         raise InputError(source, f"already has camera poses ({kind} capture): fit it as it is")
     out = Path(out)
     inputs = _inputs(source, kind, cfg)
-    previous = _previous(out)
+    previous = _previous(out, source)
     if previous is not None and previous.get("inputs") == inputs:
         _check_registered(out, previous["registered"], previous["images"], cfg, kind)
         log(f"pose: reusing {out} ({previous['registered']} of {previous['images']} {_noun(kind)} placed)")
         return dict(previous, reused=True)
+    if previous is not None:
+        _check_replaceable(out)
     work = out.parent / f".{out.name}.pose-tmp"
     with _scratch(work):
         t0 = time.perf_counter()
@@ -134,9 +136,14 @@ def _matcher(choice: str, kind: str, count: int) -> str:
     return "sequential" if kind == "video" or count > EXHAUSTIVE_MAX else "exhaustive"
 
 
-def _previous(out: Path) -> dict | None:
-    """The summary of an earlier result in OUT when it is complete; None for a new or empty folder.
-    A folder holding other files is refused (it is never emptied)."""
+OWN_ENTRIES = ("images", "sparse", SUMMARY)  # what a posed capture holds: pose replaces only these
+
+
+def _previous(out: Path, source: Path) -> dict | None:
+    """The summary of an earlier result in OUT made from `source` ({} when it is older or
+    incomplete: made again); None for a new or empty folder. A folder holding other files, a
+    pose.json that cannot be read, or the poses of other photos are refused: pose never empties
+    a folder it cannot tell it made for these photos."""
     if not out.exists():
         return None
     if not out.is_dir():
@@ -147,12 +154,25 @@ def _previous(out: Path) -> dict | None:
         return None
     try:
         summary = read_json(out / SUMMARY, "missing")
-    except InputError:
-        return {}  # a damaged result: made again
+    except InputError as exc:
+        raise InputError(out / SUMMARY, f"cannot be read ({exc.message}): pose would replace {out} without knowing "
+                                        "what it holds; move the folder away or choose a new one with -o") from None
+    if summary.get("source") != str(source.resolve()):
+        raise InputError(out, f"holds the poses of other photos ({summary.get('source', 'a source not named')}, in "
+                              f"{SUMMARY}): pose {source} into a new or empty folder with -o")
     model = out / "sparse" / "0"
     if summary.get("version") != SUMMARY_VERSION or not any((model / f"cameras.{e}").is_file() for e in ("bin", "txt")):
         return {}  # an older or incomplete result: made again
     return summary
+
+
+def _check_replaceable(out: Path) -> None:
+    """Refuse, before any work, to pose again into OUT when it holds files pose did not write."""
+    other = sorted(p.name for p in out.iterdir() if p.name not in OWN_ENTRIES)
+    if other:
+        shown = ", ".join(other[:3]) + (", ..." if len(other) > 3 else "")
+        raise InputError(out, f"holds files pose did not write ({shown}) beside an earlier posed capture: posing "
+                              "again replaces the folder; move them away or choose a new folder with -o")
 
 
 def _check_registered(source: Path, registered: int, total: int, cfg: PoseConfig, kind: str) -> None:

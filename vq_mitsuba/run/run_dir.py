@@ -284,10 +284,12 @@ class RunDir:
         """Any file that only a run writes is there (a run, or one interrupted early)."""
         return any((self.dir / name).is_file() for name in self.MARKERS)
 
-    def check_not_foreign(self) -> None:
-        """A stage writes into a new folder, an empty one, or a run's own: never over a user's other files."""
-        if self.dir.is_dir() and any(p.name != self.LOCK for p in self.dir.iterdir()) and not self.holds_run_files():
-            raise InputError(self.dir, "holds other files and no vq-mitsuba run: choose a new or empty folder with -o")
+    def check_not_foreign(self, command: str = "fit") -> None:
+        """A stage writes into a new folder, an empty one, or a run's own: never over a user's other
+        files (the rule of every command that writes: `run.outputs`)."""
+        from vq_mitsuba.run.outputs import check_output_folder
+
+        check_output_folder(self.dir, "run", command)
 
     def lock(self, command: str, log: Callable[[str], None] = print) -> RunLock:
         """`with run.lock("fit"):` this process alone writes into the run (the folder is made if
@@ -360,8 +362,14 @@ class RunDir:
         with self.lock("edit"):
             info["edit_of"] = {"absolute": str(base.dir.resolve()),
                                "relative": os.path.relpath(base.dir.resolve(), self.dir.resolve())}
-            write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
-            self.write_info(info)
+            made = [p for p in (self.dir / self.EDITS, self.dir / self.INFO) if not p.exists()]
+            try:  # both files or, for a new edited run, neither: no edits.json without run.json
+                write_json(self.dir / self.EDITS, {"edits": [e.to_dict() for e in edits]})
+                self.write_info(info)
+            except BaseException:
+                for path in made:
+                    path.unlink(missing_ok=True)
+                raise
 
     # --- the capture's cameras ------------------------------------------------------------------
     def cameras(self) -> dict[str, list]:
