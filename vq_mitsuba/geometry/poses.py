@@ -15,7 +15,8 @@ The model keeps COLMAP's frame and scale, which are arbitrary: the loaders use i
 they are, NeuS frames the object from the cameras (and masks), and points3D.bin holds the sparse
 points for stages that frame the object by them. Run again on the same inputs with the same
 settings, OUT is reused (pose.json records them); the work happens in a folder beside OUT that
-replaces it once done, so an interrupted run leaves no half-written model.
+replaces it once done, so an interrupted run leaves no half-written model. OUT is replaced only
+when it is a posed capture of the same source holding nothing else (`run.outputs`' rule).
 """
 
 from __future__ import annotations
