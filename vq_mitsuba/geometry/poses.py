@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from vq_mitsuba.config import PoseConfig
-from vq_mitsuba.data.unposed import (UNPOSED_KINDS, copy_upright, fingerprint, is_video, photo_files,
+from vq_mitsuba.data.unposed import (UNPOSED_KINDS, copy_upright, fingerprint, photo_files,
                                      pick_frames)
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_json
