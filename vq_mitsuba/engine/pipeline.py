@@ -12,7 +12,7 @@ from vq_mitsuba.engine.trainer import check_fit_target, fit
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.pipeline import capture_has_geometry, ensure_geometry, neus_psnr_line
 from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
-from vq_mitsuba.run.outputs import removed_on_refusal
+from vq_mitsuba.run.outputs import check_output_folder, removed_on_refusal
 from vq_mitsuba.run.run_dir import RunDir
 
 GEOMETRY_MODES = ("auto", "neus", "given")
@@ -40,7 +40,7 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
     Returns the fit's summary.
     The run's lock is held throughout: a second process fitting into RUN_DIR is refused."""
     run = RunDir(run_dir)
-    run.check_not_foreign()
+    check_output_folder(run.dir, "run", "fit")
     unposed = is_unposed(capture)
     if unposed and (mesh is not None or geometry == "given"):
         raise InputError(mesh or capture, "known geometry cannot be used with photos or a video without poses: "

@@ -10,6 +10,7 @@ import numpy as np
 
 from vq_mitsuba.config import CaptureConfig, NeuSConfig, PoseConfig
 from vq_mitsuba.errors import InputError
+from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
 
 
@@ -67,10 +68,10 @@ def masked_by_mesh(capture, mesh=None):
 
 def check_geometry_target(run: RunDir) -> None:
     """Refuse, before any work, a folder the geometry stage must not write its mesh into: one of
-    other files (`RunDir.check_not_foreign`), an edited run, or a run whose materials were fitted
+    other files (`run.outputs`), an edited run, or a run whose materials were fitted
     on its mesh.ply (checkpoint.pt): a new mesh under that checkpoint would be rendered, exported
     and resumed as if it were the one fitted (also with --resume, which exports the mesh again)."""
-    run.check_not_foreign("geometry")
+    check_output_folder(run.dir, "run", "geometry")
     if run.is_run() and "edit_of" in (_read_info(run) or {}):
         raise InputError(run.dir, "holds an edited run (run.json, edits.json): the geometry stage writes into a new "
                                   "folder or a run of its own; choose another -o")

@@ -284,13 +284,6 @@ class RunDir:
         """Any file that only a run writes is there (a run, or one interrupted early)."""
         return any((self.dir / name).is_file() for name in self.MARKERS)
 
-    def check_not_foreign(self, command: str = "fit") -> None:
-        """A stage writes into a new folder, an empty one, or a run's own: never over a user's other
-        files (the rule of every command that writes: `run.outputs`)."""
-        from vq_mitsuba.run.outputs import check_output_folder
-
-        check_output_folder(self.dir, "run", command)
-
     def lock(self, command: str, log: Callable[[str], None] = print) -> RunLock:
         """`with run.lock("fit"):` this process alone writes into the run (the folder is made if
         missing, and removed again if the command leaves it empty); another process holding it is
