@@ -348,3 +348,17 @@ def test_a_signal_ends_a_fit_with_a_checkpoint_and_no_lock(capture, tmp_path, si
     assert b"interrupted; the last checkpoint is kept" in err and b"Traceback" not in err
     assert not (run / RunDir.LOCK).exists()
     assert torch.load(run / "checkpoint.pt", weights_only=False)["step"] > first
+
+
+def test_a_fit_on_one_thread_finishes(tmp_path):
+    """`--threads 1` (what each run of a batch uses): Mitsuba's EXR reads wait on Dr.Jit's pool,
+    which deadlocked with a single worker."""
+    import subprocess
+    import sys
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    proc = subprocess.run([sys.executable, "-m", "vq_mitsuba.cli", "fit", str(capture), "-o", str(tmp_path / "run"),
+                           "--threads", "1", "--quiet", "--set", "train.iterations=4", "--set", "train.batch_rays=128",
+                           "--set", "vq.enabled=false"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert RunDir(tmp_path / "run").load_state()["step"] == 4

@@ -62,5 +62,7 @@ def set_threads(n: int | None = None) -> int:
                                "this machine has)")
     n = available_cores() if not n else int(n)
     torch.set_num_threads(n)
-    dr.set_thread_count(n)
+    # Mitsuba reads EXR files with nested tasks on Dr.Jit's pool, which wait forever on a pool of
+    # one worker: Dr.Jit gets two threads at least (the second sleeps while the first computes).
+    dr.set_thread_count(max(n, 2))
     return n

@@ -580,7 +580,7 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
                            cache_dir=run.undistorted_dir)
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
-                         "(pass --mesh PATH, put mesh.ply beside the json, or reconstruct it from the images "
+                         "(pass --mesh PATH, put mesh.ply in the capture's folder, or reconstruct it from the images "
                          "with `fit --geometry neus` or `vq-mitsuba geometry`)")
     if not capture.has_alpha and run.masks_from_mesh():
         capture = masked_by_mesh(capture)
