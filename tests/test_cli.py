@@ -7,15 +7,16 @@ import ast
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from vq_mitsuba import cli
 from vq_mitsuba.errors import InputError
 
 # Which commands take -o and --quiet (from the shared parents).
-OUTPUT = {"fit", "geometry", "pose", "render", "edit", "export", "eval", "make-scene"}
-QUIET = {"fit", "geometry", "pose", "render", "export", "eval"}
-CONFIG = {"fit", "geometry"}  # --preset, --config, --set, --help-config of the config system
+OUTPUT = {"fit", "geometry", "pose", "render", "edit", "export", "eval", "make-scene", "batch"}
+QUIET = {"fit", "geometry", "pose", "render", "export", "eval", "batch"}
+CONFIG = {"fit", "geometry", "batch"}  # --preset, --config, --set, --help-config of the config system
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:
@@ -29,7 +30,7 @@ def _option(parser: argparse.ArgumentParser, flag: str):
 
 def test_every_command_has_the_shared_options_where_expected():
     subs = _subparsers()
-    assert set(subs) == {"fit", "geometry", "pose", "render", "edit", "export", "ui", "eval", "make-scene"}
+    assert set(subs) == {"fit", "geometry", "pose", "render", "edit", "export", "ui", "eval", "make-scene", "batch"}
     for name, parser in subs.items():
         out = _option(parser, "-o")
         assert (out is not None) == (name in OUTPUT), name
@@ -40,8 +41,10 @@ def test_every_command_has_the_shared_options_where_expected():
     # One definition, shared: every command's --quiet and --threads are the same argparse action.
     assert len({id(_option(subs[n], "--quiet")) for n in QUIET}) == 1
     assert len({id(_option(p, "--threads")) for p in subs.values()}) == 1
-    for flag in ("--preset", "--config", "--set", "--help-config", "--downscale", "--holdout", "--resume"):
+    for flag in ("--preset", "--config", "--set", "--help-config", "--downscale"):
         assert len({id(_option(subs[n], flag)) for n in CONFIG}) == 1, flag
+    for flag in ("--holdout", "--resume"):  # the options of a capture read into one run
+        assert len({id(_option(subs[n], flag)) for n in ("fit", "geometry")}) == 1, flag
     assert subs["export"]._option_string_actions["-o"].required
 
 
@@ -127,7 +130,8 @@ def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path,
     capture = _capture_without_geometry(tmp_path / "cap")
     edited = RunDir(tmp_path / "edited")
     edited.create()
-    edited.write_info({"edit_of": {"relative": "../run", "absolute": str(tmp_path / "run")}})
+    edited.write_info({"capture": str(capture), "world": "blender", "envmap_to_world": np.eye(4).tolist(),
+                       "edit_of": {"relative": "../run", "absolute": str(tmp_path / "run")}})
     with pytest.raises(InputError, match="holds an edited run"):
         fit_capture(capture, edited.dir, load_config(None, []), progress=False)
     mine = tmp_path / "mine"

@@ -1,5 +1,5 @@
 """The package's layers import one way: data -> models -> run -> geometry -> render -> engine ->
-eval -> cli, and rendering a finished run imports no training code."""
+eval -> batch -> cli, and rendering a finished run imports no training code."""
 
 import ast
 import subprocess
@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
 # below every stage that writes a run, the geometry stage included; synthetic (the make-scene
 # datasets) and cli sit on top. Base modules (config, errors, backend) are below all.
 LAYERS = [{"config", "errors", "backend"}, {"data"}, {"models"}, {"run"}, {"geometry"}, {"render"}, {"engine"},
-          {"eval", "edit", "export"}, {"ui"}, {"synthetic"}, {"cli"}]
+          {"eval", "edit", "export"}, {"ui"}, {"synthetic"}, {"batch"}, {"cli"}]
 
 
 def _layer(module: str) -> int:

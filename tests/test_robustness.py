@@ -14,7 +14,7 @@ from vq_mitsuba.errors import InputError, NumericalError
 
 
 @pytest.mark.parametrize("setting, message", [
-    ("train.lr=nan", "finite"), ("train.lr=-0.01", "> 0"), ("envmap.lr=inf", "finite"),
+    ("train.lr=nan", "finite"), ("train.lr=-0.01", "in \\(0, 1]"), ("envmap.lr=inf", "finite"),
     ("train.batch_rays=-5", "> 0"), ("train.pixel_jitter=3", "square"), ("render.spp=0", "> 0"),
     ("render.aa=5", "square"), ("vq.decay=1.5", "[0, 1]"), ("loss.w_lam=-1", ">= 0"), ("train.bounces=-1", ">= 0"),
 ])

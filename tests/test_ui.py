@@ -411,8 +411,16 @@ def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_
     for cam in cams:
         a, b = read_exr(tmp_path / "cli" / f"{cam.name}_rgb.exr"), read_exr(tmp_path / "ours" / f"{cam.name}_rgb.exr")
         assert np.array_equal(a, b)
-    # a second save under the name of a fitted run is refused
+    # a second save under the name of a fitted run is refused, and so is one over an edit list that
+    # `vq-mitsuba edit` wrote (this editor saved only `name`)
     assert _post(server, "save", {"name": run.dir.name})[0] == 400
+    other = run.dir.resolve().parent / f"other-{tmp_path.name}"
+    assert main(["edit", str(run.dir), "--material", "1", "--set", "roughness=0.9", "-o", str(other)]) == 0
+    before = (other / RunDir.EDITS).read_bytes()
+    status, body = _post(server, "save", {"name": other.name})
+    assert status == 400 and "did not save" in body["error"]
+    assert (other / RunDir.EDITS).read_bytes() == before
+    shutil.rmtree(other)
     # export from the page: saved again, then baked and written on the render thread
     status, body = _post(server, "export", {"name": name, "format": "gltf", "texture_size": 64})
     assert status == 200

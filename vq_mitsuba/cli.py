@@ -1,4 +1,4 @@
-"""Command line: `vq-mitsuba fit | geometry | pose | render | edit | export | ui | eval | make-scene`.
+"""Command line: `vq-mitsuba fit | geometry | pose | render | edit | export | ui | eval | make-scene | batch`.
 
 Thin: one parser built from shared parent parsers (each option defined once), then one library
 call per command (`fit` is `vq_mitsuba.engine.pipeline.fit_capture`) and its report."""
@@ -134,6 +134,7 @@ def _cmd_render(args) -> int:
     from vq_mitsuba.config import load_config
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.envmaps import load_envmap
+    from vq_mitsuba.data.names import safe_name
     from vq_mitsuba.run.outputs import RENDER_MARKER, check_output_folder
     from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
     from vq_mitsuba.render.views import render_views
@@ -147,7 +148,7 @@ def _cmd_render(args) -> int:
     size = load_config(None, _capture_flags(args)).capture  # --downscale, --max-size
     cameras, world, _ = load_cameras(args.cameras, size)  # input checks before any rendering
     envmaps = [load_envmap(p) for p in args.envmap]
-    names = [Path(p).stem for p in args.envmap]
+    names = [safe_name(Path(p).stem) for p in args.envmap]  # folder names of the further lightings
     if len(set(names)) < len(names):
         raise InputError(None, f"--envmap: two lightings share a file name ({', '.join(names)}); their "
                                "views would go to the same folder")
@@ -278,6 +279,27 @@ def _cmd_make_scene(args) -> int:
     print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ "
           "(scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
     return 0
+
+
+def _cmd_batch(args) -> int:
+    from vq_mitsuba.batch import parse_seeds, run_batch
+
+    if args.help_config:
+        return _help_config()
+    _config(args)  # bad keys and values fail before any run starts
+    fit_args = [x for key in ("downscale", "max_size") if getattr(args, key) is not None
+                for x in (f"--{key.replace('_', '-')}", str(getattr(args, key)))]
+    fit_args += [x for item in args.set for x in ("--set", item)]
+    fit_args += ["--config", str(Path(args.config).resolve())] if args.config else []
+    rows = run_batch(args.captures, args.output, seeds=parse_seeds(args.seeds), presets=[args.preset],
+                     fit_args=fit_args, threads=args.threads_per_run, evaluate=args.eval, address=args.address,
+                     progress=not args.quiet)
+    done = sum(r.get("status") == "done" for r in rows)
+    for row in rows:
+        if row.get("status") != "done":
+            print(f"{row['run']}: {row.get('status', 'not run')}: {row.get('message', '')}", file=sys.stderr)
+    print(f"{done} of {len(rows)} runs done; summary in {args.output}/summary.md and summary.csv")
+    return 0 if done == len(rows) else 1
 
 
 def _resolution(text: str):
@@ -574,8 +596,28 @@ def _add_make_scene(sub, shared) -> None:
     m.set_defaults(func=_cmd_make_scene)
 
 
+def _add_batch(sub, shared) -> None:
+    b = sub.add_parser(
+        "batch", parents=[shared["threads"], _output("the batch's folder: one run per capture and seed", metavar="OUT",
+                                                     required=True), shared["config"], shared["size"], shared["quiet"]],
+        help="fit many captures (and seeds) at once as Ray tasks, here or on a cluster",
+        description="Fit each CAPTURE under each seed into OUT/<capture>[-<preset>]-s<seed>/ with the ordinary "
+                    "`fit` (and `eval` with --eval: against the ground truth of a make-scene dataset, else the "
+                    "held-out views), each as a Ray task reserving --threads-per-run CPUs. Without --address "
+                    "Ray starts on this machine's cores. Rerun the command to skip finished runs and resume the "
+                    "others. Writes OUT/batch.json (each run's status), OUT/logs/, OUT/summary.csv and "
+                    "OUT/summary.md; exits 1 when a run failed.")
+    b.add_argument("captures", nargs="+", metavar="CAPTURE", help="captures to fit (any format `fit` reads)")
+    b.add_argument("--seeds", default="0", metavar="S,S,...", help="fit each capture once per seed (default 0)")
+    b.add_argument("--eval", action="store_true", help="score each run after its fit (`vq-mitsuba eval`)")
+    b.add_argument("--address", metavar="ADDR", help="join this running Ray cluster (e.g. ray://HEAD:10001 or auto)")
+    b.add_argument("--threads-per-run", type=_positive_int, default=1, metavar="N",
+                   help="CPU threads each run reserves and uses (default 1)")
+    b.set_defaults(func=_cmd_batch, resume=False)
+
+
 SUBCOMMANDS = (_add_fit, _add_geometry, _add_pose, _add_render, _add_edit, _add_export, _add_ui, _add_eval,
-               _add_make_scene)
+               _add_make_scene, _add_batch)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,6 +8,7 @@ before, known by that kind's marker file:
     export                     export.json naming the same format
     pose                       pose.json, readable and made from the same photos (geometry/poses.py)
     scene     (make-scene)     scene.json (or the mark of an interrupted make-scene)
+    batch                      batch.json
     edit                       none: an edit writes a new run
 
 Anything else is refused before any work with an InputError naming the folder, what it holds
@@ -30,13 +31,14 @@ RENDER_MARKER = "render.json"
 EXPORT_MARKER = "export.json"
 POSE_MARKER = "pose.json"
 SCENE_MARKER = "scene.json"
+BATCH_MARKER = "batch.json"
 SCENE_INCOMPLETE = ".make-scene-incomplete"  # in a dataset folder while make-scene writes it
 EVAL_MARK = {"written_by": "vq-mitsuba eval"}  # a key of every metrics file eval writes
 
 # Entries a run keeps besides its files, which alone do not make a folder another's.
 _RUN_CACHES = (RunDir.LOCK, RunDir.UNDISTORTED)
 _OWN = {"run": "vq-mitsuba run", "render": "render (render.json)", "export": "export (export.json)",
-        "scene": "make-scene dataset (scene.json)"}
+        "scene": "make-scene dataset (scene.json)", "batch": "batch (batch.json)"}
 
 
 def _entries(folder: Path) -> list[Path]:
@@ -77,6 +79,8 @@ def describe(folder: str | Path) -> str:
         return "a posed capture (pose.json)"
     if (folder / SCENE_MARKER).is_file() or (folder / SCENE_INCOMPLETE).is_file():
         return "a make-scene dataset (scene.json)"
+    if (folder / BATCH_MARKER).is_file():
+        return "a batch (batch.json)"
     names = [p.name + ("/" if p.is_dir() else "") for p in _entries(folder)]
     shown = ", ".join(names[:3]) + (f", ... {len(names)} in all" if len(names) > 3 else "")
     return f"other files ({shown})"
@@ -99,6 +103,8 @@ def is_own(folder: Path, kind: str, fmt: str | None = None) -> bool:
     if kind == "scene":
         return ((folder / SCENE_MARKER).is_file() or (folder / SCENE_INCOMPLETE).is_file()) \
             and not RunDir(folder).holds_run_files()
+    if kind == "batch":
+        return (folder / BATCH_MARKER).is_file() and not RunDir(folder).holds_run_files()
     if kind == "edit":
         return False
     raise ValueError(f"unknown output kind {kind!r}")

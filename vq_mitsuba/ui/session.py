@@ -115,6 +115,7 @@ class EditorSession:
                  max_spp: int = MAX_SPP, idle_s: float = IDLE_S):
         self.run = RunDir(run_dir)
         self.fitted = self.run.load()
+        self._saved: set[Path] = set()  # the edited runs this editor saved (Save may replace them)
         self.num_materials = self.fitted.num_materials
         self.materials = self._materials()  # the ranked materials as the page lists them
         self.size = int(size)
@@ -525,6 +526,8 @@ class EditorSession:
             raise InputError(target.dir, "is the run being edited: save under another name")
         if (target / RunDir.INFO).is_file() and not target.is_edit():
             raise InputError(target.dir, "holds a fitted run: save under another name")
+        if (target / RunDir.INFO).is_file() and target.dir.resolve() not in self._saved:
+            raise InputError(target.dir, "holds an edit list this editor did not save: save under another name")
         if target.dir.exists() and not (target / RunDir.INFO).is_file() and any(target.dir.iterdir()):
             raise InputError(target.dir, "is a non-empty folder that is not a run: save under another name")
         return target
@@ -533,6 +536,7 @@ class EditorSession:
         """Write the edit list as an edited run NAME beside the run (what `vq-mitsuba edit` writes)."""
         target = self._target(name)
         target.write_edit(self.run, self.edits())
+        self._saved.add(target.dir.resolve())
         with self._cond:
             self.message = f"saved {target.dir}"
         return target

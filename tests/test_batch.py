@@ -1,0 +1,120 @@
+"""`vq-mitsuba batch`: many runs as Ray tasks on a local Ray with 2 CPUs; a bad capture fails only
+its own runs, a rerun skips finished runs, and a run whose worker is killed is retried and resumes."""
+
+import csv
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from tiny_scene import write_sphere_capture
+from vq_mitsuba import cli
+from vq_mitsuba.batch import RunSpec, plan, run_batch
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.run.run_dir import RunDir
+
+QUICK = ["--set", "train.iterations=6", "--set", "train.batch_rays=128", "--set", "vq.enabled=false"]
+
+ray = pytest.importorskip("ray")
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 ** 2)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory):
+    root = tmp_path_factory.mktemp("captures")
+    good = [write_sphere_capture(root / name, size=16, n_views=4, spp=8) for name in ("sphere_a", "sphere_b")]
+    bad = root / "broken" / "scene.xml"
+    bad.parent.mkdir()
+    bad.write_text("<scene version='3.0.0'><sensor type='perspective'")  # truncated XML
+    return [str(p) for p in good] + [str(bad)]
+
+
+def _fits_started(out: Path, run: str) -> list[str]:
+    return [line for line in (out / "logs" / f"{run}.log").read_text().splitlines() if line.startswith("$ vq-mitsuba fit")]
+
+
+def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(local_ray, captures, tmp_path):
+    out = tmp_path / "batch"
+    rows = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
+    status = {r["run"]: r for r in rows}
+    assert set(status) == {f"{c}-s{s}" for c in ("sphere_a", "sphere_b", "broken") for s in (0, 1)}
+    for name, row in status.items():
+        if name.startswith("broken"):
+            assert row["status"] == "failed" and "scene.xml" in row["message"], row
+            assert not (out / name / RunDir.CHECKPOINT).exists()
+        else:
+            assert row["status"] == "done", row
+            assert RunDir(out / name).load_state()["step"] == 6
+    # the seed reaches the fit: the two seeds' networks differ
+    a0, a1 = (RunDir(out / f"sphere_a-s{s}").load_state()["model"] for s in (0, 1))
+    assert any(not (a0[k] == a1[k]).all() for k in a0)
+    with open(out / "summary.csv") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 6 and {r["status"] for r in table} == {"done", "failed"}
+    assert all(float(r["iterations"]) == 6 for r in table if r["status"] == "done")
+    assert "sphere_a-s0" in (out / "summary.md").read_text()
+
+    again = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
+    assert [r["status"] for r in again] == [r["status"] for r in rows]
+    for name in status:
+        assert len(_fits_started(out, name)) == (2 if name.startswith("broken") else 1), name
+
+
+def _parent_pid(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the worker through /proc")
+def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures, tmp_path):
+    out = tmp_path / "batch"
+    run = out / "sphere_a-s0"
+    killed = {}
+
+    def kill_the_worker():
+        deadline = time.time() + 120
+        while not (run / RunDir.CHECKPOINT).is_file() and time.time() < deadline:
+            time.sleep(0.05)
+        import json
+        fit_pid = json.loads((run / RunDir.LOCK).read_text())["pid"]
+        killed["worker"] = _parent_pid(fit_pid)
+        os.kill(killed["worker"], signal.SIGKILL)
+
+    watcher = threading.Thread(target=kill_the_worker)
+    watcher.start()
+    settings = ["--set", "train.iterations=400", "--set", "train.checkpoint_every=5", "--set", "train.batch_rays=128",
+                "--set", "vq.enabled=false"]
+    rows = run_batch(captures[:1], out, seeds=[0], fit_args=settings, progress=False)
+    watcher.join()
+    assert killed and rows[0]["status"] == "done", rows
+    starts = _fits_started(out, "sphere_a-s0")
+    assert len(starts) == 2 and "--resume" in starts[1]
+    summary = RunDir(run).fit_summary()
+    assert RunDir(run).load_state()["step"] == 400
+    assert 0 < summary["steps_this_call"] < 400  # the retry went on from the checkpoint
+
+
+def test_batch_refuses_bad_plans_before_any_run(tmp_path, capsys):
+    a, b = tmp_path / "x" / "cap", tmp_path / "y" / "cap"
+    for folder in (a, b):
+        folder.mkdir(parents=True)
+    with pytest.raises(InputError, match="shares the name 'cap'"):
+        plan([str(a), str(b)], [0], [None])
+    assert plan([str(a)], [0, 3], ["demo"]) == [RunSpec("cap-demo-s0", str(a.resolve()), 0, "demo"),
+                                                 RunSpec("cap-demo-s3", str(a.resolve()), 3, "demo")]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert cli.main(["batch", str(a), "-o", str(other), "--quiet"]) == 2
+    assert "holds other files" in capsys.readouterr().err and (other / "notes.txt").read_text() == "mine"
+    assert cli.main(["batch", str(a), "-o", str(tmp_path / "new"), "--seeds", "1,x"]) == 2
+    assert cli.main(["batch", str(a), "-o", str(tmp_path / "new"), "--set", "train.lr=-1"]) == 2
+    assert not (tmp_path / "new").exists()

@@ -1,0 +1,263 @@
+"""Many captures at once: `vq-mitsuba batch CAPTURES... -o OUT`, one Ray task per run.
+
+Each capture, under each preset and seed, is a run `OUT/<capture>[-<preset>]-s<seed>/`, fitted by
+the ordinary command (`vq-mitsuba fit ... --resume` in a process of its own, and `vq-mitsuba eval`
+after it with `--eval`), inside a Ray task that reserves the CPU threads the fit uses. Ray decides
+where the tasks run: on this machine's cores, or across a cluster with `--address`.
+
+Resumable as a whole: `OUT/batch.json` records each finished run; a rerun skips them, and the
+others resume from their checkpoints. A fit process that dies by a signal (its worker killed, a
+machine lost) fails its task as a `RunLost`, which Ray retries, and the retry resumes. A capture's
+bad input fails only its own run, with its message. At the end `OUT/summary.csv` and
+`OUT/summary.md` hold one row per run (its figures, time and status; the markdown with each run's
+material sheet).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from vq_mitsuba.data.unposed import is_video
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
+from vq_mitsuba.run.run_dir import RunDir, read_json, write_atomic, write_json
+
+STATUS = BATCH_MARKER  # the batch's own record: every run's status, the marker of a batch folder
+LOGS = "logs"  # OUT/logs/<run>.log: what each run's commands printed
+RETRIES = 3  # tries of a run whose process died by a signal
+
+
+class RunLost(Exception):
+    """A fit or eval process killed by a signal (not a failure of its own): Ray retries the task."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One run of the batch: which capture, under which preset and seed, into which folder."""
+
+    name: str
+    capture: str
+    seed: int
+    preset: str | None = None
+
+
+def capture_name(capture: str | Path) -> str:
+    """The name a capture's runs start with: its folder's (a capture file's folder), a video's stem."""
+    path = Path(capture).resolve()
+    return path.name if path.is_dir() else path.stem if is_video(path) else path.parent.name
+
+
+def plan(captures: list[str], seeds: list[int], presets: list[str | None]) -> list[RunSpec]:
+    """Every capture under every preset and seed; two captures of one name are refused (their
+    runs would share a folder)."""
+    if not captures:
+        raise InputError(None, "batch needs at least one CAPTURE")
+    names: dict[str, str] = {}
+    for capture in captures:
+        name = capture_name(capture)
+        if name in names and names[name] != str(Path(capture).resolve()):
+            raise InputError(capture, f"shares the name '{name}' with {names[name]}: their runs would share a "
+                                      "folder; rename one of the folders")
+        names[name] = str(Path(capture).resolve())
+    specs = []
+    for capture in dict.fromkeys(captures):
+        for preset in presets:
+            for seed in seeds:
+                label = f"{capture_name(capture)}{f'-{preset}' if preset else ''}-s{seed}"
+                specs.append(RunSpec(label, str(Path(capture).resolve()), seed, preset))
+    return specs
+
+
+def _die_with_parent() -> None:
+    """In the fit's process: SIGTERM it when the worker that started it dies (Linux), so that a lost
+    worker leaves no fit behind holding the run; SIGTERM ends a fit with a checkpoint."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _command(argv: list[str], log: io.TextIOBase) -> tuple[int, str]:
+    """Run `vq-mitsuba ARGV` in a process of its own; (exit code, its last `error:` line)."""
+    log.write(f"$ vq-mitsuba {' '.join(argv)}\n")
+    log.flush()
+    proc = subprocess.run([sys.executable, "-m", "vq_mitsuba.cli", *argv], stdout=log, stderr=subprocess.PIPE,
+                          text=True, preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+    log.write(proc.stderr)
+    log.flush()
+    errors = [line[len("error: "):] for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    if proc.returncode < 0:
+        raise RunLost(f"vq-mitsuba {argv[0]} was killed by signal {-proc.returncode}")
+    return proc.returncode, errors[-1] if errors else proc.stderr.strip()[-300:]
+
+
+def ground_truth_of(capture: str | Path) -> Path | None:
+    """A `make-scene` dataset's folder when the capture is one (scene.json and gt/ beside it)."""
+    path = Path(capture)
+    folder = path if path.is_dir() else path.parent
+    return folder if (folder / "scene.json").is_file() and (folder / "gt").is_dir() else None
+
+
+def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate: bool) -> dict:
+    """One run (a Ray task's body): fit (resuming what the folder holds), then eval when asked."""
+    start = time.time()
+    run = Path(out) / spec.name
+    (Path(out) / LOGS).mkdir(parents=True, exist_ok=True)
+    with open(Path(out) / LOGS / f"{spec.name}.log", "a") as log:
+        argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads), *fit_args,
+                "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}"]
+        if spec.preset:
+            argv += ["--preset", spec.preset]
+        if RunDir(run).has_checkpoint():
+            argv.append("--resume")
+        code, message = _command(argv, log)
+        row = {"status": "done" if code == 0 else "failed", "message": "" if code == 0 else message}
+        if code == 0 and evaluate:
+            gt = ground_truth_of(spec.capture)
+            code, message = _command(["eval", str(run), "--quiet", "--threads", str(threads)]
+                                     + (["--gt", str(gt)] if gt else []), log)
+            if code != 0:
+                row = {"status": "eval failed", "message": message}
+    return {**row, "wall_s": round(time.time() - start, 1)}
+
+
+def figures(run: RunDir) -> dict:
+    """A finished run's headline figures, read through RunDir (missing ones left out)."""
+    out = {}
+    fit = run.fit_summary() if run.dir.is_dir() else {}
+    for key in ("iterations", "seconds", "final_psnr_train_batch"):
+        if key in fit:
+            out[key] = fit[key]
+    materials = run.materials() if run.is_run() else None
+    if materials is not None:
+        out["materials"] = materials.get("num_materials")
+    metrics_path = run / RunDir.METRICS
+    if metrics_path.is_file():
+        metrics = read_json(metrics_path, "")
+        for key in ("novel_view", "basecolor"):
+            value = metrics.get(key, {}).get("psnr") if isinstance(metrics.get(key), dict) else None
+            if value is not None:
+                out[f"{key}_psnr"] = value
+    return out
+
+
+COLUMNS = ["run", "capture", "preset", "seed", "status", "message", "wall_s", "iterations", "seconds",
+           "final_psnr_train_batch", "materials", "novel_view_psnr", "basecolor_psnr"]
+
+
+def write_summary(out: Path, specs: list[RunSpec], status: dict) -> None:
+    """OUT/summary.csv and OUT/summary.md: one row per run, in the plan's order."""
+    rows = []
+    for spec in specs:
+        record = status.get(spec.name, {"status": "not run"})
+        rows.append({"run": spec.name, "capture": spec.capture, "preset": spec.preset or "", "seed": spec.seed,
+                     **{k: record.get(k, "") for k in ("status", "message", "wall_s")},
+                     **figures(RunDir(out / spec.name))})
+    text = io.StringIO()
+    writer = csv.DictWriter(text, COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_atomic(out / "summary.csv", lambda tmp: tmp.write_text(text.getvalue()))
+
+    def cell(row, key, fmt="{:.2f}"):
+        value = row.get(key, "")
+        return fmt.format(value) if isinstance(value, float) else str(value).replace("|", "/").replace("\n", " ")
+
+    done = sum(r["status"] == "done" for r in rows)
+    lines = [f"# Batch: {done} of {len(rows)} runs done", "",
+             "| run | status | M | novel view PSNR | basecolor PSNR | fit s | material sheet |",
+             "|---|---|---|---|---|---|---|"]
+    for row in rows:
+        sheet = Path(row["run"]) / RunDir.SHEET
+        picture = f'<img src="{sheet}" width="200">' if (out / sheet).is_file() else ""
+        status = row["status"] + (f": {cell(row, 'message')}" if row.get("message") else "")
+        lines.append(f"| {row['run']} | {status} | {cell(row, 'materials')} | {cell(row, 'novel_view_psnr')} | "
+                     f"{cell(row, 'basecolor_psnr')} | {cell(row, 'seconds', '{:.0f}')} | {picture} |")
+    write_atomic(out / "summary.md", lambda tmp: tmp.write_text("\n".join(lines) + "\n"))
+
+
+def check_output(out: Path) -> dict:
+    """OUT is new, empty, or a batch folder (batch.json): its record of finished runs."""
+    check_output_folder(out, "batch", "batch")
+    if (out / STATUS).is_file():
+        runs = read_json(out / STATUS, "").get("runs")
+        if not isinstance(runs, dict):
+            raise InputError(out / STATUS, "expected {\"runs\": {...}}: not a batch record")
+        return runs
+    return {}
+
+
+def _start_ray(address: str | None, cpus: int | None):
+    import ray
+
+    if ray.is_initialized():
+        return ray, False
+    if address:
+        ray.init(address=address, log_to_driver=False)
+    else:
+        ray.init(num_cpus=cpus or os.cpu_count(), include_dashboard=False, log_to_driver=False,
+                 object_store_memory=80 * 1024 ** 2)
+    return ray, True
+
+
+def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), presets: list[str | None] = (None,),
+              fit_args: list[str] = (), threads: int = 1, evaluate: bool = False, address: str | None = None,
+              cpus: int | None = None, progress: bool = True) -> list[dict]:
+    """Fit every planned run as a Ray task (skipping those OUT/batch.json records as done) and write
+    the summary. Returns the summary's rows as status records, in the plan's order."""
+    out = Path(out)
+    specs = plan(list(captures), list(seeds), list(presets))
+    status = check_output(out)
+    out.mkdir(parents=True, exist_ok=True)
+    todo = [s for s in specs if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
+    ray, started = _start_ray(address, cpus)
+    try:
+        task = ray.remote(run_one).options(num_cpus=threads, max_retries=RETRIES, retry_exceptions=[RunLost])
+        pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate): s for s in todo}
+        _gather(ray, pending, out, specs, status, progress, skipped=len(specs) - len(todo))
+    finally:
+        if started:
+            ray.shutdown()
+    write_summary(out, specs, status)
+    return [{"run": s.name, **status.get(s.name, {})} for s in specs]
+
+
+def _gather(ray, pending: dict, out: Path, specs: list[RunSpec], status: dict, progress: bool, skipped: int) -> None:
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(specs), initial=skipped, desc="batch", unit="run", disable=not progress)
+    failed = 0
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        spec = pending.pop(ready[0])
+        try:
+            record = ray.get(ready[0])
+        except Exception as exc:  # retries spent, or Ray lost the task
+            cause = exc.cause if isinstance(getattr(exc, "cause", None), Exception) else exc
+            record = {"status": "failed", "message": f"{type(cause).__name__}: {cause}"}
+        failed += record["status"] != "done"
+        status[spec.name] = record
+        write_json(out / STATUS, {"runs": status})
+        bar.update(1)
+        bar.set_postfix(running=len(pending), failed=failed)
+    bar.close()
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(None, f"--seeds {text}: expected whole numbers separated by commas, e.g. 0,1,2") from None
+    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) < len(seeds):
+        raise InputError(None, f"--seeds {text}: expected distinct seeds >= 0, e.g. 0,1,2")
+    return seeds
