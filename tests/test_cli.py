@@ -239,3 +239,22 @@ def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys
     err = capsys.readouterr().err
     assert err.startswith("interrupted")
     assert ("--resume" in err) == hint and (f"vq-mitsuba {command}" in err) == hint
+
+
+def test_the_tools_own_warnings_go_to_stderr(monkeypatch, capsys):
+    """A warning of vq-mitsuba's own (errors.warn) is one `warning:` line on stderr, never on stdout
+    among a command's results."""
+    from vq_mitsuba.errors import warn
+
+    def warns(args):
+        warn("the mesh is tiny")
+        print("result")
+        return 0
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["eval"].set_defaults(
+        func=warns)
+    assert cli.main(["eval", "run"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "result\n" and captured.err == "warning: the mesh is tiny\n"

@@ -6,6 +6,7 @@ was written before it is kept (exit 3)."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 
@@ -43,3 +44,14 @@ def raise_all(problems: list[InputError], capture: str | Path) -> None:
         raise problems[0]
     if problems:
         raise InputError(capture, f"{len(problems)} problems in this capture:\n  " + "\n  ".join(map(str, problems)))
+
+
+class Notice(UserWarning):
+    """vq-mitsuba's own warning about an input or a run that goes on (the CLI shows each as one
+    `warning:` line on stderr)."""
+
+
+def warn(message: str) -> None:
+    """Warn through Python's warnings (`Notice`): a library caller can filter or record it, and the
+    CLI prints it to stderr, never among a command's results on stdout."""
+    warnings.warn(message, Notice, stacklevel=2)

@@ -18,9 +18,9 @@ def mesh_scale_warning(mesh, cameras) -> str | None:
         return None
     dist = np.linalg.norm(origins - centre, axis=1)
     if radius > dist.max():
-        return (f"warning: the mesh's bounding sphere (radius {radius:.3g}) encloses every camera (they are "
+        return (f"the mesh's bounding sphere (radius {radius:.3g}) encloses every camera (they are "
                 f"{dist.min():.3g} to {dist.max():.3g} from its centre): is the mesh in the cameras' units and world?")
     if radius < TINY_MESH * dist.min():
-        return (f"warning: the mesh (bounding-sphere radius {radius:.3g}) is tiny next to the cameras' distance "
+        return (f"the mesh (bounding-sphere radius {radius:.3g}) is tiny next to the cameras' distance "
                 f"({dist.min():.3g} and more): is the mesh in the cameras' units?")
     return None

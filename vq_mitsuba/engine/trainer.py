@@ -31,7 +31,7 @@ from vq_mitsuba.engine import skips
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.geometry.pipeline import masked_by_mesh
 from vq_mitsuba.run.loop import Budget, Loop, Progress
-from vq_mitsuba.errors import InputError, NumericalError
+from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models import losses
 from vq_mitsuba.models.fields import EnvironmentMap
 from vq_mitsuba.models.fitted import material_networks
@@ -511,7 +511,7 @@ class Trainer:
             acc["nonfinite"] += 1
             acc["run"] += 1
             if acc["nonfinite"] == 1:
-                print(f"warning: step {self.step}: loss or gradients not finite; the step is skipped")
+                warn(f"step {self.step}: loss or gradients not finite; the step is skipped")
             if acc["run"] >= MAX_NONFINITE_RUN:
                 raise NumericalError(self.run.dir, f"steps {self.step - acc['run'] + 1} to {self.step} all "
                                      f"gave a non-finite loss or gradient; the checkpoint (step {self.step}) "
@@ -553,7 +553,7 @@ class Trainer:
             run.write_file(RunDir.SHEET, lambda path: write_material_sheet(
                 info["materials"], env.cpu().numpy(), self.capture.envmap_to_world, path))
         elif self.cfg.vq.enabled:
-            print("warning: the fit ended before the discrete branch started (vq.warmup_frac); "
+            warn("the fit ended before the discrete branch started (vq.warmup_frac); "
                   "no materials.json was written")
         run.write_envmap(env.cpu().numpy())
         if self.cfg.residual.iterations > 0:  # VQ-NeRF Sec. 4: materials and light frozen from here
@@ -622,15 +622,15 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     trainer = Trainer(capture, run, cfg)
     stats = trainer.pool_stats
     if stats["geometry_coverage"] < 0.9 and not capture.has_alpha:
-        print(f"warning: the images have no alpha, so every pixel counts as the object's, and "
+        warn(f"the images have no alpha, so every pixel counts as the object's, and "
               f"{100 * (1 - stats['geometry_coverage']):.1f}% of them (the background) miss the mesh and are not "
               "fitted; with alpha masks (RGBA PNG or EXR) the fit also knows the object's outline")
     elif stats["geometry_coverage"] < 0.9:
-        print(f"warning: only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
+        warn(f"only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
               "the geometry may not match the images (units, world axes?)")
     scale_warning = mesh_scale_warning(capture.mesh, capture.cameras)
     if scale_warning:
-        print(scale_warning)
+        warn(scale_warning)
     run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
                     "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})

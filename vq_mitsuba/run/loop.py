@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
+from vq_mitsuba.errors import warn
 from vq_mitsuba.run.write_errors import WriteError
 
 
@@ -196,4 +197,4 @@ class Loop:
         try:
             self.checkpoint_fn(self.progress())
         except Exception as exc:  # the step's own error is the one to report
-            print(f"warning: {self.name}: no checkpoint written after the error ({exc})")
+            warn(f"{self.name}: no checkpoint written after the error ({exc})")
