@@ -84,6 +84,11 @@ def test_a_negative_scene_seed_is_refused(tmp_path, capsys):
     assert cli.main(["make-scene", "balls", "--seed", "-5", "-o", str(tmp_path / "scene")]) == 2
     assert "--seed -5: a seed is a whole number from 0" in capsys.readouterr().err
     assert not (tmp_path / "scene").exists()
+    from vq_mitsuba.synthetic.cycles import make_scene_cycles  # the same check, before Blender is looked for
+
+    with pytest.raises(InputError, match="--seed -5"):
+        make_scene_cycles("balls", tmp_path / "cycles", seed=-5)
+    assert not (tmp_path / "cycles").exists()
 
 
 # --- fits that stop before Dr.Jit, or end cleanly ------------------------------------------------------

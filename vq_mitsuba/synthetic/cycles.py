@@ -314,6 +314,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     studio-light relighting probes."""
     from tqdm.auto import tqdm
 
+    synthetic.check_seed(seed)
     python = check_environment()
     synthetic._ensure_variant()
     t_start = time.time()

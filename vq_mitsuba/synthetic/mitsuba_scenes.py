@@ -746,6 +746,12 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
     bar.close()
 
 
+def check_seed(seed) -> None:
+    """A dataset's seed is a whole number from 0 to MAX_SEED (both renderers)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise InputError(None, f"--seed {seed}: a seed is a whole number from 0 to {MAX_SEED}")
+
+
 def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = None, n_train: int | None = None,
                n_test: int | None = None, spp: int | None = None, seed: int = 0,
                progress: bool = True, photo_formats: bool = False) -> Path:
@@ -754,8 +760,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
     training views as NeuS/IDR (neus/), COLMAP (colmap/, colmap_opencv/), nerfstudio (nerfstudio/) and
     LLFF (llff/) captures. Returns out_dir."""
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
-        raise InputError(None, f"--seed {seed}: a seed is a whole number from 0 to {MAX_SEED}")
+    check_seed(seed)
     _ensure_variant()
     t_start = time.time()
     spec = load_scene_spec(name)
