@@ -3,12 +3,16 @@
 
     python benchmarks/bench_scenes.py [--scenes demo texture balls] [--time-limit 600]
         [--iterations N] [--resolution 128] [--out benchmarks/out] [--compare OLD.json]
+        [--threads-per-run N] [--address ADDR]
 
 For each scene: `make_scene` into OUT/data/NAME (reused when its scene.json has the same
-resolution), `fit` from its scene.xml into OUT/runs/NAME (an old run there is deleted first) with
-configs/NAME.yaml if present, then `evaluate` on the test views. Writes OUT/bench_scenes.json and
-OUT/bench_scenes.md and prints the table; when an older JSON exists (OUT/bench_scenes.json, or
---compare), prints new / old ratios. All figures are single runs. See benchmarks/README.md.
+resolution). Then one `vq-mitsuba batch` (vq_mitsuba/batch.py) fits every scene from its scene.xml
+into OUT/runs/NAME-s0 (old runs there are deleted first) with configs/NAME.yaml if present, and
+evaluates each on its test views. Each run reserves --threads-per-run CPU threads (default: every
+core, so on one machine the fits run one after another, timed alone; fewer run several at once;
+--address spreads them over a Ray cluster). Writes OUT/bench_scenes.json and OUT/bench_scenes.md and
+prints the table; when an older JSON exists (OUT/bench_scenes.json, or --compare), prints new / old
+ratios. All figures are single runs. See benchmarks/README.md.
 """
 
 from __future__ import annotations
@@ -16,15 +20,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
 import sys
 from pathlib import Path
 
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.batch import run_batch
 from vq_mitsuba.config import load_config
-from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
-from vq_mitsuba.engine.trainer import fit
+from vq_mitsuba.eval.evaluate import format_table, json_safe
+from vq_mitsuba.run.run_dir import RunDir
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -78,29 +84,43 @@ def headline(m: dict, fit_summary: dict) -> dict:
     return fig
 
 
-def run_scene(name: str, args, out: Path) -> dict:
-    data = ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet)
-    cfg, preset = scene_config(name, [f"train.time_limit_s={args.time_limit}", *args.set])
-    if args.iterations is not None:
-        cfg.train.iterations = min(cfg.train.iterations, args.iterations)
-    run_dir = out / "runs" / name
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    print(f"[{name}] fitting {data / 'scene.xml'} -> {run_dir} (config: "
-          f"{preset.relative_to(REPO) if preset else 'defaults'}, {cfg.train.iterations} iterations, "
-          f"time limit {args.time_limit:g} s)")
-    summary = fit(data / "scene.xml", run_dir, cfg, progress=not args.quiet)
-    print(f"[{name}] evaluating on the test views")
-    m = evaluate(run_dir, data, spp=args.spp, progress=not args.quiet)
-    print(format_table(m))
-    return {
-        "scene": name, "resolution": args.resolution, "dataset": str(data), "run": str(run_dir),
-        "config": str(preset.relative_to(REPO)) if preset else "defaults",
-        "time_limit_s": args.time_limit, "iterations_planned": cfg.train.iterations,
-        "n_test_views": m["n_views"], "eval_spp": m["render"]["spp"], "eval_seconds": m["seconds"],
-        "alignment": m["alignment"],
-        "figures": headline(m, summary),
-    }
+def run_scenes(args, out: Path) -> list[dict]:
+    """Fit and evaluate every scene as one batch; each scene's record, in the order of --scenes."""
+    data = {name: ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet) for name in args.scenes}
+    common = [x for item in [f"train.time_limit_s={args.time_limit}", *args.set] for x in ("--set", item)]
+    own, planned = {}, {}
+    for name in args.scenes:
+        cfg, preset = scene_config(name, [f"train.time_limit_s={args.time_limit}", *args.set])
+        planned[name] = min(cfg.train.iterations, args.iterations or cfg.train.iterations)
+        own[str(data[name] / "scene.xml")] = (["--config", str(preset)] if preset else []) + \
+            ["--set", f"train.iterations={planned[name]}"]
+    runs = out / "runs"
+    if runs.exists():
+        shutil.rmtree(runs)  # fresh fits, not the batch's resume
+    threads = args.threads_per_run or len(os.sched_getaffinity(0))
+    print(f"fitting {', '.join(args.scenes)} as one batch into {runs} ({threads} threads a run, time limit "
+          f"{args.time_limit:g} s)")
+    rows = run_batch(list(own), runs, fit_args=common, capture_args=own, threads=threads, evaluate=True,
+                     eval_args=["--spp", str(args.spp)] if args.spp else [], address=args.address,
+                     progress=not args.quiet)
+    failed = [f"{r['run']}: {r.get('message')}" for r in rows if r.get("status") != "done"]
+    if failed:
+        raise SystemExit("runs failed:\n" + "\n".join(failed))
+    scenes = []
+    for name in args.scenes:
+        run = RunDir(runs / f"{name}-s0")
+        m = json.loads((run / RunDir.METRICS).read_text())
+        print(f"[{name}]\n{format_table(m)}")
+        preset = scene_config(name, [])[1]
+        scenes.append({
+            "scene": name, "resolution": args.resolution, "dataset": str(data[name]), "run": str(run.dir),
+            "config": str(preset.relative_to(REPO)) if preset else "defaults",
+            "time_limit_s": args.time_limit, "iterations_planned": planned[name],
+            "n_test_views": m["n_views"], "eval_spp": m["render"]["spp"], "eval_seconds": m["seconds"],
+            "alignment": m["alignment"],
+            "figures": headline(m, run.fit_summary()),
+        })
+    return scenes
 
 
 def _fmt(x, spec: str = ".2f") -> str:
@@ -171,6 +191,8 @@ def main(argv=None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override for every scene, e.g. --set vq.enabled=false (ablations; repeatable)")
+    p.add_argument("--threads-per-run", type=int, help="CPU threads each fit reserves (default: every core)")
+    p.add_argument("--address", help="run the fits on this Ray cluster (default: this machine)")
     args = p.parse_args(argv)
 
     out = Path(args.out)
@@ -179,11 +201,11 @@ def main(argv=None) -> int:
     old_path = Path(args.compare) if args.compare else json_path
     old = json.loads(old_path.read_text()) if old_path.is_file() else None
 
-    scenes = [run_scene(name, args, out) for name in args.scenes]
+    scenes = run_scenes(args, out)
     result = {
         **provenance(command_line(argv, __file__)),
         "settings": {"scenes": args.scenes, "time_limit_s": args.time_limit, "iterations": args.iterations,
-                     "overrides": args.set,
+                     "overrides": args.set, "threads_per_run": args.threads_per_run,
                      "resolution": args.resolution, "eval_spp": args.spp},
         "note": "single runs: no repeats, no error bars",
         "scenes": scenes,

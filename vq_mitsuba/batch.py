@@ -47,6 +47,7 @@ class RunSpec:
     capture: str
     seed: int
     preset: str | None = None
+    args: tuple[str, ...] = ()  # fit options for this capture alone (e.g. its own --config)
 
 
 def capture_name(capture: str | Path) -> str:
@@ -55,9 +56,10 @@ def capture_name(capture: str | Path) -> str:
     return path.name if path.is_dir() else path.stem if is_video(path) else path.parent.name
 
 
-def plan(captures: list[str], seeds: list[int], presets: list[str | None]) -> list[RunSpec]:
-    """Every capture under every preset and seed; two captures of one name are refused (their
-    runs would share a folder)."""
+def plan(captures: list[str], seeds: list[int], presets: list[str | None],
+         capture_args: dict[str, list[str]] | None = None) -> list[RunSpec]:
+    """Every capture under every preset and seed (with `capture_args[capture]`, its own fit
+    options); two captures of one name are refused (their runs would share a folder)."""
     if not captures:
         raise InputError(None, "batch needs at least one CAPTURE")
     names: dict[str, str] = {}
@@ -72,7 +74,8 @@ def plan(captures: list[str], seeds: list[int], presets: list[str | None]) -> li
         for preset in presets:
             for seed in seeds:
                 label = f"{capture_name(capture)}{f'-{preset}' if preset else ''}-s{seed}"
-                specs.append(RunSpec(label, str(Path(capture).resolve()), seed, preset))
+                own = tuple((capture_args or {}).get(capture, ()))
+                specs.append(RunSpec(label, str(Path(capture).resolve()), seed, preset, own))
     return specs
 
 
@@ -108,13 +111,14 @@ def ground_truth_of(capture: str | Path) -> Path | None:
     return folder if (folder / "scene.json").is_file() and (folder / "gt").is_dir() else None
 
 
-def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate: bool) -> dict:
+def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate: bool,
+            eval_args: list[str] = ()) -> dict:
     """One run (a Ray task's body): fit (resuming what the folder holds), then eval when asked."""
     start = time.time()
     run = Path(out) / spec.name
     (Path(out) / LOGS).mkdir(parents=True, exist_ok=True)
     with open(Path(out) / LOGS / f"{spec.name}.log", "a") as log:
-        argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads), *fit_args,
+        argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads), *fit_args, *spec.args,
                 "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}"]
         if spec.preset:
             argv += ["--preset", spec.preset]
@@ -124,7 +128,7 @@ def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate
         row = {"status": "done" if code == 0 else "failed", "message": "" if code == 0 else message}
         if code == 0 and evaluate:
             gt = ground_truth_of(spec.capture)
-            code, message = _command(["eval", str(run), "--quiet", "--threads", str(threads)]
+            code, message = _command(["eval", str(run), "--quiet", "--threads", str(threads), *eval_args]
                                      + (["--gt", str(gt)] if gt else []), log)
             if code != 0:
                 row = {"status": "eval failed", "message": message}
@@ -212,18 +216,21 @@ def _start_ray(address: str | None, cpus: int | None):
 
 def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), presets: list[str | None] = (None,),
               fit_args: list[str] = (), threads: int = 1, evaluate: bool = False, address: str | None = None,
-              cpus: int | None = None, progress: bool = True) -> list[dict]:
+              cpus: int | None = None, progress: bool = True, capture_args: dict[str, list[str]] | None = None,
+              eval_args: list[str] = ()) -> list[dict]:
     """Fit every planned run as a Ray task (skipping those OUT/batch.json records as done) and write
-    the summary. Returns the summary's rows as status records, in the plan's order."""
+    the summary. `fit_args` go to every fit, `capture_args[capture]` to that capture's, `eval_args`
+    to every eval. Returns the summary's rows as status records, in the plan's order."""
     out = Path(out)
-    specs = plan(list(captures), list(seeds), list(presets))
+    specs = plan(list(captures), list(seeds), list(presets), capture_args)
     status = check_output(out)
     out.mkdir(parents=True, exist_ok=True)
     todo = [s for s in specs if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
     ray, started = _start_ray(address, cpus)
     try:
         task = ray.remote(run_one).options(num_cpus=threads, max_retries=RETRIES, retry_exceptions=[RunLost])
-        pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate): s for s in todo}
+        pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate, list(eval_args)): s
+                   for s in todo}
         _gather(ray, pending, out, specs, status, progress, skipped=len(specs) - len(todo))
     finally:
         if started:
