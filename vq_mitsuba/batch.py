@@ -122,7 +122,7 @@ def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate
                 "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}"]
         if spec.preset:
             argv += ["--preset", spec.preset]
-        if RunDir(run).has_checkpoint():
+        if RunDir(run).holds_run_files():  # an interrupted run: its poses, NeuS and checkpoint go on
             argv.append("--resume")
         code, message = _command(argv, log)
         row = {"status": "done" if code == 0 else "failed", "message": "" if code == 0 else message}
