@@ -194,3 +194,30 @@ def test_metrics_keep_undefined_scores_as_text(tmp_path):
     run.write_metrics({"views": [{"psnr": float("inf"), "ssim": float("nan")}], "coverage_iou": 0.5})
     assert json.loads((run / RunDir.METRICS).read_text()) == {"views": [{"psnr": "inf", "ssim": "nan"}],
                                                               "coverage_iou": 0.5}
+
+
+def test_views_of_every_split_have_names_of_their_own(tmp_path):
+    """NeRF-synthetic captures name train/r_0 and test/r_0 both r_0: a run's cameras keep every
+    name unique over the splits (the test view is test_r_0), so the editor and `edit --pick` can
+    tell them apart."""
+    import shutil
+
+    from test_capture import make_json_capture
+    from vq_mitsuba.edit import find_view
+
+    capture = make_json_capture(tmp_path / "cap")
+    root = capture.parent
+    shutil.copytree(root / "train", root / "test")
+    test = json.loads(capture.read_text())
+    test["frames"] = [{**f, "file_path": f["file_path"].replace("train", "test")} for f in test["frames"]]
+    test["frames"][1]["transform_matrix"] = np.diag([1.0, 1.0, 1.0, 1.0]).tolist()
+    (root / "transforms_test.json").write_text(json.dumps(test))
+    run = RunDir(tmp_path / "run")
+    run.create()
+    run.write_config(load_config(None, []))
+    run.write_info({"capture": str(capture), "world": "blender", "envmap_to_world": np.eye(4).tolist()})
+    views = run.cameras()
+    assert [c.name for c in views["train"]] == ["r_0", "r_1", "r_2"]
+    assert [c.name for c in views["test"]] == ["test_r_0", "test_r_1", "test_r_2"]
+    assert np.allclose(find_view(run, "test_r_1").to_world, views["test"][1].to_world)
+    assert not np.allclose(find_view(run, "r_1").to_world, views["test"][1].to_world)

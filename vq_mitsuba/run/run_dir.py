@@ -367,9 +367,14 @@ class RunDir:
     # --- the capture's cameras ------------------------------------------------------------------
     def cameras(self) -> dict[str, list]:
         """The capture's views in the run's world: {"train": [...], and "test" / "val" where a
-        transforms_test.json / transforms_val.json lies beside the capture}."""
+        transforms_test.json / transforms_val.json lies beside the capture}. Names are unique over
+        all splits: a test or val view named as an earlier split's view (NeRF's train/r_0 and
+        test/r_0) is called "test_r_0" ("val_r_0")."""
+        import dataclasses
+
         from vq_mitsuba.data.cameras import convert_world
         from vq_mitsuba.data.captures import load_cameras
+        from vq_mitsuba.data.names import unique_names
 
         info = self.source().info()
         capture = Path(info["capture"])
@@ -384,6 +389,12 @@ class RunDir:
                 out[split] = [convert_world(c, world, info["world"]) for c in cameras]
         if "train" not in out:
             raise InputError(capture, f"the capture of the run {self.dir} is not there any more")
+        taken = {c.name.casefold() for c in out["train"]}
+        for split in [s for s in out if s != "train"]:
+            names = [f"{split}_{c.name}" if c.name.casefold() in taken else c.name for c in out[split]]
+            names = unique_names(sorted(taken) + names)[len(taken):]  # against every name before
+            out[split] = [dataclasses.replace(c, name=n) for c, n in zip(out[split], names)]
+            taken |= {n.casefold() for n in names}
         return out
 
     # --- configuration ------------------------------------------------------------------------
