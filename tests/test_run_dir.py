@@ -221,3 +221,24 @@ def test_views_of_every_split_have_names_of_their_own(tmp_path):
     assert [c.name for c in views["test"]] == ["test_r_0", "test_r_1", "test_r_2"]
     assert np.allclose(find_view(run, "test_r_1").to_world, views["test"][1].to_world)
     assert not np.allclose(find_view(run, "r_1").to_world, views["test"][1].to_world)
+
+
+class _RunsCode:
+    """A pickle that would create a file when loaded."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.create()
+    marker = tmp_path / "code_ran"
+    torch.save({"model": {}, "step": 1, "payload": _RunsCode(marker)}, run.checkpoint_path)
+    with pytest.raises(InputError, match="not a readable checkpoint") as info:
+        run.load_state()
+    assert str(run.checkpoint_path) in str(info.value)
+    assert not marker.exists()

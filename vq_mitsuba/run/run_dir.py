@@ -478,7 +478,8 @@ class RunDir:
         if not path.is_file():
             raise InputError(path, "checkpoint missing: the run did not finish its first checkpoint")
         try:
-            state = torch.load(path, map_location=device, weights_only=False)
+            # tensors, numbers, strings and containers only: a pickle that would run code is refused
+            state = torch.load(path, map_location=device, weights_only=True)
         except Exception as exc:  # a torn or foreign file
             raise InputError(path, f"not a readable checkpoint ({type(exc).__name__}: {exc})") from None
         if not isinstance(state, dict):

@@ -79,7 +79,7 @@ class _NeuSFit:
     def resume(self) -> None:
         if self.ckpt is None or not self.ckpt.is_file():
             return
-        state = torch.load(self.ckpt, map_location="cpu", weights_only=False)
+        state = RunDir(self.ckpt.parent).load_state(self.ckpt, "cpu")
         _check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
         if state.get("background_model", False) != self.neus.mask_free:
             made = "without masks (neus.background model)" if state.get("background_model") else "with masks"
