@@ -74,7 +74,10 @@ def _parent_pid(pid: int) -> int:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the worker through /proc")
-def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures, tmp_path):
+@pytest.mark.parametrize("target, sig", [("worker", signal.SIGKILL), ("fit", signal.SIGTERM)])
+def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures, tmp_path, target, sig):
+    """SIGKILL of the Ray worker running a fit (a lost machine), or SIGTERM of the fit itself (a
+    pre-empted job): the task is retried and the retry resumes from the checkpoint."""
     out = tmp_path / "batch"
     run = out / "sphere_a-s0"
     killed = {}
@@ -85,8 +88,8 @@ def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures
             time.sleep(0.05)
         import json
         fit_pid = json.loads((run / RunDir.LOCK).read_text())["pid"]
-        killed["worker"] = _parent_pid(fit_pid)
-        os.kill(killed["worker"], signal.SIGKILL)
+        killed[target] = _parent_pid(fit_pid) if target == "worker" else fit_pid
+        os.kill(killed[target], sig)
 
     watcher = threading.Thread(target=kill_the_worker)
     watcher.start()

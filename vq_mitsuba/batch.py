@@ -7,10 +7,10 @@ where the tasks run: on this machine's cores, or across a cluster with `--addres
 
 Resumable as a whole: `OUT/batch.json` records each finished run; a rerun skips them, and the
 others resume from their checkpoints. A fit process that dies by a signal (its worker killed, a
-machine lost) fails its task as a `RunLost`, which Ray retries, and the retry resumes. A capture's
-bad input fails only its own run, with its message. At the end `OUT/summary.csv` and
-`OUT/summary.md` hold one row per run (its figures, time and status; the markdown with each run's
-material sheet).
+machine lost) or stopped by SIGTERM / SIGINT fails its task as a `RunLost`, which Ray retries, and
+the retry resumes. A capture's bad input fails only its own run, with its message. At the end
+`OUT/summary.csv` and `OUT/summary.md` hold one row per run (its figures, time and status; the
+markdown with each run's material sheet).
 """
 
 from __future__ import annotations
@@ -101,6 +101,8 @@ def _command(argv: list[str], log: io.TextIOBase) -> tuple[int, str]:
     errors = [line[len("error: "):] for line in proc.stderr.splitlines() if line.startswith("error: ")]
     if proc.returncode < 0:
         raise RunLost(f"vq-mitsuba {argv[0]} was killed by signal {-proc.returncode}")
+    if proc.returncode in (128 + signal.SIGTERM, 128 + signal.SIGINT):  # stopped, its checkpoint written
+        raise RunLost(f"vq-mitsuba {argv[0]} was stopped by signal {proc.returncode - 128}")
     return proc.returncode, errors[-1] if errors else proc.stderr.strip()[-300:]
 
 
