@@ -158,6 +158,26 @@ def test_geometry_writes_into_a_geometry_only_run(tmp_path):
     check_geometry_target(RunDir(tmp_path / "new"))
 
 
+def test_geometry_never_writes_into_an_edited_run(tiny, capsys):
+    capture, run, folder = tiny
+    edited = folder / "edited_for_geometry"
+    assert cli.main(["edit", str(run), "--box=-9,-9,-9,9,9,9", "--set", "roughness=0.5", "-o", str(edited)]) == 0
+    before = _snapshot(edited)
+    _refused(["geometry", str(capture), "-o", str(edited), "--quiet"], capsys, edited)
+    assert _snapshot(edited) == before
+
+
+def test_make_scene_writes_again_into_its_own_dataset(tmp_path, capsys):
+    out = tmp_path / "scene"
+    assert cli.main(["make-scene", "demo", "-o", str(out), "--resolution", "8", "--spp", "4", "--n-train", "2",
+                     "--n-test", "1"]) == 0
+    first = json.loads((out / "scene.json").read_text())
+    assert cli.main(["make-scene", "demo", "-o", str(out), "--resolution", "12", "--spp", "4", "--n-train", "2",
+                     "--n-test", "1"]) == 0
+    again = json.loads((out / "scene.json").read_text())
+    assert first["resolution"] == [8, 8] and again["resolution"] == [12, 12]
+
+
 # --- make-scene, edit -------------------------------------------------------------------------
 
 def test_make_scene_never_writes_into_a_users_folder(tmp_path, capsys):
