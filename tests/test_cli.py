@@ -258,3 +258,10 @@ def test_the_tools_own_warnings_go_to_stderr(monkeypatch, capsys):
     assert cli.main(["eval", "run"]) == 0
     captured = capsys.readouterr()
     assert captured.out == "result\n" and captured.err == "warning: the mesh is tiny\n"
+
+
+def test_the_command_line_manual_is_current():
+    """docs/cli.md is `python -m vq_mitsuba.cli --manual > docs/cli.md`: regenerate it."""
+    doc = Path(__file__).resolve().parent.parent / "docs" / "cli.md"
+    assert doc.read_text() == cli.manual()
+    assert all(f"## `vq-mitsuba {name}`" in doc.read_text() for name in _subparsers())

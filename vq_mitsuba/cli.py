@@ -633,6 +633,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+MANUAL_WIDTH = 100  # columns of docs/cli.md's help texts, whatever the terminal
+
+
+def manual() -> str:
+    """docs/cli.md: every command's --help, as argparse prints it (`python -m vq_mitsuba.cli
+    --manual > docs/cli.md`; a test holds the file to it byte for byte)."""
+    import os
+
+    before = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = str(MANUAL_WIDTH)  # argparse wraps at the terminal's width
+    try:
+        parser = build_parser()
+        commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        lines = ["# The command line", "",
+                 "Generated from the parsers by `python -m vq_mitsuba.cli --manual > docs/cli.md`; a test "
+                 "checks it is current.", "", "```", parser.format_help().rstrip(), "```"]
+        for name, sub in commands.choices.items():
+            lines += ["", f"## `vq-mitsuba {name}`", "", "```", sub.format_help().rstrip(), "```"]
+    finally:
+        if before is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = before
+    return "\n".join(lines) + "\n"
+
+
 def _join_negative_lists(argv: list[str]) -> list[str]:
     """`--box -1,0,-1,1,1,1` as `--box=-1,0,...`: argparse would take a value starting with '-' for an option."""
     out, i = [], 0
@@ -694,4 +720,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1:] == ["--manual"]:
+        print(manual(), end="")
+        sys.exit(0)
     sys.exit(main())
