@@ -2,12 +2,14 @@
 its own runs, a rerun skips finished runs, and a run whose worker is killed is retried and resumes."""
 
 import csv
+import json
 import os
 import signal
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tiny_scene import write_sphere_capture
@@ -61,12 +63,39 @@ def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(loca
         table = list(csv.DictReader(f))
     assert len(table) == 6 and {r["status"] for r in table} == {"done", "failed"}
     assert all(float(r["iterations"]) == 6 for r in table if r["status"] == "done")
-    assert "sphere_a-s0" in (out / "summary.md").read_text()
+    summary_md = (out / "summary.md").read_text()
+    for name in status:  # a novel view of every finished run, shown in the summary
+        view = out / "views" / f"{name}.png"
+        assert view.is_file() == (not name.startswith("broken")), name
+        if view.is_file():
+            from vq_mitsuba.data.imageio import read_image
+
+            rgb, alpha = read_image(view)
+            assert rgb.shape[:2] == (16, 16) and np.isfinite(rgb).all() and alpha is not None and alpha.max() > 0.5
+            assert f'src="views/{name}.png"' in summary_md
 
     again = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
     assert [r["status"] for r in again] == [r["status"] for r in rows]
     for name in status:
         assert len(_fits_started(out, name)) == (2 if name.startswith("broken") else 1), name
+
+
+def test_a_batch_evaluates_held_out_views_and_shows_one(local_ray, captures, tmp_path):
+    """--eval on a capture fitted with held-out views: eval scores them, the summary holds the
+    score, and the run's picture is its first held-out view."""
+    from vq_mitsuba.batch import preview_camera
+
+    out = tmp_path / "batch"
+    rows = run_batch(captures[:1], out, seeds=[0], fit_args=[*QUICK, "--set", "capture.holdout=2"], evaluate=True,
+                     progress=False)
+    assert rows[0]["status"] == "done", rows
+    with open(out / "summary.csv") as f:
+        row = next(csv.DictReader(f))
+    assert 5.0 < float(row["novel_view_psnr"]) < 60.0
+    run = RunDir(out / "sphere_a-s0")
+    held = [v["view"] for v in json.loads((run / RunDir.METRICS).read_text())["views"]]
+    assert preview_camera(run).name == held[0]
+    assert (out / "views" / "sphere_a-s0.png").is_file()
 
 
 def _parent_pid(pid: int) -> int:

@@ -10,7 +10,7 @@ others resume from their checkpoints. A fit process that dies by a signal (its w
 machine lost) or stopped by SIGTERM / SIGINT fails its task as a `RunLost`, which Ray retries, and
 the retry resumes. A capture's bad input fails only its own run, with its message. At the end
 `OUT/summary.csv` and `OUT/summary.md` hold one row per run (its figures, time and status; the
-markdown with each run's material sheet).
+markdown with a novel view of each run, `OUT/views/<run>.png`, and its material sheet).
 """
 
 from __future__ import annotations
@@ -25,13 +25,17 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from vq_mitsuba.data.unposed import is_video
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_atomic, write_json
 
 STATUS = BATCH_MARKER  # the batch's own record: every run's status, the marker of a batch folder
 LOGS = "logs"  # OUT/logs/<run>.log: what each run's commands printed
+VIEWS = "views"  # OUT/views/<run>.png: one novel view of each finished run, for the summary
+VIEW_SIZE, VIEW_SPP = 256, 16  # the long side and samples per pixel of those views
 RETRIES = 3  # tries of a run whose process died by a signal
 
 
@@ -137,6 +141,48 @@ def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate
     return {**row, "wall_s": round(time.time() - start, 1)}
 
 
+def preview_camera(run: RunDir):
+    """The view a run is shown by in the summary, in the run's world: its first held-out view
+    (fit --holdout), else the first test view of the capture, else its first training view."""
+    from vq_mitsuba.data.cameras import convert_world
+    from vq_mitsuba.eval.evaluate import held_out_capture
+
+    if run.config().capture.holdout > 0:
+        held = held_out_capture(run)
+        if held.cameras:
+            return convert_world(held.cameras[0], held.world, run.info()["world"])
+    views = run.cameras()
+    return (views.get("test") or views["train"])[0]
+
+
+def write_preview(run: RunDir, png: Path) -> None:
+    """A small render of `preview_camera` under the fitted light (straight sRGB with alpha)."""
+    from vq_mitsuba.data.imageio import write_png
+    from vq_mitsuba.render.views import Renderer
+
+    cam = preview_camera(run)
+    scale = min(1.0, VIEW_SIZE / max(cam.width, cam.height))
+    cam = cam.scaled(max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
+    images = Renderer(run.load()).render(cam, spp=VIEW_SPP)
+    alpha = images["alpha"]
+    png.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(png, lambda tmp: write_png(tmp, images["rgb"] / np.maximum(alpha, 1e-6)[..., None], alpha=alpha))
+
+
+def write_previews(out: Path, specs: list[RunSpec], status: dict, progress: bool) -> None:
+    """OUT/views/<run>.png of every finished run that has none yet; a run that cannot be shown gets
+    its reason in the summary's message instead."""
+    from tqdm import tqdm
+
+    todo = [s for s in specs if status.get(s.name, {}).get("status") == "done"
+            and not (out / VIEWS / f"{s.name}.png").is_file()]
+    for spec in tqdm(todo, desc="views", unit="run", disable=not progress or not todo):
+        try:
+            write_preview(RunDir(out / spec.name), out / VIEWS / f"{spec.name}.png")
+        except UserError as exc:
+            status[spec.name]["message"] = f"no view: {exc}"
+
+
 def figures(run: RunDir) -> dict:
     """A finished run's headline figures, read through RunDir (missing ones left out)."""
     out = {}
@@ -181,14 +227,17 @@ def write_summary(out: Path, specs: list[RunSpec], status: dict) -> None:
 
     done = sum(r["status"] == "done" for r in rows)
     lines = [f"# Batch: {done} of {len(rows)} runs done", "",
-             "| run | status | M | novel view PSNR | basecolor PSNR | fit s | material sheet |",
-             "|---|---|---|---|---|---|---|"]
+             "| run | status | M | novel view PSNR | basecolor PSNR | fit s | a novel view | material sheet |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def picture(path: Path) -> str:
+        return f'<img src="{path}" width="200">' if (out / path).is_file() else ""
+
     for row in rows:
-        sheet = Path(row["run"]) / RunDir.SHEET
-        picture = f'<img src="{sheet}" width="200">' if (out / sheet).is_file() else ""
         status = row["status"] + (f": {cell(row, 'message')}" if row.get("message") else "")
         lines.append(f"| {row['run']} | {status} | {cell(row, 'materials')} | {cell(row, 'novel_view_psnr')} | "
-                     f"{cell(row, 'basecolor_psnr')} | {cell(row, 'seconds', '{:.0f}')} | {picture} |")
+                     f"{cell(row, 'basecolor_psnr')} | {cell(row, 'seconds', '{:.0f}')} | "
+                     f"{picture(Path(VIEWS) / (row['run'] + '.png'))} | {picture(Path(row['run']) / RunDir.SHEET)} |")
     write_atomic(out / "summary.md", lambda tmp: tmp.write_text("\n".join(lines) + "\n"))
 
 
@@ -237,6 +286,7 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     finally:
         if started:
             ray.shutdown()
+    write_previews(out, specs, status, progress)
     write_summary(out, specs, status)
     return [{"run": s.name, **status.get(s.name, {})} for s in specs]
 
