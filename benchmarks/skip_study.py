@@ -24,8 +24,10 @@ Datasets: DATA/NAME, `vq-mitsuba make-scene NAME --renderer cycles` at --resolut
 `vq-mitsuba fit DATA/NAME/transforms_train.json --mesh DATA/NAME/mesh.ply` (with
 configs/NAME.yaml when there is one, as `make demo` and `bench_time_error.py` fit), one process per
 fit, timed from the command's start to its exit (start-up and the end's ranking and residual
-included), then scored by `vq_mitsuba.eval.evaluate` on the test views: novel view, basecolor,
-relighting (albedo scale, mean over the held-aside probes), segmentation micro-F1 and M.
+included), run through `vq-mitsuba batch` (one batch of the scenes per variant and seed, each fit
+on every core, so one after another on one machine; `--address` for a Ray cluster), then scored by
+`vq_mitsuba.eval.evaluate` on the test views: novel view, basecolor, relighting (albedo scale,
+mean over the held-aside probes), segmentation micro-F1 and M.
 `--warmup` first runs one short unscored fit so that the first timed fit does not pay Dr.Jit's
 kernel compilation alone.
 
@@ -45,7 +47,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from bench_scenes import _fmt
@@ -116,27 +117,41 @@ def training_curve(run_dir: Path) -> list[list[float]]:
     return [[h["seconds"], h["psnr"]] for h in state.get("history", [])]
 
 
-def run_one(name: str, data: Path, variant: str, seed: int, args) -> dict:
+def fit_batch(datasets: dict[str, Path], variant: str, seed: int, args) -> dict[str, dict]:
+    """Fit every scene under `variant` and `seed` as one `vq-mitsuba batch` (vq_mitsuba/batch.py), each
+    run on every core so that on one machine they run, and are timed, one at a time; returns
+    {scene: (run folder, the fit's wall seconds, its overrides)}."""
+    from vq_mitsuba.batch import run_batch
+
+    out = args.out / "runs" / variant / f"s{seed}"
+    if out.exists():
+        shutil.rmtree(out)
+    overrides = variant_overrides(variant) + ([f"train.iterations={args.iterations}"] if args.iterations else [])
+    own = {str(data / "transforms_train.json"): ["--mesh", str(data / "mesh.ply")] + (
+        ["--config", str(REPO / "configs" / f"{name}.yaml")] if (REPO / "configs" / f"{name}.yaml").is_file() else [])
+        for name, data in datasets.items()}
+    print(f"[{variant}/s{seed}] batch of {', '.join(datasets)}: {' '.join(overrides) or 'no key forced'}", flush=True)
+    rows = run_batch(list(own), out, seeds=[seed], fit_args=[x for kv in overrides for x in ("--set", kv)],
+                     capture_args=own, threads=len(os.sched_getaffinity(0)), address=args.address, progress=False)
+    failed = [f"{r['run']}: {r.get('message')}" for r in rows if r.get("status") != "done"]
+    if failed:
+        raise SystemExit("fits failed:\n" + "\n".join(failed))
+    walls = {r["run"]: r["wall_s"] for r in rows}
+    return {name: {"run_dir": out / f"{name}-s{seed}", "wall_s": walls[f"{name}-s{seed}"],
+                   "overrides": overrides + [f"train.seed={seed}"]} for name in datasets}
+
+
+def score_one(name: str, data: Path, variant: str, seed: int, fitted: dict, args) -> dict:
+    """The row of one fitted scene: its wall time, figures on the test views and decisions."""
     from vq_mitsuba.eval.evaluate import evaluate
 
-    run_dir = args.out / "runs" / name / f"{variant}_s{seed}"
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    overrides = variant_overrides(variant) + [f"train.seed={seed}"]
-    if args.iterations:
-        overrides.append(f"train.iterations={args.iterations}")
-    cmd = fit_command(name, data, run_dir, overrides)
-    print(f"[{name}/{variant}/s{seed}] {' '.join(cmd[2:])}", flush=True)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=REPO, env=env)
-    wall = time.perf_counter() - t0
+    run_dir = fitted["run_dir"]
     summary = json.loads((run_dir / "fit.json").read_text())
     m = evaluate(run_dir, data, spp=args.eval_spp, progress=False, meanshift_bandwidths=(),
                  output=run_dir / "metrics.json")
     decisions = summary.get("decisions", {})
-    row = {"scene": name, "variant": variant, "seed": seed, "overrides": overrides, "wall_s": wall,
-           "startup_s": summary.get("startup_s"), "loop_s": summary["seconds"],
+    row = {"scene": name, "variant": variant, "seed": seed, "overrides": fitted["overrides"],
+           "wall_s": fitted["wall_s"], "startup_s": summary.get("startup_s"), "loop_s": summary["seconds"],
            **figures(m, summary["seconds"], summary["iterations"]),
            "decisions": {k: {"choice": v.get("choice"), "reason": v.get("reason")} for k, v in decisions.items()},
            "curve": training_curve(run_dir)}
@@ -267,6 +282,7 @@ def main(argv=None) -> int:
                     help="no fit: the table and plots of these skip_study.json files, their rows together")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "skip_study",
                     help="folder of the runs, skip_study.json and the plots")
+    ap.add_argument("--address", help="fit on this Ray cluster (default: this machine, one fit at a time)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.plot:
@@ -291,10 +307,11 @@ def main(argv=None) -> int:
     from vq_mitsuba.eval.evaluate import json_safe
 
     for seed in args.seeds:  # every scene once before the next seed: a stopped study covers them all
-        for name in args.scenes:
-            for variant in args.variants:
-                rows.append(run_one(name, datasets[name], variant, seed, args))
-                write_result(path, json_safe(result), indent=1)  # after each fit: a stopped study keeps its rows
+        for variant in args.variants:
+            fitted = fit_batch(datasets, variant, seed, args)
+            for name in args.scenes:
+                rows.append(score_one(name, datasets[name], variant, seed, fitted[name], args))
+            write_result(path, json_safe(result), indent=1)  # after each batch: a stopped study keeps its rows
     report(rows, args.out)
     print(f"wrote {path}, {args.out / 'skip_study.md'}, {args.out / 'skip_study.png'} and "
           f"{args.out / 'skip_study_curves.png'}")
