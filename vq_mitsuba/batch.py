@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.data.unposed import is_video
+from vq_mitsuba.data.unposed import capture_name
 from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_atomic, write_json
@@ -52,12 +52,6 @@ class RunSpec:
     seed: int
     preset: str | None = None
     args: tuple[str, ...] = ()  # fit options for this capture alone (e.g. its own --config)
-
-
-def capture_name(capture: str | Path) -> str:
-    """The name a capture's runs start with: its folder's (a capture file's folder), a video's stem."""
-    path = Path(capture).resolve()
-    return path.name if path.is_dir() else path.stem if is_video(path) else path.parent.name
 
 
 def plan(captures: list[str], seeds: list[int], presets: list[str | None],

@@ -17,13 +17,11 @@ from vq_mitsuba.errors import InputError, UserError
 def _run_dir(args, command: str) -> Path:
     """RUN_DIR of a command that reads a CAPTURE: -o, else runs/<name of the capture's folder> (of
     the folder itself when CAPTURE is one, e.g. of photos; a video's name)."""
-    from vq_mitsuba.data.unposed import is_video
+    from vq_mitsuba.data.unposed import capture_name
 
     if args.capture is None:
         raise InputError(None, f"{command} needs a CAPTURE (scene XML, transforms json, or its folder)")
-    capture = Path(args.capture).resolve()
-    name = capture.name if capture.is_dir() else capture.stem if is_video(capture) else capture.parent.name
-    return Path(args.output) if args.output else Path("runs") / name
+    return Path(args.output) if args.output else Path("runs") / capture_name(args.capture)
 
 
 def _help_config() -> int:

@@ -39,6 +39,13 @@ def is_video(path: Path) -> bool:
     return path.suffix.lower() in VIDEO_SUFFIXES
 
 
+def capture_name(capture: str | Path) -> str:
+    """The name a capture's runs are called by: its folder's (the folder itself when the capture is
+    one, e.g. of photos; a capture file's folder), a video's file name without its suffix."""
+    path = Path(capture).resolve()
+    return path.name if path.is_dir() else path.stem if is_video(path) else path.parent.name
+
+
 def unposed_error(source: Path) -> InputError:
     """What a loader says of photos or a video without poses."""
     what = "a video" if is_video(source) else "photos without camera poses"
