@@ -25,8 +25,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from vq_mitsuba.data.unposed import capture_name
 from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
@@ -151,16 +149,14 @@ def preview_camera(run: RunDir):
 
 def write_preview(run: RunDir, png: Path) -> None:
     """A small render of `preview_camera` under the fitted light (straight sRGB with alpha)."""
-    from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.render.views import Renderer
+    from vq_mitsuba.render.views import Renderer, write_rgb_png
 
     cam = preview_camera(run)
     scale = min(1.0, VIEW_SIZE / max(cam.width, cam.height))
     cam = cam.scaled(max(1, round(cam.width * scale)), max(1, round(cam.height * scale)))
     images = Renderer(run.load()).render(cam, spp=VIEW_SPP)
-    alpha = images["alpha"]
     png.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(png, lambda tmp: write_png(tmp, images["rgb"] / np.maximum(alpha, 1e-6)[..., None], alpha=alpha))
+    write_atomic(png, lambda tmp: write_rgb_png(tmp, images))
 
 
 def write_previews(out: Path, specs: list[RunSpec], status: dict, progress: bool) -> None:
@@ -187,9 +183,8 @@ def figures(run: RunDir) -> dict:
     materials = run.materials() if run.is_run() else None
     if materials is not None:
         out["materials"] = materials.get("num_materials")
-    metrics_path = run / RunDir.METRICS
-    if metrics_path.is_file():
-        metrics = read_json(metrics_path, "")
+    metrics = run.metrics()
+    if metrics is not None:
         for key in ("novel_view", "basecolor"):
             value = metrics.get(key, {}).get("psnr") if isinstance(metrics.get(key), dict) else None
             if value is not None:
@@ -270,7 +265,8 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     specs = plan(list(captures), list(seeds), list(presets), capture_args)
     status = check_output(out)
     out.mkdir(parents=True, exist_ok=True)
-    todo = [s for s in specs if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
+    todo = [s for s in specs
+            if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
     ray, started = _start_ray(address, cpus)
     try:
         task = ray.remote(run_one).options(num_cpus=threads, max_retries=RETRIES, retry_exceptions=[RunLost])

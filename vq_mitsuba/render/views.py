@@ -243,13 +243,18 @@ def check_finite(images: dict, view: str) -> None:
                                    "nothing of this view was written")
 
 
+def write_rgb_png(path: Path, images: dict[str, np.ndarray]) -> None:
+    """A render's colour as an sRGB PNG: straight (not premultiplied) colour with alpha, as image
+    viewers expect."""
+    a = images["alpha"]
+    write_png(path, images["rgb"] / np.maximum(a, 1e-6)[..., None], alpha=a)
+
+
 def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     """The per-view files of INTERFACE.md."""
     a = images["alpha"]
     write_exr(out_dir / f"{name}_rgb.exr", np.concatenate([images["rgb"], a[..., None]], -1))
-    # The PNG is straight (not premultiplied) colour with alpha, as image viewers expect.
-    straight = images["rgb"] / np.maximum(a, 1e-6)[..., None]
-    write_png(out_dir / f"{name}_rgb.png", straight, alpha=a)
+    write_rgb_png(out_dir / f"{name}_rgb.png", images)
     write_exr(out_dir / f"{name}_basecolor.exr", images["basecolor"])
     write_exr(out_dir / f"{name}_metallic.exr", images["metallic"])
     write_exr(out_dir / f"{name}_roughness.exr", images["roughness"])

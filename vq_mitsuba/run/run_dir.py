@@ -531,6 +531,10 @@ class RunDir:
     def fit_summary(self) -> dict:
         return self._read_json(self.FIT) or {}
 
+    def metrics(self) -> dict | None:
+        """metrics.json of `vq-mitsuba eval` (None before the run is scored)."""
+        return self._read_json(self.METRICS)
+
     def write_metrics(self, metrics: dict, path: str | Path | None = None) -> Path:
         """metrics.json of `vq-mitsuba eval` (or the file `path` a user named instead). A score that
         is not a finite number (PSNR of identical images, SSIM of an empty mask) is written as the
