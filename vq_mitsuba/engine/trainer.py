@@ -554,7 +554,7 @@ class Trainer:
                 info["materials"], env.cpu().numpy(), self.capture.envmap_to_world, path))
         elif self.cfg.vq.enabled:
             warn("the fit ended before the discrete branch started (vq.warmup_frac); "
-                  "no materials.json was written")
+                 "no materials.json was written")
         run.write_envmap(env.cpu().numpy())
         if self.cfg.residual.iterations > 0:  # VQ-NeRF Sec. 4: materials and light frozen from here
             summary["residual"] = residual_stage(run, self.scene, self.model, self.pool, env, self.capture.mesh.bounds,
@@ -623,11 +623,11 @@ def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: s
     stats = trainer.pool_stats
     if stats["geometry_coverage"] < 0.9 and not capture.has_alpha:
         warn(f"the images have no alpha, so every pixel counts as the object's, and "
-              f"{100 * (1 - stats['geometry_coverage']):.1f}% of them (the background) miss the mesh and are not "
-              "fitted; with alpha masks (RGBA PNG or EXR) the fit also knows the object's outline")
+             f"{100 * (1 - stats['geometry_coverage']):.1f}% of them (the background) miss the mesh and are not "
+             "fitted; with alpha masks (RGBA PNG or EXR) the fit also knows the object's outline")
     elif stats["geometry_coverage"] < 0.9:
         warn(f"only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
-              "the geometry may not match the images (units, world axes?)")
+             "the geometry may not match the images (units, world axes?)")
     scale_warning = mesh_scale_warning(capture.mesh, capture.cameras)
     if scale_warning:
         warn(scale_warning)
