@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from test_photo_captures import _refused
 from vq_mitsuba.data.cameras import Camera, camera_to_nerf, look_at
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.data.names import MAX_NAME_LENGTH, safe_name, unique_names, view_names
@@ -28,15 +29,6 @@ def _cameras(n=3, width=20, height=14):
         eye = 2.5 * np.array([np.sin(a), 0.5, np.cos(a)])
         out.append(Camera(f"v{i}", look_at(eye, [0, 0, 0], [0, 1, 0]), 42.0, width, height))
     return out
-
-
-def _refused(call, path, *parts):
-    with pytest.raises(InputError) as info:
-        call()
-    assert info.value.path == path, (info.value.path, path)
-    for part in parts:
-        assert part in info.value.message, (part, info.value.message)
-    return info.value
 
 
 def _as_png(linear) -> np.ndarray:
