@@ -5,8 +5,8 @@ lives in its own environment `.venv-cycles` (`make cycles`) and renders in a sub
 `vq_mitsuba/synthetic/cycles_worker.py`. This module does everything else with the same building blocks as
 `vq_mitsuba.synthetic.mitsuba_scenes`: scene spec, geometry, cameras, envmaps, transforms json, scene.xml. It
 writes a job file (`_cycles/job.json`), runs the worker, and turns the worker's multilayer EXRs
-into the layout `synthetic.make_scene` writes (see its docstring), so `fit`, `render` and `eval`
-read a Cycles dataset exactly like a Mitsuba one:
+into the layout `synthetic.make_scene` writes (`vq_mitsuba.data.dataset_dir.DatasetDir`), so `fit`,
+`render` and `eval` read a Cycles dataset exactly like a Mitsuba one:
 
     images/<id>.exr, .png        Combined pass (linear premultiplied RGBA / sRGB straight alpha)
     gt/<id>_basecolor.exr ...    shader AOVs basecolor, metallic, roughness divided by coverage
@@ -36,10 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.data import envmaps
-
-from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.errors import InputError
+from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 WORKER = Path(__file__).resolve().parent / "cycles_worker.py"
@@ -47,7 +48,7 @@ ENV_VAR = "VQ_CYCLES_PYTHON"  # overrides the interpreter that has bpy
 MAX_BOUNCES = synthetic.MAX_DEPTH - 2
 DEFAULT_SPP = 128
 INDEX_PASS = "Material Index"  # Cycles' material index pass (IndexMA) in a Blender 5 EXR
-WORK_DIR = "_cycles"  # job file and raw multilayer EXRs inside the dataset (removed unless keep_raw)
+WORK_DIR = DatasetDir.CYCLES_WORK  # job file and raw multilayer EXRs inside the dataset (removed unless keep_raw)
 
 
 # --------------------------------------------------------------------------------------------
@@ -275,7 +276,7 @@ def _render_list(out: Path, work: Path, cams: synthetic.SceneCameras, relights: 
     """The worker's renders: train and test views under envmaps/train.exr, test views under each
     held-aside envmap, each into work/[<env>/]<id>.exr."""
     renders = []
-    train_env = (out / "envmaps" / "train.exr").resolve()
+    train_env = DatasetDir(out).envmap(DatasetDir.TRAIN_ENVMAP).resolve()
     for cam in cams.train + cams.test:
         renders.append({"camera": cam.name, "envmap": train_env, "output": (work / f"{cam.name}.exr").resolve()})
     for rl in relights:
@@ -289,18 +290,19 @@ def _render_list(out: Path, work: Path, cams: synthetic.SceneCameras, relights: 
 def _write_dataset_images(out: Path, work: Path, spec: dict, cams: synthetic.SceneCameras,
                           relights: list[dict]) -> None:
     """The worker's multilayer EXRs as the dataset layout: images/, gt/ (test views), relit/."""
+    dataset = DatasetDir(out)
     n_mat = len(spec["materials"])
     test_names = {c.name for c in cams.test}
     for cam in cams.train + cams.test:
         passes = read_passes(work / f"{cam.name}.exr")
-        synthetic._write_rgba(out / "images" / cam.name, passes["Combined"])
+        dataset.write_view(cam.name, passes["Combined"])
         if cam.name in test_names:
-            synthetic.write_gt(out / "gt" / cam.name, gt_maps(passes, n_mat))
+            dataset.write_gt(cam.name, gt_maps(passes, n_mat))
     for rl in relights:
-        (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
+        dataset.relit_dir(rl["name"]).mkdir(parents=True, exist_ok=True)
         for cam in cams.test:
             passes = read_passes(work / rl["name"] / f"{cam.name}.exr")
-            synthetic._write_rgba(out / "relit" / rl["name"] / cam.name, passes["Combined"])
+            dataset.write_view(cam.name, passes["Combined"], rl["name"])
 
 
 def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
@@ -316,7 +318,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
 
     synthetic.check_seed(seed)
     python = check_environment()
-    synthetic._ensure_variant()
+    init_mitsuba()
     t_start = time.time()
     spec = synthetic.load_scene_spec(name)
     res = int(resolution or spec.get("resolution", 128))
@@ -326,8 +328,9 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     if res < 1 or n_train < 1 or n_test < 1 or spp < 1:
         raise InputError(None, "resolution, view counts and spp must be positive")
     synthetic.check_resolution((res, res))
-    out = synthetic.prepare_out_dir(out_dir, synthetic.OUT_SUBDIRS + (WORK_DIR,))
-    work = out / WORK_DIR
+    dataset = DatasetDir(out_dir)
+    out = dataset.prepare(DatasetDir.SUBDIRS + (WORK_DIR,))
+    work = dataset.cycles_work_dir
 
     # Geometry, cameras and lighting as synthetic.make_scene writes them: Blender world for mesh.ply
     # and Cycles, Mitsuba world for the XML; Cycles reads the dataset's copies of the envmaps.
@@ -342,7 +345,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     bar = tqdm(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view", disable=not progress)
     t_render = time.time()
     try:
-        run_worker(job, work / "job.json", progress=bar.update, python=python)
+        run_worker(job, work / DatasetDir.CYCLES_JOB, progress=bar.update, python=python)
     finally:
         bar.close()
     t_rendered = time.time()
@@ -374,7 +377,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
         "versions": {"bpy": _bpy_version(python), "python_cycles": str(python), "numpy": np.__version__,
                      "vq_mitsuba": _pkg_version()},
     }
-    (out / "scene.json").write_text(json.dumps(meta, indent=2))
+    dataset.write_info(meta)
     return out
 
 

@@ -2,17 +2,10 @@
 
 A scene is defined in `scenes/<name>.yaml` in Blender world (Z up): principled materials
 (base_color, metallic, roughness; base_color may be a procedural pattern baked into per-vertex
-colours) and shapes made with trimesh. `make_scene` writes into `out_dir`:
-
-    transforms_train.json, transforms_test.json   NeRF-synthetic cameras, Blender world
-    mesh.ply                                      all shapes merged, Blender world
-    scene.xml, scene_test.xml                     the same scene in Mitsuba world (Y up), no emitter
-    meshes/<shape>.ply                            Mitsuba world (vertex_color attribute if textured)
-    images/<id>.exr, images/<id>.png              train and test views under envmaps/train.exr
-    gt/<id>_{basecolor,metallic,roughness,normal}.exr, gt/<id>_{material,alpha}.png   test views
-    relit/<env>/<id>.exr, .png                    test views under each held-aside envmap
-    envmaps/train.exr, envmaps/<env>.exr          lat-long maps, Blender convention
-    scene.json                                    metadata
+colours) and shapes made with trimesh. `make_scene` writes into `out_dir` the layout that
+`vq_mitsuba.data.dataset_dir.DatasetDir` names and describes: both capture formats (transforms json
+and mesh.ply in Blender world, scene.xml and meshes/ in Mitsuba world), the views (images/), the test
+views' ground-truth maps (gt/) and relit views (relit/), the envmaps (envmaps/) and scene.json.
 
 Worlds: Blender_world = R @ Mitsuba_world with R the 3x3 part of BLENDER_ENV_TO_WORLD. Every
 vertex and camera of the XML is the Blender one mapped by R^-1, so an envmap with identity
@@ -38,8 +31,9 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from vq_mitsuba.data import envmaps
+from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at, principal_xml
-from vq_mitsuba.data.imageio import write_exr, write_png
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.errors import InputError
 
 SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
@@ -355,7 +349,7 @@ def write_scene_xml(path: Path, spec: dict, cameras_mi: list[Camera], spp: int, 
     parts += [_bsdf_xml(m) for m in spec["materials"]]
     for s in spec["shapes"]:
         parts += [f'    <shape type="ply" id={quoteattr(s["name"])}>',
-                  f'        <string name="filename" value="meshes/{s["name"]}.ply"/>',
+                  f'        <string name="filename" value="{DatasetDir.shape_file(s["name"])}"/>',
                   f'        <ref id={quoteattr("mat_" + s["material"])}/>',
                   '    </shape>']
     parts += [_sensor_xml(c, spp) for c in cameras_mi]
@@ -368,21 +362,9 @@ def _write_transforms(path: Path, cameras: list[Camera]) -> None:
     angle = None
     for cam in cameras:
         m, angle = camera_to_nerf(cam)
-        frames.append({"file_path": f"./images/{cam.name}", "transform_matrix": m.tolist()})
+        frames.append({"file_path": DatasetDir.frame_file(cam.name), "transform_matrix": m.tolist()})
     data = {"camera_angle_x": angle if angle is not None else math.radians(FOV_X_DEG), "frames": frames}
     path.write_text(json.dumps(data, indent=2))
-
-
-def _write_rgba(stem: Path, rgba: np.ndarray) -> None:
-    rgba = np.asarray(rgba, dtype=np.float32)
-    rgba = np.nan_to_num(rgba, nan=0.0, posinf=0.0, neginf=0.0)
-    rgba[..., :3] = np.maximum(rgba[..., :3], 0.0)
-    rgba[..., 3] = np.clip(rgba[..., 3], 0.0, 1.0)
-    write_exr(stem.with_suffix(".exr"), rgba)
-    a = rgba[..., 3]
-    straight = rgba[..., :3] / np.maximum(a, 1e-6)[..., None]
-    straight = np.where(a[..., None] > 0, straight, 0.0)
-    write_png(stem.with_suffix(".png"), straight, alpha=a)
 
 
 # --------------------------------------------------------------------------------------------
@@ -493,12 +475,6 @@ def _barycentric(p, a, b, c) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # The whole scene
 # --------------------------------------------------------------------------------------------
-def _ensure_variant() -> None:
-    from vq_mitsuba.backend import init_mitsuba
-
-    init_mitsuba()
-
-
 def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train_name: str, relights: list,
                       r: np.ndarray, center: np.ndarray, radius: float, dist: float, envmap_convention: str) -> dict:
     """The scene.json entries every generator (Mitsuba, Cycles) writes alike: cameras' frame,
@@ -515,7 +491,7 @@ def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train
                        "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
                        "textured": is_textured(m)} for k, m in enumerate(spec["materials"])],
         "shapes": [dict(name=k, **v) for k, v in shape_info.items()],
-        "envmap": {"train": "envmaps/train.exr", "preset": env_train_name,
+        "envmap": {"train": DatasetDir.envmap_file(DatasetDir.TRAIN_ENVMAP), "preset": env_train_name,
                    "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
                    "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
         "relight": relights,
@@ -536,30 +512,13 @@ def _versions() -> dict:
             "numpy": np.__version__, "variant": mi.variant()}
 
 
-def write_gt(stem: Path, gt: dict) -> None:
-    """A test view's ground-truth maps: STEM_basecolor/metallic/roughness/normal.exr, STEM_material.png
-    (ids), STEM_alpha.png (coverage)."""
-    write_exr(f"{stem}_basecolor.exr", gt["basecolor"])
-    write_exr(f"{stem}_metallic.exr", gt["metallic"])
-    write_exr(f"{stem}_roughness.exr", gt["roughness"])
-    write_exr(f"{stem}_normal.exr", gt["normal"])
-    write_png(f"{stem}_material.png", gt["material"])
-    write_png(f"{stem}_alpha.png", gt["alpha"], srgb=False)
-
-
-OUT_SUBDIRS = ("images", "gt", "meshes", "envmaps", "relit")  # a dataset's folders, emptied by each make-scene
+OUT_SUBDIRS = DatasetDir.SUBDIRS  # a dataset's folders, emptied by each make-scene
 
 
 def prepare_out_dir(out_dir, subdirs=OUT_SUBDIRS) -> Path:
     """out_dir with its `subdirs` made; where out_dir holds an earlier make-scene output
     (scene.json), they are emptied first, so no stale view survives."""
-    out = Path(out_dir)
-    if (out / "scene.json").is_file() or (out / INCOMPLETE).is_file():  # an earlier output: drop its stale views
-        for sub in subdirs:
-            shutil.rmtree(out / sub, ignore_errors=True)
-    for sub in subdirs:
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    return out
+    return DatasetDir(out_dir).prepare(subdirs)
 
 
 @dataclass
@@ -577,6 +536,7 @@ def write_geometry(spec: dict, out: Path) -> SceneGeometry:
     """meshes/<shape>.ply in Mitsuba world (R^-1; vertex colours where the base colour is a
     pattern) and mesh.ply, all shapes merged in Blender world."""
     r = R_BLENDER_FROM_MITSUBA
+    dataset = DatasetDir(out)
     mats = {m["name"]: m for m in spec["materials"]}
     shapes, all_v, all_f, all_n, shape_info = [], [], [], [], {}
     offset = 0
@@ -584,14 +544,14 @@ def write_geometry(spec: dict, out: Path) -> SceneGeometry:
         v, f, nrm = build_shape(s)
         mat = mats[s["material"]]
         colors = eval_base_color(mat["base_color"], v) if is_textured(mat) else None
-        _mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(out / "meshes" / f"{s['name']}.ply"))
+        _mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(dataset.shape_mesh(s["name"])))
         shapes.append({"name": s["name"], "material": s["material"], "vertices": v, "faces": f, "normals": nrm})
         all_v.append(v), all_f.append(f + offset), all_n.append(nrm)
         offset += len(v)
-        shape_info[s["name"]] = {"material": s["material"], "file": f"meshes/{s['name']}.ply",
+        shape_info[s["name"]] = {"material": s["material"], "file": DatasetDir.shape_file(s["name"]),
                                  "vertices": int(len(v)), "faces": int(len(f))}
     verts = np.concatenate(all_v)
-    _mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n)).write_ply(str(out / "mesh.ply"))
+    _mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n)).write_ply(str(dataset / DatasetDir.MESH))
     lo, hi = verts.min(0), verts.max(0)
     center = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(verts - center, axis=1).max())
@@ -615,10 +575,10 @@ def write_cameras(out: Path, spec: dict, geometry: SceneGeometry, n_train: int, 
     (Mitsuba world) of the cameras `make_cameras` places about the geometry."""
     train, test, dist = make_cameras(geometry.center, geometry.radius, n_train, n_test, resolution, seed=seed)
     train_mi, test_mi = [to_mitsuba_world(c) for c in train], [to_mitsuba_world(c) for c in test]
-    _write_transforms(out / "transforms_train.json", train)
-    _write_transforms(out / "transforms_test.json", test)
-    write_scene_xml(out / "scene.xml", spec, train_mi, spp, "train")
-    write_scene_xml(out / "scene_test.xml", spec, test_mi, spp, "test")
+    _write_transforms(out / DatasetDir.TRANSFORMS_TRAIN, train)
+    _write_transforms(out / DatasetDir.TRANSFORMS_TEST, test)
+    write_scene_xml(out / DatasetDir.SCENE_XML, spec, train_mi, spp, "train")
+    write_scene_xml(out / DatasetDir.SCENE_TEST_XML, spec, test_mi, spp, "test")
     return SceneCameras(train, test, dist, train_mi, test_mi)
 
 
@@ -628,9 +588,11 @@ def write_envmaps(out: Path, spec: dict, probes: dict[str, Path], keep_arrays: b
     (name -> path; saved as envmaps/blender_<name>.exr). Returns (training envmap's name, its
     array, relights): one scene.json entry per held-aside envmap (name, file, source, with
     `probe_note` as note on the probes' entries), holding its array under "array" if keep_arrays."""
+    dataset = DatasetDir(out)
+
     def relight(env_name: str, arr: np.ndarray, source: str, note: str | None = None) -> dict:
-        envmaps.save_envmap(out / "envmaps" / f"{env_name}.exr", arr)
-        entry = {"name": env_name, "file": f"envmaps/{env_name}.exr", "source": source}
+        envmaps.save_envmap(dataset.envmap(env_name), arr)
+        entry = {"name": env_name, "file": DatasetDir.envmap_file(env_name), "source": source}
         if note is not None:
             entry["note"] = note
         if keep_arrays:
@@ -639,7 +601,7 @@ def write_envmaps(out: Path, spec: dict, probes: dict[str, Path], keep_arrays: b
 
     env_train_name = spec.get("envmap", "sky")
     env_train = envmaps.named_envmap(env_train_name)
-    envmaps.save_envmap(out / "envmaps" / "train.exr", env_train)
+    envmaps.save_envmap(dataset.envmap(DatasetDir.TRAIN_ENVMAP), env_train)
     relights = [relight(env_name, envmaps.named_envmap(env_name), "preset")
                 for env_name in spec.get("relight", ["sunset", "studio"])]
     relights += [relight(f"blender_{probe}", envmaps.load_envmap(path), str(path), probe_note)
@@ -680,7 +642,7 @@ def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
                               else {"type": "rgb", "value": [float(c) for c in m["base_color"]]})
         base["mat_" + m["name"]] = bsdf
     for s in spec["shapes"]:
-        base[s["name"]] = {"type": "ply", "filename": str((out / "meshes" / f"{s['name']}.ply").resolve()),
+        base[s["name"]] = {"type": "ply", "filename": str(DatasetDir(out).shape_mesh(s["name"]).resolve()),
                            "bsdf": {"type": "ref", "id": "mat_" + s["material"]}}
     return base
 
@@ -723,25 +685,27 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
     bar = tqdm(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
     counter = [seed * 1_000_003]
 
-    def render(scene, cam: Camera, stem: Path):
+    dataset = DatasetDir(out)
+
+    def render(scene, cam: Camera, env: str | None = None):
         img = mi.render(scene, sensor=sensors[cam.name], seed=counter[0] % (2**32))
         counter[0] += 1
-        _write_rgba(stem, np.array(img))
+        dataset.write_view(cam.name, np.array(img), env)
         bar.update(1)
 
     scene = _scene_with(base, env_train)
     for cam in train_mi + test_mi:
-        render(scene, cam, out / "images" / cam.name)
+        render(scene, cam)
     rng = np.random.default_rng(seed + 1)
     for cam in test_mi:
         gt = render_gt(scene, cam, spec, shape_info, rng)
-        write_gt(out / "gt" / cam.name, gt)
+        dataset.write_gt(cam.name, gt)
     del scene
     for rl in relights:
         scene = _scene_with(base, rl.pop("array"))
-        (out / "relit" / rl["name"]).mkdir(parents=True, exist_ok=True)
+        dataset.relit_dir(rl["name"]).mkdir(parents=True, exist_ok=True)
         for cam in test_mi:
-            render(scene, cam, out / "relit" / rl["name"] / cam.name)
+            render(scene, cam, rl["name"])
         del scene
     bar.close()
 
@@ -761,7 +725,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     training views as NeuS/IDR (neus/), COLMAP (colmap/, colmap_opencv/), nerfstudio (nerfstudio/) and
     LLFF (llff/) captures. Returns out_dir."""
     check_seed(seed)
-    _ensure_variant()
+    init_mitsuba()
     t_start = time.time()
     spec = load_scene_spec(name)
     res, n_train, n_test, spp = _scene_settings(spec, resolution, n_train, n_test, spp)
@@ -771,11 +735,11 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
             from vq_mitsuba.data.captures import load_capture
             from vq_mitsuba.synthetic.photo_formats import write_photo_formats
 
-            write_photo_formats(load_capture(out / "scene.xml"), out)
+            write_photo_formats(load_capture(out / DatasetDir.SCENE_XML), out)
     return out
 
 
-INCOMPLETE = ".make-scene-incomplete"  # in a dataset folder while make-scene writes it
+INCOMPLETE = DatasetDir.INCOMPLETE  # in a dataset folder while make-scene writes it
 
 
 @contextmanager
@@ -788,8 +752,7 @@ def _complete_or_removed(out_dir):
     made = not out.exists()
     empty = made or not any(out.iterdir())
     out = prepare_out_dir(out)
-    (out / INCOMPLETE).write_text("make-scene did not finish writing this folder\n")
-    (out / "scene.json").unlink(missing_ok=True)  # an earlier dataset's, written again last
+    DatasetDir(out).mark_incomplete()  # and an earlier dataset's scene.json removed, written again last
     try:
         yield out
     except BaseException:
@@ -798,7 +761,7 @@ def _complete_or_removed(out_dir):
             if not made:
                 out.mkdir()
         raise
-    (out / INCOMPLETE).unlink()
+    DatasetDir(out).mark_complete()
 
 
 def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test: int, spp: int, seed: int,
@@ -836,4 +799,4 @@ def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test:
         "total_seconds": round(t_end - t_start, 2),
         "versions": _versions(),
     }
-    (out / "scene.json").write_text(json.dumps(meta, indent=2))
+    DatasetDir(out).write_info(meta)
