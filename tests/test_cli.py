@@ -70,16 +70,28 @@ def test_help_of_every_command_prints(name, capsys):
 
 
 def test_cli_defines_each_option_once_in_small_functions():
-    source = Path(cli.__file__).read_text()
-    tree = ast.parse(source)
-    flags = [node.args[0].value for node in ast.walk(tree) if isinstance(node, ast.Call)
+    trees = [ast.parse(path.read_text()) for path in Path(cli.__file__).parent.glob("*.py")]
+    flags = [node.args[0].value for tree in trees for node in ast.walk(tree) if isinstance(node, ast.Call)
              and getattr(node.func, "attr", None) == "add_argument" and node.args
              and isinstance(node.args[0], ast.Constant)]
     for flag in ("-o", "--quiet", "--threads", "--config", "--help-config", "--downscale", "--resume"):
         assert flags.count(flag) == 1, flag
-    long = [(f.name, f.end_lineno - f.lineno + 1) for f in ast.walk(tree)
+    long = [(f.name, f.end_lineno - f.lineno + 1) for tree in trees for f in ast.walk(tree)
             if isinstance(f, ast.FunctionDef) and f.end_lineno - f.lineno + 1 > 60]
     assert not long, long
+
+
+def test_each_command_is_one_module_with_its_parser_and_handler():
+    """`cli/<command>.py` for each command: `add_parser` and `run`, and no library import at the
+    top (the handler imports its library when it runs)."""
+    folder = Path(cli.__file__).parent
+    for name in _subparsers():
+        path = folder / f"{name.replace('-', '_')}.py"
+        tree = ast.parse(path.read_text())
+        top = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+        assert {"add_parser", "run"} <= top, name
+        imported = [n.module for n in tree.body if isinstance(n, ast.ImportFrom) and n.module.startswith("vq_mitsuba")]
+        assert set(imported) <= {"vq_mitsuba.cli.common", "vq_mitsuba.errors"}, (name, imported)
 
 
 def _capture_without_geometry(folder: Path) -> Path:
@@ -173,7 +185,10 @@ def test_library_warnings_are_one_line_each(monkeypatch, capsys):
         KMeans(n_clusters=3, n_init=1).fit(np.zeros((10, 2)))
         return 0
 
-    monkeypatch.setattr(cli, "_cmd_make_scene", command)
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["make-scene"].set_defaults(
+        func=command)
     assert cli.main(["make-scene", "demo"]) == 0
     lines = capsys.readouterr().err.splitlines()
     assert lines == ["warning: Palette images with Transparency expressed in bytes should be converted to RGBA images"]
