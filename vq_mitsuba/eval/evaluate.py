@@ -1,6 +1,6 @@
 """`vq-mitsuba eval`: score a fitted run against a synthetic dataset's ground truth.
 
-The dataset is one written by `vq_mitsuba.synthetic.make_scene` (layout in its docstring). The
+The dataset is one written by `vq_mitsuba.synthetic.make_scene` (layout: `DatasetDir`). The
 run may have been fitted on its scene.xml (Mitsuba world) or its transforms_train.json (Blender
 world); the test cameras come from transforms_test.json and are converted to the run's world.
 Every test view is rendered with the fitted lighting (novel view, material maps) and under each
@@ -23,25 +23,36 @@ held-aside envmap (relighting), and compared inside the ground-truth foreground 
 
 Figures are means of per-view values (NeRF convention). Renders are Monte Carlo estimates
 (`spp` samples per pixel): their noise lowers PSNR slightly, more at low spp.
+
+The readable table is `eval/report.py`'s; a run fitted with held-out views of a capture without
+ground truth is scored by `eval/heldout.py`. Both are re-exported here.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.data.dataset_dir import DatasetDir
+from vq_mitsuba.data.imageio import read_exr, read_image
+from vq_mitsuba.errors import InputError
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
+from vq_mitsuba.eval.heldout import evaluate_holdout, held_out_capture, straight_colours
+from vq_mitsuba.eval.report import format_table, table_rows
 from vq_mitsuba.eval.surface import evaluate_surface
-from vq_mitsuba.data.imageio import read_exr, read_image
 from vq_mitsuba.run.outputs import EVAL_MARK
 from vq_mitsuba.run.run_dir import RunDir, json_safe, write_json
-from vq_mitsuba.errors import InputError
+
+__all__ = ["MASK_THRESHOLD", "MIN_SIDE", "DEFAULT_AA", "dataset_root", "read_scene_meta", "relight_envs",
+           "load_ground_truth", "RunPredictor", "evaluate", "evaluate_predictor", "relit_views", "coverage_scores",
+           "per_material_scores", "meanshift_segmentation",
+           # re-exported: the table (eval/report.py) and held-out views (eval/heldout.py)
+           "format_table", "table_rows", "evaluate_holdout", "held_out_capture", "straight_colours"]
 
 MASK_THRESHOLD = 0.5  # a pixel is foreground when the ground-truth coverage exceeds this
 MIN_SIDE = 3  # pixels per side of a test view: SSIM's smallest window (eval.metrics.ssim)
@@ -54,62 +65,17 @@ DEFAULT_AA = None  # primary rays per pixel: None takes the run's render.aa
 
 def dataset_root(path: str | Path) -> Path:
     """The dataset folder for a folder or any file inside it (scene.json, scene.xml, transforms json)."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "dataset folder not found")
-    root = path if path.is_dir() else path.parent
-    for name in ("scene.json", "transforms_test.json"):
-        if not (root / name).is_file():
-            raise InputError(root / name, "not a dataset written by `vq-mitsuba make-scene` (file missing)")
-    return root
-
-
-def _plain_name(value) -> bool:
-    return isinstance(value, str) and value not in ("", ".", "..") and not any(c in value for c in "/\\\0")
+    return DatasetDir.find(path).dir
 
 
 def read_scene_meta(root: Path) -> dict:
-    """scene.json of a dataset, checked where evaluation reads it: an object whose `relight` (when
-    given) lists {"name": NAME, "file": PATH} with plain names, and whose `materials` list
-    {"id": N, "name": TEXT}; InputError naming the file and the entry otherwise."""
-    path = root / "scene.json"
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise InputError(path, "expected a JSON object (the dataset's description)")
-    relight = meta.get("relight")
-    if relight is not None:
-        if not isinstance(relight, list):
-            raise InputError(path, "'relight' must be a list of {\"name\": ..., \"file\": ...}")
-        for i, e in enumerate(relight):
-            if not isinstance(e, dict) or not _plain_name(e.get("name")) or not isinstance(e.get("file", ""), str):
-                raise InputError(path, f"relight[{i}] must be {{\"name\": NAME, \"file\": PATH}} with a plain name "
-                                       f"(no folders), got {json.dumps(e)[:80]}")
-    materials = meta.get("materials", [])
-    if not isinstance(materials, list):
-        raise InputError(path, "'materials' must be a list of {\"id\": N, \"name\": ...}")
-    for i, m in enumerate(materials):
-        if not isinstance(m, dict) or ("id" in m and (isinstance(m["id"], bool) or not isinstance(m["id"], int))):
-            raise InputError(path, f"materials[{i}] must be {{\"id\": N, \"name\": ...}} with a whole-number id, "
-                                   f"got {json.dumps(m)[:80]}")
-    return meta
+    """scene.json of a dataset, checked where evaluation reads it (`DatasetDir.info`)."""
+    return DatasetDir(root).info()
 
 
 def relight_envs(root: Path, meta: dict) -> list[tuple[str, Path]]:
     """(name, envmap path) of every relighting condition with its envmap and relit views on disk."""
-    entries = meta.get("relight")
-    if entries is None:  # older datasets: discover them
-        entries = [{"name": p.name, "file": f"envmaps/{p.name}.exr"} for p in sorted((root / "relit").glob("*"))
-                   if p.is_dir()]
-    out = []
-    for e in entries:
-        env_path = root / e.get("file", f"envmaps/{e['name']}.exr")
-        if not env_path.is_file():
-            raise InputError(env_path, f"envmap of relighting condition '{e['name']}' missing")
-        out.append((e["name"], env_path))
-    return out
+    return DatasetDir(root).relight_envs(meta)
 
 
 def _read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -139,7 +105,7 @@ def _read_map(path: Path) -> np.ndarray:
 
 def _read_mask(root: Path, name: str, image_alpha: np.ndarray | None) -> np.ndarray:
     """Foreground mask: gt/<id>_alpha.png (coverage, stored linearly), else the image's alpha."""
-    png = root / "gt" / f"{name}_alpha.png"
+    png = DatasetDir(root).gt(name, "alpha")
     if png.is_file():
         import imageio.v3 as iio
 
@@ -154,15 +120,16 @@ def _read_mask(root: Path, name: str, image_alpha: np.ndarray | None) -> np.ndar
 def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
     """Ground truth of one test view: rgb (linear, premultiplied), mask, basecolor, metallic,
     roughness, normal (Blender world)."""
-    rgb, alpha = _read_rgba(root / "images" / f"{name}.exr")
+    dataset = DatasetDir(root)
+    rgb, alpha = _read_rgba(dataset.image(name).with_suffix(".exr"))
     gt = {"rgb": rgb, "mask": _read_mask(root, name, alpha)}
-    gt["basecolor"], _ = _read_rgba(root / "gt" / f"{name}_basecolor.exr")
-    gt["metallic"] = _read_map(root / "gt" / f"{name}_metallic.exr")
-    gt["roughness"] = _read_map(root / "gt" / f"{name}_roughness.exr")
-    normal_path = root / "gt" / f"{name}_normal.exr"
+    gt["basecolor"], _ = _read_rgba(dataset.gt(name, "basecolor"))
+    gt["metallic"] = _read_map(dataset.gt(name, "metallic"))
+    gt["roughness"] = _read_map(dataset.gt(name, "roughness"))
+    normal_path = dataset.gt(name, "normal")
     if normal_path.is_file():
         gt["normal"], _ = _read_rgba(normal_path)
-    material_path = root / "gt" / f"{name}_material.png"
+    material_path = dataset.gt(name, "material")
     if material_path.is_file():
         import imageio.v3 as iio
 
@@ -172,11 +139,6 @@ def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
 
 # --------------------------------------------------------------------------------------------
 # Evaluation
-
-
-def _mean(values) -> float:
-    vals = [v for v in values if not (isinstance(v, float) and math.isnan(v))]
-    return float(np.mean(vals)) if vals else math.nan
 
 
 def _normal_error_deg(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
@@ -286,22 +248,25 @@ def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.cameras import convert_world
 
-    root = dataset_root(dataset_dir)
-    meta = read_scene_meta(root)
-    cameras, cam_world, _ = load_cameras(root / "transforms_test.json")
-    envs = relight_envs(root, meta)
+    dataset = DatasetDir.find(dataset_dir)
+    root = dataset.dir
+    meta = dataset.info()
+    cameras, cam_world, _ = load_cameras(dataset / DatasetDir.TRANSFORMS_TEST)
+    envs = dataset.relight_envs(meta)
     for env_name, _ in envs:
         for cam in cameras:
-            p = root / "relit" / env_name / f"{cam.name}.exr"
+            p = dataset.image(cam.name, env_name).with_suffix(".exr")
             if not p.is_file():
                 raise InputError(p, f"relit view missing for '{env_name}'")
     gts = [load_ground_truth(root, cam.name) for cam in cameras]
     for cam, gt in zip(cameras, gts):
         if gt["rgb"].shape[:2] != (cam.height, cam.width):
-            raise InputError(root / "images" / f"{cam.name}.exr", "size differs from transforms_test.json")
+            raise InputError(dataset.image(cam.name).with_suffix(".exr"),
+                             f"size differs from {DatasetDir.TRANSFORMS_TEST}")
         if min(cam.width, cam.height) < MIN_SIDE:
-            raise InputError(root / "transforms_test.json", f"test view {cam.name} is {cam.width}x{cam.height} "
-                                                            f"pixels: SSIM needs at least {MIN_SIDE} per side")
+            raise InputError(dataset / DatasetDir.TRANSFORMS_TEST, f"test view {cam.name} is {cam.width}x"
+                                                                   f"{cam.height} pixels: SSIM needs at least "
+                                                                   f"{MIN_SIDE} per side")
     views = [convert_world(cam, cam_world, run_world) for cam in cameras]
     return _TestViews(root, meta, cameras, views, envs, gts, cam_world)
 
@@ -365,11 +330,11 @@ def _discrete_branch_scores(preds: list[dict], gts: list[dict], scale_method: st
     _, d_scales = M.scale_align(np.stack([d["basecolor"] for d in dmaps]),
                                 np.stack([gt["basecolor"] for gt in gts]), masks, method=scale_method)
     rows_d = [M.image_metrics(d["basecolor"] * d_scales, gt["basecolor"], gt["mask"]) for d, gt in zip(dmaps, gts)]
-    return {"basecolor": {"psnr": _mean(r["psnr"] for r in rows_d), "ssim": _mean(r["ssim"] for r in rows_d),
+    return {"basecolor": {"psnr": M.mean_of(r["psnr"] for r in rows_d), "ssim": M.mean_of(r["ssim"] for r in rows_d),
                           "scales": [float(x) for x in d_scales]},
-            "metallic": {"psnr": _mean(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
+            "metallic": {"psnr": M.mean_of(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
                                        for d, gt in zip(dmaps, gts))},
-            "roughness": {"psnr": _mean(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
+            "roughness": {"psnr": M.mean_of(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
                                         for d, gt in zip(dmaps, gts))}}
 
 
@@ -397,7 +362,7 @@ def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_sca
     for i, (cam, view, gt) in enumerate(zip(data.cameras, data.views, data.gts)):
         m = gt["mask"]
         for (env_name, _), pred in zip(envs, relit_views(renderers, view, spp=spp, aa=aa, seed=i)):
-            ref, _ = _read_rgba(data.root / "relit" / env_name / f"{cam.name}.exr")
+            ref, _ = _read_rgba(DatasetDir(data.root).image(cam.name, env_name).with_suffix(".exr"))
             pred = pred.astype(np.float64)
             env_rows = rows[env_name]
             env_rows["albedo_scale"].append(M.image_metrics(pred * bc_scales, ref, m))
@@ -410,15 +375,15 @@ def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_sca
     relit: dict[str, dict] = {"albedo_scale": {}, "image_scale": {}}
     for env_name, env_rows in rows.items():
         for variant, r in env_rows.items():
-            relit[variant][env_name] = {"psnr": _mean(x["psnr"] for x in r), "ssim": _mean(x["ssim"] for x in r)}
+            relit[variant][env_name] = {"psnr": M.mean_of(x["psnr"] for x in r), "ssim": M.mean_of(x["ssim"] for x in r)}
     relighting = {}
     notes = {"albedo_scale": "relit render x basecolor alignment scales (" + scale_method + ")",
              "image_scale": "relit render aligned per image and channel (lstsq)"}
     for variant, per_env in relit.items():
         relighting[variant] = {
             "alignment": notes[variant], "envs": per_env,
-            "mean": {"psnr": _mean(v["psnr"] for v in per_env.values()),
-                     "ssim": _mean(v["ssim"] for v in per_env.values())} if per_env else None,
+            "mean": {"psnr": M.mean_of(v["psnr"] for v in per_env.values()),
+                     "ssim": M.mean_of(v["ssim"] for v in per_env.values())} if per_env else None,
         }
     return relighting
 
@@ -430,7 +395,7 @@ def _assemble_result(data: _TestViews, per_view: list[dict], bc_scales: np.ndarr
     """metrics.json's dict: the per-view rows and their means, beside the scores over all views;
     `seconds` counts from t0."""
     def avg(key):
-        return _mean(row[key] for row in per_view if key in row)
+        return M.mean_of(row[key] for row in per_view if key in row)
 
     cameras = data.cameras
     return {
@@ -540,160 +505,3 @@ def meanshift_segmentation(preds: list[dict], gts: list[dict], bandwidths, seed:
         scores["seconds"] = time.perf_counter() - t0
         out[f"{float(bw):g}"] = scores
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# Report
-
-
-def _fmt(x, digits: int) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, str):
-        return x
-    if math.isnan(x):
-        return "nan"
-    if math.isinf(x):
-        return "inf" if x > 0 else "-inf"
-    return f"{x:.{digits}f}"
-
-
-def table_rows(metrics: dict) -> list[tuple[str, object, object]]:
-    """(label, PSNR, SSIM) rows of the readable table; SSIM None where not computed."""
-    method = metrics["alignment"]["method"]
-    rows = [("novel view", metrics["novel_view"]["psnr"], metrics["novel_view"]["ssim"])]
-    if metrics.get("novel_view_residual"):
-        rows.append(("novel view + residual", metrics["novel_view_residual"]["psnr"],
-                     metrics["novel_view_residual"]["ssim"]))
-    rows += [            (f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
-            ("metallic (linear)", metrics["metallic"]["psnr"], None),
-            ("roughness (linear)", metrics["roughness"]["psnr"], None)]
-    d = metrics.get("discrete_branch")
-    if d:
-        rows += [(f"discrete: basecolor ({method}-aligned)", d["basecolor"]["psnr"], d["basecolor"]["ssim"]),
-                 ("discrete: metallic (linear)", d["metallic"]["psnr"], None),
-                 ("discrete: roughness (linear)", d["roughness"]["psnr"], None)]
-    for variant in ("albedo_scale", "image_scale"):
-        block = metrics["relighting"][variant]
-        for env, v in block["envs"].items():
-            rows.append((f"relit {env} ({variant})", v["psnr"], v["ssim"]))
-        if block["mean"] is not None and len(block["envs"]) > 1:
-            rows.append((f"relit mean ({variant})", block["mean"]["psnr"], block["mean"]["ssim"]))
-    return rows
-
-
-def format_table(metrics: dict) -> str:
-    """A plain-text table of the headline figures."""
-    rows = table_rows(metrics)
-    width = max(len(r[0]) for r in rows)
-    lines = [f"{metrics.get('scene') or 'run'}: {metrics['n_views']} test views, {metrics['render']['spp']} spp, "
-             f"mask {metrics['mask']}",
-             f"{'':{width}}  {'PSNR':>7}  {'SSIM':>6}"]
-    lines += [f"{label:{width}}  {_fmt(p, 2):>7}  {_fmt(s, 4):>6}" for label, p, s in rows]
-    scales = ", ".join(f"{s:.3f}" for s in metrics["alignment"]["scales"])
-    lines.append(f"basecolor scales ({metrics['alignment']['method']}): {scales}")
-    cov = metrics.get("coverage")
-    if cov and cov["iou"] is not None:
-        lines.append(f"silhouette IoU {cov['iou']:.4f}; basecolor PSNR on the covered foreground "
-                     f"{_fmt(cov['basecolor_psnr_covered'], 2)} dB")
-    if metrics["normal"]["mae_deg"] is not None and not math.isnan(metrics["normal"]["mae_deg"]):
-        lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
-    surf = metrics.get("surface_material")
-    if surf:
-        lines.append(f"materials at the true surface (nearest point of the run's mesh): basecolor "
-                     f"{_fmt(surf['basecolor']['psnr'], 2)} dB, metallic {_fmt(surf['metallic']['psnr'], 2)} dB, "
-                     f"roughness {_fmt(surf['roughness']['psnr'], 2)} dB; true points "
-                     f"{_fmt(surf['distance']['median'], 4)} (median) from the run's mesh")
-    seg = metrics.get("segmentation")
-    if seg:
-        lines.append(f"segmentation: micro-F1 {seg['micro_f1']:.3f}, macro-F1 {seg['macro_f1']:.3f}, "
-                     f"precision {seg['macro_precision']:.3f}, recall {seg['macro_recall']:.3f}; "
-                     f"materials found {seg['num_materials_found']} (true {seg['num_materials_true']})")
-    mats = metrics.get("per_material")
-    if mats:
-        lines.append("per material (fitted / true; basecolor linear, aligned):")
-        w = max(len(m["name"]) for m in mats)
-        for m in mats:
-            bc = lambda v: "(" + ", ".join(f"{x:.2f}" for x in v) + ")"
-            lines.append(f"  {m['name']:{w}}  basecolor {bc(m['basecolor'])} / {bc(m['basecolor_true'])}  "
-                         f"metallic {m['metallic']:.2f} / {m['metallic_true']:.2f}  "
-                         f"roughness {m['roughness']:.2f} / {m['roughness_true']:.2f}  "
-                         f"view {_fmt(m['novel_view_psnr'], 2)} dB")
-    ms = metrics.get("meanshift")
-    if ms:
-        for bw, v in ms.items():
-            if isinstance(v, dict):
-                lines.append(f"MeanShift baseline (bandwidth {bw}): micro-F1 {v['micro_f1']:.3f}, "
-                             f"macro-F1 {v['macro_f1']:.3f}; clusters {v['num_materials_found']}")
-    return "\n".join(lines)
-
-
-def held_out_capture(run: RunDir, downscale: int | None = None, max_size: int | None = None):
-    """The views a run fitted with capture.holdout K kept out of training, at the fit's size (or
-    the `downscale` / `max_size` given), masked as the fit was: by their masks, or by the mesh's
-    coverage for a run whose mesh NeuS made without masks."""
-    from vq_mitsuba.data.captures import load_capture
-
-    cfg = run.source().config()
-    if cfg.capture.holdout <= 0:
-        raise InputError(run.dir, "was fitted without held-out views: fit with --holdout K to score novel views "
-                                  "of a real capture, or give --gt DATASET for a synthetic one")
-    sizes = {k: v for k, v in (("downscale", downscale), ("max_size", max_size)) if v is not None}
-    held = load_capture(run.source().info()["capture"], options=replace(cfg.capture, **sizes), split="holdout",
-                        cache_dir=run.undistorted_dir)
-    if not held.has_alpha and run.source().masks_from_mesh():
-        from vq_mitsuba.geometry.pipeline import masked_by_mesh
-
-        held = masked_by_mesh(held, run.mesh())
-    return held
-
-
-def straight_colours(out: dict) -> tuple[np.ndarray, np.ndarray | None]:
-    """(physically based colour, colour with the run's residual or None) of a render, divided by
-    its coverage as a photo's straight colours are."""
-    cover = np.maximum(out["alpha"], 1e-6)[..., None]
-    if "rgb_physical" in out:  # the run's residual: rgb has it, rgb_physical not
-        return out["rgb_physical"] / cover, out["rgb"] / cover
-    return out["rgb"] / cover, None
-
-
-def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool = True,
-                     output: str | Path | None = None, downscale: int | None = None,
-                     max_size: int | None = None) -> dict:
-    """Score a run fitted with capture.holdout K on the views it kept out of training: novel-view
-    PSNR / SSIM (sRGB) inside each view's mask, its own images being the reference. For captures
-    without ground-truth maps; writes RUN_DIR/metrics.json (or `output`). A run whose mesh NeuS
-    made without masks is scored inside the mesh's coverage, as it was fitted (its coverage_iou is
-    then 1 by construction)."""
-    from tqdm import tqdm
-
-    from vq_mitsuba.render.views import Renderer, check_finite
-
-    run = RunDir(run_dir)
-    cfg = run.source().config()
-    held = held_out_capture(run, downscale, max_size)
-    fitted = run.load()
-    renderer = Renderer(fitted)
-    spp = spp or cfg.render.spp
-    rows = []
-    for cam, image, alpha in tqdm(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
-                                  disable=not progress, dynamic_ncols=True):
-        out = renderer.render(cam, spp=spp)
-        check_finite(out, cam.name)
-        mask = alpha > 0.5
-        physical, with_residual = straight_colours(out)
-        row = {"view": cam.name, **M.image_metrics(physical, image, mask),
-               "coverage_iou": float((mask & (out["alpha"] > 0.5)).sum() / max((mask | (out["alpha"] > 0.5)).sum(), 1))}
-        if with_residual is not None:
-            row.update({"residual_" + k: v for k, v in M.image_metrics(with_residual, image, mask).items()})
-        rows.append(row)
-    metrics = {**EVAL_MARK, "run": str(run.dir.resolve()), "holdout": cfg.capture.holdout, "spp": spp,
-               "novel_view": {"psnr": _mean(r["psnr"] for r in rows), "ssim": _mean(r["ssim"] for r in rows)},
-               "novel_view_residual": {"psnr": _mean(r["residual_psnr"] for r in rows),
-                                       "ssim": _mean(r["residual_ssim"] for r in rows)}
-               if any("residual_psnr" in r for r in rows) else None,
-               "coverage_iou": _mean(r["coverage_iou"] for r in rows), "views": rows}
-    if output is not None:
-        Path(output).parent.mkdir(parents=True, exist_ok=True)
-    run.write_metrics(metrics, output)
-    return metrics

@@ -46,6 +46,12 @@ def _pixel_mask(mask, image: np.ndarray) -> np.ndarray | None:
     raise ValueError(f"mask of shape {m.shape} does not match an image of shape {image.shape}")
 
 
+def mean_of(values) -> float:
+    """The mean of per-view scores, NaN ones left out (NaN when none is left)."""
+    vals = [v for v in values if not (isinstance(v, float) and math.isnan(v))]
+    return float(np.mean(vals)) if vals else math.nan
+
+
 def mse(pred, gt, mask=None) -> float:
     """Mean squared error over the masked pixels (all channels); nan for an empty mask."""
     pred, gt = _as_float(pred), _as_float(gt)

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 
 from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.data.cameras import camera_rays
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.geometry.mesh import angle_stats, check_face_labels, per_label
 
 
@@ -74,7 +74,7 @@ def scene_object_labels(dataset) -> tuple[np.ndarray, list[str]] | None:
     """(object index per face of DATASET/mesh.ply, object names) of a bundled synthetic dataset, from
     its scene.json (the mesh is its shapes in order); shapes named NAME_<k> of one material count
     as one object NAME. None when the dataset does not list its shapes."""
-    meta = Path(dataset) / "scene.json"
+    meta = DatasetDir(dataset).info_path
     if not meta.is_file():
         return None
     shapes = json.loads(meta.read_text()).get("shapes") or []

@@ -26,9 +26,10 @@ import numpy as np
 import torch
 
 from vq_mitsuba.data.cameras import camera_rays, pixel_jitter, world_rotation
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.eval import metrics as M
 
-DATASET_MESH = "mesh.ply"  # the merged true mesh of a make-scene dataset, in its cameras' world (a capture file)
+DATASET_MESH = DatasetDir.MESH  # the merged true mesh of a make-scene dataset, in its cameras' world
 SAME_SURFACE_TOL = 1e-5  # meshes closer than this share of the diagonal everywhere are the same surface
 QUERY_CHUNK = 16384
 
