@@ -271,6 +271,28 @@ def blender_probes() -> dict[str, Path]:
 # --------------------------------------------------------------------------------------------
 # Files and Mitsuba
 # --------------------------------------------------------------------------------------------
+def read_envmap_file(path: str | Path) -> np.ndarray:
+    """The linear radiance (H, W, 3) float32 of an envmap image file, as stored: EXR, PNG and JPEG
+    through read_image; Radiance .hdr, .pfm and the other formats Mitsuba reads through its Bitmap.
+    Non-finite texels are refused, tiny negative ones clamped (vq_mitsuba.data.imageio)."""
+    path = Path(path)
+    if path.suffix.lower() in (".exr", ".png", ".jpg", ".jpeg"):
+        return read_image(path)[0]
+    import mitsuba as mi
+
+    from vq_mitsuba.backend import init_mitsuba
+
+    init_mitsuba()
+    try:
+        bmp = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+        rgb = np.array(bmp, dtype=np.float32)
+    except Exception as exc:
+        raise InputError(path, f"cannot read environment map ({type(exc).__name__}: {exc})") from exc
+    if not np.all(np.isfinite(rgb)):
+        raise InputError(path, "environment map contains non-finite values")
+    return clamp_tiny_negatives(rgb.reshape(rgb.shape[0], rgb.shape[1], 3), path)
+
+
 def load_envmap(path: str | Path) -> np.ndarray:
     """Read a lat-long EXR/HDR as float32 (H, W, 3); raises InputError naming a bad file: not HDR,
     not 2:1, smaller than 4 x 2 texels, negative or non-finite texels, or no light at all."""
@@ -278,20 +300,9 @@ def load_envmap(path: str | Path) -> np.ndarray:
     if path.suffix.lower() not in (".exr", ".hdr"):
         raise InputError(path, "an environment map holds HDR radiance: give an .exr or .hdr lat-long image "
                                f"(not '{path.suffix}')")
-    if path.suffix.lower() == ".hdr":
-        if not path.is_file():
-            raise InputError(path, "environment map not found")
-        try:
-            import imageio.v3 as iio
-
-            rgb = np.asarray(iio.imread(path), dtype=np.float32)[..., :3]
-        except Exception as exc:
-            raise InputError(path, f"cannot read environment map ({type(exc).__name__}: {exc})") from exc
-        if not np.all(np.isfinite(rgb)):
-            raise InputError(path, "environment map contains non-finite values")
-        rgb = clamp_tiny_negatives(rgb, path)
-    else:
-        rgb, _ = read_image(path)
+    if path.suffix.lower() == ".hdr" and not path.is_file():
+        raise InputError(path, "environment map not found")
+    rgb = read_envmap_file(path)
     if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 4:
         raise InputError(path, f"environment map must be an (H, W, 3) image of at least 4 x 2 texels, got shape "
                                f"{rgb.shape}")
