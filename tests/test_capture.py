@@ -11,7 +11,8 @@ import pytest
 import trimesh
 
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
-from vq_mitsuba.data.captures import _ensure_variant, load_cameras, load_capture
+from vq_mitsuba.data.captures import load_cameras, load_capture
+from vq_mitsuba.data.formats.common import ensure_variant
 from vq_mitsuba.data.imageio import srgb_to_linear, write_exr, write_png
 from vq_mitsuba.errors import InputError
 
@@ -111,7 +112,7 @@ def _mitsuba_rays(mi, sensor, pixels: np.ndarray, size):
 
 def _check_against_mitsuba(camera: Camera, sensor=None):
     """Pixels -> Mitsuba rays -> points on them -> Camera.project gives the pixels back."""
-    mi = _ensure_variant()
+    mi = ensure_variant()
     if sensor is None:
         sensor = mi.load_dict(camera.to_mitsuba_dict())
     pixels = np.array([[0.5, 0.5], [camera.width / 2, camera.height / 2], [3.25, 11.75],
@@ -128,7 +129,7 @@ def _check_against_mitsuba(camera: Camera, sensor=None):
 def test_xml_cameras_match_mitsuba_sensors(tmp_path):
     xml = make_xml_capture(tmp_path)
     cap = load_capture(xml)
-    mi = _ensure_variant()
+    mi = ensure_variant()
     sensors = mi.load_file(str(xml)).sensors()  # the original sensors, fov_axis y included
     assert len(sensors) == len(cap.cameras) == 2
     for cam, sensor in zip(cap.cameras, sensors):

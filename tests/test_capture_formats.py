@@ -44,7 +44,7 @@ def _smooth(width, height, seed=0):
 
 def test_llff_axes_are_llffs_own_and_the_focal_scales_with_the_photos(tmp_path):
     from vq_mitsuba.data.captures import capture_kind, load_capture, load_cameras, resolve_capture_path
-    from vq_mitsuba.data.llff import llff_to_world, world_to_llff, write_poses_bounds
+    from vq_mitsuba.data.formats.llff import llff_to_world, world_to_llff, write_poses_bounds
 
     cams = _cameras(3, 40, 28, centred=True)
     for cam in cams:
@@ -78,7 +78,7 @@ def test_llff_axes_are_llffs_own_and_the_focal_scales_with_the_photos(tmp_path):
 
 def _llff(folder, rows=None, n_images=3, masks=0):
     """An LLFF folder of three 40 x 28 views; `rows` replaces the poses_bounds array."""
-    from vq_mitsuba.data.llff import write_poses_bounds
+    from vq_mitsuba.data.formats.llff import write_poses_bounds
 
     npy = folder / "poses_bounds.npy"
     write_poses_bounds(npy, _cameras(3, centred=True), [(0.5, 5.0)] * 3)
@@ -197,8 +197,9 @@ def test_nerfstudio_intrinsics_per_frame_or_global_and_masks(tmp_path):
 
 def test_nerfstudio_fisheye_photos_are_undistorted_into_their_pinhole_camera(tmp_path):
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.data.nerfstudio import write_transforms_json
-    from vq_mitsuba.data.photo_formats import Lens, distort_image, read_colmap, write_colmap
+    from vq_mitsuba.data.formats.nerfstudio import write_transforms_json
+    from vq_mitsuba.data.formats.colmap import read_colmap, write_colmap
+    from vq_mitsuba.data.lens import distort_image, Lens
 
     lens = Lens("OPENCV_FISHEYE", 60, 44, 40.0, 41.0, 31.3, 20.8, k1=0.05, k2=-0.01, k3=0.002)
     assert lens.distorted
@@ -292,7 +293,7 @@ def test_area_resize_is_the_exact_area_mean():
 def test_max_size_shrinks_each_photo_and_its_camera_alike(tmp_path, kind):
     from vq_mitsuba.config import CaptureConfig
     from vq_mitsuba.data.captures import load_capture, load_cameras
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
     from vq_mitsuba.data.resize import area_resize
 
     cams = _cameras(3, 60, 42, centred=kind in ("json", "llff"))
@@ -307,13 +308,13 @@ def test_max_size_shrinks_each_photo_and_its_camera_alike(tmp_path, kind):
         (folder / "images").rename(folder / "image")
         write_idr(folder / "cameras_sphere.npz", cams, np.zeros(3), 1.0)
     elif kind == "nerfstudio":
-        from vq_mitsuba.data.nerfstudio import write_transforms_json
-        from vq_mitsuba.data.photo_formats import Lens
+        from vq_mitsuba.data.formats.nerfstudio import write_transforms_json
+        from vq_mitsuba.data.lens import Lens
 
         write_transforms_json(folder / "transforms.json", cams, [f"images/{c.name}.png" for c in cams],
                               [Lens("PINHOLE", 60, 42, *c.intrinsics()) for c in cams])
     else:
-        from vq_mitsuba.data.llff import write_poses_bounds
+        from vq_mitsuba.data.formats.llff import write_poses_bounds
 
         write_poses_bounds(folder / "poses_bounds.npy", cams, [(0.5, 5.0)] * 3)
     full = load_capture(folder)
@@ -339,7 +340,7 @@ def test_large_jpegs_are_decoded_at_a_fraction_of_their_size(tmp_path):
     from vq_mitsuba.config import CaptureConfig
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import read_image
-    from vq_mitsuba.data.llff import write_poses_bounds
+    from vq_mitsuba.data.formats.llff import write_poses_bounds
     from vq_mitsuba.data.resize import Shrink, area_resize
 
     w, h = 128, 96
@@ -382,7 +383,7 @@ def test_large_photos_are_never_all_held_at_full_size(tmp_path, kind):
     from vq_mitsuba.config import CaptureConfig
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import read_image
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     n, w, h = 8, 480, 360
     cams = _cameras(n, w, h, centred=True)

@@ -170,7 +170,8 @@ def _check_photo(folder):
 
 def _colmap_base(folder, binary):
     """A valid model: camera 1 OPENCV (mild distortion), cameras 2 and 3 PINHOLE."""
-    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+    from vq_mitsuba.data.formats.colmap import write_colmap
+    from vq_mitsuba.data.lens import Lens
 
     def lens_of(cam):
         fx, fy, cx, cy = cam.intrinsics()
@@ -277,7 +278,7 @@ def _edited(base, value):
 @FUZZ
 @given(edits=archive_edits, garbage=st.one_of(st.none(), st.binary(max_size=40)))
 def test_mutated_neus_archives_load_or_are_refused(folder, edits, garbage):
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     _photos(folder, "image", ["000.png", "001.png", "002.png"])
     npz = folder / "cameras_sphere.npz"
@@ -318,7 +319,7 @@ def test_mutated_nerfstudio_json_loads_or_is_refused(folder, top, per_frame):
        edits=st.lists(st.tuples(st.integers(0, 2), st.integers(0, 16),
                                 st.floats(allow_nan=True, allow_infinity=True)), max_size=3))
 def test_mutated_llff_poses_load_or_are_refused(folder, shape, edits):
-    from vq_mitsuba.data.llff import write_poses_bounds
+    from vq_mitsuba.data.formats.llff import write_poses_bounds
 
     _photos(folder, "images", ["000.png", "001.png", "002.png"])
     npy = folder / "poses_bounds.npy"

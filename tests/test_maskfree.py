@@ -207,7 +207,8 @@ def test_the_wide_flat_top_of_an_object_is_no_support():
 
 
 def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
-    from vq_mitsuba.data.photo_formats import read_colmap_points, write_colmap, write_idr
+    from vq_mitsuba.data.formats.colmap import read_colmap_points, write_colmap
+    from vq_mitsuba.data.formats.idr import write_idr
     from vq_mitsuba.geometry.pipeline import framing
 
     cams = orbit(10, 3.0, 32)

@@ -52,8 +52,11 @@ def _round_trip_pixels(cam_a, cam_b, world_to_b=np.eye(4)):
 
 def test_neus_and_colmap_files_give_the_same_rays(tmp_path):
     from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.data.photo_formats import Lens, read_colmap, write_colmap, write_idr
-    from vq_mitsuba.synthetic.photo_formats import _moved, colmap_similarity
+    from vq_mitsuba.data.formats.colmap import read_colmap, write_colmap
+    from vq_mitsuba.data.formats.idr import write_idr
+    from vq_mitsuba.data.lens import Lens
+    from vq_mitsuba.data.formats.common import moved_camera
+    from vq_mitsuba.data.formats.copies import colmap_similarity
 
     cams = _cameras()
     cams[1] = Camera("v1", cams[1].to_world, 42.0, 40, 28, focal_y_ratio=1.07, principal=(18.2, 15.9))  # fx != fy
@@ -70,7 +73,7 @@ def test_neus_and_colmap_files_give_the_same_rays(tmp_path):
         assert _round_trip_pixels(a, b) < 0.05
     # COLMAP binary and text, in a similarity frame
     sim = colmap_similarity()
-    moved = [_moved(c, sim) for c in cams]
+    moved = [moved_camera(c, sim) for c in cams]
     for binary in (True, False):
         folder = tmp_path / f"colmap_{binary}"
         (folder / "images").mkdir(parents=True)
@@ -87,7 +90,7 @@ def test_neus_and_colmap_files_give_the_same_rays(tmp_path):
 
 
 def test_opencv_distortion_inverts_to_a_twentieth_of_a_pixel():
-    from vq_mitsuba.data.photo_formats import Lens, distort_image, undistort_image
+    from vq_mitsuba.data.lens import distort_image, Lens, undistort_image
 
     lens = Lens("OPENCV", 60, 44, 40.0, 41.0, 31.3, 20.8, -0.12, 0.03, 0.002, -0.0015)
     ys, xs = np.meshgrid(np.arange(44) + 0.5, np.arange(60) + 0.5, indexing="ij")
@@ -111,7 +114,7 @@ def _tiny_capture(tmp_path):
 
 def _cropped(camera, window):
     """`camera` seeing the pixels x0..x1, y0..y1 of its image only."""
-    from vq_mitsuba.data.photo_formats import camera_from_intrinsics
+    from vq_mitsuba.data.cameras import camera_from_intrinsics
 
     x0, y0, x1, y1 = window
     fx, fy, cx, cy = camera.intrinsics()
@@ -121,7 +124,8 @@ def _cropped(camera, window):
 def test_one_scene_through_every_format_gives_the_same_rays_and_pixels(tmp_path):
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
-    from vq_mitsuba.synthetic.photo_formats import format_frames, llff_window, write_photo_formats
+    from vq_mitsuba.data.formats.copies import format_frames, write_photo_formats
+    from vq_mitsuba.data.formats.llff import llff_window
 
     xml = _tiny_capture(tmp_path)
     ref = load_capture(xml)
@@ -161,7 +165,7 @@ def test_downscale_keying_and_holdout(tmp_path):
     from vq_mitsuba.config import CaptureConfig
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     cams = _cameras(6, 40, 28)
     folder = tmp_path / "idr"
@@ -188,7 +192,8 @@ def test_downscale_keying_and_holdout(tmp_path):
 def test_bad_photo_captures_are_named(tmp_path):
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import write_colmap, write_idr
+    from vq_mitsuba.data.formats.colmap import write_colmap
+    from vq_mitsuba.data.formats.idr import write_idr
 
     cams = _cameras(3)
     idr = tmp_path / "idr"
@@ -250,7 +255,7 @@ def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.run.run_dir import RunDir
-    from vq_mitsuba.synthetic.photo_formats import format_frames, write_photo_formats
+    from vq_mitsuba.data.formats.copies import format_frames, write_photo_formats
 
     import torch
 
@@ -289,7 +294,7 @@ def test_reconstruction_refused_without_masks_says_what_is_needed(tmp_path, caps
     """With neus.background masks (auto reconstructs without them: tests/test_maskfree.py)."""
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     cams = _cameras(3)
     for i in range(3):
@@ -308,7 +313,8 @@ def _colmap(folder, binary, lens=None, names=("a.png", "b.png", "c.png"), images
     """A three-view COLMAP capture (sparse/0 and, when asked, 40x28 photos); `lens` for the first
     view (camera 1), a plausible one of its model for the others."""
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+    from vq_mitsuba.data.formats.colmap import write_colmap
+    from vq_mitsuba.data.lens import Lens
 
     def lens_of(camera):
         return lens if camera.name == "v0" else Lens(lens.model, 40, 28, 30.0, 30.0, 20.5, 13.2)
@@ -349,7 +355,7 @@ def test_bad_colmap_intrinsics_are_refused_before_any_work(tmp_path, binary, mod
     from dataclasses import replace
 
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.data.photo_formats import Lens
+    from vq_mitsuba.data.lens import Lens
 
     lens = replace(Lens(model, 40, 28, 30.0, 30.0, 20.5, 13.2), **{field: value})
     if model.startswith("SIMPLE"):
@@ -425,7 +431,7 @@ def test_every_problem_of_a_colmap_model_is_reported_at_once(tmp_path):
     from dataclasses import replace
 
     from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.data.photo_formats import Lens
+    from vq_mitsuba.data.lens import Lens
 
     model = _colmap(tmp_path, True, replace(Lens("PINHOLE", 40, 28, 30.0, 30.0, 20.5, 13.2), fx=np.nan),
                     images=False)
@@ -452,7 +458,7 @@ def test_broken_colmap_binaries_are_named_by_file(tmp_path, name, damage):
 def _idr(folder, n=3, **entries):
     """A NeuS/IDR capture of n 40x28 views whose archive entries `entries` replace (None: removed)."""
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     for i in range(n):
         write_png(folder / "image" / f"{i:03d}.png", np.full((28, 40, 3), 0.5))
@@ -509,7 +515,7 @@ def test_a_neus_capture_with_images_and_masks_folders_loads_its_masks(tmp_path):
     """Copies of DTU made for other tools name the NeuS folders images/ and masks/."""
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import write_idr
+    from vq_mitsuba.data.formats.idr import write_idr
 
     cams = _cameras(3)
     (tmp_path / "images").mkdir()

@@ -18,6 +18,8 @@ BLENDER_ENV_TO_WORLD = np.array(
 )
 MITSUBA_TO_BLENDER = BLENDER_ENV_TO_WORLD[:3, :3]  # Blender world = this @ Mitsuba world
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
+# OpenCV camera axes (COLMAP, IDR: +X right, +Y down, +Z forward) to Mitsuba's (+X left, +Y up).
+OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 @dataclass
@@ -108,6 +110,15 @@ def principal_xml(camera: Camera, indent: str) -> str:
     ox, oy = camera.principal_offset()
     return (f'{indent}<float name="principal_point_offset_x" value="{ox:.9g}"/>\n'
             f'{indent}<float name="principal_point_offset_y" value="{oy:.9g}"/>\n')
+
+
+def camera_from_intrinsics(name: str, to_world: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                           width: int, height: int) -> Camera:
+    """A Camera from pixel intrinsics (pixel centres at +0.5)."""
+    fov_x = math.degrees(2.0 * math.atan(0.5 * width / fx))
+    centred = abs(cx - 0.5 * width) < 1e-9 and abs(cy - 0.5 * height) < 1e-9
+    return Camera(name, np.asarray(to_world, np.float64), fov_x, int(width), int(height), focal_y_ratio=fy / fx,
+                  principal=None if centred else (float(cx), float(cy)))
 
 
 def nerf_to_camera(name: str, transform_matrix, camera_angle_x: float, width: int, height: int) -> Camera:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.cameras import Camera, camera_from_intrinsics
 from vq_mitsuba.errors import InputError
 
 MIN_SIDE = 4  # pixels: a smaller view is no image to fit
@@ -21,8 +21,6 @@ def downscaled_camera(camera: Camera, factor: int) -> Camera:
     """The camera of the image downscaled by an integer factor (cropped to a multiple of it)."""
     if factor <= 1:
         return camera
-    from vq_mitsuba.data.photo_formats import camera_from_intrinsics
-
     fx, fy, cx, cy = camera.intrinsics()
     return camera_from_intrinsics(camera.name, camera.to_world, fx / factor, fy / factor, cx / factor, cy / factor,
                                   camera.width // factor, camera.height // factor)

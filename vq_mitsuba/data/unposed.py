@@ -1,42 +1,23 @@
-"""Captures without camera poses: a folder of photos or a video (`vq_mitsuba.geometry.poses`
-finds the poses with structure from motion and writes a COLMAP capture).
-
-A photo folder holds the photos themselves (JPEG or PNG, directly in the folder; anything else
-there is ignored) and no camera file. Photos are copied as they are, except those whose EXIF
-orientation says they are stored turned: those are written upright (the loaders and COLMAP then
-read the pixels as the photographer saw them). A video's frames are decoded with the ffmpeg that
-imageio-ffmpeg ships (rotation metadata applied by ffmpeg); `pick_frames` keeps the sharpest frame
-(variance of the Laplacian of the grey image) of each of N equal time windows.
+"""Captures without camera poses: a folder of photos (vq_mitsuba.data.formats.photos) or a video
+(vq_mitsuba.data.formats.video). What the loaders say of them, the name their runs go by, and a
+cheap content key of their files.
 """
 
 from __future__ import annotations
 
 import hashlib
-import shutil
 from pathlib import Path
-from typing import Callable
 
-import numpy as np
-
+from vq_mitsuba.data.formats import photos, video
+from vq_mitsuba.data.formats.photos import copy_upright, photo_files
+from vq_mitsuba.data.formats.video import is_video, pick_frames
 from vq_mitsuba.errors import InputError
 
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
-UNPOSED_KINDS = ("photos", "video")
-EXIF_ORIENTATION = 0x0112
-SHARPNESS_SIDE = 640  # sharpness is measured on frames block-averaged to about this long side
+# re-exported: the photo folder's and the video's readers, which vq_mitsuba.geometry.poses uses
+__all__ = ["UNPOSED_KINDS", "capture_name", "unposed_error", "fingerprint", "copy_upright", "photo_files",
+           "is_video", "pick_frames"]
 
-
-def photo_files(folder: Path) -> list[Path]:
-    """The photos directly in `folder` (JPEG / PNG, hidden files left out), sorted by name."""
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir()
-                  if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES and not p.name.startswith("."))
-
-
-def is_video(path: Path) -> bool:
-    return path.suffix.lower() in VIDEO_SUFFIXES
+UNPOSED_KINDS = (photos.KIND, video.KIND)
 
 
 def capture_name(capture: str | Path) -> str:
@@ -63,108 +44,3 @@ def fingerprint(path: Path, chunk: int = 1 << 20) -> str:
             f.seek(max(chunk, size - chunk))
             h.update(f.read(chunk))
     return f"{size}:{h.hexdigest()[:16]}"
-
-
-# --------------------------------------------------------------------------------------------
-# Photos
-
-def copy_upright(src: Path, dst: Path) -> tuple[int, int]:
-    """Copy a photo to `dst`; one stored turned (EXIF orientation 2..8) is written upright with
-    its other EXIF tags kept (PNG losslessly, JPEG at quality 95). Returns its upright
-    (width, height); an unreadable photo is an InputError naming it."""
-    from PIL import Image, ImageOps, UnidentifiedImageError
-
-    try:
-        with Image.open(src) as im:
-            orientation = im.getexif().get(EXIF_ORIENTATION, 1)
-            if orientation in (None, 1):
-                im.load()  # a truncated or foreign file fails here, before SfM
-                shutil.copyfile(src, dst)
-                return im.size
-            upright = ImageOps.exif_transpose(im)
-            options = {"exif": upright.info["exif"]} if "exif" in upright.info else {}
-            if src.suffix.lower() in (".jpg", ".jpeg"):
-                upright.convert("RGB").save(dst, "JPEG", quality=95, **options)
-            else:
-                upright.save(dst, "PNG", **options)
-            return upright.size
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise InputError(src, f"cannot read the photo ({type(exc).__name__}: {exc})") from None
-
-
-# --------------------------------------------------------------------------------------------
-# Video
-
-def sharpness(rgb: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image (uint8 RGB (H, W, 3)), block-averaged first to a
-    long side of about SHARPNESS_SIDE pixels: motion blur and defocus lower it."""
-    from scipy.ndimage import laplace
-
-    grey = rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
-    f = max(1, max(grey.shape) // SHARPNESS_SIDE)
-    if f > 1:
-        h, w = grey.shape[0] // f * f, grey.shape[1] // f * f
-        grey = grey[:h, :w].reshape(h // f, f, w // f, f).mean((1, 3))
-    return float(laplace(grey).var())
-
-
-def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
-                log: Callable[[str], None] = print) -> dict:
-    """Decode `video` once, keep the sharpest frame of each of `count` equal time windows and write
-    them to folder/frame_NNNNNN.jpg (NNNNNN the frame's index in the video). Returns what was done:
-    frames decoded, fps, duration, the kept frames' indices, times and sharpness."""
-    import imageio_ffmpeg
-    from PIL import Image
-    from tqdm.auto import tqdm
-
-    try:
-        reader = imageio_ffmpeg.read_frames(str(video))
-        meta = next(reader)
-        width, height = meta["size"]
-        fps, duration = float(meta.get("fps") or 0), float(meta.get("duration") or 0)
-        total = int(round(fps * duration)) if fps > 0 and duration > 0 else 0
-        if not total:  # no duration in the file: count the frames (one more decoding pass)
-            total = imageio_ffmpeg.count_frames_and_secs(str(video))[0]
-    except (RuntimeError, OSError, StopIteration, KeyError, ValueError) as exc:
-        raise InputError(video, f"ffmpeg cannot read the video ({_last_line(exc)})") from None
-    best: dict[int, tuple[float, int, np.ndarray | None]] = {}  # window -> (sharpness, frame index, pixels)
-    decoded = 0
-    folder.mkdir(parents=True, exist_ok=True)
-
-    def flush(window: int) -> None:
-        score, index, pixels = best[window]
-        if pixels is not None:
-            Image.fromarray(pixels).save(folder / f"frame_{index:06d}.jpg", quality=95)
-            best[window] = (score, index, None)
-
-    try:
-        with tqdm(total=total, desc="video frames", unit="frame", disable=not progress) as bar:
-            for raw in reader:
-                frame = np.frombuffer(raw, np.uint8).reshape(height, width, 3)
-                window = min(count - 1, decoded * count // max(total, 1))
-                score = sharpness(frame)
-                if window not in best or score > best[window][0]:
-                    best[window] = (score, decoded, frame.copy())
-                if window - 1 in best:
-                    flush(window - 1)  # the previous window is complete
-                decoded += 1
-                bar.update(1)
-    except RuntimeError as exc:
-        raise InputError(video, f"ffmpeg stopped reading the video after {decoded} frames ({_last_line(exc)})") \
-            from None
-    finally:
-        reader.close()
-    if not best:
-        raise InputError(video, "the video holds no frame ffmpeg can decode")
-    for window in best:
-        flush(window)
-    kept = sorted(best.values(), key=lambda b: b[1])
-    log(f"video: kept {len(kept)} of {decoded} frames (the sharpest of each of {len(kept)} time windows)")
-    return {"frames_decoded": decoded, "fps": fps, "duration_s": duration, "size": [int(width), int(height)],
-            "kept": [{"frame": i, "time_s": round(i / fps, 4) if fps else None, "sharpness": round(s, 3)}
-                     for s, i, _ in kept]}
-
-
-def _last_line(exc: Exception) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[-1] if text else type(exc).__name__

@@ -1,0 +1,47 @@
+"""Capture formats, one module each, and the registry that `vq_mitsuba.data.captures` walks.
+
+A format module names its layout in its docstring and defines:
+
+    KIND           the name `capture_kind` gives it ("xml", "json", "idr", "llff", "colmap", ...)
+    SUFFIXES       the file suffixes it reads (empty for a folder)
+    FOLDER_FILES   the files that make a folder a capture of this format, in the order looked for
+    POSED          False for captures without camera poses (loading them is refused)
+    detect(source)             whether `source` (a file, or a folder for COLMAP and photos) is one
+    cameras(source)            (cameras, world) without reading the images (posed formats)
+    load(source, mesh_arg, shrink, cache_dir)   the validated `Capture` (posed formats)
+
+and, where the format has them, `points(source)` (sparse points and their track lengths),
+`sphere(source)` (the region of interest as (centre, radius)) and `write_capture(...)` (the
+writer `vq_mitsuba.data.formats.copies` uses for the synthetic scenes' copies).
+
+Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
+folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order, and a source
+is of the first format whose `detect` accepts it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import ModuleType
+
+from vq_mitsuba.data.formats import colmap, idr, llff, mitsuba_xml, nerf_synthetic, nerfstudio, photos, video
+
+FORMATS: tuple[ModuleType, ...] = (nerf_synthetic, nerfstudio, mitsuba_xml, idr, llff, colmap, photos, video)
+
+
+def format_of(source: Path) -> ModuleType:
+    """The format module of a resolved capture path (`vq_mitsuba.data.captures.resolve_capture_path`)."""
+    for fmt in FORMATS:
+        if fmt.detect(source):
+            return fmt
+    raise ValueError(f"{source}: not a capture of any known format")
+
+
+def folder_files() -> list[str]:
+    """The file names that make a folder a capture, in the order they are looked for."""
+    return [name for fmt in FORMATS for name in fmt.FOLDER_FILES]
+
+
+def known_suffix(path: Path) -> bool:
+    """Whether a capture file's suffix is one a format reads."""
+    return any(path.suffix.lower() in fmt.SUFFIXES for fmt in FORMATS)
