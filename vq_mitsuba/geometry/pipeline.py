@@ -36,14 +36,10 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
     `bounding_sphere` of the cameras and, for a COLMAP capture, its sparse points
     (sparse/0/points3D.bin or .txt), which may also show the table the object stands on
     (`support_from_points`)."""
-    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
-    from vq_mitsuba.data.photo_formats import colmap_model_dir, read_colmap_points, read_idr_sphere
+    from vq_mitsuba.data.captures import capture_framing
     from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points, well_seen
 
-    source = resolve_capture_path(capture_path)
-    kind = capture_kind(source)
-    points = read_colmap_points(colmap_model_dir(source)) if kind == "colmap" else None
-    sphere = read_idr_sphere(source) if kind == "idr" else None
+    points, sphere = capture_framing(capture_path)
     if sphere is not None:
         sphere = (sphere[0], sphere[1], "scale_mat_0")
     elif points is not None:
