@@ -99,7 +99,7 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
 
     from bench_scenes import scene_config
     from vq_mitsuba.eval.evaluate import evaluate
-    from vq_mitsuba.engine.trainer import fit
+    from vq_mitsuba.engine.fit import fit
 
     earlier = true_mesh_rows(name, args.true_from) if args.true_from else {}
     rows = []

@@ -105,7 +105,7 @@ def _capture_without_geometry(folder: Path) -> Path:
 @pytest.fixture
 def no_geometry_stage(monkeypatch):
     """The geometry stage fails the test if it is reached."""
-    import vq_mitsuba.engine.pipeline as pipeline
+    import vq_mitsuba.engine.fit as pipeline
     import vq_mitsuba.geometry.pipeline as geometry
 
     def fail(*args, **kwargs):
@@ -117,7 +117,7 @@ def no_geometry_stage(monkeypatch):
 
 def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stage, capsys):
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.pipeline import fit_capture, needs_reconstruction
+    from vq_mitsuba.engine.fit import fit_capture, needs_reconstruction
     from vq_mitsuba.run.run_dir import RunDir
 
     capture = _capture_without_geometry(tmp_path / "cap")
@@ -136,7 +136,7 @@ def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stag
 
 def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path, no_geometry_stage):
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.pipeline import fit_capture
+    from vq_mitsuba.engine.fit import fit_capture
     from vq_mitsuba.run.run_dir import RunDir
 
     capture = _capture_without_geometry(tmp_path / "cap")

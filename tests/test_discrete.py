@@ -5,7 +5,7 @@ import json
 import pytest
 
 from vq_mitsuba.config import load_config
-from vq_mitsuba.engine.trainer import fit
+from vq_mitsuba.engine.fit import fit
 
 
 @pytest.mark.slow

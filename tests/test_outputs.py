@@ -22,7 +22,7 @@ FIT_TINY = ["--set", "train.iterations=6", "--set", "train.batch_rays=128", "--s
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """(capture XML, fitted run folder, folder for the module's own outputs)."""
-    from vq_mitsuba.engine.trainer import fit
+    from vq_mitsuba.engine.fit import fit
 
     folder = tmp_path_factory.mktemp("outputs")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)

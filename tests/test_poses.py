@@ -181,7 +181,7 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
     """`fit PHOTOS` poses them into RUN/pose and hands that COLMAP capture to the geometry stage and
     the fit; a resumed fit reuses the poses. (The stages after SfM are stand-ins here; the slow
     test below runs them.)"""
-    import vq_mitsuba.engine.pipeline as pipeline
+    import vq_mitsuba.engine.fit as pipeline
     import vq_mitsuba.geometry.poses as poses
     from vq_mitsuba.config import load_config
     from vq_mitsuba.run.run_dir import RunDir
@@ -190,7 +190,7 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(pipeline, "ensure_geometry", lambda capture, run, *a, **k: seen.append(capture) or
                         run / RunDir.MESH)
-    monkeypatch.setattr(pipeline, "fit", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
+    monkeypatch.setattr(pipeline, "fit_materials", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
     run = RunDir(tmp_path / "run")
     cfg = load_config(None, [])
     pipeline.fit_capture(photos, run.dir, cfg, progress=False, log=lambda line: None)

@@ -33,7 +33,7 @@ def view_dependent_run(tmp_path_factory):
     from vq_mitsuba.config import load_config
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import read_exr, write_exr
-    from vq_mitsuba.engine.trainer import fit
+    from vq_mitsuba.engine.fit import fit
 
     out = tmp_path_factory.mktemp("residual")
     xml = write_sphere_capture(out, size=24, n_views=10, spp=32)

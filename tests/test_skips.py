@@ -12,7 +12,8 @@ import torch
 from tiny_scene import write_sphere_capture
 from vq_mitsuba.config import load_config
 from vq_mitsuba.engine import skips
-from vq_mitsuba.engine.trainer import Trainer, fit
+from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.trainer import Trainer
 
 QUICK = ["train.batch_rays=64", "residual.iterations=0", "vq.enabled=false"]
 

@@ -1,4 +1,4 @@
-"""`vq-mitsuba geometry`: NeuS and mesh export into a run (`vq_mitsuba.geometry.pipeline.run_geometry`)."""
+"""`vq-mitsuba geometry`: NeuS and mesh export into a run (`vq_mitsuba.engine.fit.geometry_capture`)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ def add_parser(sub, shared) -> None:
 
 
 def run(args) -> int:
-    from vq_mitsuba.geometry.pipeline import check_geometry_target, neus_psnr_line, run_geometry
-    from vq_mitsuba.run.outputs import removed_on_refusal
+    from vq_mitsuba.engine.fit import geometry_capture
+    from vq_mitsuba.geometry.pipeline import check_geometry_target, neus_psnr_line
     from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:
@@ -28,9 +28,8 @@ def run(args) -> int:
     refuse_file_output(run_dir)
     check_geometry_target(RunDir(run_dir))
     cfg = command_config(args)
-    with RunDir(run_dir).lock("geometry"), removed_on_refusal(run_dir):
-        info = run_geometry(args.capture, run_dir, cfg.neus, resume=args.resume, progress=not args.quiet,
-                            gt_mesh=args.gt_mesh, capture_cfg=cfg.capture, pose_cfg=cfg.pose).summary
+    info = geometry_capture(args.capture, run_dir, cfg, resume=args.resume, progress=not args.quiet,
+                            gt_mesh=args.gt_mesh).summary
     s = info["seconds"]
     print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
           f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")

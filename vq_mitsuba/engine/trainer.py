@@ -1,35 +1,29 @@
-"""The training loop: both branches of VQ-NeRF on known geometry, checkpoints, time limit.
+"""The training loop: both branches of VQ-NeRF on known geometry, their losses, checkpoints,
+time limit.
 
 Primary hits of every training pixel are traced once (`vq_mitsuba.data.pixels`); each step
 draws a random batch of foreground pixels across all views, evaluates the material field once
 per hit and shades through Mitsuba (`vq_mitsuba.render.shading`). After `vq.warmup_frac` of
 training the discrete branch starts from k-means of the latents and trains beside the
-continuous one; at the end its codewords are ranked (`vq_mitsuba.engine.ranking`). Every file
-is written through `RunDir`; a run resumes from its last checkpoint.
+continuous one. The fit around the loop (checks, loading, resuming) is `vq_mitsuba.engine.fit`;
+what is written at its end (ranked materials, residual, plots) is `vq_mitsuba.engine.products`.
+Every file is written through `RunDir`; a run resumes from its last checkpoint.
 """
 
 from __future__ import annotations
 
-import copy
 import math
-import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
-from vq_mitsuba.data.captures import Capture, load_capture
+from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.data.pixels import ErrorSampler, hold_aside, neighbour_pairs, sampler_tile, trace_training_pixels
-from vq_mitsuba.engine.checks import mesh_scale_warning
-from vq_mitsuba.engine.plots import plot_err_k, plot_history
-from vq_mitsuba.engine.ranking import rank_materials
-from vq_mitsuba.engine.residual import residual_stage
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine import skips
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
-from vq_mitsuba.geometry.pipeline import masked_by_mesh
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models import losses
@@ -537,145 +531,3 @@ class Trainer:
         if self.pace.active:
             notes["pace"] = f"{self.pace.rate}x"
         return notes
-
-    def finish(self, summary: dict) -> None:
-        """Rank the codewords (when the discrete branch ran), fit the residual of novel views
-        (`residual.iterations`) and write the run's results."""
-        from vq_mitsuba.render.sheet import write_material_sheet
-
-        run, env = self.run, self.envmap().detach()
-        if self.discrete is not None and bool(self.discrete.initialised):
-            info = rank_materials(self.scene, self.model, self.discrete, self.pool, env, self.cfg)
-            self.checkpoint(summary["seconds"])  # with the ranked codebook and M
-            run.write_materials(info)
-            run.write_file(RunDir.ERR_PLOT, lambda path: plot_err_k(info["err_k"], info["num_materials"],
-                                                                     info["epsilon"], path))
-            run.write_file(RunDir.SHEET, lambda path: write_material_sheet(
-                info["materials"], env.cpu().numpy(), self.capture.envmap_to_world, path))
-        elif self.cfg.vq.enabled:
-            warn("the fit ended before the discrete branch started (vq.warmup_frac); "
-                 "no materials.json was written")
-        run.write_envmap(env.cpu().numpy())
-        if self.cfg.residual.iterations > 0:  # VQ-NeRF Sec. 4: materials and light frozen from here
-            summary["residual"] = residual_stage(run, self.scene, self.model, self.pool, env, self.capture.mesh.bounds,
-                                                 self.cfg, self.step)
-        run.write_file(RunDir.LOSS_PLOT, lambda path: plot_history(self.history, path))
-        run.write_fit_summary(summary)
-
-
-def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
-        resume: bool = False, progress: bool = True) -> dict:
-    """`vq-mitsuba fit` on known geometry: returns the summary written to RUN_DIR/fit.json."""
-    t_start = time.perf_counter()
-    run = RunDir(run_dir)
-    parse_snapshot_times(cfg.train.snapshot_s)
-    check_fit_target(run, resume)
-    if resume and not run.has_checkpoint():
-        # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
-        # material fit from the beginning, keeping what the folder already holds (mesh.ply).
-        print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
-        resume = False
-    # every input check happens here, first
-    capture = load_capture(capture_path, mesh=mesh_path, options=cfg.capture, split="train",
-                           cache_dir=run.undistorted_dir)
-    if capture.mesh is None:
-        raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
-                         "(pass --mesh PATH, put mesh.ply in the capture's folder, or reconstruct it from the images "
-                         "with `fit --geometry neus` or `vq-mitsuba geometry`)")
-    if not capture.has_alpha and run.masks_from_mesh():
-        capture = masked_by_mesh(capture)
-    if resume:
-        info = run.info()
-        if Path(info["capture"]) != Path(capture.source).resolve():
-            raise InputError(run.dir, f"was fitted to {info['capture']}, not {Path(capture.source).resolve()}; "
-                                      "resume it with that capture, or choose another -o")
-        if run.has_mesh():
-            old, new = np.asarray(run.mesh().vertices), np.asarray(capture.mesh.vertices)
-            scale = float(np.abs(new).max()) if new.size else 1.0
-            if old.shape != new.shape or not np.allclose(old, new, atol=1e-5 * max(scale, 1e-6)):
-                raise InputError(run.dir, f"was fitted on another mesh than the one given now ({len(old)} vertices "
-                                          f"in {RunDir.MESH}, {len(new)} now); resume with the run's geometry, "
-                                          "or choose another -o")
-        init_mitsuba()
-        state = run.load_state(device=torch_device())  # read once: the trainer resumes from it below
-        check_resumable(state, cfg, capture, run.checkpoint_path)
-        done = int(state["step"])
-        # the schedule steps done (more than the steps where the pace ran faster: train.stop)
-        position = float((state.get("skips") or {}).get("pace", {}).get("position", done))
-        if position >= cfg.train.iterations:  # nothing to train: config.yaml keeps matching the checkpoint
-            if run.fit_summary().get("iterations") == done:
-                print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
-                      "asks for no more): nothing to do, the run is unchanged")
-                return run.fit_summary()
-            discrete = state.get("discrete")
-            if cfg.vq.enabled and not (isinstance(discrete, dict) and bool(discrete.get("initialised", False))):
-                raise InputError(run.dir, f"already has {done} steps, and its discrete branch has not started yet: "
-                                          f"train.iterations={cfg.train.iterations} asks for no more steps, so the "
-                                          "fit would end without materials; resume with train.iterations above "
-                                          f"{done}")
-            cfg = copy.deepcopy(cfg)
-            cfg.train.iterations = max(done, int(math.floor(position)))
-    run.create()
-    if not resume:  # a resumed run's config.yaml is written with its next checkpoint
-        run.write_config(cfg)
-    run.write_mesh(capture.mesh)
-    trainer = Trainer(capture, run, cfg)
-    stats = trainer.pool_stats
-    if stats["geometry_coverage"] < 0.9 and not capture.has_alpha:
-        warn(f"the images have no alpha, so every pixel counts as the object's, and "
-             f"{100 * (1 - stats['geometry_coverage']):.1f}% of them (the background) miss the mesh and are not "
-             "fitted; with alpha masks (RGBA PNG or EXR) the fit also knows the object's outline")
-    elif stats["geometry_coverage"] < 0.9:
-        warn(f"only {100 * stats['geometry_coverage']:.1f}% of opaque pixels hit the mesh; "
-             "the geometry may not match the images (units, world axes?)")
-    scale_warning = mesh_scale_warning(capture.mesh, capture.cameras)
-    if scale_warning:
-        warn(scale_warning)
-    run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
-                    "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
-                    "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **stats})
-    if resume:
-        try:
-            trainer.resume(state)
-        except (RuntimeError, KeyError, TypeError, ValueError) as exc:  # the optimiser's or the rules' state
-            raise InputError(run.checkpoint_path, f"cannot be resumed with the config now ({type(exc).__name__}: "
-                                                  f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); resume "
-                                                  "with the run's own settings, or choose another -o") from None
-        if trainer.step >= cfg.train.iterations or trainer.pace.finished:
-            print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
-    startup = time.perf_counter() - t_start
-    summary = trainer.train(progress)
-    summary["startup_s"] = startup
-    trainer.finish(summary)
-    return summary
-
-
-def check_resumable(state: dict, cfg: Config, capture: Capture, path: Path) -> None:
-    """Refuse, before any work, a checkpoint whose networks the config does not build (another
-    field or vq architecture, vq.enabled changed, another kind of state file): InputError naming it."""
-    from vq_mitsuba.run.run_dir import load_module_state
-
-    if not isinstance(state.get("step"), int) or "optim" not in state:
-        raise InputError(path, "not a checkpoint a fit resumes from ('step' or 'optim' missing)")
-    model, discrete = material_networks(cfg, capture.mesh, torch.device("cpu"))  # load_state_dict copies across devices
-    load_module_state(model, state.get("model"), path, "model")
-    if (discrete is None) != (state.get("discrete") is None):
-        raise InputError(path, f"was fitted with vq.enabled={str(discrete is None).lower()}, not "
-                               f"{str(cfg.vq.enabled).lower()}: resume with the run's own vq.enabled")
-    if discrete is not None:
-        load_module_state(discrete, state["discrete"], path, "discrete")
-    if (capture.envmap is None) != (state.get("envmap") is not None):
-        raise InputError(path, "was fitted with " + ("a learned" if state.get("envmap") is not None else "the "
-                               "capture's own") + " envmap, and the capture now says otherwise: resume with the "
-                               "run's capture, or choose another -o")
-
-
-def check_fit_target(run: RunDir, resume: bool) -> None:
-    """Refuse to fit into an edited run, over a fitted one unless resuming it, or to resume a folder
-    that is not there (before any work)."""
-    if resume and not run.dir.is_dir():
-        raise InputError(run.dir, "no run to resume (the folder does not exist)")
-    if run.is_run() and run.is_edit():
-        raise InputError(run.dir, "holds an edited run (edits.json): fit into another folder")
-    if run.has_checkpoint() and not resume:
-        raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.config import CaptureConfig, NeuSConfig, PoseConfig
+from vq_mitsuba.config import CaptureConfig, NeuSConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
@@ -85,19 +85,15 @@ def _read_info(run: RunDir) -> dict | None:
 
 
 def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
-                 progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None,
-                 pose_cfg: PoseConfig | None = None):
-    """Load the capture (photos or a video without poses: posed first, `ensure_poses`), run NeuS +
-    mesh export into the run; score against gt_mesh if given. Returns the `Reconstruction` (its
-    summary is the run's geometry.json)."""
+                 progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None):
+    """Load the posed capture (photos or a video are posed first: `vq_mitsuba.engine.fit.posed_capture`),
+    run NeuS + mesh export into the run; score against gt_mesh if given. Returns the `Reconstruction`
+    (its summary is the run's geometry.json)."""
     from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.geometry.neus import reconstruct, uses_background_model
-    from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     check_geometry_target(run)
-    if is_unposed(capture_path):
-        capture_path = ensure_poses(capture_path, run, pose_cfg or PoseConfig(), progress=progress)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
     sphere, support, points = framing(capture_path, capture.cameras, cfg.seed) \
