@@ -1,4 +1,4 @@
-"""The command line is thin: one parser built from shared parents (each option defined once, each
+"""The command line is thin: one module per command, one parser built from shared parents (each option defined once, each
 with a one-line help), and `fit` is one library call that refuses a fitted or edited run before
 any geometry work."""
 
@@ -280,3 +280,27 @@ def test_the_command_line_manual_is_current():
     doc = Path(__file__).resolve().parent.parent / "docs" / "cli.md"
     assert doc.read_text() == cli.manual()
     assert all(f"## `vq-mitsuba {name}`" in doc.read_text() for name in _subparsers())
+
+
+def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
+    """`fit` runs in one module (engine/fit.py): the run folder is checked once and an unposed
+    capture is posed once per fit, and no other module calls either step."""
+    import vq_mitsuba.engine.fit as fit_module
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.run.run_dir import RunDir
+
+    calls = []
+    check = fit_module.check_fit_target
+    monkeypatch.setattr(fit_module, "check_fit_target", lambda *a: calls.append("check") or check(*a))
+    monkeypatch.setattr(fit_module, "is_unposed", lambda capture: True)
+    monkeypatch.setattr(fit_module, "ensure_poses", lambda capture, run, *a, **k: calls.append("poses") or capture)
+    monkeypatch.setattr(fit_module, "ensure_geometry", lambda capture, run, *a, **k: run / RunDir.MESH)
+    monkeypatch.setattr(fit_module, "fit_materials", lambda *a, **k: {"iterations": 1})
+    capture = _capture_without_geometry(tmp_path / "cap")
+    fit_module.fit_capture(capture, tmp_path / "run", load_config(None, []), progress=False, log=lambda line: None)
+    assert calls == ["check", "poses"]
+    package = Path(cli.__file__).resolve().parent.parent
+    callers = {str(path.relative_to(package)) for path in package.rglob("*.py") for node in ast.walk(ast.parse(
+        path.read_text())) if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("ensure_poses",
+                                                                                                "check_fit_target")}
+    assert callers == {"engine/fit.py"}, callers

@@ -32,10 +32,9 @@ def add_parser(sub, shared) -> None:
                     "metallic/roughness PSNR, and relighting PSNR/SSIM under each held-aside envmap (albedo-scale "
                     "and image-scale variants). DATASET is a folder written by `vq-mitsuba make-scene` "
                     "(scene.json, transforms_test.json, images/, gt/, relit/, envmaps/); without --gt, the run's "
-                    "held-out views (fit --holdout K) are scored. --meanshift gives the bandwidths of the "
-                    "MeanShift segmentation baseline on the continuous branch's BRDF maps ('none' skips it); it "
-                    "needs ground-truth material ids. --downscale / --max-size set the held-out photos' size "
-                    "(default: the fit's).")
+                    "held-out views (fit --holdout K) are scored, at the fit's size unless --downscale / "
+                    "--max-size say otherwise. The MeanShift baseline segments the continuous branch's BRDF maps "
+                    "(it needs ground-truth material ids).")
     e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
     e.add_argument("--gt", metavar="DATASET", help="the ground-truth dataset folder (default: the held-out views)")
     e.add_argument("--spp", type=positive_int, help="render samples per pixel (default: render.spp of the run's config)")

@@ -9,10 +9,10 @@ def add_parser(sub, shared) -> None:
     g = sub.add_parser(
         "geometry", parents=run_parents(shared), help="reconstruct a mesh from posed images, with or without masks (NeuS)",
         description="NeuS on the capture's images (and masks, when it has any), then marching cubes and mesh "
-                    "clean-up. Writes "
-                    "RUN_DIR/mesh.ply, geometry.json (timings, settings), geometry_loss.png and the NeuS "
-                    "checkpoint neus.pt. Known geometry in the capture is ignored. Of the config, the `neus` and "
-                    "`capture` sections apply (e.g. --set neus.iterations=3000).")
+                    "clean-up; photos or a video are posed first (RUN_DIR/pose/). Writes RUN_DIR/mesh.ply, "
+                    "geometry.json (timings, settings), geometry_loss.png and the NeuS checkpoint neus.pt. Known "
+                    "geometry in the capture is ignored. Of the config, the `neus`, `capture` and `pose` sections "
+                    "apply (e.g. --set neus.iterations=3000).")
     g.add_argument("--gt-mesh", help="score the mesh against this ground-truth mesh (Chamfer, normal consistency)")
     g.set_defaults(func=run)
 

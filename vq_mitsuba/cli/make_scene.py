@@ -27,10 +27,8 @@ def add_parser(sub, shared) -> None:
         description="Render a bundled scene with Mitsuba's path tracer (or Blender Cycles with --renderer cycles: "
                     "bpy in .venv-cycles, `make cycles`; same layout, plus relit views under Blender's eight "
                     "studio-light probes): training and test views in both capture formats, ground-truth maps and "
-                    "relit test views. --photo-formats also writes the training views as a NeuS/IDR capture "
-                    "(neus/), COLMAP captures (colmap/: binary, pinhole; colmap_opencv/: text, distorted "
-                    "OPENCV lens), a nerfstudio capture (nerfstudio/: transforms.json, per-frame OPENCV lenses) "
-                    "and an LLFF capture (llff/: poses_bounds.npy).")
+                    "relit test views. --photo-formats adds neus/, colmap/ (binary, pinhole), colmap_opencv/ "
+                    "(text, distorted OPENCV lens), nerfstudio/ (per-frame OPENCV lenses) and llff/.")
     m.add_argument("name", nargs="?", help="scene name (see --list)")
     m.add_argument("--resolution", type=resolution, metavar="N|WxH",
                    help="image size in pixels: N for N x N, or W x H (default per scene)")
