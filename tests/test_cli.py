@@ -1,6 +1,6 @@
-"""The command line is thin: one module per command, one parser built from shared parents (each option defined once, each
-with a one-line help), and `fit` is one library call that refuses a fitted or edited run before
-any geometry work."""
+"""The command line is thin: one module per command, one parser built from shared parents (each
+option defined once, each with a one-line help), and `fit` is one library call that refuses a
+fitted or edited run before any geometry work."""
 
 import argparse
 import ast
