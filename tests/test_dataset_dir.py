@@ -18,9 +18,6 @@ SHARED = {DatasetDir.TRANSFORMS_TRAIN, DatasetDir.SCENE_XML, DatasetDir.MESH, Da
 # Paths inside a dataset begin with one of its folders.
 FOLDERS = tuple(f"{d}/" for d in (DatasetDir.GT, DatasetDir.RELIT, DatasetDir.ENVMAPS, DatasetDir.MESHES)) + \
     (f"./{DatasetDir.IMAGES}/",)
-# Modules that still spell a dataset's names, each with the names it spells: they are to read them
-# from DatasetDir.
-NOT_YET = {"run/outputs.py": {"scene.json", ".make-scene-incomplete"}, "batch.py": {"scene.json", "gt"}}
 
 
 def _docstrings(tree) -> set[int]:
@@ -45,7 +42,7 @@ def test_only_dataset_dir_names_dataset_files():
         for node in ast.walk(tree):
             if not (isinstance(node, ast.Constant) and isinstance(node.value, str)) or id(node) in skip:
                 continue
-            if node.value in names - NOT_YET.get(rel, set()) or node.value.startswith(FOLDERS):
+            if node.value in names or node.value.startswith(FOLDERS):
                 found.append((rel, node.lineno, node.value))
     assert not found, found
 

@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.unposed import capture_name
 from vq_mitsuba.errors import InputError, UserError
 from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
@@ -106,7 +107,7 @@ def ground_truth_of(capture: str | Path) -> Path | None:
     """A `make-scene` dataset's folder when the capture is one (scene.json and gt/ beside it)."""
     path = Path(capture)
     folder = path if path.is_dir() else path.parent
-    return folder if (folder / "scene.json").is_file() and (folder / "gt").is_dir() else None
+    return folder if (folder / DatasetDir.INFO).is_file() and (folder / DatasetDir.GT).is_dir() else None
 
 
 def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate: bool,

@@ -24,15 +24,16 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.run_dir import RunDir
 
 RENDER_MARKER = "render.json"
 EXPORT_MARKER = "export.json"
 POSE_MARKER = "pose.json"
-SCENE_MARKER = "scene.json"
+SCENE_MARKER = DatasetDir.INFO
 BATCH_MARKER = "batch.json"
-SCENE_INCOMPLETE = ".make-scene-incomplete"  # in a dataset folder while make-scene writes it
+SCENE_INCOMPLETE = DatasetDir.INCOMPLETE  # in a dataset folder while make-scene writes it
 EVAL_MARK = {"written_by": "vq-mitsuba eval"}  # a key of every metrics file eval writes
 
 # Entries a run keeps besides its files, which alone do not make a folder another's.
