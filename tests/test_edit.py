@@ -13,7 +13,7 @@ from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.edit import build_edit, edit_run
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.models.edits import (Change, Edit, Selection, apply_edits, check_change, hsv_to_rgb, hue_shift,
+from vq_mitsuba.models.material_edits import (Change, Edit, Selection, apply_edits, check_change, hsv_to_rgb, hue_shift,
                                      material_library, rgb_to_hsv)
 from vq_mitsuba.render.views import Renderer
 

@@ -403,7 +403,7 @@ def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tm
     """fit on a capture with neither masks nor geometry: NeuS without masks, then the material fit
     on the views masked by the mesh's coverage (has_alpha), also after --resume."""
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.engine.pipeline import fit_capture
+    from vq_mitsuba.engine.fit import fit_capture
     from vq_mitsuba.run.run_dir import RunDir
 
     images, true_alpha, cams, _ = backdrop_views

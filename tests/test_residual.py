@@ -56,7 +56,7 @@ def test_the_residual_explains_what_the_materials_cannot(view_dependent_run):
     _, run = view_dependent_run
     info = json.loads((run / RunDir.FIT).read_text())["residual"]
     # at most residual.iterations, and at most MAX_EPOCHS passes over a pool this small
-    from vq_mitsuba.engine.residual import BATCH, MAX_EPOCHS, MIN_STEPS
+    from vq_mitsuba.engine.residual_fit import BATCH, MAX_EPOCHS, MIN_STEPS
 
     fitted = info["hits"] - info["check_hits"]
     assert info["iterations"] == min(400, max(MIN_STEPS, -(-MAX_EPOCHS * fitted // min(BATCH, fitted))))
@@ -68,7 +68,7 @@ def test_the_residual_explains_what_the_materials_cannot(view_dependent_run):
 
 def test_render_adds_it_under_the_own_light_only(view_dependent_run):
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.models.edits import Change, Edit, Selection
+    from vq_mitsuba.models.material_edits import Change, Edit, Selection
     from vq_mitsuba.render.views import Renderer
     from vq_mitsuba.run.run_dir import RunDir
 

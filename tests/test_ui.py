@@ -333,7 +333,7 @@ def test_live_slider_changes_merge_and_undo_redo_walk_the_history(editor):
 def test_the_panel_values_follow_presets_undo_and_redo(editor):
     """state()["materials"] holds each material's values as the edits leave them (what the page's
     material panel shows)."""
-    from vq_mitsuba.models.edits import material_library
+    from vq_mitsuba.models.material_edits import material_library
 
     session, _ = editor
     values = lambda: {m["id"]: m for m in session.state()["materials"]}  # noqa: E731
@@ -529,7 +529,7 @@ def test_browser_panel_shows_the_values_after_a_preset_undo_and_redo(editor, bro
     """The page (its POSTs carry the token it was served) applies a preset to the selected material;
     the sliders and the colour then show the preset's values, and the fitted ones again after undo."""
     from vq_mitsuba.data.imageio import linear_to_srgb
-    from vq_mitsuba.models.edits import material_library
+    from vq_mitsuba.models.material_edits import material_library
     from vq_mitsuba.ui.browser import page_url, wait_page
 
     session, server = editor

@@ -1,7 +1,7 @@
 """`vq-mitsuba edit`: select materials of a fitted run and change them, writing a new run.
 
 Reads the fitted run through `run.run_dir` only. The new run holds the edit list
-(`models.edits.Edit`), applied wherever the run's fields are read (render, export, eval).
+(`models.material_edits.Edit`), applied wherever the run's fields are read (render, export, eval).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.models.edits import Change, Edit, Selection, check_change, preset_changes
+from vq_mitsuba.models.material_edits import Change, Edit, Selection, check_change, preset_changes
 from vq_mitsuba.models.fitted import FittedModel
 
 

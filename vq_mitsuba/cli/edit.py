@@ -45,7 +45,7 @@ def run(args) -> int:
     from vq_mitsuba.edit import build_edit, edit_run
     from vq_mitsuba.run.outputs import check_output_folder
     from vq_mitsuba.run.run_dir import RunDir, check_writable
-    from vq_mitsuba.models.edits import material_library
+    from vq_mitsuba.models.material_edits import material_library
 
     if args.list_presets:
         for name, m in sorted(material_library().items()):

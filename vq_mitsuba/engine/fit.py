@@ -18,7 +18,7 @@ import torch
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, PoseConfig
 from vq_mitsuba.data.captures import Capture, load_capture
-from vq_mitsuba.engine.checks import mesh_scale_warning
+from vq_mitsuba.engine.mesh_scale import mesh_scale_warning
 from vq_mitsuba.engine.products import write_products
 from vq_mitsuba.engine.trainer import Trainer, parse_snapshot_times
 from vq_mitsuba.errors import InputError, warn

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
-from vq_mitsuba.engine.residual import residual_stage
+from vq_mitsuba.engine.residual_fit import residual_stage
 from vq_mitsuba.engine.trainer import Trainer
 from vq_mitsuba.errors import warn
 from vq_mitsuba.run.run_dir import RunDir

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from vq_mitsuba.config import Config
-from vq_mitsuba.models.edits import Edit, apply_edits
+from vq_mitsuba.models.material_edits import Edit, apply_edits
 from vq_mitsuba.models.fields import ContinuousMaterial
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.models.vq import DiscreteBranch

@@ -46,7 +46,7 @@ import yaml
 
 from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError, NumericalError
-from vq_mitsuba.models.edits import Edit
+from vq_mitsuba.models.material_edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock

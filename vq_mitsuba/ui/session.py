@@ -2,7 +2,7 @@
 one run, and a render thread that draws a quick preview after every change and then refines it
 while a page asks for frames (refining pauses `idle_s` seconds after the last request ends).
 
-Reads the run through `run.run_dir`; edits are `models.edits.Edit`s, saved as `vq-mitsuba
+Reads the run through `run.run_dir`; edits are `models.material_edits.Edit`s, saved as `vq-mitsuba
 edit` saves them, so a run saved here renders the same with `vq-mitsuba render`. Everything that
 touches torch or Mitsuba runs on the render thread (one at a time); requests only change state.
 """
@@ -23,7 +23,7 @@ from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.errors import InputError, UserError
-from vq_mitsuba.models.edits import Change, Edit, Selection, apply_edits, check_change, material_library, \
+from vq_mitsuba.models.material_edits import Change, Edit, Selection, apply_edits, check_change, material_library, \
     preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
 
