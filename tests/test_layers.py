@@ -1,5 +1,5 @@
-"""The package's layers import one way: data -> models -> run -> geometry -> render -> engine ->
-eval -> batch -> cli, and rendering a finished run imports no training code."""
+"""The package's layers import one way, in the order of LAYERS below (docs/method.md's layout lists
+them in it), and rendering a finished run imports no training code."""
 
 import ast
 import subprocess
