@@ -163,7 +163,7 @@ def test_render_views_keeps_any_callers_names_inside_the_folder(tmp_path, monkey
 # COLMAP names from subfolders, and the held-out split
 
 def _colmap(folder: Path, names: list[str], binary: bool = True, points2d: bool = True):
-    from vq_mitsuba.data.photo_formats import write_colmap
+    from vq_mitsuba.data.formats.colmap import write_colmap
 
     cams = _cameras(len(names))
     model = folder / "sparse" / "0"
@@ -263,8 +263,8 @@ def test_frames_of_one_file_name_in_two_folders_are_named_by_their_paths(tmp_pat
 
 def test_a_frame_listed_twice_in_a_nerfstudio_json_is_refused(tmp_path):
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.data.nerfstudio import write_transforms_json
-    from vq_mitsuba.data.photo_formats import Lens
+    from vq_mitsuba.data.formats.nerfstudio import write_transforms_json
+    from vq_mitsuba.data.lens import Lens
 
     cams = _cameras(3)
     lenses = [Lens("PINHOLE", 20, 14, *c.intrinsics()) for c in cams]

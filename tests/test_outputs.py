@@ -251,8 +251,8 @@ def test_pose_never_empties_a_folder_it_cannot_tell_it_made(tmp_path, monkeypatc
 def test_a_fit_refused_after_reading_a_distorted_capture_leaves_no_undistorted_folder(tmp_path, capsys):
     from vq_mitsuba.data.cameras import Camera, look_at
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.nerfstudio import write_transforms_json
-    from vq_mitsuba.data.photo_formats import Lens, distort_image
+    from vq_mitsuba.data.formats.nerfstudio import write_transforms_json
+    from vq_mitsuba.data.lens import Lens, distort_image
 
     lens = Lens("OPENCV", 24, 16, 20.0, 20.0, 12.0, 8.0, k1=0.05)
     cams = [Camera(f"v{i}", look_at([3 * np.sin(i), 0, 3 * np.cos(i)], [0, 0, 0], [0, 1, 0]), 40.0, 24, 16)

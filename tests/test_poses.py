@@ -161,7 +161,7 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
 def test_photos_stored_turned_are_copied_upright(tmp_path, suffix):
     from PIL import Image
 
-    from vq_mitsuba.data.unposed import copy_upright
+    from vq_mitsuba.data.formats.photos import copy_upright
 
     upright = np.zeros((20, 30, 3), np.uint8)
     upright[:5, :8] = 255  # a white patch in the top-left corner

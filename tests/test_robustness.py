@@ -245,7 +245,8 @@ def test_fit_of_a_colmap_capture_with_a_nan_focal_length_writes_nothing(tmp_path
     """Once a Dr.Jit abort (exit 134) after an all-NaN undistorted/ cache, or a fit of NaN cameras."""
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import write_png
-    from vq_mitsuba.data.photo_formats import Lens, write_colmap
+    from vq_mitsuba.data.formats.colmap import write_colmap
+    from vq_mitsuba.data.lens import Lens
 
     capture = load_capture(write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8))
     folder = tmp_path / "colmap"

@@ -248,8 +248,7 @@ def test_ground_truth_with_nan_and_a_garbage_scene_json_are_refused(tmp_path):
 
 
 def test_a_torn_undistortion_cache_is_made_again_and_written_whole(tmp_path):
-    from vq_mitsuba.data.photo_captures import _undistorted
-    from vq_mitsuba.data.photo_formats import Lens
+    from vq_mitsuba.data.lens import Lens, undistort_photo
     from vq_mitsuba.data.resize import Shrink
 
     photo = tmp_path / "p.png"
@@ -257,11 +256,11 @@ def test_a_torn_undistortion_cache_is_made_again_and_written_whole(tmp_path):
     rgb, alpha = np.random.default_rng(0).random((12, 16, 3)).astype(np.float32), np.ones((12, 16), np.float32)
     lens = Lens("OPENCV", 16, 12, 14.0, 14.0, 8.0, 6.0, k1=-0.05)
     cache = tmp_path / "undistorted"
-    first = _undistorted(photo, rgb, alpha, lens, cache, Shrink())
+    first = undistort_photo(photo, rgb, alpha, lens, cache, Shrink())
     (cached,) = cache.glob("*.npz")
     assert [p.name for p in cache.iterdir()] == [cached.name]  # no temporary file left
     cached.write_bytes(cached.read_bytes()[:40])  # torn
-    again = _undistorted(photo, rgb, alpha, lens, cache, Shrink())
+    again = undistort_photo(photo, rgb, alpha, lens, cache, Shrink())
     assert np.allclose(again[0], first[0], atol=1e-3) and np.allclose(again[1], first[1], atol=1e-3)
     with np.load(cached) as data:
         assert data["rgb"].shape == (12, 16, 3)

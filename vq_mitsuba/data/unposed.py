@@ -9,13 +9,8 @@ import hashlib
 from pathlib import Path
 
 from vq_mitsuba.data.formats import photos, video
-from vq_mitsuba.data.formats.photos import copy_upright, photo_files
-from vq_mitsuba.data.formats.video import is_video, pick_frames
+from vq_mitsuba.data.formats.video import is_video
 from vq_mitsuba.errors import InputError
-
-# re-exported: the photo folder's and the video's readers, which vq_mitsuba.geometry.poses uses
-__all__ = ["UNPOSED_KINDS", "capture_name", "unposed_error", "fingerprint", "copy_upright", "photo_files",
-           "is_video", "pick_frames"]
 
 UNPOSED_KINDS = (photos.KIND, video.KIND)
 

@@ -1,5 +1,5 @@
 """Camera poses for photos or a video that come without them: structure from motion with COLMAP
-(pycolmap), written as a COLMAP capture that the capture loaders read (vq_mitsuba.data.photo_captures).
+(pycolmap), written as a COLMAP capture that the capture loaders read (vq_mitsuba.data.formats.colmap).
 
     OUT/images/     the photos (turned upright where their EXIF orientation says so), or the video's kept frames
     OUT/sparse/0/   the largest model: cameras.bin (one SIMPLE_RADIAL camera), images.bin, points3D.bin, ...
@@ -30,8 +30,9 @@ from pathlib import Path
 from typing import Callable
 
 from vq_mitsuba.config import PoseConfig
-from vq_mitsuba.data.unposed import (UNPOSED_KINDS, copy_upright, fingerprint, photo_files,
-                                     pick_frames)
+from vq_mitsuba.data.formats.photos import copy_upright, photo_files
+from vq_mitsuba.data.formats.video import pick_frames
+from vq_mitsuba.data.unposed import UNPOSED_KINDS, fingerprint
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_json
 

@@ -733,7 +733,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
         _render_dataset(name, spec, out, res, n_train, n_test, spp, seed, progress, t_start)
         if photo_formats:
             from vq_mitsuba.data.captures import load_capture
-            from vq_mitsuba.synthetic.photo_formats import write_photo_formats
+            from vq_mitsuba.data.formats.copies import write_photo_formats
 
             write_photo_formats(load_capture(out / DatasetDir.SCENE_XML), out)
     return out
