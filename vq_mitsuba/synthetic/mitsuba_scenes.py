@@ -18,7 +18,6 @@ PNG is sRGB RGBA with straight (un-premultiplied) colour and alpha = pixel cover
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import shutil
@@ -26,14 +25,14 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from vq_mitsuba.data import envmaps
 from vq_mitsuba.backend import init_mitsuba
-from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, look_at, principal_xml
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, look_at
 from vq_mitsuba.data.dataset_dir import DatasetDir
+from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
 from vq_mitsuba.errors import InputError
 
 SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
@@ -295,76 +294,20 @@ def to_mitsuba_world(camera: Camera) -> Camera:
 
 
 # --------------------------------------------------------------------------------------------
-# Writers
+# Writers: the capture formats' own (vq_mitsuba.data.formats)
 # --------------------------------------------------------------------------------------------
-def _fmt(x) -> str:
-    return f"{float(x):.9g}"
-
-
-def _bsdf_xml(mat: dict) -> str:
-    lines = [f'    <bsdf type="principled" id={quoteattr("mat_" + mat["name"])}>']
-    if is_textured(mat):
-        lines += ['        <texture type="mesh_attribute" name="base_color">',
-                  '            <string name="name" value="vertex_color"/>',
-                  '        </texture>']
-    else:
-        lines.append(f'        <rgb name="base_color" value="{", ".join(_fmt(c) for c in mat["base_color"])}"/>')
-    lines += [f'        <float name="metallic" value="{_fmt(mat["metallic"])}"/>',
-              f'        <float name="roughness" value="{_fmt(mat["roughness"])}"/>',
-              '        <float name="specular" value="0.5"/>',
-              '    </bsdf>']
-    return "\n".join(lines)
-
-
-def _sensor_xml(cam: Camera, spp: int) -> str:
-    m = " ".join(_fmt(x) for x in cam.to_world.ravel())
-    return "\n".join([
-        f'    <sensor type="perspective" id={quoteattr(cam.name)}>',
-        f'        <float name="fov" value="{_fmt(cam.fov_x_deg)}"/>',
-        '        <string name="fov_axis" value="x"/>',
-        *([principal_xml(cam, "        ").rstrip("\n")] if cam.principal is not None else []),
-        '        <float name="near_clip" value="0.001"/>',
-        '        <float name="far_clip" value="10000"/>',
-        f'        <transform name="to_world"><matrix value="{m}"/></transform>',
-        f'        <sampler type="{SAMPLER}"><integer name="sample_count" value="{int(spp)}"/></sampler>',
-        '        <film type="hdrfilm">',
-        f'            <integer name="width" value="{cam.width}"/>',
-        f'            <integer name="height" value="{cam.height}"/>',
-        '            <string name="pixel_format" value="rgba"/>',
-        '            <rfilter type="box"/>',
-        '        </film>',
-        '    </sensor>'])
-
-
 def write_scene_xml(path: Path, spec: dict, cameras_mi: list[Camera], spp: int, split: str) -> None:
+    """The scene in Mitsuba world, its `split` cameras as sensors, no emitter."""
     r = R_BLENDER_FROM_MITSUBA
-    parts = [
-        '<?xml version="1.0" encoding="utf-8"?>',
-        f'<!-- vq-mitsuba synthetic scene "{spec["name"]}", {split} cameras. Mitsuba world (Y up):',
+    note = "\n".join([
+        f'vq-mitsuba synthetic scene "{spec["name"]}", {split} cameras. Mitsuba world (Y up):',
         f'     Blender world = R @ this world, R = {r.astype(int).tolist()}. No emitter: the lighting',
         '     is unknown to a fit. A lat-long map in Blender\'s convention lights this scene through an',
-        '     envmap with identity to_world, exactly as it lights the Blender-world capture. -->',
-        '<scene version="3.0.0">',
-    ]
-    parts += [_bsdf_xml(m) for m in spec["materials"]]
-    for s in spec["shapes"]:
-        parts += [f'    <shape type="ply" id={quoteattr(s["name"])}>',
-                  f'        <string name="filename" value="{DatasetDir.shape_file(s["name"])}"/>',
-                  f'        <ref id={quoteattr("mat_" + s["material"])}/>',
-                  '    </shape>']
-    parts += [_sensor_xml(c, spp) for c in cameras_mi]
-    parts.append("</scene>\n")
-    path.write_text("\n".join(parts))
-
-
-def _write_transforms(path: Path, cameras: list[Camera]) -> None:
-    frames = []
-    angle = None
-    for cam in cameras:
-        m, angle = camera_to_nerf(cam)
-        frames.append({"file_path": DatasetDir.frame_file(cam.name), "transform_matrix": m.tolist()})
-    data = {"camera_angle_x": angle if angle is not None else math.radians(FOV_X_DEG), "frames": frames}
-    path.write_text(json.dumps(data, indent=2))
+        '     envmap with identity to_world, exactly as it lights the Blender-world capture.'])
+    materials = [{**m, "base_color": None if is_textured(m) else m["base_color"]} for m in spec["materials"]]
+    shapes = [{"name": s["name"], "material": s["material"], "file": DatasetDir.shape_file(s["name"])}
+              for s in spec["shapes"]]
+    mitsuba_xml.write_capture(path, cameras_mi, materials, shapes, spp, SAMPLER, note)
 
 
 # --------------------------------------------------------------------------------------------
@@ -575,8 +518,8 @@ def write_cameras(out: Path, spec: dict, geometry: SceneGeometry, n_train: int, 
     (Mitsuba world) of the cameras `make_cameras` places about the geometry."""
     train, test, dist = make_cameras(geometry.center, geometry.radius, n_train, n_test, resolution, seed=seed)
     train_mi, test_mi = [to_mitsuba_world(c) for c in train], [to_mitsuba_world(c) for c in test]
-    _write_transforms(out / DatasetDir.TRANSFORMS_TRAIN, train)
-    _write_transforms(out / DatasetDir.TRANSFORMS_TEST, test)
+    for path, cameras in ((DatasetDir.TRANSFORMS_TRAIN, train), (DatasetDir.TRANSFORMS_TEST, test)):
+        nerf_synthetic.write_capture(out / path, cameras, [DatasetDir.frame_file(c.name) for c in cameras], FOV_X_DEG)
     write_scene_xml(out / DatasetDir.SCENE_XML, spec, train_mi, spp, "train")
     write_scene_xml(out / DatasetDir.SCENE_TEST_XML, spec, test_mi, spp, "test")
     return SceneCameras(train, test, dist, train_mi, test_mi)

@@ -12,7 +12,8 @@ A format module names its layout in its docstring and defines:
 
 and, where the format has them, `points(source)` (sparse points and their track lengths),
 `sphere(source)` (the region of interest as (centre, radius)) and `write_capture(...)` (the
-writer `vq_mitsuba.data.formats.copies` uses for the synthetic scenes' copies).
+writer the synthetic scenes use: `vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the
+transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
 
 Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
 folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order, and a source

@@ -8,6 +8,7 @@ Mitsuba's world (Y up).
     meshes, envmap     wherever the XML's filename parameters say (relative to the XML)
 
 The XML text is checked before Mitsuba loads anything, for clear messages.
+`write_capture` writes the synthetic scenes' XML (vq_mitsuba.synthetic.mitsuba_scenes).
 """
 
 from __future__ import annotations
@@ -15,10 +16,11 @@ from __future__ import annotations
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.checks import check_camera, finite_number
 from vq_mitsuba.data.envmaps import read_envmap_file
 from vq_mitsuba.data.formats.common import (Capture, ensure_variant, find_image, has_suffix, load_mesh,
@@ -303,3 +305,63 @@ def _scene_mesh(xml: Path, scene):
         return None
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), vertex_normals=np.concatenate(normals),
                            process=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Writer
+# --------------------------------------------------------------------------------------------
+def write_capture(path: Path, cameras: list[Camera], materials: list[dict], shapes: list[dict], spp: int,
+                  sampler: str, note: str) -> None:
+    """A scene XML: principled `materials` ({"name", "base_color": RGB, or None for the meshes'
+    vertex_color attribute, "metallic", "roughness"}; bsdf id "mat_NAME"), ply `shapes` ({"name",
+    "material", "file" relative to the XML}), one perspective sensor per camera (its RGBA film, a
+    `sampler` of `spp` samples), no emitter; `note` is its opening comment."""
+    parts = ['<?xml version="1.0" encoding="utf-8"?>', f"<!-- {note} -->", '<scene version="3.0.0">']
+    parts += [_bsdf_xml(m) for m in materials]
+    for s in shapes:
+        parts += [f'    <shape type="ply" id={quoteattr(s["name"])}>',
+                  f'        <string name="filename" value="{s["file"]}"/>',
+                  f'        <ref id={quoteattr("mat_" + s["material"])}/>',
+                  '    </shape>']
+    parts += [_sensor_xml(c, spp, sampler) for c in cameras]
+    parts.append("</scene>\n")
+    path.write_text("\n".join(parts))
+
+
+def _fmt(x) -> str:
+    return f"{float(x):.9g}"
+
+
+def _bsdf_xml(mat: dict) -> str:
+    lines = [f'    <bsdf type="principled" id={quoteattr("mat_" + mat["name"])}>']
+    if mat["base_color"] is None:
+        lines += ['        <texture type="mesh_attribute" name="base_color">',
+                  '            <string name="name" value="vertex_color"/>',
+                  '        </texture>']
+    else:
+        lines.append(f'        <rgb name="base_color" value="{", ".join(_fmt(c) for c in mat["base_color"])}"/>')
+    lines += [f'        <float name="metallic" value="{_fmt(mat["metallic"])}"/>',
+              f'        <float name="roughness" value="{_fmt(mat["roughness"])}"/>',
+              '        <float name="specular" value="0.5"/>',
+              '    </bsdf>']
+    return "\n".join(lines)
+
+
+def _sensor_xml(cam: Camera, spp: int, sampler: str) -> str:
+    m = " ".join(_fmt(x) for x in cam.to_world.ravel())
+    return "\n".join([
+        f'    <sensor type="perspective" id={quoteattr(cam.name)}>',
+        f'        <float name="fov" value="{_fmt(cam.fov_x_deg)}"/>',
+        '        <string name="fov_axis" value="x"/>',
+        *([principal_xml(cam, "        ").rstrip("\n")] if cam.principal is not None else []),
+        '        <float name="near_clip" value="0.001"/>',
+        '        <float name="far_clip" value="10000"/>',
+        f'        <transform name="to_world"><matrix value="{m}"/></transform>',
+        f'        <sampler type="{sampler}"><integer name="sample_count" value="{int(spp)}"/></sampler>',
+        '        <film type="hdrfilm">',
+        f'            <integer name="width" value="{cam.width}"/>',
+        f'            <integer name="height" value="{cam.height}"/>',
+        '            <string name="pixel_format" value="rgba"/>',
+        '            <rfilter type="box"/>',
+        '        </film>',
+        '    </sensor>'])

@@ -7,16 +7,18 @@ per frame (OpenGL camera axes), in Blender's world (Z up).
     mesh.ply               known geometry (optional), in the json's world
 
 A transforms json with pixel intrinsics is nerfstudio's (vq_mitsuba.data.formats.nerfstudio).
+`write_capture` writes the synthetic scenes' transforms json (vq_mitsuba.synthetic.mitsuba_scenes).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, nerf_to_camera
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, nerf_to_camera
 from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_size, finite_number
 from vq_mitsuba.data.formats.common import Capture, has_suffix, shrunk_entry, stack_images
 from vq_mitsuba.data.formats.transforms_json import (frame_image, frame_image_candidates, frame_matrices, frame_names,
@@ -108,3 +110,15 @@ def _json_image_size(path: Path, data: dict, frames: list[dict]) -> tuple[int, i
                 rgb, _ = read_image(c)
                 return int(rgb.shape[1]), int(rgb.shape[0])
     raise InputError(path, "cannot tell the image size: no 'w'/'h' keys and no frame image exists")
+
+
+def write_capture(path: Path, cameras: list[Camera], files: list[str], fov_x_deg: float) -> None:
+    """A transforms json of `cameras` (Mitsuba camera axes, Blender world), frame i's file_path
+    files[i]; camera_angle_x is the cameras' field of view (they share one), fov_x_deg without cameras."""
+    frames = []
+    angle = None
+    for cam, file in zip(cameras, files):
+        m, angle = camera_to_nerf(cam)
+        frames.append({"file_path": file, "transform_matrix": m.tolist()})
+    data = {"camera_angle_x": angle if angle is not None else math.radians(fov_x_deg), "frames": frames}
+    path.write_text(json.dumps(data, indent=2))
