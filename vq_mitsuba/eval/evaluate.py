@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.dataset_dir import DatasetDir
-from vq_mitsuba.data.imageio import read_exr, read_image
+from vq_mitsuba.data.envmaps import read_envmap_file
+from vq_mitsuba.data.imageio import read_exr
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
@@ -87,14 +88,6 @@ def _read_rgba(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise InputError(path, f"{int((~finite).sum())} of its {finite.size} values are not finite numbers (NaN or "
                                "infinite): not usable as ground truth")
     return data[..., :3].astype(np.float64), (data[..., 3].astype(np.float64) if data.shape[-1] > 3 else None)
-
-
-def _read_envmap(path: Path) -> np.ndarray:
-    """A relighting envmap of the dataset, finite radiance only."""
-    env = read_image(path)[0]
-    if not np.isfinite(env).all():
-        raise InputError(path, "holds values that are not finite numbers (NaN or infinite): not usable to relight")
-    return env
 
 
 def _read_map(path: Path) -> np.ndarray:
@@ -357,7 +350,7 @@ def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_sca
     """Relighting under each held-aside envmap, view by view (one pass per view renders all
     envmaps), in both alignment variants; adds each view's relit PSNRs to its per_view row."""
     envs = data.envs
-    renderers = [predictor.renderer(_read_envmap(env_path)) for _, env_path in envs]
+    renderers = [predictor.renderer(read_envmap_file(env_path)) for _, env_path in envs]  # finite radiance only
     rows = {name: {"albedo_scale": [], "image_scale": []} for name, _ in envs}
     for i, (cam, view, gt) in enumerate(zip(data.cameras, data.views, data.gts)):
         m = gt["mask"]
