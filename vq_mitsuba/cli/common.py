@@ -4,7 +4,6 @@ argparse parents), the config a command runs with, and the output-folder checks.
 from __future__ import annotations
 
 import argparse
-from contextlib import contextmanager
 from pathlib import Path
 
 from vq_mitsuba.errors import InputError
@@ -137,17 +136,3 @@ def refuse_file_output(path: str | Path | None) -> None:
     """-o names a folder: refuse an existing file before any work."""
     if path is not None and Path(path).exists() and not Path(path).is_dir():
         raise InputError(path, "is a file; -o names an output folder")
-
-
-@contextmanager
-def new_folder(path: Path):
-    """Make the output folder `path`; if the command then fails, remove it again when it was new
-    and is still empty (a refusal leaves no empty folder behind)."""
-    new = not path.exists()
-    path.mkdir(parents=True, exist_ok=True)
-    try:
-        yield path
-    except BaseException:
-        if new and not any(path.iterdir()):
-            path.rmdir()
-        raise

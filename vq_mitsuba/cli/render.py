@@ -1,12 +1,9 @@
-"""`vq-mitsuba render`: a finished run's views through RunDir (`vq_mitsuba.render.views.render_views`);
-no training module is imported."""
+"""`vq-mitsuba render`: a finished run's views (`vq_mitsuba.render.render_run.render_run`); no training
+module is imported."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from vq_mitsuba.cli.common import capture_flags, finite, new_folder, output_option, positive_int, refuse_file_output
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.cli.common import capture_flags, finite, output_option, positive_int, refuse_file_output
 
 
 def add_parser(sub, shared) -> None:
@@ -34,36 +31,11 @@ def add_parser(sub, shared) -> None:
 
 def run(args) -> int:
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.data.captures import load_cameras
-    from vq_mitsuba.data.envmaps import load_envmap
-    from vq_mitsuba.data.names import safe_name
-    from vq_mitsuba.run.outputs import RENDER_MARKER, check_output_folder
-    from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
-    from vq_mitsuba.render.views import render_views
+    from vq_mitsuba.render.render_run import render_run
 
     refuse_file_output(args.output)
-    run = RunDir(args.run_dir)
-    out = Path(args.output) if args.output else run.dir / RunDir.RENDERS
-    check_output_folder(out, "render", "render")
-    check_writable(out)
-    fitted = run.load()
     size = load_config(None, capture_flags(args)).capture  # --downscale, --max-size
-    cameras, world, _ = load_cameras(args.cameras, size)  # input checks before any rendering
-    envmaps = [load_envmap(p) for p in args.envmap]
-    names = [safe_name(Path(p).stem) for p in args.envmap]  # folder names of the further lightings
-    if len(set(names)) < len(names):
-        raise InputError(None, f"--envmap: two lightings share a file name ({', '.join(names)}); their "
-                               "views would go to the same folder")
-    with new_folder(out):
-        render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
-                     env_rotate_deg=args.env_rotate, exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet,
-                     more_envmaps=list(zip(names[1:], envmaps[1:])))
-        write_json(out / RENDER_MARKER, {
-            "run": str(run.dir.resolve()), "cameras": str(Path(args.cameras).resolve()),
-            "envmap": str(Path(args.envmap[0]).resolve()) if args.envmap else "fitted",
-            "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], args.envmap[1:])},
-            "env_rotate_deg": args.env_rotate, "exposure_ev": args.exposure, "views": [c.name for c in cameras],
-            "downscale": size.downscale, "max_size": size.max_size,
-        })
+    out = render_run(args.run_dir, args.cameras, args.output, args.envmap, size, env_rotate_deg=args.env_rotate,
+                     exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet)
     print(f"rendered views in {out}/")
     return 0
