@@ -26,12 +26,12 @@ from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.formats import FORMATS, folder_files, format_of, known_suffix
 from vq_mitsuba.data.formats.common import Capture, load_mesh
 from vq_mitsuba.data.names import view_names
-from vq_mitsuba.data.resize import Shrink, downscaled_camera
+from vq_mitsuba.data.resize import Shrink
 from vq_mitsuba.data.unposed import unposed_error
 from vq_mitsuba.errors import InputError
 
-# re-exported: the loaded capture and mesh (vq_mitsuba.data.formats.common), the camera a size gives
-__all__ = ["Capture", "load_mesh", "downscaled_camera", "load_capture", "load_cameras", "named_views", "capture_kind",
+# re-exported: the loaded capture and mesh (vq_mitsuba.data.formats.common)
+__all__ = ["Capture", "load_mesh", "load_capture", "load_cameras", "named_views", "capture_kind",
            "capture_framing", "resolve_capture_path", "split_indices", "finish_capture"]
 
 
