@@ -34,6 +34,7 @@ OUT_OF_RANGE = [
     (">0", "train.batch_rays", "0", "train.batch_rays must be > 0"),
     (">=2", "envmap.height", "1", "envmap.height must be >= 2"),
     ("[2,1024]", "neus.mesh_resolution", "100000", "neus.mesh_resolution must be in [2, 1024]"),
+    ("[0,2]", "neus.sdf_layers", "3", r"neus.sdf_layers must be 0, 1 or 2"),
     (">=0", "loss.w_lam", "-1", "loss.w_lam must be >= 0"),
     ("[0,1]", "vq.decay", "1.5", "vq.decay must be in [0, 1]"),
     ("(0,1]", "vq.joint_scale", "0", "vq.joint_scale must be in (0, 1]"),

@@ -13,6 +13,7 @@ Ranges, a small vocabulary (RANGES):
     "[0,1)"      0 <= x < 1
     ">=2"        a number not below 2
     "[2,1024]"   2 <= x <= 1024 (a marching-cubes grid: its volume is res^3 floats)
+    "[0,2]"      0, 1 or 2 (an integer)
     "any"        any finite number (numbers), any text (strings: the default; parsed where used)
     "square"     a square number or 0 (0, 1, 4, 9, ...)
     "square>0"   a square number above 0 (1, 4, 9, ...)
@@ -47,6 +48,7 @@ RANGES: dict[str, tuple[typing.Callable[[float], bool], str]] = {
     "[0,1)": (lambda v: 0 <= v < 1, "in [0, 1)"),
     ">=2": (lambda v: v >= 2, ">= 2"),
     "[2,1024]": (lambda v: 2 <= v <= 1024, "in [2, 1024]"),
+    "[0,2]": (lambda v: 0 <= v <= 2, "0, 1 or 2"),
     "any": (lambda v: True, "any number"),
     "square": (lambda v: v >= 0 and round(v ** 0.5) ** 2 == v, "a square number or 0"),
     "square>0": (lambda v: v > 0 and round(v ** 0.5) ** 2 == v, "a square number > 0"),
@@ -234,7 +236,7 @@ class NeuSConfig:
     """The geometry stage: NeuS on posed images (with masks or without), then mesh export."""
 
     seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
-    iterations: int = setting(0, "training steps (0: auto, 2 passes over the training rays within 4000-8000)", ">=0")
+    iterations: int = setting(0, "training steps (0: auto, 2 passes over the training rays within 4000-11000)", ">=0")
     time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
     batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
@@ -251,6 +253,7 @@ class NeuSConfig:
     hash_log2: int = setting(19, "a grid level with more points keeps 2^hash_log2 hashed entries (0: every level "
                                  "dense)", ">=0")
     hidden: int = setting(64, "width of the SDF and colour MLPs", ">0")
+    sdf_layers: int = setting(0, "hidden layers of the SDF MLP (0: auto, 1 with the fine grid, else 2)", "[0,2]")
     geo_features: int = setting(15, "SDF-network features passed to the colour network")
     reflect: bool = setting(True, "the colour network sees the reflected view direction instead of the view direction")
     coarse_to_fine: float = setting(0.3, "share of training over which finer grid levels fade in", "[0,1]")

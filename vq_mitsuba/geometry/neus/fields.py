@@ -31,6 +31,12 @@ COARSE_GRID = (4, 64)  # (levels, max_res)
 MASKED_GRID = (5, 128)
 FINE_GRID = (8, 512)
 FINE_GRID_FROM_PX = 256
+# Hidden layers of the SDF MLP when neus.sdf_layers is 0 (auto): one with the fine grid, whose
+# photographs see each training ray about once (on DTU scan24 and scan37 it renders them as well or
+# better at 1.23x the steps a second), two otherwise (the synthetic captures, seen several times
+# over: on tabletop one layer gave worse normals at equal steps and equal ones at equal time;
+# benchmarks/results/neus_step/).
+SDF_LAYERS_FINE, SDF_LAYERS = 1, 2
 
 
 def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
@@ -40,7 +46,8 @@ def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
     footprint = box_footprint_px(cameras, center, half)
     fine = masks and footprint > FINE_GRID_FROM_PX
     levels, max_res = FINE_GRID if fine else MASKED_GRID if masks else COARSE_GRID
-    chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res)
+    chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res,
+                     sdf_layers=cfg.sdf_layers or (SDF_LAYERS_FINE if fine else SDF_LAYERS))
     if cfg.levels and cfg.max_res:
         reason = "neus.levels and neus.max_res given"
     elif not masks:
@@ -49,7 +56,7 @@ def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
         reason = (f"the box spans {footprint:.0f} px in the median view ({'over' if fine else 'at most'} "
                   f"{FINE_GRID_FROM_PX})")
     return chosen, {"levels": chosen.levels, "max_res": chosen.max_res, "hash_log2": chosen.hash_log2,
-                    "box_footprint_px": footprint, "reason": reason}
+                    "sdf_layers": chosen.sdf_layers, "box_footprint_px": footprint, "reason": reason}
 
 
 def corner_weights(f: torch.Tensor, du_dp: torch.Tensor | None = None) -> torch.Tensor:
@@ -171,7 +178,7 @@ class SDFNetwork(nn.Module):
         self.encoding = DenseGrid(cfg.levels, cfg.base_res, cfg.max_res, cfg.features, cfg.hash_log2)
         d_in = 3 + cfg.levels * cfg.features
         self.l1 = nn.Linear(d_in, cfg.hidden)
-        self.l2 = nn.Linear(cfg.hidden, cfg.hidden)
+        self.l2 = nn.Linear(cfg.hidden, cfg.hidden) if (cfg.sdf_layers or SDF_LAYERS) > 1 else None
         self.out = nn.Linear(cfg.hidden, 1 + cfg.geo_features)
         nn.init.normal_(self.out.weight, 0.0, 1e-4)
         nn.init.zeros_(self.out.bias)
@@ -201,7 +208,8 @@ class SDFNetwork(nn.Module):
     def forward(self, p: torch.Tensor, level_weights: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
         h = torch.cat([p, self.encoding(p, level_weights)], -1)
         h = self.act(self.l1(h))
-        h = self.act(self.l2(h))
+        if self.l2 is not None:
+            h = self.act(self.l2(h))
         o = self.out(h)
         return self.base(p) + o[:, 0], o[:, 1:]
 
@@ -212,13 +220,18 @@ class SDFNetwork(nn.Module):
         same to rounding (tests/test_geometry.py)."""
         enc, jac = self.encoding(p, level_weights, jacobian=True)
         a1 = self.l1(torch.cat([p, enc], -1))
-        a2 = self.l2(self.act(a1))
-        o = self.out(self.act(a2))
         beta = self.act.beta  # softplus(beta x)' = sigmoid(beta x), 1 to rounding past its threshold
-        g = (self.out.weight[0] * torch.sigmoid(beta * a2)) @ self.l2.weight
-        g = (g * torch.sigmoid(beta * a1)) @ self.l1.weight  # d sdf / d (p, features)
+        if self.l2 is None:
+            o = self.out(self.act(a1))
+            g = self.out.weight[0] * torch.sigmoid(beta * a1)
+        else:
+            a2 = self.l2(self.act(a1))
+            o = self.out(self.act(a2))
+            g = (self.out.weight[0] * torch.sigmoid(beta * a2)) @ self.l2.weight
+            g = g * torch.sigmoid(beta * a1)
+        g = g @ self.l1.weight  # d sdf / d (p, features)
         base, base_grad = self.base(p, gradient=True)
-        grad = g[:, :3] + torch.bmm(g[:, None, 3:], jac)[:, 0] + base_grad
+        grad = g[:, :3] + (g[:, 3:, None] * jac).sum(1) + base_grad
         return base + o[:, 0], o[:, 1:], grad
 
 

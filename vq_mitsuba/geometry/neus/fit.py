@@ -29,7 +29,7 @@ def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
 # Keys that shape the networks: a checkpoint resumes only under the same values. A checkpoint
 # written before a key existed was made with the value given here.
 _ARCHITECTURE = {"levels": None, "base_res": None, "max_res": None, "features": None, "hidden": None,
-                 "geo_features": None, "reflect": False, "hash_log2": None}
+                 "geo_features": None, "reflect": False, "hash_log2": None, "sdf_layers": 2}
 
 
 def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:

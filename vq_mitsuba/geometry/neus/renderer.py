@@ -20,6 +20,7 @@ from vq_mitsuba.geometry.neus.framing import bounding_sphere, uses_background_mo
 from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
 
 BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
+COLOR_MIN_WEIGHT = 1e-3  # samples of smaller compositing weight are shaded black (the colour network skips them)
 
 
 class _threads:
@@ -41,10 +42,10 @@ class _threads:
 
 # Training steps when neus.iterations is 0 (auto): enough for PASSES passes over the training rays,
 # at least MIN_STEPS and at most MAX_STEPS. On DTU's photos (2-3.4 M rays at --downscale 4) 8000 steps
-# raised NeuS's own held-out renders 0.6-0.7 dB over 4000, in the time 4000 took before the grid
-# kernel; on tabletop (0.57 M rays, 3.6 passes at 4000) 8000 steps did not improve the mesh
-# (benchmarks/results/neus_step/).
-PASSES, MIN_STEPS, MAX_STEPS = 2.0, 4000, 8000
+# raised NeuS's own held-out renders 0.6-0.7 dB over 4000, and 11000 another 0.5-0.6 dB, each in
+# about the time the fewer steps took before the step got faster; on tabletop (0.57 M rays, 3.6
+# passes at 4000) 8000 steps did not improve the mesh (benchmarks/results/neus_step/).
+PASSES, MIN_STEPS, MAX_STEPS = 2.0, 4000, 11000
 
 
 def choose_iterations(cfg: NeuSConfig, training_rays: int) -> tuple[NeuSConfig, dict]:
@@ -323,8 +324,7 @@ class NeuS:
         trans = torch.cumprod(torch.cat([alpha.new_ones(m, 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
         w = alpha * trans
         normal = F.normalize(g, dim=-1)
-        color = self.model.color(feat, normal.reshape(-1, 3), dv[:, None].expand(m, n_samples, 3).reshape(-1, 3))
-        color = color.view(m, n_samples, 3)
+        color = self._sample_colors(w, feat, normal.reshape(-1, 3), dv[:, None].expand(m, n_samples, 3).reshape(-1, 3))
         rgb = torch.zeros_like(out["rgb"])
         acc = torch.zeros_like(out["acc"])
         rgb[valid] = (w[..., None] * color).sum(1)
@@ -339,6 +339,17 @@ class NeuS:
             nrm[valid] = (w[..., None] * normal).sum(1)
             out["depth"], out["normal"] = depth, nrm
         return out
+
+    def _sample_colors(self, w: torch.Tensor, feat: torch.Tensor, normal: torch.Tensor,
+                       view: torch.Tensor) -> torch.Tensor:
+        """The colour network at the samples (m, n) whose compositing weight exceeds COLOR_MIN_WEIGHT
+        (black elsewhere): (m, n, 3)."""
+        keep = (w.detach() > COLOR_MIN_WEIGHT).reshape(-1).nonzero()[:, 0]
+        self.color_share = len(keep) / max(w.numel(), 1)
+        color = w.new_zeros(w.numel(), 3)
+        if len(keep):
+            color = color.index_copy(0, keep, self.model.color(feat[keep], normal[keep], view[keep]))
+        return color.view(*w.shape, 3)
 
     @torch.no_grad()
     def render_camera(self, cam, chunk: int = 4096, composite: bool = False) -> tuple[np.ndarray, np.ndarray]:
