@@ -210,7 +210,7 @@ def test_resuming_with_fewer_steps_before_the_discrete_branch_is_refused(capture
 
 
 def test_edits_selecting_a_material_the_run_lacks_are_refused(tiny_run, tmp_path):
-    from vq_mitsuba.models.edits import Change, Edit, Selection
+    from vq_mitsuba.models.material_edits import Change, Edit, Selection
 
     fitted = RunDir(tiny_run)
     m = fitted.load().num_materials
@@ -330,7 +330,7 @@ def test_a_signal_ends_a_fit_with_a_checkpoint_and_no_lock(capture, tmp_path, si
     """Started as a script's background job does (SIGINT inherited ignored), the fit still stops on
     SIGINT as on SIGTERM: a checkpoint past the first one, no run.lock, exit 128 + the signal."""
     run = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "vq_mitsuba.cli", "fit", str(capture), "-o", str(run), "--quiet",
          "--set", "train.iterations=100000", "--set", "train.batch_rays=128", "--set", "vq.enabled=false",
