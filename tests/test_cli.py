@@ -16,6 +16,7 @@ from vq_mitsuba.errors import InputError
 # Which commands take -o and --quiet (from the shared parents).
 OUTPUT = {"fit", "geometry", "pose", "render", "edit", "export", "eval", "make-scene", "batch"}
 QUIET = {"fit", "geometry", "pose", "render", "export", "eval", "batch"}
+DEVICE = {"fit", "geometry", "render", "eval", "export", "ui", "batch"}  # the commands that compute
 CONFIG = {"fit", "geometry", "batch"}  # --preset, --config, --set, --help-config of the config system
 
 
@@ -38,9 +39,11 @@ def test_every_command_has_the_shared_options_where_expected():
             assert out.option_strings == ["-o", "--output"] and out.dest == "output", name
         assert (_option(parser, "--quiet") is not None) == (name in QUIET), name
         assert _option(parser, "--threads") is not None, name
+        assert (_option(parser, "--device") is not None) == (name in DEVICE), name
     # One definition, shared: every command's --quiet and --threads are the same argparse action.
     assert len({id(_option(subs[n], "--quiet")) for n in QUIET}) == 1
     assert len({id(_option(p, "--threads")) for p in subs.values()}) == 1
+    assert len({id(_option(subs[n], "--device")) for n in DEVICE}) == 1
     for flag in ("--preset", "--config", "--set", "--help-config", "--downscale"):
         assert len({id(_option(subs[n], flag)) for n in CONFIG}) == 1, flag
     for flag in ("--holdout", "--resume"):  # the options of a capture read into one run
@@ -304,3 +307,13 @@ def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
         path.read_text())) if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("ensure_poses",
                                                                                                 "check_fit_target")}
     assert callers == {"engine/fit.py"}, callers
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="a GPU machine has CUDA")
+def test_device_cuda_without_cuda_is_refused_naming_the_missing_half(tmp_path, capsys):
+    assert cli.main(["render", str(tmp_path), "--cameras", str(tmp_path / "none.json"), "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert "--device cuda" in err and "torch sees no CUDA device" in err
+    from vq_mitsuba.backend import choose_device, torch_device
+
+    assert choose_device("cpu") == "cpu" and torch_device().type == "cpu"

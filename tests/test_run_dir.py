@@ -67,6 +67,21 @@ def test_unknown_format_version_is_refused(tmp_path):
         RunDir(run.dir).info()
 
 
+def test_run_json_records_the_device_and_an_older_one_without_it_loads(tmp_path):
+    from vq_mitsuba.backend import device_record
+
+    run, _, _ = _write_run(tmp_path / "run", load_config(None, ["field.hidden=16", "field.latent=4"]))
+    assert "device" not in RunDir(run.dir).info()  # a run.json written before --device
+    info = json.loads((run / RunDir.INFO).read_text())
+    record = device_record()
+    assert record["used"] in ("cpu", "cuda") and record["variant"].endswith("_ad_rgb")
+    (run / RunDir.INFO).write_text(json.dumps({**info, "device": record}))
+    assert RunDir(run.dir).info()["device"] == record
+    (run / RunDir.INFO).write_text(json.dumps({**info, "device": {**record, "used": "tpu"}}))
+    with pytest.raises(InputError, match="'device'"):
+        RunDir(run.dir).info()
+
+
 def test_a_folder_without_a_run_is_named(tmp_path):
     with pytest.raises(InputError, match="run.json missing"):
         RunDir(tmp_path).load()

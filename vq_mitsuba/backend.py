@@ -8,29 +8,72 @@ import mitsuba as mi
 import torch
 
 _VARIANT_READY = False
+DEVICES = ("auto", "cpu", "cuda")
+_REQUESTED = "auto"  # the --device the process was started with (choose_device)
+
+
+def _cuda_problems(both: bool = False) -> list[str]:
+    """What keeps this process off the GPU: empty when torch's CUDA works and Mitsuba's
+    `cuda_ad_rgb` variant can be set (it is left set then); `both`: Mitsuba is tried also when
+    torch has no CUDA, so that the answer names every missing half."""
+    problems = []
+    if not torch.cuda.is_available():
+        problems.append("torch sees no CUDA device (a CPU build of torch, or no GPU driver)")
+    if both or not problems:
+        try:
+            mi.set_variant("cuda_ad_rgb")
+        except Exception as exc:  # no usable CUDA driver for Dr.Jit, or a build without the variant
+            why = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+            problems.append(f"Mitsuba cannot set cuda_ad_rgb ({why})")
+    return problems
+
+
+def choose_device(name: str = "auto") -> str:
+    """Choose the one device of the process, once: "cuda" when `name` is auto and both Mitsuba's
+    `cuda_ad_rgb` and torch's CUDA work (InputError when `name` is cuda and either does not), else
+    "cpu" (`llvm_ad_rgb` and torch's CPU, also on a GPU machine). Returns the device chosen."""
+    global _VARIANT_READY, _REQUESTED
+    from vq_mitsuba.errors import InputError
+
+    if name not in DEVICES:
+        raise InputError(None, f"--device {name}: expected one of {', '.join(DEVICES)}")
+    problems = _cuda_problems(both=name == "cuda") if name != "cpu" else ["--device cpu"]
+    variant = "llvm_ad_rgb" if problems else "cuda_ad_rgb"
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    if name == "cuda" and problems:
+        raise InputError(None, "--device cuda: " + "; ".join(problems) + " (--device auto or cpu runs on the CPU)")
+    _VARIANT_READY, _REQUESTED = True, name
+    return "cpu" if problems else "cuda"
 
 
 def init_mitsuba(variant: str | None = None) -> str:
-    """Select the Mitsuba variant once: `cuda_ad_rgb` when a GPU works, else `llvm_ad_rgb`."""
+    """The Mitsuba variant of the process: the chosen device's (`choose_device`, auto when no
+    device was chosen yet), or `variant` when one is named; returns it."""
     global _VARIANT_READY
-    if not _VARIANT_READY:
-        if variant is None:
-            variant = "llvm_ad_rgb"
-            if torch.cuda.is_available():
-                try:
-                    mi.set_variant("cuda_ad_rgb")
-                    variant = "cuda_ad_rgb"
-                except Exception:  # no usable CUDA driver for Dr.Jit
-                    variant = "llvm_ad_rgb"
+    if variant is not None:
         if mi.variant() != variant:
             mi.set_variant(variant)
         _VARIANT_READY = True
+    elif not _VARIANT_READY:
+        choose_device("auto")
     return mi.variant()
 
 
 def torch_device() -> torch.device:
-    """The torch device matching the Mitsuba variant (tensors cross `dr.wrap` without copies)."""
+    """The torch device matching the Mitsuba variant (tensors cross `dr.wrap` without copies); the
+    one answer every module asks. Without a variant set yet, the device is chosen first (auto)."""
+    if mi.variant() is None:
+        init_mitsuba()
     return torch.device("cuda") if mi.variant().startswith("cuda") else torch.device("cpu")
+
+
+def device_record() -> dict:
+    """What run.json records of the device: requested (--device), used (cpu or cuda), the Mitsuba
+    variant and torch's name of the device."""
+    device = torch_device()
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    return {"requested": _REQUESTED, "used": device.type, "variant": mi.variant(), "torch_device": name}
 
 
 def available_cores() -> int:

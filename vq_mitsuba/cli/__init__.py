@@ -94,12 +94,14 @@ def _warnings_as_messages():
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
-        from vq_mitsuba.backend import set_threads
+        from vq_mitsuba.backend import choose_device, set_threads
         from vq_mitsuba.run.loop import interrupt_signals
 
         # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock
         with _warnings_as_messages(), interrupt_signals():
             set_threads(args.threads)
+            if getattr(args, "device", None):  # the commands that compute: one device for the process
+                choose_device(args.device)
             return args.func(args)
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -10,7 +10,7 @@ from vq_mitsuba.cli.common import command_config, help_config, output_option, po
 
 def add_parser(sub, shared) -> None:
     b = sub.add_parser(
-        "batch", parents=[shared["threads"], output_option("the batch's folder: one run per capture and seed",
+        "batch", parents=[shared["threads"], shared["device"], output_option("the batch's folder: one run per capture and seed",
                                                            metavar="OUT", required=True),
                           shared["config"], shared["size"], shared["quiet"]],
         help="fit many captures (and seeds) at once as Ray tasks, here or on a cluster",
@@ -37,11 +37,13 @@ def run(args) -> int:
     command_config(args)  # bad keys and values fail before any run starts
     fit_args = [x for key in ("downscale", "max_size") if getattr(args, key) is not None
                 for x in (f"--{key.replace('_', '-')}", str(getattr(args, key)))]
+    device = ["--device", args.device] if args.device != "auto" else []  # each fit and eval chooses its own
+    fit_args += device
     fit_args += [x for item in args.set for x in ("--set", item)]
     fit_args += ["--config", str(Path(args.config).resolve())] if args.config else []
     rows = run_batch(args.captures, args.output, seeds=parse_seeds(args.seeds), presets=[args.preset],
                      fit_args=fit_args, threads=args.threads_per_run, evaluate=args.eval, address=args.address,
-                     progress=not args.quiet)
+                     progress=not args.quiet, eval_args=device)
     done = sum(r.get("status") == "done" for r in rows)
     for row in rows:
         if row.get("status") != "done":

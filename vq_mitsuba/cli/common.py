@@ -52,6 +52,9 @@ def shared_parents() -> dict[str, argparse.ArgumentParser]:
     threads = _parent()
     threads.add_argument("--threads", type=positive_int, metavar="N",
                          help="CPU threads for torch and Dr.Jit (default: every core this process may use)")
+    device = _parent()  # the one device of the process (vq_mitsuba.backend.choose_device)
+    device.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                        help="where every stage runs: auto (a GPU when Mitsuba and torch both have CUDA), cpu or cuda")
     quiet = _parent()
     quiet.add_argument("--quiet", action="store_true", help="no progress bar")
     config = _parent()  # the config file system: docs/configuration.md
@@ -75,13 +78,14 @@ def shared_parents() -> dict[str, argparse.ArgumentParser]:
                          help="keep every K-th view out of training, for `eval RUN_DIR` (capture.holdout)")
     resume = _parent()
     resume.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
-    return {"threads": threads, "quiet": quiet, "config": config, "size": size, "capture": capture, "resume": resume}
+    return {"threads": threads, "device": device, "quiet": quiet, "config": config, "size": size, "capture": capture,
+            "resume": resume}
 
 
 def run_parents(shared) -> list:
     """The options of the commands that write a run folder from a capture (fit, geometry)."""
-    return [shared["threads"], output_option(RUN_DIR_OUTPUT)] + [shared[k] for k in ("capture", "config", "resume",
-                                                                                     "quiet")]
+    return [shared["threads"], shared["device"], output_option(RUN_DIR_OUTPUT)] + [
+        shared[k] for k in ("capture", "config", "resume", "quiet")]
 
 
 # --- the config a command runs with ------------------------------------------------------------

@@ -24,7 +24,7 @@ def bandwidths(text: str) -> tuple[float, ...]:
 
 def add_parser(sub, shared) -> None:
     e = sub.add_parser(
-        "eval", parents=[shared["threads"], output_option("metrics JSON path (default: RUN_DIR/metrics.json)"),
+        "eval", parents=[shared["threads"], shared["device"], output_option("metrics JSON path (default: RUN_DIR/metrics.json)"),
                          shared["quiet"], shared["size"]],
         help="score a fitted run: its held-out views, or a synthetic dataset's ground truth (--gt)",
         description="Render the dataset's test views (transforms_test.json) and compare inside the ground-truth "

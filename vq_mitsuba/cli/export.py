@@ -7,7 +7,7 @@ from vq_mitsuba.cli.common import output_option, positive_int, refuse_file_outpu
 
 def add_parser(sub, shared) -> None:
     x = sub.add_parser(
-        "export", parents=[shared["threads"], output_option("output folder", metavar="OUT", required=True),
+        "export", parents=[shared["threads"], shared["device"], output_option("output folder", metavar="OUT", required=True),
                            shared["quiet"]],
         help="take a fitted or edited run to Blender, three.js or Mitsuba",
         description="UV-unwrap the mesh, bake basecolor, metallic, roughness and the material ids into textures, "

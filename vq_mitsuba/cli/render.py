@@ -8,7 +8,7 @@ from vq_mitsuba.cli.common import capture_flags, finite, output_option, positive
 
 def add_parser(sub, shared) -> None:
     r = sub.add_parser(
-        "render", parents=[shared["threads"], output_option("output folder (default: RUN_DIR/renders)"),
+        "render", parents=[shared["threads"], shared["device"], output_option("output folder (default: RUN_DIR/renders)"),
                            shared["quiet"], shared["size"]],
         help="render novel views, material maps and relighting of a fitted run",
         description="For each camera NAME writes NAME_rgb.exr/.png, NAME_basecolor.exr, NAME_metallic.exr, "

@@ -10,7 +10,7 @@ from vq_mitsuba.errors import InputError
 
 def add_parser(sub, shared) -> None:
     u = sub.add_parser(
-        "ui", parents=[shared["threads"]], help="edit a fitted run's materials in the browser",
+        "ui", parents=[shared["threads"], shared["device"]], help="edit a fitted run's materials in the browser",
         description="Start a local web server with an editor page: click a material, change its basecolor, "
                     "metallic and roughness or give it a preset, relight, undo, save the edit list as a new run "
                     "beside RUN_DIR and export it. Reach it from another machine through an SSH tunnel (docs: "

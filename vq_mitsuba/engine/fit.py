@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from vq_mitsuba.backend import init_mitsuba, torch_device
+from vq_mitsuba.backend import device_record, init_mitsuba, torch_device
 from vq_mitsuba.config import Config, PoseConfig
 from vq_mitsuba.data.captures import Capture, load_capture
 from vq_mitsuba.engine.mesh_scale import mesh_scale_warning
@@ -141,7 +141,8 @@ def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path:
     _warn_about_inputs(capture, trainer.pool_stats)
     run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
-                    "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **trainer.pool_stats})
+                    "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **trainer.pool_stats,
+                    "device": device_record()})
     if resume:
         _resume_trainer(trainer, state, run)
     startup = time.perf_counter() - t_start

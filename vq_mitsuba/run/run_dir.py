@@ -2,7 +2,7 @@
 
 A run directory holds (docs/run_dir.md describes each file and its format):
 
-    run.json             what was fitted: capture, world convention, envmap frame, format version
+    run.json             what was fitted: capture, world convention, envmap frame, device, format version
     config.yaml          the fully resolved configuration
     checkpoint.pt        networks, envmap and optimiser state (`fit --resume` continues from it)
     mesh.ply             the geometry used (given, or reconstructed by NeuS beside geometry.json)
@@ -156,12 +156,15 @@ def save_torch(obj, path: str | Path) -> Path:
 
 FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed")
 WORLDS = ("mitsuba", "blender")
+DEVICES_USED = ("cpu", "cuda")
 
 
 def check_info(info: dict, path: Path) -> dict:
     """run.json's values as the readers need them (InputError naming the file and the key
     otherwise): finite numbers only, `capture` a path, `world` one of WORLDS, `envmap_to_world` a
-    4 x 4 matrix, and in an edited run `edit_of` the fitted run's two paths."""
+    4 x 4 matrix, `device` (when there is one: runs before --device have none) what ran the fit
+    (requested, used: one of DEVICES_USED, the Mitsuba variant, torch's device name), and in an
+    edited run `edit_of` the fitted run's two paths."""
     bad = _first_nonfinite(info)
     if bad:
         raise InputError(path, f"'{bad}' is not a finite number; fit the capture again")
@@ -180,6 +183,10 @@ def check_info(info: dict, path: Path) -> dict:
             isinstance(row, list) and len(row) == 4 and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in row) for row in matrix)):
         raise wrong("envmap_to_world", "a 4 x 4 matrix of numbers")
+    device = info.get("device")  # written since --device; an older run.json has none
+    if device is not None and not (isinstance(device, dict) and device.get("used") in DEVICES_USED
+                                   and all(isinstance(device.get(k), str) for k in ("requested", "variant"))):
+        raise wrong("device", "{\"requested\": ..., \"used\": \"cpu\" or \"cuda\", \"variant\": ..., ...}")
     if "edit_of" in info:
         ref = info["edit_of"]
         if not (isinstance(ref, dict) and all(isinstance(ref.get(k), str) for k in ("absolute", "relative"))):
