@@ -1,4 +1,5 @@
-"""NeuS on a CPU: geometry (an SDF) and appearance from posed images, with alpha masks or without.
+"""NeuS on the process's device (`backend.torch_device()`: a CPU or a GPU): geometry (an SDF) and
+appearance from posed images, with alpha masks or without.
 
 Model (NeuS, Wang et al. 2021; VQ-NeRF supplement Eq. 1-2): an SDF network f and a colour network
 c; along a ray, section i between samples has opacity
@@ -7,7 +8,9 @@ with Phi_s the logistic sigmoid of learned sharpness s, and the pixel colour is 
 alpha-composited c. Losses: L1 colour, eikonal (|grad f| = 1), BCE between accumulated opacity
 and the alpha mask (with masks; without them a background model takes the rest of each ray).
 
-What makes it fast enough for two CPU cores:
+On a GPU the model, its training rays and its grids live on the GPU (the grid lookup runs in torch
+there), and a step reads nothing back (the losses are read every 10 steps). What makes it fast
+enough for two CPU cores:
 - the SDF network is a tiny MLP fed by a multi-resolution feature grid (dense levels, hashed past
   2^neus.hash_log2 points), with finer levels faded in coarse-to-fine; its SDF gradient is
   computed in closed form, so the eikonal loss back-propagates without a second derivative; on the

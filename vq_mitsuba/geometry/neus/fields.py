@@ -83,7 +83,7 @@ def _cell(p: torch.Tensor, res: torch.Tensor | float) -> tuple[torch.Tensor, tor
     to the grid)."""
     x = (p + 1.0) * (0.5 * res) - 0.5
     if not torch.is_tensor(res):
-        res = torch.tensor(res, dtype=p.dtype)
+        res = torch.tensor(res, dtype=p.dtype, device=p.device)
     u = torch.minimum(x.clamp(min=0.0), res - 1.0)
     i0 = torch.minimum(u.floor(), res - 2.0)
     du_dp = ((x > 0.0) & (x < res - 1.0)).to(p.dtype) * (0.5 * res)
@@ -122,16 +122,17 @@ class DenseGrid(nn.Module):
         hashed = [cap is not None and r ** 3 > cap for r in self.res]
         sizes = [cap if h else r ** 3 for r, h in zip(self.res, hashed)]
         offsets = np.cumsum([0] + sizes)
-        self.table = nn.Parameter(torch.empty(int(offsets[-1]), features).uniform_(-1e-4, 1e-4))
-        r = torch.tensor(self.res, dtype=torch.long)
+        # Built on the CPU (the same initial table on every device); `.to(device)` moves the module.
+        self.table = nn.Parameter(torch.empty(int(offsets[-1]), features, device="cpu").uniform_(-1e-4, 1e-4))
+        r = torch.tensor(self.res, dtype=torch.long, device="cpu")
         self.register_buffer("res_l", r, persistent=False)
-        self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long), persistent=False)
-        corners = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+        self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long, device="cpu"), persistent=False)
+        corners = torch.tensor([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], device="cpu")
         self.register_buffer("corners", corners, persistent=False)
         self.register_buffer("corner_offs", (corners[None, :, 0] * r[:, None] ** 2 + corners[None, :, 1] * r[:, None]
                                              + corners[None, :, 2]), persistent=False)  # (L, 8)
         self.hashed = hashed
-        self.register_buffer("hashed_l", torch.tensor(hashed), persistent=False)
+        self.register_buffer("hashed_l", torch.tensor(hashed, device="cpu"), persistent=False)
         self.hash_mask = (cap or 1) - 1
         self.layout = grid_kernel.Layout(self.res, [int(o) for o in offsets[:-1]], hashed, self.hash_mask)
 
@@ -152,7 +153,8 @@ class DenseGrid(nn.Module):
         loss needs no second derivative through the lookup. On the CPU the compiled kernel does it
         (`grid_kernel`), elsewhere `forward_torch`."""
         if grid_kernel.usable(self.table, p, self.features):
-            return grid_kernel.lookup(self.table, p, self.layout, torch.tensor(level_weights), jacobian)
+            weights = torch.tensor(level_weights, device=p.device)
+            return grid_kernel.lookup(self.table, p, self.layout, weights, jacobian)
         return self.forward_torch(p, level_weights, jacobian)
 
     def forward_torch(self, p: torch.Tensor, level_weights: list[float], jacobian: bool = False):
@@ -198,7 +200,7 @@ class SDFNetwork(nn.Module):
             r = p.norm(dim=-1)
             return (r - self.init_radius, p / r.clamp(min=1e-12)[:, None]) if gradient else r - self.init_radius
         if grid_kernel.usable(self.base_grid, p, 1):
-            out = grid_kernel.lookup(self.base_grid, p, self.base_layout, torch.ones(1), gradient)
+            out = grid_kernel.lookup(self.base_grid, p, self.base_layout, torch.ones(1, device=p.device), gradient)
             return (out[0][:, 0], out[1][:, 0]) if gradient else out[:, 0]
         if not gradient:
             return trilinear(self.base_grid, self.base_res, p)[:, 0]
@@ -296,7 +298,7 @@ class NeuSModel(nn.Module):
         radius = cfg.init_radius or (INIT_RADIUS_WITHOUT_MASKS if background else INIT_RADIUS)
         self.sdf = SDFNetwork(cfg, base_grid, radius)
         self.color = ColorNetwork(cfg)
-        self.variance = nn.Parameter(torch.tensor(float(cfg.init_variance)))
+        self.variance = nn.Parameter(torch.tensor(float(cfg.init_variance), device="cpu"))  # moved with the module
         self.background = BackgroundNetwork(cfg.hidden) if background else None
 
     def inv_s(self) -> torch.Tensor:

@@ -12,12 +12,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vq_mitsuba.backend import device_record
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
+
+
+HISTORY_EVERY = 10  # steps between reads of the losses from the device (and progress-bar updates)
 
 
 def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
@@ -71,9 +75,13 @@ class _NeuSFit:
                   {"params": [model.variance], "base_lr": cfg.lr_variance}]
         self.optim = torch.optim.Adam([dict(g, lr=g["base_lr"]) for g in groups], betas=(0.9, 0.99), eps=1e-15,
                                       fused=True)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
-        torch.manual_seed(cfg.seed)
+        self.device = neus.device
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)  # the batches' rays
+        torch.manual_seed(cfg.seed)  # the samples' jitter (every device's generator)
         self.step, self.elapsed, self.history = 0, 0.0, []
+        # (step, seconds, the step's losses as one device tensor): read into history every
+        # HISTORY_EVERY steps, so that a step never waits for the device
+        self.pending: list[tuple[int, float, torch.Tensor]] = []
         self.ckpt = run.neus_checkpoint_path if run is not None else None
 
     def resume(self) -> None:
@@ -86,25 +94,42 @@ class _NeuSFit:
             raise InputError(self.ckpt, f"this NeuS checkpoint was made {made}, this capture and neus.background "
                                         "ask for the other; resume with the same setting, or start over without "
                                         "--resume")
-        self.model.load_state_dict(state["model"])
+        self.model.load_state_dict(state["model"])  # copied onto the model's device
         self.optim.load_state_dict(state["optim"])
-        self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
-        torch.set_rng_state(state["torch_rng"].cpu())
         self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
+        try:
+            self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
+        except RuntimeError:  # the generator of the other device kind: a new stream, seeded by the step
+            self.gen.manual_seed(self.cfg.seed + self.step)
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if self.device.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu(), self.device)
 
     def save(self, p: Progress) -> None:
+        self.read_history()
         if self.ckpt is not None:
+            extra = {"cuda_rng": torch.cuda.get_rng_state(self.device)} if self.device.type == "cuda" else {}
             save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                         "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
                         "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
-                        "background_model": self.neus.mask_free}, self.ckpt)
+                        "background_model": self.neus.mask_free, **extra}, self.ckpt)
+
+    def read_history(self) -> None:
+        """The pending steps' losses, read from the device at once (one small tensor), into history."""
+        if not self.pending:
+            return
+        values = torch.stack([v for _, _, v in self.pending]).cpu().tolist()
+        for (step, seconds, _), (loss, color, eikonal, mask, mse, s) in zip(self.pending, values):
+            self.history.append({"step": step, "seconds": seconds, "loss": loss, "color": color, "eikonal": eikonal,
+                                 "mask": mask, "psnr": -10.0 * math.log10(max(mse, 1e-10)), "s": s})
+        self.pending = []
 
     def loop_step(self, p: Progress) -> dict | None:
         cfg, neus = self.cfg, self.neus
         lw = neus.level_weights(p.share)
         for group in self.optim.param_groups:
             group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.step_share)
-        idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen)
+        idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen, device=self.device)
         o, d = neus.rays_o[idx], neus.rays_d[idx]
         near, far = neus.intervals(o, d)
         out = neus.render(o, d, lw, cfg.n_samples, True, True, near=near, far=far)
@@ -120,14 +145,13 @@ class _NeuSFit:
         loss.backward()
         self.optim.step()
         step = p.step + 1
-        mse = float(((out["rgb"].detach() - target) ** 2).mean())
-        self.history.append({"step": step, "seconds": round(self.loop.clock(), 3), "loss": float(loss.detach()),
-                             "color": float(color_loss.detach()), "eikonal": float(out["eikonal"].detach()),
-                             "mask": float(mask_loss.detach()), "psnr": -10.0 * math.log10(max(mse, 1e-10)),
-                             "s": float(self.model.inv_s().detach())})
+        mse = ((out["rgb"].detach() - target) ** 2).mean()
+        losses = torch.stack([loss, color_loss, out["eikonal"], mask_loss, mse, self.model.inv_s()]).detach()
+        self.pending.append((step, round(self.loop.clock(), 3), losses))
         if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
             neus.refresh_occupancy(lw)
-        if step % 10 == 0:
+        if step % HISTORY_EVERY == 0:  # with the progress bar
+            self.read_history()
             h = self.history[-1]
             return {"loss": f"{h['loss']:.4f}", "psnr": f"{h['psnr']:.1f}", "s": f"{h['s']:.0f}"}
         return None
@@ -146,7 +170,10 @@ class _NeuSFit:
             self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
             if periodic and self.step == 0:
                 callback(self.neus, 0, 0.0)  # the starting point (visual-hull or sphere initialisation)
-        result = self.loop.run()
+        try:
+            result = self.loop.run()
+        finally:
+            self.read_history()
         return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
                 "stopped_by_time": result.stopped_by_time}
 
@@ -293,6 +320,7 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
         "grid_lookup": grid_kernel.status(),
+        "device": device_record(),
     }
     run.write_geometry_summary(info)
     return Reconstruction(mesh, neus, info)

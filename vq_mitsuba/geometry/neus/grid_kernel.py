@@ -108,9 +108,9 @@ class Layout:
 
     def __init__(self, res: list[int], offsets: list[int], hashed: list[bool], hash_mask: int):
         self.levels = len(res)
-        self.res = torch.tensor(res, dtype=torch.int64)
-        self.offsets = torch.tensor(offsets, dtype=torch.int64)
-        self.hashed = torch.tensor([int(h) for h in hashed], dtype=torch.uint8)
+        self.res = torch.tensor(res, dtype=torch.int64, device="cpu")  # the kernel runs on the CPU only
+        self.offsets = torch.tensor(offsets, dtype=torch.int64, device="cpu")
+        self.hashed = torch.tensor([int(h) for h in hashed], dtype=torch.uint8, device="cpu")
         self.hash_mask = int(hash_mask)
 
 
@@ -120,8 +120,8 @@ def _ptr(t: torch.Tensor | None) -> int | None:
 
 def _forward(table, points, layout: Layout, level_weights, jacobian: bool):
     n, features = len(points), table.shape[1]
-    feats = torch.empty(n, layout.levels * features)
-    jac = torch.empty(n, layout.levels * features, 3) if jacobian else None
+    feats = torch.empty(n, layout.levels * features, device="cpu")
+    jac = torch.empty(n, layout.levels * features, 3, device="cpu") if jacobian else None
     code = _lib.grid_forward(_ptr(table), features, _ptr(points), n, layout.levels, _ptr(layout.res),
                              _ptr(layout.offsets), _ptr(layout.hashed), layout.hash_mask, _ptr(level_weights),
                              _ptr(feats), _ptr(jac), torch.get_num_threads())
@@ -147,8 +147,9 @@ class _Lookup(torch.autograd.Function):
     def backward(ctx, grad_feats, grad_jac=None):
         points, level_weights = ctx.saved_tensors
         layout = ctx.layout
-        grad_table = torch.empty(ctx.shape)  # the kernel zeroes it
-        gf = torch.zeros(len(points), layout.levels * ctx.shape[1]) if grad_feats is None else grad_feats.contiguous()
+        grad_table = torch.empty(ctx.shape, device="cpu")  # the kernel zeroes it
+        gf = (torch.zeros(len(points), layout.levels * ctx.shape[1], device="cpu") if grad_feats is None
+              else grad_feats.contiguous())
         gj = None if grad_jac is None else grad_jac.contiguous()
         code = _lib.grid_backward(ctx.shape[0], ctx.shape[1], _ptr(points), len(points), layout.levels, _ptr(layout.res),
                                   _ptr(layout.offsets), _ptr(layout.hashed), layout.hash_mask, _ptr(level_weights),

@@ -22,14 +22,15 @@ def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
     `min_views` of the views hold it (so space seen by no camera does not count as object).
     """
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    axes = [torch.tensor(lo[i] + (np.arange(res) + 0.5) / res * (hi[i] - lo[i]), dtype=torch.float32)
+    device = masks.device  # the masks' device carves
+    axes = [torch.tensor(lo[i] + (np.arange(res) + 0.5) / res * (hi[i] - lo[i]), dtype=torch.float32, device=device)
             for i in range(3)]
     pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     # cells no view has carved so far (optionally only the given candidate cells)
-    alive = torch.arange(len(pts)) if candidates is None else candidates.reshape(-1).nonzero()[:, 0]
-    seen = torch.zeros(len(pts), dtype=torch.int32)
+    alive = torch.arange(len(pts), device=device) if candidates is None else candidates.reshape(-1).nonzero()[:, 0]
+    seen = torch.zeros(len(pts), dtype=torch.int32, device=device)
     for cam, mask in zip(cameras, masks):
-        inv = torch.tensor(np.linalg.inv(cam.to_world), dtype=torch.float32)
+        inv = torch.tensor(np.linalg.inv(cam.to_world), dtype=torch.float32, device=device)
         local = pts[alive] @ inv[:3, :3].T + inv[:3, 3]
         z = local[:, 2]
         fx, fy, cx, cy = cam.intrinsics()
@@ -40,7 +41,7 @@ def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
         fg = mask[y.clamp(0, cam.height - 1).long(), x.clamp(0, cam.width - 1).long()]
         seen[alive] += inside.int()
         alive = alive[~inside | fg]
-    keep = torch.zeros(len(pts), dtype=torch.bool)
+    keep = torch.zeros(len(pts), dtype=torch.bool, device=device)
     keep[alive] = True
     keep &= seen >= max(1, int(math.ceil(min_views * len(cameras))))
     return keep.reshape(res, res, res)
@@ -56,7 +57,7 @@ def _hull_box(cameras, masks: torch.Tensor, cfg: NeuSConfig, source) -> tuple[np
     if not occ.any():
         raise InputError(source, "the alpha masks have no common foreground: the visual hull is empty "
                                  "(check the masks and the camera poses)")
-    idx = occ.nonzero().numpy()
+    idx = occ.nonzero().cpu().numpy()
     cell = 2 * half / coarse
     lo = center - half + (idx.min(0) - 1) * cell
     hi = center - half + (idx.max(0) + 2) * cell
@@ -74,13 +75,14 @@ def _hull_box(cameras, masks: torch.Tensor, cfg: NeuSConfig, source) -> tuple[np
 
 
 def hull_sdf(occ: torch.Tensor) -> torch.Tensor:
-    """Smoothed signed distance (negative inside) to a boolean grid's surface, in [-1, 1]^3 box units."""
+    """Smoothed signed distance (negative inside) to a boolean grid's surface, in [-1, 1]^3 box units
+    (a CPU tensor)."""
     from scipy import ndimage
 
-    o = occ.numpy()
+    o = occ.cpu().numpy()
     res = o.shape[0]
     inside = ndimage.distance_transform_edt(o)
     outside = ndimage.distance_transform_edt(~o)
     sdf = np.where(o, -(inside - 0.5), outside - 0.5) * (2.0 / res)
     sdf = ndimage.gaussian_filter(sdf, 1.0)
-    return torch.tensor(sdf, dtype=torch.float32)
+    return torch.tensor(sdf, dtype=torch.float32, device="cpu")  # scipy's, on the CPU

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vq_mitsuba.backend import torch_device
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.config import check as validate
 from vq_mitsuba.data.cameras import camera_rays
@@ -78,6 +79,7 @@ class NeuS:
                  points: np.ndarray | None = None):
         validate(cfg)
         self.cfg = cfg
+        self.device = torch_device()  # the model, its training rays and its grids live there
         self.points = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
         self.capture = capture
         self.source = capture.source
@@ -113,7 +115,7 @@ class NeuS:
                                              f"{self.sphere_source}) is degenerate: check the camera poses")
         self.center, self.half = np.asarray(center, dtype=np.float64), float(radius)
         res = cfg.hull_resolution
-        axis = (torch.arange(res, dtype=torch.float32) + 0.5) / res * 2.0 - 1.0
+        axis = (torch.arange(res, dtype=torch.float32, device=self.device) + 0.5) / res * 2.0 - 1.0
         grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
         self.hull_sdf = grid.norm(dim=-1) - 1.0
         if support is not None:
@@ -122,24 +124,30 @@ class NeuS:
             c = (float(support[1]) / length - float(n @ self.center)) / self.half
             if c > 0.9:
                 raise InputError(capture.source, "the supporting plane passes above the bounding sphere")
-            self.plane = (torch.tensor(n, dtype=torch.float32), c)
+            self.plane = (torch.tensor(n, dtype=torch.float32, device=self.device), c)
             self.hull_sdf = torch.maximum(self.hull_sdf, c - grid @ self.plane[0])
         self.hull = self.hull_sdf < 0
-        from scipy import ndimage
-
-        self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(self.hull.numpy(), iterations=2))
+        self.hull_dilated = self._dilated(self.hull)
         self.hull_seconds = time.perf_counter() - t0
         self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half, masks=False)
-        self.model = NeuSModel(self.cfg, None, background=True)
+        self.model = NeuSModel(self.cfg, None, background=True).to(self.device)
         self.deep = torch.zeros_like(self.hull)
         origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
-        self.rays_o = self.to_box(torch.from_numpy(np.concatenate(origins)))
-        self.rays_d = torch.from_numpy(np.concatenate(dirs))
-        self.rays_rgb = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3))
+        self.rays_o = self.to_box(torch.from_numpy(np.concatenate(origins)).to(self.device))
+        self.rays_d = torch.from_numpy(np.concatenate(dirs)).to(self.device)
+        images = torch.from_numpy(np.ascontiguousarray(capture.images)).to(self.device)
+        self.rays_rgb = encode_srgb(images.reshape(-1, 3))
         self.rays_alpha = None
         self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
 
+    def _dilated(self, occ: torch.Tensor) -> torch.Tensor:
+        """The occupancy grid dilated by two cells (scipy's, on the CPU), on the model's device."""
+        from scipy import ndimage
+
+        return torch.from_numpy(ndimage.binary_dilation(occ.cpu().numpy(), iterations=2)).to(self.device)
+
     def _setup(self, capture, cfg: NeuSConfig, alpha: torch.Tensor) -> None:
+        alpha = alpha.to(self.device)
         masks = alpha > cfg.hull_threshold
         # Carve with masks dilated by one pixel, so the hull stays conservative at silhouettes.
         dil = F.max_pool2d(masks.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0.5
@@ -147,31 +155,31 @@ class NeuS:
         center, half, occ = _hull_box(capture.cameras, dil, cfg, capture.source)
         self.center, self.half = np.asarray(center, dtype=np.float64), float(half)
         self.hull = occ
-        self.hull_sdf = hull_sdf(occ)
-        from scipy import ndimage
-
-        self.hull_dilated = torch.from_numpy(ndimage.binary_dilation(occ.numpy(), iterations=2))
+        self.hull_sdf = hull_sdf(occ).to(self.device)
+        self.hull_dilated = self._dilated(occ)
         self.hull_seconds = time.perf_counter() - t0
         self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half)
-        self.model = NeuSModel(self.cfg, self.hull_sdf if cfg.init == "hull" else None)
+        # built on the CPU (the same initial weights on every device), then moved
+        self.model = NeuSModel(self.cfg, self.hull_sdf.cpu() if cfg.init == "hull" else None).to(self.device)
         self.deep = torch.zeros_like(occ)  # cells the current SDF marks as well inside the object
 
         # Training rays: pixels within a few pixels of the foreground, from every view.
         near_fg = F.max_pool2d(masks.float()[:, None], 7, stride=1, padding=3)[:, 0] > 0.5
         origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
-        origins = torch.from_numpy(np.concatenate(origins))
-        dirs = torch.from_numpy(np.concatenate(dirs))
+        origins = torch.from_numpy(np.concatenate(origins)).to(self.device)
+        dirs = torch.from_numpy(np.concatenate(dirs)).to(self.device)
         sel = near_fg.reshape(-1)
         self.rays_o = self.to_box(origins[sel])
         self.rays_d = dirs[sel]
-        rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).reshape(-1, 3)
+        rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).to(self.device).reshape(-1, 3)
         self.rays_rgb = encode_srgb(rgb[sel])
         self.rays_alpha = alpha.reshape(-1)[sel].clamp(0, 1)
         self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
 
     # ---- coordinates
     def to_box(self, x_world: torch.Tensor) -> torch.Tensor:
-        return ((x_world.double() - torch.from_numpy(self.center)) / self.half).float()
+        center = torch.from_numpy(self.center).to(x_world.device)
+        return ((x_world.double() - center) / self.half).float()
 
     def to_world(self, p_box: np.ndarray) -> np.ndarray:
         return np.asarray(p_box, dtype=np.float64) * self.half + self.center
@@ -195,7 +203,7 @@ class NeuS:
         p = (cells.float() + 0.5) / res * 2.0 - 1.0
         sdf = torch.cat([self.model.sdf(p[i:i + chunk], level_weights)[0] for i in range(0, len(p), chunk)])
         margin = 3.0 * 2.0 / res
-        deep = torch.zeros(res ** 3, dtype=torch.bool)
+        deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
         flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
         deep[flat] = sdf < -margin
         self.deep = deep.reshape(res, res, res)
@@ -231,14 +239,14 @@ class NeuS:
                 near[hit], far[hit] = self.intervals(o[hit], d[hit])
             return near, far
         k = self.cfg.march_steps
-        steps = (torch.arange(k, dtype=torch.float32) + 0.5) / k
+        steps = (torch.arange(k, dtype=torch.float32, device=o.device) + 0.5) / k
         t = t_in[:, None] + (t_out - t_in).clamp(min=0)[:, None] * steps
         pts = o[:, None] + d[:, None] * t[..., None]
         code = self._codes(pts) * hit[:, None]
         occ = code > 0
         deep = code > 1
         any_occ = occ.any(-1)
-        idx = torch.arange(k).expand_as(occ)
+        idx = torch.arange(k, device=o.device).expand_as(occ)
         first = torch.where(occ, idx, k).amin(-1).clamp(max=k - 1)
         last = torch.where(occ, idx, -1).amax(-1).clamp(min=0)
         first_deep = torch.where(deep, idx, k).amin(-1)
@@ -283,8 +291,9 @@ class NeuS:
         in inverse distance. A point inside the sphere (on the support) is encoded as (x, 1)."""
         n = BACKGROUND_SAMPLES
         t0 = self._foreground_end(o, d)
-        u = torch.rand(len(o), n) if perturb else torch.full((len(o), n), 0.5)
-        inv = 1.0 - (torch.arange(n, dtype=torch.float32) + u) / n * (1.0 - 1e-3)  # 1 (the exit) .. 1e-3
+        u = torch.rand(len(o), n, device=o.device) if perturb else torch.full((len(o), n), 0.5, device=o.device)
+        # 1 (the exit) .. 1e-3
+        inv = 1.0 - (torch.arange(n, dtype=torch.float32, device=o.device) + u) / n * (1.0 - 1e-3)
         t = t0[:, None] / inv  # increasing
         pts = o[:, None] + d[:, None] * t[..., None]
         r = pts.norm(dim=-1, keepdim=True).clamp(min=1.0)
@@ -307,8 +316,9 @@ class NeuS:
             return out
         ov, dv, nv, fv = o[valid], d[valid], near[valid], far[valid]
         m = len(ov)
-        jitter = torch.rand(m, n_samples) if perturb else torch.full((m, n_samples), 0.5)
-        steps = (torch.arange(n_samples, dtype=torch.float32) + jitter) / n_samples
+        jitter = (torch.rand(m, n_samples, device=o.device) if perturb
+                  else torch.full((m, n_samples), 0.5, device=o.device))
+        steps = (torch.arange(n_samples, dtype=torch.float32, device=o.device) + jitter) / n_samples
         z = nv[:, None] + (fv - nv)[:, None] * steps
         dists = ((fv - nv) / n_samples)[:, None].expand(m, n_samples)
         pts = (ov[:, None] + dv[:, None] * z[..., None]).reshape(-1, 3)
@@ -356,25 +366,25 @@ class NeuS:
         """(sRGB colour (H, W, 3) on black, or with `composite` over the background model where there
         is one; opacity (H, W)) of a camera, for novel-view PSNR."""
         o, d = camera_rays(cam)
-        o = self.to_box(torch.from_numpy(o))
-        d = torch.from_numpy(d)
+        o = self.to_box(torch.from_numpy(o).to(self.device))
+        d = torch.from_numpy(d).to(self.device)
         lw = [1.0] * self.cfg.levels
         rgb, acc = [], []
         for i in range(0, len(o), chunk):
             r = self.render(o[i:i + chunk], d[i:i + chunk], lw, self.cfg.n_samples, False, False)
             rgb.append(r["rgb"] if composite else r.get("rgb_fg", r["rgb"]))
             acc.append(r["acc"].detach())
-        return (torch.cat(rgb).reshape(cam.height, cam.width, 3).numpy(),
-                torch.cat(acc).reshape(cam.height, cam.width).numpy())
+        return (torch.cat(rgb).reshape(cam.height, cam.width, 3).cpu().numpy(),
+                torch.cat(acc).reshape(cam.height, cam.width).cpu().numpy())
 
     # ---- mesh
     @torch.no_grad()
     def sdf_volume(self, res: int, chunk: int = 131072) -> np.ndarray:
         """SDF on a res^3 grid spanning [-1, 1]^3 (box units), limited to the visual hull."""
-        axis = torch.linspace(-1.0, 1.0, res)
+        axis = torch.linspace(-1.0, 1.0, res, device=self.device)
         hull_res = self.cfg.hull_resolution
         lw = [1.0] * self.cfg.levels
-        vol = torch.empty(res, res, res)
+        vol = torch.empty(res, res, res, device=self.device)
         # Outside the (dilated) hull the SDF is the hull's own distance; inside, the network's,
         # never below the hull distance minus a tolerance (the visual-hull constraint).
         tol = 2.0 * 2.0 / hull_res
@@ -388,7 +398,7 @@ class NeuS:
                 s[inside] = torch.cat([self.model.sdf(q[j:j + chunk], lw)[0] for j in range(0, len(q), chunk)])
                 s = torch.maximum(s, hs - tol)
             vol[i] = s.view(res, res)
-        return vol.numpy()
+        return vol.cpu().numpy()
 
     def _without_support(self, vol: np.ndarray, mesh):
         """The mesh (box units) cut above a supporting plane, the known one or the one the mesh
@@ -400,9 +410,9 @@ class NeuS:
         res = vol.shape[0]
         cell = 2.0 / (res - 1)
         if self.plane is not None:
-            plane = (self.plane[0].numpy().astype(np.float64), self.plane[1])
+            plane = (self.plane[0].cpu().numpy().astype(np.float64), self.plane[1])
         else:
-            views = self.to_box(torch.tensor(np.array([c.origin for c in self.capture.cameras]))).numpy()
+            views = self.to_box(torch.from_numpy(np.array([c.origin for c in self.capture.cameras]))).numpy()
             points = None if self.points is None else self.to_box(torch.from_numpy(self.points)).numpy()
             plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed, points=points)
         if plane is None:

@@ -1,0 +1,79 @@
+"""One device for a process: NeuS puts its model, training rays and grids on `backend.torch_device()`,
+every tensor NeuS creates names its device, and a step waits for the device only when the losses
+are read (every HISTORY_EVERY steps)."""
+
+import ast
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from vq_mitsuba import backend
+from vq_mitsuba.backend import choose_device, torch_device
+from vq_mitsuba.geometry.neus import NeuS, reconstruct, train
+from vq_mitsuba.geometry.neus import fit as neus_fit
+
+from test_geometry import small_cfg, sphere_capture
+
+NEUS = Path(__file__).resolve().parent.parent / "vq_mitsuba" / "geometry" / "neus"
+FACTORIES = {"rand", "randn", "randint", "zeros", "ones", "empty", "full", "arange", "tensor", "linspace"}
+
+
+@pytest.fixture
+def cpu_device():
+    """--device cpu for one test, then the process's own choice again (on a GPU machine: CUDA)."""
+    import mitsuba as mi
+
+    before = (mi.variant(), backend._REQUESTED)
+    yield choose_device("cpu")
+    if before[0] is not None and mi.variant() != before[0]:
+        mi.set_variant(before[0])
+    backend._REQUESTED = before[1]
+
+
+def test_every_tensor_neus_creates_names_its_device():
+    """torch.zeros(...) without device= lands on the CPU whatever the model's device: on a GPU that
+    is a silent copy per step (or an error), so every factory call says where."""
+    missing = []
+    for path in sorted(NEUS.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in FACTORIES
+                    and isinstance(node.func.value, ast.Name) and node.func.value.id == "torch"
+                    and not any(k.arg == "device" for k in node.keywords)):
+                missing.append(f"{path.name}:{node.lineno} torch.{node.func.attr}")
+    assert not missing, missing
+
+
+def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_steps(cpu_device, monkeypatch):
+    assert cpu_device == "cpu" and torch_device() == torch.device("cpu")
+    reads = []
+    read = neus_fit._NeuSFit.read_history
+    monkeypatch.setattr(neus_fit._NeuSFit, "read_history",
+                        lambda self: (reads.append(len(self.pending)), read(self))[1])
+    neus = NeuS(sphere_capture(n_views=6, size=20), small_cfg(iterations=23))
+    assert neus.device == torch.device("cpu")
+    tensors = [neus.rays_o, neus.rays_d, neus.rays_rgb, neus.rays_alpha, neus.hull, neus.hull_dilated, neus.hull_sdf]
+    assert all(t.device == neus.device for t in tensors)
+    assert all(p.device == neus.device for p in neus.model.parameters())
+    summary = train(neus, None, progress=False)
+    history = summary["history"]
+    assert [h["step"] for h in history] == list(range(1, 24))
+    assert set(history[0]) == {"step", "seconds", "loss", "color", "eikonal", "mask", "psnr", "s"}
+    assert all(isinstance(v, float) for h in history for k, v in h.items() if k != "step")
+    assert [n for n in reads if n] == [10, 10, 3]  # the losses read in batches, the tail at the end
+
+
+def test_a_neus_checkpoint_of_the_other_device_kind_resumes(cpu_device, tmp_path):
+    """A checkpoint is read onto the CPU and copied to the model's device; a random generator of the
+    other kind (CUDA's Philox state on a CPU, or the reverse) cannot continue, and a new stream starts."""
+    capture = sphere_capture(n_views=6, size=20)
+    reconstruct(capture, tmp_path, small_cfg(iterations=3, checkpoint_every=3), progress=False)
+    state = torch.load(tmp_path / "neus.pt", weights_only=False)
+    state["generator"] = torch.zeros(16, dtype=torch.uint8)  # the size of a CUDA generator's state
+    torch.save(state, tmp_path / "neus.pt")
+    again = reconstruct(capture, tmp_path, small_cfg(iterations=5), resume=True, progress=False)
+    assert again.summary["iterations"] == 5
+    assert len(torch.load(tmp_path / "neus.pt", weights_only=False)["history"]) == 5
+    record = json.loads((tmp_path / "geometry.json").read_text())["device"]
+    assert record == {"requested": "cpu", "used": "cpu", "variant": "llvm_ad_rgb", "torch_device": "cpu"}
