@@ -355,7 +355,6 @@ class NeuS:
         """The colour network at the samples (m, n) whose compositing weight exceeds COLOR_MIN_WEIGHT
         (black elsewhere): (m, n, 3)."""
         keep = (w.detach() > COLOR_MIN_WEIGHT).reshape(-1).nonzero()[:, 0]
-        self.color_share = len(keep) / max(w.numel(), 1)
         color = w.new_zeros(w.numel(), 3)
         if len(keep):
             color = color.index_copy(0, keep, self.model.color(feat[keep], normal[keep], view[keep]))
