@@ -31,7 +31,7 @@ def _texel_config():
 
 # One out-of-range value per range kind (and per check that spans keys), with what the message says.
 OUT_OF_RANGE = [
-    (">0", "train.batch_rays", "0", "train.batch_rays must be > 0"),
+    (">0", "train.iterations", "0", "train.iterations must be > 0"),
     (">=2", "envmap.height", "1", "envmap.height must be >= 2"),
     ("[2,1024]", "neus.mesh_resolution", "100000", "neus.mesh_resolution must be in [2, 1024]"),
     ("[0,2]", "neus.sdf_layers", "3", r"neus.sdf_layers must be 0, 1 or 2"),
@@ -74,8 +74,8 @@ def test_every_range_kind_is_exercised_and_the_edges_are_inside():
                                  "capture.background_color=1,0.5,0"])
     assert cfg.train.pixel_jitter == 0 and cfg.neus.init_variance == -2
     # A section alone is checked under its own name.
-    with pytest.raises(InputError, match=r"neus\.batch_rays must be > 0"):
-        check(C.NeuSConfig(batch_rays=0))
+    with pytest.raises(InputError, match=r"neus\.n_samples must be > 0"):
+        check(C.NeuSConfig(n_samples=0))
 
 
 def test_every_key_has_one_line_of_help_and_a_valid_range():

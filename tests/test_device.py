@@ -77,3 +77,30 @@ def test_a_neus_checkpoint_of_the_other_device_kind_resumes(cpu_device, tmp_path
     assert len(torch.load(tmp_path / "neus.pt", weights_only=False)["history"]) == 5
     record = json.loads((tmp_path / "geometry.json").read_text())["device"]
     assert record == {"requested": "cpu", "used": "cpu", "variant": "llvm_ad_rgb", "torch_device": "cpu"}
+
+
+class _Card:
+    def __init__(self, sms: int, gib: int):
+        self.multi_processor_count, self.total_memory = sms, gib << 30
+
+
+@pytest.mark.parametrize("sms, gib, scale", [(132, 80, 8), (132, 141, 8), (108, 40, 5), (46, 16, 2), (20, 8, 1),
+                                             (80, 12, 1)])
+def test_a_gpu_step_takes_a_multiple_of_the_cpu_batch_by_its_multiprocessors_and_memory(monkeypatch, sms, gib,
+                                                                                      scale):
+    monkeypatch.setattr(backend, "torch_device", lambda: torch.device("cuda"))
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: _Card(sms, gib))
+    assert backend.device_scale() == scale
+    assert backend.sized(0, 512) == 512 * scale and backend.sized(300, 512) == 300  # a given size is kept
+
+
+def test_sizes_left_at_auto_are_the_cpu_defaults_on_the_cpu(cpu_device):
+    from vq_mitsuba.config import CPU_NEUS_BATCH, load_config
+    from vq_mitsuba.geometry.neus.renderer import choose_iterations
+
+    cfg = load_config(None)
+    assert (cfg.train.batch_rays, cfg.neus.batch_rays, cfg.render.chunk) == (0, 0, 0)  # auto
+    assert backend.device_scale() == 1 and backend.sized(cfg.train.batch_rays, 2048) == 2048
+    neus_cfg, info = choose_iterations(cfg.neus, 1_000_000)
+    assert neus_cfg.batch_rays == info["batch_rays"] == CPU_NEUS_BATCH
+    assert info["iterations"] == 4000  # 2 passes over a million rays of 512 is 3907 steps, held at the 4000 floor

@@ -68,6 +68,26 @@ def torch_device() -> torch.device:
     return torch.device("cuda") if mi.variant().startswith("cuda") else torch.device("cpu")
 
 
+# A step's work on a GPU, as a multiple of the CPU's: one unit per UNIT_SMS multiprocessors, at most
+# MAX_SCALE units, and no more units than the device's memory holds at UNIT_MEMORY bytes each.
+UNIT_SMS, MAX_SCALE, UNIT_MEMORY = 16, 8, 8 << 30
+
+
+def device_scale() -> int:
+    """How many times the CPU's batch one step takes on the process's device: 1 on the CPU; on a GPU
+    one unit per 16 multiprocessors, at most 8, and at most one per 8 GiB of its memory."""
+    device = torch_device()
+    if device.type != "cuda":
+        return 1
+    props = torch.cuda.get_device_properties(device)
+    return max(1, min(MAX_SCALE, props.multi_processor_count // UNIT_SMS, props.total_memory // UNIT_MEMORY))
+
+
+def sized(value: int, cpu_value: int) -> int:
+    """A size setting resolved: `value` when given (> 0), else `cpu_value` times `device_scale()`."""
+    return int(value) if value > 0 else int(cpu_value) * device_scale()
+
+
 def device_record() -> dict:
     """What run.json records of the device: requested (--device), used (cpu or cuda), the Mitsuba
     variant and torch's name of the device."""

@@ -181,12 +181,17 @@ class AblationConfig:
     single_pass_ranking: bool = setting(False, "the paper's single ranking pass (no moving of redundant codewords)")
 
 
+# The sizes that a 0 (auto) resolves to on a CPU; a GPU takes a multiple (`backend.sized`).
+CPU_TRAIN_BATCH, CPU_NEUS_BATCH, CPU_RENDER_CHUNK = 2048, 512, 65536
+
+
 @dataclass
 class TrainConfig:
     """The training loop."""
 
     iterations: int = setting(3000, "optimisation steps", ">0")
-    batch_rays: int = setting(2048, "random foreground pixels per step, drawn across all training views", ">0")
+    batch_rays: int = setting(0, "random foreground pixels per step, drawn across all training views (0: auto, "
+                                 "2048 on a CPU, more on a GPU)", ">=0")
     spp: int = setting(8, "emitter + BSDF sample pairs per pixel and step", ">0")
     lr: float = setting(2e-3, "Adam learning rate of the material networks", "(0,1]")
     lr_end_exponential: float = setting(
@@ -228,7 +233,7 @@ class RenderConfig:
 
     spp: int = setting(256, "samples per pixel (primary rays x light samples)", ">0")
     aa: int = setting(16, "primary rays per pixel, stratified", "square>0")
-    chunk: int = setting(65536, "surface points shaded per Mitsuba call", ">0")
+    chunk: int = setting(0, "surface points shaded per Mitsuba call (0: auto, 65536 on a CPU, more on a GPU)", ">=0")
 
 
 @dataclass
@@ -238,7 +243,7 @@ class NeuSConfig:
     seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
     iterations: int = setting(0, "training steps (0: auto, 2 passes over the training rays within 4000-11000)", ">=0")
     time_limit_s: float = setting(600.0, "stop training after this many seconds (0: no limit)")
-    batch_rays: int = setting(512, "rays per step, drawn from all views", ">0")
+    batch_rays: int = setting(0, "rays per step, drawn from all views (0: auto, 512 on a CPU, more on a GPU)", ">=0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
     lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", "(0,1]")
     lr_sdf_mlp: float = setting(1e-3, "Adam learning rate of the SDF MLP", "(0,1]")

@@ -21,7 +21,8 @@ import time
 
 import torch
 
-from vq_mitsuba.config import Config
+from vq_mitsuba.backend import sized
+from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
 from vq_mitsuba.data.pixels import PixelPool
 from vq_mitsuba.models import losses
 from vq_mitsuba.models.residual import ResidualField, add_residual
@@ -45,8 +46,9 @@ def physical_radiance(scene, model, pool: PixelPool, idx: torch.Tensor, env: tor
     under `env`, with the bounce when the fit simulates one (what `render` shows without the residual)."""
     field = (lambda p: model(p)) if cfg.train.bounces > 0 else None
     parts = []
-    for s in range(0, len(idx), cfg.render.chunk):
-        sel = idx[s:s + cfg.render.chunk]
+    chunk = sized(cfg.render.chunk, CPU_RENDER_CHUNK)
+    for s in range(0, len(idx), chunk):
+        sel = idx[s:s + chunk]
         out = model(pool.position[sel])
         parts.append(scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], out["basecolor"],
                                  out["metallic"], out["roughness"], env, PREDICTION_SPP, generator=generator,

@@ -12,6 +12,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from vq_mitsuba.backend import sized
+from vq_mitsuba.config import CPU_RENDER_CHUNK
 from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.data.names import view_names
@@ -97,7 +99,7 @@ class Renderer:
         # Several primary-ray passes per trace (up to MAX_RAYS rays), their hits shaded in chunks:
         # few large Mitsuba calls rather than one per pass, since each call has a fixed cost.
         per_trace = max(1, MAX_RAYS // n_pix)
-        chunk = self.fitted.cfg.render.chunk
+        chunk = sized(self.fitted.cfg.render.chunk, CPU_RENDER_CHUNK)
         for first in range(0, aa, per_trace):
             # Each pass's offsets are drawn here, in pass order, so only this trace's are held.
             rays = [camera_rays(camera, np.full((n_pix, 2), 0.5) if aa == 1 else pixel_jitter(n_pix, a, aa, rng))

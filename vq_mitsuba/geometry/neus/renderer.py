@@ -11,8 +11,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from vq_mitsuba.backend import torch_device
-from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.backend import sized, torch_device
+from vq_mitsuba.config import CPU_NEUS_BATCH, NeuSConfig
 from vq_mitsuba.config import check as validate
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
@@ -50,13 +50,15 @@ PASSES, MIN_STEPS, MAX_STEPS = 2.0, 4000, 11000
 
 
 def choose_iterations(cfg: NeuSConfig, training_rays: int) -> tuple[NeuSConfig, dict]:
-    """The config with neus.iterations decided (when 0), and what decided it."""
+    """The config with neus.batch_rays (`backend.sized`) and neus.iterations decided (when 0), and
+    what decided the steps."""
+    cfg = replace(cfg, batch_rays=sized(cfg.batch_rays, CPU_NEUS_BATCH))
     if cfg.iterations:
-        return cfg, {"iterations": cfg.iterations, "reason": "neus.iterations given"}
+        return cfg, {"iterations": cfg.iterations, "batch_rays": cfg.batch_rays, "reason": "neus.iterations given"}
     wanted = math.ceil(PASSES * training_rays / cfg.batch_rays)
     steps = int(min(max(wanted, MIN_STEPS), MAX_STEPS))
     return replace(cfg, iterations=steps), {
-        "iterations": steps, "training_rays": training_rays,
+        "iterations": steps, "batch_rays": cfg.batch_rays, "training_rays": training_rays,
         "reason": f"{PASSES:g} passes over {training_rays} training rays of {cfg.batch_rays} a step: {wanted} steps, "
                   f"held within {MIN_STEPS}-{MAX_STEPS}"}
 
