@@ -1,14 +1,18 @@
 """The device check: one command that says what a machine's device is and what it buys.
 
-    python benchmarks/gpu_check.py --device cuda --out benchmarks/out/gpu_check.json   # on a GPU machine
-    python benchmarks/gpu_check.py --device cpu --size 32 --quick                      # end to end on a CPU
+    python benchmarks/gpu_check.py --device cuda --budget 540 --out benchmarks/out/gpu_check.json  # a GPU
+    python benchmarks/gpu_check.py --device cpu --size 32 --quick                                   # a CPU
 
 (a) prints the device the process chooses (`vq_mitsuba.backend.choose_device`), the versions and the
-    memory; (b) runs the suite's GPU-relevant tests (`pytest -q` on --tests); (c) renders tabletop at
-    --size pixels into a temporary folder (`make-scene`), fits it from its images (NeuS, then the
-    materials) and from its true mesh, each with `--device`, and scores both runs (`eval --gt`),
-    timing each stage; (d) writes one JSON (--out) with the stage times, the step rates (the runs'
-    fit.json and geometry.json), the devices the runs recorded (run.json) and the eval figures.
+    memory; (b) renders tabletop at --size pixels into a work folder (`make-scene`); (c) times NeuS
+    steps and material-fit steps on it at several ray batches (--neus-batches, --fit-batches; the
+    device's auto size is `backend.sized`), in a child process; (d) fits it from its true mesh and
+    from its images (NeuS, then the materials), each with `--device`, and scores both runs (`eval
+    --gt`), timing each stage; (e) runs the suite's GPU-relevant tests (`pytest -q` on --tests, with
+    --workers pytest-xdist workers); (f) writes one JSON (--out) with the stage times, the step rates
+    (the sweep and the runs' fit.json and geometry.json), the devices the runs recorded (run.json) and
+    the eval figures. The JSON is rewritten after every stage; with --budget, each stage gets what is
+    left of it and the ones that no longer fit are skipped (recorded as such).
 --quick shrinks everything (views, samples, steps) so that the whole script runs in about a minute
 on two CPU cores: it checks the script, not the device. Each stage is a child process (`python -m
 vq_mitsuba.cli ...`), as a user runs it; a failed stage is recorded and the script goes on.
@@ -19,13 +23,15 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from provenance import command_line, provenance, write_result
+from provenance import command_line, provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 GPU_TESTS = ["tests/test_geometry.py", "tests/test_fit.py", "tests/test_rendering.py"]
@@ -62,8 +68,28 @@ def device_report(name: str) -> dict:
                                                      "torch": torch.__version__, "torch_cuda": torch.version.cuda}}
 
 
-def run_stage(name: str, argv: list[str], log: Path, timeout: float) -> dict:
-    """One child process, its wall time and exit status; its output goes to `log`."""
+class Deadline:
+    """What is left of --budget seconds (no budget: each stage's --timeout)."""
+
+    def __init__(self, budget: float, timeout: float):
+        self.end = time.perf_counter() + budget if budget > 0 else None
+        self.timeout = timeout
+
+    def left(self) -> float:
+        return self.timeout if self.end is None else min(self.timeout, self.end - time.perf_counter())
+
+
+DEADLINE = Deadline(0, 1800)
+
+
+def run_stage(name: str, argv: list[str], log: Path, timeout: float | None = None) -> dict:
+    """One child process, its wall time and exit status; its output goes to `log`. It gets what is
+    left of the budget (`DEADLINE`); with under 5 seconds left it is skipped."""
+    timeout = DEADLINE.left() if timeout is None else timeout
+    if timeout < 5:
+        print(f"{name}: skipped (the budget is spent)", flush=True)
+        return {"command": " ".join(argv[2:] if argv[1] == "-m" else argv[1:]), "exit": "skipped (budget)",
+                "seconds": 0.0}
     start = time.perf_counter()
     with open(log, "a") as out:
         out.write(f"\n$ {' '.join(argv)}\n")
@@ -77,12 +103,82 @@ def run_stage(name: str, argv: list[str], log: Path, timeout: float) -> dict:
     return {"command": " ".join(argv[2:] if argv[1] == "-m" else argv[1:]), "exit": code, "seconds": seconds}
 
 
-def run_tests(tests: list[str], log: Path, timeout: float) -> dict:
-    """pytest -q on `tests`, with its summary line."""
-    stage = run_stage("tests", [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests], log,
-                      timeout)
+def run_tests(tests: list[str], log: Path, workers: int) -> dict:
+    """pytest -q on `tests` (with `workers` pytest-xdist workers when > 0), with its summary line."""
+    parallel = ["-n", str(workers)] if workers > 0 else []
+    stage = run_stage("tests", [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rf", *parallel,
+                                *tests], log)
     lines = [ln for ln in log.read_text().splitlines() if " passed" in ln or " failed" in ln or " error" in ln]
     return {**stage, "files": tests, "summary": lines[-1].strip("= ") if lines else None}
+
+
+def _timed(step, sync, warmup: int, steps: int) -> float:
+    """Median seconds of one call of `step` over `steps` calls after `warmup`, each closed by `sync`."""
+    for _ in range(warmup):
+        step()
+    sync()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        step()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: list[int], settings: list[str],
+               warmup: int, steps: int) -> dict:
+    """NeuS's and the material fit's step time at each ray batch on `device` (a trained-looking state:
+    NeuS's occupancy opened at half-way, the material fit past its warm-up with the bounce on): the
+    median seconds a step, its rays a second, and the auto batch of the device (`backend.sized`)."""
+    import drjit as dr
+    import torch
+
+    from vq_mitsuba.backend import choose_device, device_scale, sized, torch_device
+    from vq_mitsuba.config import CPU_NEUS_BATCH, CPU_TRAIN_BATCH, load_config
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.engine.schedule import schedule_at
+    from vq_mitsuba.engine.trainer import Trainer
+    from vq_mitsuba.geometry.neus.fit import _NeuSFit
+    from vq_mitsuba.geometry.neus.renderer import NeuS
+    from vq_mitsuba.run.loop import Progress
+    from vq_mitsuba.run.run_dir import RunDir
+
+    choose_device(device)
+
+    def sync():
+        if torch_device().type == "cuda":
+            torch.cuda.synchronize()
+        dr.sync_thread()
+
+    out = {"device_scale": device_scale(), "auto": {"neus": sized(0, CPU_NEUS_BATCH), "fit": sized(0, CPU_TRAIN_BATCH)},
+           "warmup": warmup, "steps": steps, "neus": [], "fit": []}
+    cfg = load_config(None, settings)
+    capture = load_capture(scene / "transforms_train.json", split="train")
+    for batch in neus_batches:
+        neus = NeuS(capture, replace(cfg.neus, batch_rays=batch))
+        fit = _NeuSFit(neus, None)
+        fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
+        neus.refresh_occupancy(neus.level_weights(0.5))
+        step = iter(range(10 ** 9))
+        seconds = _timed(lambda: fit.loop_step(Progress(step=1000 + next(step), seconds=0.0, step_share=0.5,
+                                                        time_share=0.5)), sync, warmup, steps)
+        out["neus"].append({"batch_rays": batch, "seconds_per_step": seconds, "rays_per_s": batch / seconds})
+        print(f"NeuS batch {batch}: {seconds * 1000:.1f} ms a step, {batch / seconds:,.0f} rays/s", flush=True)
+        del neus, fit
+    capture = load_capture(scene / "transforms_train.json", mesh=scene / "mesh.ply", split="train")
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(capture, RunDir(Path(tmp) / "run"), cfg)
+        trainer.step = 1000  # past train.bounce_after: the bounce is simulated, as in most steps
+        for batch in fit_batches:
+            trainer.batch = min(batch, len(trainer.pool))
+            seconds = _timed(lambda: trainer.train_step(schedule_at(cfg, Progress(
+                step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync, warmup, steps)
+            out["fit"].append({"batch_rays": trainer.batch, "seconds_per_step": seconds,
+                               "rays_per_s": trainer.batch / seconds})
+            print(f"material fit batch {trainer.batch}: {seconds * 1000:.1f} ms a step, "
+                  f"{trainer.batch / seconds:,.0f} rays/s", flush=True)
+    return out
 
 
 def run_summary(run: Path, metrics: Path) -> dict:
@@ -115,9 +211,9 @@ def fit_and_score(label: str, scene: Path, work: Path, args, extra: list[str], l
     cli = [sys.executable, "-m", "vq_mitsuba.cli"]
     fit = run_stage(f"fit ({label})", cli + ["fit", str(scene / "transforms_train.json"), "-o", str(run), "--quiet",
                                              "--device", args.device, *extra]
-                    + [x for s in settings for x in ("--set", s)], log, args.timeout)
+                    + [x for s in settings + (args.set or []) for x in ("--set", s)], log)
     score = run_stage(f"eval ({label})", cli + ["eval", str(run), "--gt", str(scene), "-o", str(metrics), "--quiet",
-                                                "--device", args.device, *eval_options], log, args.timeout) \
+                                                "--device", args.device, *eval_options], log) \
         if fit["exit"] == 0 else {"exit": "skipped (the fit failed)"}
     return {"stages": {"fit": fit, "eval": score}, **run_summary(run, metrics)}
 
@@ -128,14 +224,31 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--size", type=int, default=200, help="tabletop's image size in pixels (make-scene --resolution)")
     p.add_argument("--quick", action="store_true", help="few views, samples and steps: checks the script itself")
     p.add_argument("--tests", nargs="*", help="test files to run (default: the GPU-relevant ones; none: skip)")
+    p.add_argument("--workers", type=int, default=0, help="pytest-xdist workers for the tests (0: one process)")
+    p.add_argument("--neus-batches", type=int, nargs="*", default=[512, 2048, 4096, 8192],
+                   help="NeuS ray batches to time a step at (none: skip)")
+    p.add_argument("--fit-batches", type=int, nargs="*", default=[2048, 8192, 16384, 32768],
+                   help="material-fit ray batches to time a step at (none: skip)")
+    p.add_argument("--rate-steps", type=int, default=20, help="timed steps per batch (after as many warm-up steps)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a setting of both fits (repeatable)")
     p.add_argument("--out", default="benchmarks/out/gpu_check.json", help="the JSON to write")
     p.add_argument("--work", help="keep the scene, runs and log in this folder (default: a temporary one)")
     p.add_argument("--timeout", type=float, default=1800, help="seconds each stage may take")
+    p.add_argument("--budget", type=float, default=0, help="seconds the whole check may take (0: no limit)")
+    p.add_argument("--rates-of", help=argparse.SUPPRESS)  # internal: the step-rate child, on this scene
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
+    global DEADLINE
     args = parse_args(argv)
+    if args.rates_of:  # the child that times the steps
+        settings = (QUICK[1] if args.quick else FULL[1]) + (args.set or [])
+        rates = step_rates(Path(args.rates_of), args.device, args.neus_batches, args.fit_batches, settings,
+                           max(1, args.rate_steps // 2), args.rate_steps)
+        Path(args.out).write_text(json.dumps(rates, indent=1))
+        return 0
+    DEADLINE = Deadline(args.budget, args.timeout)
     start = time.perf_counter()
     block = {**provenance(), "command": command_line(sys.argv[1:] if argv is None else argv, Path(__file__))}
     device = device_report(args.device)
@@ -143,20 +256,36 @@ def main(argv=None) -> int:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="gpu_check_"))
     work.mkdir(parents=True, exist_ok=True)
     log = work / "gpu_check.log"
-    tests = QUICK_TESTS if (args.quick and args.tests is None) else GPU_TESTS if args.tests is None else args.tests
-    result = {"device": device, "size": args.size, "quick": args.quick,
-              "tests": run_tests(tests, log, args.timeout) if tests else None}
+    result = {"device": device, "size": args.size, "quick": args.quick, "budget_s": args.budget}
+
+    def save() -> Path:
+        result["seconds"] = round(time.perf_counter() - start, 1)
+        return write_json(Path(args.out), {**block, **result})
+
     scene = work / "tabletop"
     options = (QUICK if args.quick else FULL)[0]
     result["make_scene"] = run_stage("make-scene", [sys.executable, "-m", "vq_mitsuba.cli", "make-scene", "tabletop",
-                                                    "-o", str(scene), "--resolution", str(args.size), *options],
-                                     log, args.timeout)
+                                                    "-o", str(scene), "--resolution", str(args.size), *options], log)
+    save()
     if result["make_scene"]["exit"] == 0:
-        result["images"] = fit_and_score("images", scene, work, args, ["--geometry", "neus"], log)
+        if args.neus_batches or args.fit_batches:
+            rates = work / "rates.json"
+            stage = run_stage("step rates", [sys.executable, str(Path(__file__).resolve()), "--rates-of", str(scene),
+                                             "--device", args.device, "--out", str(rates), "--rate-steps",
+                                             str(args.rate_steps), *(["--quick"] if args.quick else []),
+                                             "--neus-batches", *map(str, args.neus_batches),
+                                             "--fit-batches", *map(str, args.fit_batches),
+                                             *[x for s in args.set or [] for x in ("--set", s)]], log)
+            result["rates"] = {**stage, **(json.loads(rates.read_text()) if rates.is_file() else {})}
+            save()
         result["true_mesh"] = fit_and_score("true_mesh", scene, work, args, ["--mesh", str(scene / "mesh.ply")],
                                             log)
-    result["seconds"] = round(time.perf_counter() - start, 1)
-    path = write_result(Path(args.out), {**block, **result})
+        save()
+        result["images"] = fit_and_score("images", scene, work, args, ["--geometry", "neus"], log)
+        save()
+    tests = QUICK_TESTS if (args.quick and args.tests is None) else GPU_TESTS if args.tests is None else args.tests
+    result["tests"] = run_tests(tests, log, args.workers) if tests else None
+    path = save()
     print(f"wrote {path} in {result['seconds']:.0f} s (log: {log})")
     if not args.work:
         shutil.copy(log, Path(args.out).with_suffix(".log"))
