@@ -126,11 +126,33 @@ def _timed(step, sync, warmup: int, steps: int) -> float:
     return statistics.median(times)
 
 
+def _profile(step, sync, steps: int = 5) -> dict:
+    """`steps` calls of `step` under torch's profiler (CUDA kernels of torch and Dr.Jit alike, on a
+    GPU): the wall time, the kernels' busy time and the ops that took most device and host time."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.cuda.is_available() else [])
+    sync()
+    t0 = time.perf_counter()
+    with profile(activities=activities) as prof:
+        for _ in range(steps):
+            step()
+        sync()
+    wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    device_us = sum(getattr(e, "self_device_time_total", 0) or 0 for e in events)
+    return {"steps": steps, "wall_s": wall, "device_busy_share": device_us * 1e-6 / wall if wall > 0 else None,
+            "top_device": events.table(sort_by="self_device_time_total", row_limit=12) if device_us else None,
+            "top_host": events.table(sort_by="self_cpu_time_total", row_limit=12)}
+
+
 def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: list[int], settings: list[str],
-               warmup: int, steps: int) -> dict:
+               warmup: int, steps: int, profile: bool = False) -> dict:
     """NeuS's and the material fit's step time at each ray batch on `device` (a trained-looking state:
     NeuS's occupancy opened at half-way, the material fit past its warm-up with the bounce on): the
-    median seconds a step, its rays a second, and the auto batch of the device (`backend.sized`)."""
+    median seconds a step, its rays a second, and the auto batch of the device (`backend.sized`);
+    `profile`: at the auto batch, 5 more steps under torch's profiler (`_profile`)."""
     import drjit as dr
     import torch
 
@@ -164,6 +186,9 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
         seconds = _timed(lambda: fit.loop_step(Progress(step=1000 + next(step), seconds=0.0, step_share=0.5,
                                                         time_share=0.5)), sync, warmup, steps)
         out["neus"].append({"batch_rays": batch, "seconds_per_step": seconds, "rays_per_s": batch / seconds})
+        if batch == out["auto"]["neus"] and profile:
+            out["neus_profile"] = _profile(lambda: fit.loop_step(Progress(step=1000 + next(step), seconds=0.0,
+                                                                          step_share=0.5, time_share=0.5)), sync)
         print(f"NeuS batch {batch}: {seconds * 1000:.1f} ms a step, {batch / seconds:,.0f} rays/s", flush=True)
         del neus, fit
     capture = load_capture(scene / "transforms_train.json", mesh=scene / "mesh.ply", split="train")
@@ -176,6 +201,9 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
                 step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync, warmup, steps)
             out["fit"].append({"batch_rays": trainer.batch, "seconds_per_step": seconds,
                                "rays_per_s": trainer.batch / seconds})
+            if batch == out["auto"]["fit"] and profile:
+                out["fit_profile"] = _profile(lambda: trainer.train_step(schedule_at(cfg, Progress(
+                    step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync)
             print(f"material fit batch {trainer.batch}: {seconds * 1000:.1f} ms a step, "
                   f"{trainer.batch / seconds:,.0f} rays/s", flush=True)
     return out
@@ -235,6 +263,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--work", help="keep the scene, runs and log in this folder (default: a temporary one)")
     p.add_argument("--timeout", type=float, default=1800, help="seconds each stage may take")
     p.add_argument("--budget", type=float, default=0, help="seconds the whole check may take (0: no limit)")
+    p.add_argument("--profile", action="store_true", help="profile 5 steps of each at the device's auto batch")
     p.add_argument("--rates-of", help=argparse.SUPPRESS)  # internal: the step-rate child, on this scene
     return p.parse_args(argv)
 
@@ -245,7 +274,7 @@ def main(argv=None) -> int:
     if args.rates_of:  # the child that times the steps
         settings = (QUICK[1] if args.quick else FULL[1]) + (args.set or [])
         rates = step_rates(Path(args.rates_of), args.device, args.neus_batches, args.fit_batches, settings,
-                           max(1, args.rate_steps // 2), args.rate_steps)
+                           max(1, args.rate_steps // 2), args.rate_steps, args.profile)
         Path(args.out).write_text(json.dumps(rates, indent=1))
         return 0
     DEADLINE = Deadline(args.budget, args.timeout)
@@ -273,6 +302,7 @@ def main(argv=None) -> int:
             stage = run_stage("step rates", [sys.executable, str(Path(__file__).resolve()), "--rates-of", str(scene),
                                              "--device", args.device, "--out", str(rates), "--rate-steps",
                                              str(args.rate_steps), *(["--quick"] if args.quick else []),
+                                             *(["--profile"] if args.profile else []),
                                              "--neus-batches", *map(str, args.neus_batches),
                                              "--fit-batches", *map(str, args.fit_batches),
                                              *[x for s in args.set or [] for x in ("--set", s)]], log)
