@@ -5,8 +5,8 @@
 
 (a) prints the device the process chooses (`vq_mitsuba.backend.choose_device`), the versions and the
     memory; (b) renders tabletop at --size pixels into a work folder (`make-scene`); (c) times NeuS
-    steps and material-fit steps on it at several ray batches (--neus-batches, --fit-batches; the
-    device's auto size is `backend.sized`), in a child process; (d) fits it from its true mesh and
+    steps and material-fit steps on it at several ray batches (--neus-batches, --fit-batches; NeuS's
+    default batch is sized to the device, `backend.sized`), in a child process; (d) fits it from its true mesh and
     from its images (NeuS, then the materials), each with `--device`, and scores both runs (`eval
     --gt`), timing each stage; (e) runs the suite's GPU-relevant tests (`pytest -q` on --tests, with
     --workers pytest-xdist workers); (f) writes one JSON (--out) with the stage times, the step rates
@@ -151,13 +151,13 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
                warmup: int, steps: int, profile: bool = False) -> dict:
     """NeuS's and the material fit's step time at each ray batch on `device` (a trained-looking state:
     NeuS's occupancy opened at half-way, the material fit past its warm-up with the bounce on): the
-    median seconds a step, its rays a second, and the auto batch of the device (`backend.sized`);
-    `profile`: at the auto batch, 5 more steps under torch's profiler (`_profile`)."""
+    median seconds a step, its rays a second, and the batch a fit takes by default (NeuS's sized to the
+    device, `backend.sized`); `profile`: at that batch, 5 more steps under torch's profiler (`_profile`)."""
     import drjit as dr
     import torch
 
     from vq_mitsuba.backend import choose_device, device_scale, sized, torch_device
-    from vq_mitsuba.config import CPU_NEUS_BATCH, CPU_TRAIN_BATCH, load_config
+    from vq_mitsuba.config import CPU_NEUS_BATCH, load_config
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.engine.schedule import schedule_at
     from vq_mitsuba.engine.trainer import Trainer
@@ -173,9 +173,9 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
             torch.cuda.synchronize()
         dr.sync_thread()
 
-    out = {"device_scale": device_scale(), "auto": {"neus": sized(0, CPU_NEUS_BATCH), "fit": sized(0, CPU_TRAIN_BATCH)},
-           "warmup": warmup, "steps": steps, "neus": [], "fit": []}
     cfg = load_config(None, settings)
+    out = {"device_scale": device_scale(), "default": {"neus": sized(cfg.neus.batch_rays, CPU_NEUS_BATCH), "fit": cfg.train.batch_rays},
+           "warmup": warmup, "steps": steps, "neus": [], "fit": []}
     capture = load_capture(scene / "transforms_train.json", split="train")
     for batch in neus_batches:
         neus = NeuS(capture, replace(cfg.neus, batch_rays=batch))
@@ -186,7 +186,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
         seconds = _timed(lambda: fit.loop_step(Progress(step=1000 + next(step), seconds=0.0, step_share=0.5,
                                                         time_share=0.5)), sync, warmup, steps)
         out["neus"].append({"batch_rays": batch, "seconds_per_step": seconds, "rays_per_s": batch / seconds})
-        if batch == out["auto"]["neus"] and profile:
+        if batch == out["default"]["neus"] and profile:
             out["neus_profile"] = _profile(lambda: fit.loop_step(Progress(step=1000 + next(step), seconds=0.0,
                                                                           step_share=0.5, time_share=0.5)), sync)
         print(f"NeuS batch {batch}: {seconds * 1000:.1f} ms a step, {batch / seconds:,.0f} rays/s", flush=True)
@@ -201,7 +201,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
                 step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync, warmup, steps)
             out["fit"].append({"batch_rays": trainer.batch, "seconds_per_step": seconds,
                                "rays_per_s": trainer.batch / seconds})
-            if batch == out["auto"]["fit"] and profile:
+            if batch == out["default"]["fit"] and profile:
                 out["fit_profile"] = _profile(lambda: trainer.train_step(schedule_at(cfg, Progress(
                     step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync)
             print(f"material fit batch {trainer.batch}: {seconds * 1000:.1f} ms a step, "
@@ -263,7 +263,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--work", help="keep the scene, runs and log in this folder (default: a temporary one)")
     p.add_argument("--timeout", type=float, default=1800, help="seconds each stage may take")
     p.add_argument("--budget", type=float, default=0, help="seconds the whole check may take (0: no limit)")
-    p.add_argument("--profile", action="store_true", help="profile 5 steps of each at the device's auto batch")
+    p.add_argument("--profile", action="store_true", help="profile 5 steps of each at its default batch")
     p.add_argument("--rates-of", help=argparse.SUPPRESS)  # internal: the step-rate child, on this scene
     return p.parse_args(argv)
 

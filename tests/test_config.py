@@ -31,7 +31,7 @@ def _texel_config():
 
 # One out-of-range value per range kind (and per check that spans keys), with what the message says.
 OUT_OF_RANGE = [
-    (">0", "train.iterations", "0", "train.iterations must be > 0"),
+    (">0", "train.batch_rays", "0", "train.batch_rays must be > 0"),
     (">=2", "envmap.height", "1", "envmap.height must be >= 2"),
     ("[2,1024]", "neus.mesh_resolution", "100000", "neus.mesh_resolution must be in [2, 1024]"),
     ("[0,2]", "neus.sdf_layers", "3", r"neus.sdf_layers must be 0, 1 or 2"),

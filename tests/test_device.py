@@ -99,8 +99,8 @@ def test_sizes_left_at_auto_are_the_cpu_defaults_on_the_cpu(cpu_device):
     from vq_mitsuba.geometry.neus.renderer import choose_iterations
 
     cfg = load_config(None)
-    assert (cfg.train.batch_rays, cfg.neus.batch_rays, cfg.render.chunk) == (0, 0, 0)  # auto
-    assert backend.device_scale() == 1 and backend.sized(cfg.train.batch_rays, 2048) == 2048
+    assert (cfg.neus.batch_rays, cfg.render.chunk) == (0, 0)  # auto
+    assert backend.device_scale() == 1 and backend.sized(cfg.render.chunk, 65536) == 65536
     neus_cfg, info = choose_iterations(cfg.neus, 1_000_000)
     assert neus_cfg.batch_rays == info["batch_rays"] == CPU_NEUS_BATCH
     assert info["iterations"] == 4000  # 2 passes over a million rays of 512 is 3907 steps, held at the 4000 floor

@@ -28,8 +28,8 @@ def test_the_device_check_runs_end_to_end_on_the_cpu(tmp_path):
         assert run["fit"]["iterations_per_s"] > 0 and run["figures"]["basecolor_psnr"] > 10, label
     assert result["images"]["neus"]["iterations_per_s"] > 0 and result["images"]["neus"]["device"] == recorded
     assert result["true_mesh"]["neus"] is None  # the true mesh: no NeuS stage
-    rates = result["rates"]  # the step-rate sweep, with the device's auto sizes (the CPU's)
-    assert rates["exit"] == 0 and rates["device_scale"] == 1 and rates["auto"] == {"neus": 512, "fit": 2048}
+    rates = result["rates"]  # the step-rate sweep, with the fits' batches (--quick's)
+    assert rates["exit"] == 0 and rates["device_scale"] == 1 and rates["default"] == {"neus": 256, "fit": 256}
     assert [r["batch_rays"] for r in rates["neus"]] == [64, 128] and [r["batch_rays"] for r in rates["fit"]] == [64]
     assert all(r["seconds_per_step"] > 0 and r["rays_per_s"] > 0 for r in rates["neus"] + rates["fit"])
     assert {"commit", "machine", "versions"} <= set(result)  # the provenance block

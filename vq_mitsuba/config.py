@@ -182,7 +182,7 @@ class AblationConfig:
 
 
 # The sizes that a 0 (auto) resolves to on a CPU; a GPU takes a multiple (`backend.sized`).
-CPU_TRAIN_BATCH, CPU_NEUS_BATCH, CPU_RENDER_CHUNK = 2048, 512, 65536
+CPU_NEUS_BATCH, CPU_RENDER_CHUNK = 512, 65536
 
 
 @dataclass
@@ -190,8 +190,7 @@ class TrainConfig:
     """The training loop."""
 
     iterations: int = setting(3000, "optimisation steps", ">0")
-    batch_rays: int = setting(0, "random foreground pixels per step, drawn across all training views (0: auto, "
-                                 "2048 on a CPU, more on a GPU)", ">=0")
+    batch_rays: int = setting(2048, "random foreground pixels per step, drawn across all training views", ">0")
     spp: int = setting(8, "emitter + BSDF sample pairs per pixel and step", ">0")
     lr: float = setting(2e-3, "Adam learning rate of the material networks", "(0,1]")
     lr_end_exponential: float = setting(

@@ -17,8 +17,8 @@ import math
 import numpy as np
 import torch
 
-from vq_mitsuba.backend import init_mitsuba, sized, torch_device
-from vq_mitsuba.config import CPU_TRAIN_BATCH, Config, to_dict
+from vq_mitsuba.backend import init_mitsuba, torch_device
+from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.data.pixels import ErrorSampler, hold_aside, neighbour_pairs, sampler_tile, trace_training_pixels
 from vq_mitsuba.run.run_dir import RunDir
@@ -120,7 +120,7 @@ class Trainer:
         self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
         self.pairs = neighbour_pairs(self.pool, capture.width, capture.height).to(device) \
             if cfg.loss.w_sm > 0 else None
-        self.batch = min(sized(cfg.train.batch_rays, CPU_TRAIN_BATCH), len(self.pool))
+        self.batch = min(cfg.train.batch_rays, len(self.pool))
         self.history: list[dict] = []
         self.step, self.elapsed_before = 0, 0.0
         self._decide_at_start()
