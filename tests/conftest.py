@@ -6,6 +6,16 @@ sys.path.insert(0, str(Path(__file__).parent))  # tests import their helpers (ti
 
 import pytest  # noqa: E402
 
+
+def pytest_runtest_setup(item):
+    """Tests marked cpu_inputs build CPU tensors for the renderer: they run where the process's
+    device is the CPU (every CI run), and are skipped on a GPU."""
+    if item.get_closest_marker("cpu_inputs") is not None:
+        from vq_mitsuba.backend import torch_device
+
+        if torch_device().type != "cpu":
+            pytest.skip("builds its inputs as CPU tensors; the process runs on a GPU")
+
 # Short enough for the default suite; the discrete branch starts at vq.warmup_frac of these steps.
 THREE_MATERIAL_SETTINGS = ["train.iterations=360", "train.batch_rays=768", "train.bounce_after=1000",
                            "train.checkpoint_every=1000"]

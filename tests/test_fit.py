@@ -108,7 +108,7 @@ def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
     state = torch.load(snaps[0], weights_only=False)
     assert state["step"] == 1 and "optim" not in state
     early, last = RunDir(run).load(snaps[0]), RunDir(run).load()
-    x = torch.zeros(3, 3)
+    x = torch.zeros(3, 3, device=last.model.center.device)
     assert not torch.allclose(early.model(x)["basecolor"], last.model(x)["basecolor"])  # three more steps
     with pytest.raises(InputError, match="snapshot_s"):
         fit(sphere_capture, tmp_path / "r2", load_config(None, ["train.snapshot_s=10,soon"]))
@@ -154,10 +154,10 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
     from vq_mitsuba.run.run_dir import RunDir
 
     fitted = RunDir(tmp_path / "run").load()
-    pts = torch.tensor(np.asarray(fitted.mesh.vertices), dtype=torch.float32)
+    pts = torch.tensor(np.asarray(fitted.mesh.vertices), dtype=torch.float32, device=fitted.model.center.device)
     with torch.no_grad():
         out = fitted.model(pts)
-    base = out["basecolor"].mean(0).numpy()
+    base = out["basecolor"].mean(0).cpu().numpy()
     np.testing.assert_allclose(base, [0.7, 0.35, 0.2], atol=0.05)
     assert abs(out["roughness"].mean().item() - 0.3) < 0.1
     assert out["metallic"].mean().item() < 0.1

@@ -62,10 +62,10 @@ def small_cfg(**kw) -> NeuSConfig:
 
 def sdf_world(neus: NeuS, points: np.ndarray) -> np.ndarray:
     """The NeuS SDF at world points, in world units."""
-    p = neus.to_box(torch.tensor(points))
+    p = neus.to_box(torch.tensor(points, device=neus.device))
     with torch.no_grad():
         s = neus.model.sdf(p, [1.0] * neus.cfg.levels)[0]
-    return s.numpy() * neus.half
+    return s.cpu().numpy() * neus.half
 
 
 def test_dense_grid_is_trilinear_and_twice_differentiable():

@@ -81,6 +81,7 @@ def test_envmap_padding_matches_mitsuba_layout():
     np.testing.assert_allclose(envmap_padded(torch.tensor(env)).numpy(), data, rtol=1e-6)
 
 
+@pytest.mark.cpu_inputs
 def test_shading_matches_mitsuba_direct_integrator():
     """Mean radiance of a principled sphere equals Mitsuba's own `direct` render (statistical)."""
     env = _env()
@@ -111,6 +112,7 @@ def _loss(scene, env, p, n, wi, base, metal, rough, spp=64, seed=3):
     return (rgb * torch.tensor([0.5, 1.0, 2.0])).sum()
 
 
+@pytest.mark.cpu_inputs
 def test_gradients_nonzero_and_match_finite_differences():
     """Torch gradients reach basecolor, metallic, roughness and envmap (no silent zeros) and
     agree with central differences of the same estimator (fixed random numbers)."""
@@ -148,6 +150,7 @@ def test_gradients_nonzero_and_match_finite_differences():
     assert sun == pytest.approx(fd_env, rel=0.05)
 
 
+@pytest.mark.cpu_inputs
 def test_bright_texel_lights_the_expected_side():
     """Envmap orientation: a bright texel in direction d lights the sphere's side facing d.
 
@@ -174,6 +177,7 @@ def test_bright_texel_lights_the_expected_side():
 
 
 
+@pytest.mark.cpu_inputs
 def test_extreme_inputs_stay_finite():
     """Extreme HDR lighting, roughness at its floor, black basecolor, grazing views."""
     env0 = _env()
@@ -197,6 +201,7 @@ def test_extreme_inputs_stay_finite():
             assert torch.isfinite(g).all()
 
 
+@pytest.mark.cpu_inputs
 def test_no_kernel_recompiles_after_warm_up():
     """Random batches reuse the compiled kernels, whatever their size (sizes are not baked in):
     the bounce's second shading call gets a different number of lanes at every step."""
@@ -226,6 +231,7 @@ def test_no_kernel_recompiles_after_warm_up():
         dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
+@pytest.mark.cpu_inputs
 def test_one_bounce_matches_mitsuba_path_depth_3():
     """Two touching spheres light each other: with `material_fn`, shading equals Mitsuba's `path`
     integrator at max_depth 3 (direct + one bounce); without it, Mitsuba's `direct`."""
@@ -264,6 +270,7 @@ def test_one_bounce_matches_mitsuba_path_depth_3():
     assert one_bounce.mean() > 1.03 * direct.mean()  # the bounce matters in this scene
 
 
+@pytest.mark.cpu_inputs
 def test_bounce_light_changes_the_image_but_trains_nothing():
     """The light bounced off the object is incoming light for the step: the image depends on the
     material it bounced off (central differences of the same estimator are positive), but no
@@ -351,6 +358,7 @@ class _ConstantMaterial(torch.nn.Module):
                 "roughness": torch.full((n,), self.rough), "z": torch.zeros(n, 4)}
 
 
+@pytest.mark.cpu_inputs
 def test_renderer_matches_mitsuba_direct_render(monkeypatch, tmp_path):
     """`Renderer.render` (several primary rays per pixel, shaded in chunks) gives Mitsuba's own
     `direct` render of the same sphere: coverage per pixel and mean colour; tracing the passes
@@ -388,6 +396,7 @@ def test_renderer_matches_mitsuba_direct_render(monkeypatch, tmp_path):
     np.testing.assert_allclose(one["rgb"].reshape(-1, 3).mean(0), out["rgb"].reshape(-1, 3).mean(0), rtol=0.02)
 
 
+@pytest.mark.cpu_inputs
 def test_relight_pass_gives_each_lighting_its_own_render():
     """`Renderer.render(..., relight=...)` returns, for every other lighting, the image its own
     `render` gives with the same seed (bounce included), while the material field runs once
@@ -436,6 +445,7 @@ def _welch_rejections(a: np.ndarray, b: np.ndarray, alpha: float = 0.01) -> np.n
     return p < alpha / t.size
 
 
+@pytest.mark.cpu_inputs
 @pytest.mark.parametrize("two_spheres", [False, True])
 def test_renderer_matches_mitsuba_per_pixel(tmp_path, two_spheres):
     """Every pixel of `Renderer.render` (its own pixel sampling, coverage, MIS shading and, for two
@@ -501,6 +511,7 @@ def test_render_under_several_envmaps_in_one_pass_matches_one_at_a_time(three_ma
                  "-o", str(tmp_path / "same")]) == 2  # two lightings, one folder name
 
 
+@pytest.mark.cpu_inputs
 def test_fixed_light_points_shade_alike_but_do_not_train_the_light():
     """Two copies of the same points in one call, the second with `fixed_light`: the radiance is
     that of the call without it (same samples), and the envmap gets exactly the gradient of the
