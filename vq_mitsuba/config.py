@@ -268,6 +268,8 @@ class NeuSConfig:
     init_variance: float = setting(0.5, "initial log-sharpness / 10 (s = exp(10 * variance))", "any")
     w_eikonal: float = setting(0.1, "eikonal loss weight")
     w_mask: float = setting(0.1, "mask loss weight (BCE on the accumulated opacity)")
+    w_points: float = setting(0.5, "weight of the SDF-is-zero term at the capture's sparse points seen by 3 or more "
+                                   "views, fading linearly to 0 over training (0: none)", ">=0")
     background: str = setting(
         "auto", "what tells the object from the backdrop: masks (the capture's alpha or masks), model (no "
                 "masks: the object in a sphere framed from the cameras, a background model outside it) or auto "

@@ -52,6 +52,25 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
     return sphere, support, well_seen(points[0], points[1])
 
 
+def surface_points(capture_path, capture, cfg: NeuSConfig) -> tuple[np.ndarray | None, dict | None]:
+    """The sparse points seen by 3 or more views that NeuS's SDF-is-zero term uses (neus.w_points)
+    on a capture with masks, and where they came from: the capture's own (COLMAP's points3D), else
+    triangulated from its training views with their cameras (`sparse_points.triangulate`, its time
+    recorded). (None, None) with the term off."""
+    from vq_mitsuba.data.captures import capture_framing
+    from vq_mitsuba.geometry.neus import well_seen
+    from vq_mitsuba.geometry.sparse_points import triangulate
+
+    if cfg.w_points <= 0:
+        return None, None
+    own, _ = capture_framing(capture_path)
+    if own is not None:
+        return well_seen(own[0], own[1]), {"source": "capture", "seconds": 0.0}
+    found = triangulate(capture.cameras, capture.images, capture.alpha if capture.has_alpha else None)
+    return found["points"], {"source": "triangulated", "seconds": round(found["seconds"], 2),
+                             "pairs": found["pairs"]}
+
+
 def masked_by_mesh(capture, mesh=None):
     """The capture with each view's alpha the coverage of `mesh` (default: the capture's own) seen
     from its camera (`mesh_coverage`), has_alpha True: masks for a capture that has none, from the
@@ -96,10 +115,16 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
     check_geometry_target(run)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
     capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
-    sphere, support, points = framing(capture_path, capture.cameras, cfg.seed) \
-        if uses_background_model(capture, cfg) else (None, None, None)
+    if uses_background_model(capture, cfg):
+        sphere, support, points = framing(capture_path, capture.cameras, cfg.seed)
+        found = {"source": "capture", "seconds": 0.0} if points is not None else None
+    else:
+        sphere = support = None
+        points, found = surface_points(capture_path, capture, cfg)
     result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support,
                          points=points)
+    if found is not None and result.summary.get("sparse_points") is not None:
+        result.summary["sparse_points"].update(found)
     result.summary["neus_psnr"] = neus_psnr(result.neus, capture, capture_path, capture_cfg, run)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics

@@ -21,6 +21,11 @@ from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 
 
+# The SDF-is-zero term at sparse points is Cauchy-robust with scale POINTS_SCALE (box units): a point
+# at distance d pulls with 1 / (1 + d / POINTS_SCALE) of the strength of one on the surface, so an
+# outlier SfM left pulls little; POINTS_FAR (1 % of the box's side): a point the final SDF puts further
+# from its zero set is reported as not taken by the surface.
+POINTS_SCALE, POINTS_FAR = 0.05, 0.02
 HISTORY_EVERY = 10  # steps between reads of the losses from the device (and progress-bar updates)
 
 
@@ -119,10 +124,23 @@ class _NeuSFit:
         if not self.pending:
             return
         values = torch.stack([v for _, _, v in self.pending]).cpu().tolist()
-        for (step, seconds, _), (loss, color, eikonal, mask, mse, s) in zip(self.pending, values):
+        for (step, seconds, _), (loss, color, eikonal, mask, mse, s, points) in zip(self.pending, values):
             self.history.append({"step": step, "seconds": seconds, "loss": loss, "color": color, "eikonal": eikonal,
-                                 "mask": mask, "psnr": -10.0 * math.log10(max(mse, 1e-10)), "s": s})
+                                 "mask": mask, "psnr": -10.0 * math.log10(max(mse, 1e-10)), "s": s,
+                                 "points": points})
         self.pending = []
+
+    def _points_loss(self, lw: list[float]) -> torch.Tensor:
+        """The mean Cauchy-robust |SDF| (scale POINTS_SCALE) at a batch of the sparse surface points
+        (`NeuS.surface_points`): a point the SDF puts far away (an outlier SfM left, or a part the
+        colour disagrees with) pulls weakly; zero without points."""
+        pts = self.neus.surface_points
+        if pts is None:
+            return torch.zeros((), device=self.device)
+        pick = torch.randint(0, len(pts), (min(self.cfg.batch_rays, len(pts)),), generator=self.gen,
+                             device=self.device)
+        distance = self.model.sdf(pts[pick], lw)[0].abs()
+        return (POINTS_SCALE * torch.log1p(distance / POINTS_SCALE)).mean()
 
     def loop_step(self, p: Progress) -> dict | None:
         cfg, neus = self.cfg, self.neus
@@ -141,12 +159,15 @@ class _NeuSFit:
             acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
             mask_loss = F.binary_cross_entropy(acc, neus.rays_alpha[idx])
         loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
+        points_loss = self._points_loss(lw)
+        loss = loss + cfg.w_points * (1.0 - p.share) * points_loss
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         self.optim.step()
         step = p.step + 1
         mse = ((out["rgb"].detach() - target) ** 2).mean()
-        losses = torch.stack([loss, color_loss, out["eikonal"], mask_loss, mse, self.model.inv_s()]).detach()
+        losses = torch.stack([loss, color_loss, out["eikonal"], mask_loss, mse, self.model.inv_s(),
+                              points_loss]).detach()
         self.pending.append((step, round(self.loop.clock(), 3), losses))
         if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
             neus.refresh_occupancy(lw)
@@ -200,6 +221,24 @@ def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
             "max": float(np.max(rates))}
 
 
+@torch.no_grad()
+def points_report(neus: NeuS) -> dict | None:
+    """What the SDF-is-zero term had and what the trained SDF says of it: the sparse points given,
+    those it used, and of those the median |SDF| (world units) and how many the final SDF puts
+    POINTS_FAR box units or more from its zero set (points the surface did not take)."""
+    if neus.points is None:
+        return None
+    out = {"given": int(len(neus.points)), "used": 0, "median_abs_sdf": None, "far": 0}
+    pts = neus.surface_points
+    if pts is None:
+        return out
+    levels = neus.level_weights(1.0)
+    sdf = torch.cat([neus.model.sdf(chunk, levels)[0] for chunk in pts.split(65536)]).abs()
+    out.update(used=int(len(pts)), median_abs_sdf=float(sdf.median()) * neus.half,
+               far=int((sdf >= POINTS_FAR).sum()))
+    return out
+
+
 def _plot_history(history: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -210,8 +249,9 @@ def _plot_history(history: list[dict], path: Path) -> None:
         return
     steps = [h["step"] for h in history]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
-    for key in ("loss", "color", "mask", "eikonal"):
-        axes[0].semilogy(steps, [max(h[key], 1e-8) for h in history], label=key, lw=0.8)
+    for key in ("loss", "color", "mask", "eikonal", "points"):
+        if any(h.get(key) for h in history):  # the points term: only where the capture has points
+            axes[0].semilogy(steps, [max(h.get(key, 0.0), 1e-8) for h in history], label=key, lw=0.8)
     axes[0].legend()
     axes[0].set_xlabel("step")
     axes[0].set_title("NeuS losses")
@@ -317,6 +357,7 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
                  "watertight": bool(mesh.is_watertight)},
         "grid": neus.grid,
         "steps": neus.steps,
+        "sparse_points": points_report(neus),
         "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
         "grid_lookup": grid_kernel.status(),

@@ -105,6 +105,26 @@ class NeuS:
             else:
                 self.sphere_source = None
                 self._setup(capture, cfg, alpha)
+        self.surface_points = self._surface_points(cfg)
+
+    def _surface_points(self, cfg: NeuSConfig) -> torch.Tensor | None:
+        """The sparse points the SDF-is-zero term uses (neus.w_points), in box units on the device:
+        those inside the box and, with masks, inside the dilated visual hull; without masks those
+        inside the unit sphere and above a known support. None without points or with the term off."""
+        if self.points is None or len(self.points) == 0 or cfg.w_points <= 0:
+            return None
+        p = self.to_box(torch.from_numpy(self.points)).to(self.device)
+        if self.mask_free:
+            inside = p.norm(dim=1) < 1.0
+            if self.plane is not None:
+                inside &= p @ self.plane[0] > self.plane[1]
+        else:
+            res = self.hull_dilated.shape[0]
+            inside = (p.abs() < 1.0).all(1)
+            cell = ((p + 1.0) * 0.5 * res).long().clamp(0, res - 1)
+            inside &= self.hull_dilated[cell[:, 0], cell[:, 1], cell[:, 2]]
+        p = p[inside]
+        return p if len(p) else None
 
     def _setup_sphere(self, capture, cfg: NeuSConfig, sphere: tuple, support: tuple | None) -> None:
         """Without masks: the bounding sphere (above a known support) is the unit sphere of the box
