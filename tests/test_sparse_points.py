@@ -120,3 +120,20 @@ def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_the
         assert report["given"] == len(on_surface) + 2
         assert report["used"] == (len(on_surface) if w > 0 else 0)
     assert errors[50.0] < 0.8 * errors[0.0]  # the same steps: the points pull the zero set onto them
+
+
+def test_triangulated_points_are_used_where_they_are_dense_enough(monkeypatch):
+    from vq_mitsuba.config import NeuSConfig
+    from vq_mitsuba.data import captures
+    from vq_mitsuba.geometry import pipeline
+
+    monkeypatch.setattr(captures, "capture_framing", lambda path: (None, None))  # no points of its own
+    cap = textured_sphere()
+    points, info = pipeline.surface_points("textured_sphere.json", cap, NeuSConfig())
+    n = info["given"]
+    assert info["source"] == "triangulated" and n < pipeline.MIN_POINTS_PER_VIEW * len(cap.cameras)
+    assert points is None and info["used"] == 0 and f"{n} points over 16 views" in info["skipped"]
+    monkeypatch.setattr(pipeline, "MIN_POINTS_PER_VIEW", 2)
+    points, info = pipeline.surface_points("textured_sphere.json", cap, NeuSConfig())
+    assert len(points) == n and "skipped" not in info and info["seconds"] > 0
+    assert pipeline.surface_points("textured_sphere.json", cap, NeuSConfig(w_points=0.0)) == (None, None)

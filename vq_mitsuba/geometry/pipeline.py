@@ -52,11 +52,18 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
     return sphere, support, well_seen(points[0], points[1])
 
 
+# Triangulated points are used when there are at least this many a training view: DTU's photos give
+# about 25 (NeuS's held-out renders +0.40 / -0.06 dB on scan37 / scan24), tabletop's rendered
+# surfaces 2.4 (its in-view normals' p90 17.9 -> 19.1 degrees with them); benchmarks/results/neus_points/.
+MIN_POINTS_PER_VIEW = 10
+
+
 def surface_points(capture_path, capture, cfg: NeuSConfig) -> tuple[np.ndarray | None, dict | None]:
     """The sparse points seen by 3 or more views that NeuS's SDF-is-zero term uses (neus.w_points)
     on a capture with masks, and where they came from: the capture's own (COLMAP's points3D), else
     triangulated from its training views with their cameras (`sparse_points.triangulate`, its time
-    recorded). (None, None) with the term off."""
+    recorded) and used when they number MIN_POINTS_PER_VIEW a view or more (smooth, rendered surfaces
+    give few, and there they did not help). (None, None) with the term off."""
     from vq_mitsuba.data.captures import capture_framing
     from vq_mitsuba.geometry.neus import well_seen
     from vq_mitsuba.geometry.sparse_points import triangulate
@@ -67,8 +74,13 @@ def surface_points(capture_path, capture, cfg: NeuSConfig) -> tuple[np.ndarray |
     if own is not None:
         return well_seen(own[0], own[1]), {"source": "capture", "seconds": 0.0}
     found = triangulate(capture.cameras, capture.images, capture.alpha if capture.has_alpha else None)
-    return found["points"], {"source": "triangulated", "seconds": round(found["seconds"], 2),
-                             "pairs": found["pairs"]}
+    info = {"source": "triangulated", "seconds": round(found["seconds"], 2), "pairs": found["pairs"]}
+    views = len(capture.cameras)
+    if len(found["points"]) < MIN_POINTS_PER_VIEW * views:
+        n = len(found["points"])
+        return None, {**info, "given": n, "used": 0,
+                      "skipped": f"{n} points over {views} views: under {MIN_POINTS_PER_VIEW} a view"}
+    return found["points"], info
 
 
 def masked_by_mesh(capture, mesh=None):
@@ -123,8 +135,8 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
         points, found = surface_points(capture_path, capture, cfg)
     result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support,
                          points=points)
-    if found is not None and result.summary.get("sparse_points") is not None:
-        result.summary["sparse_points"].update(found)
+    if found is not None:
+        result.summary["sparse_points"] = {**(result.summary.get("sparse_points") or {}), **found}
     result.summary["neus_psnr"] = neus_psnr(result.neus, capture, capture_path, capture_cfg, run)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
