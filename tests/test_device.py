@@ -59,7 +59,7 @@ def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_ste
     summary = train(neus, None, progress=False)
     history = summary["history"]
     assert [h["step"] for h in history] == list(range(1, 24))
-    assert set(history[0]) == {"step", "seconds", "loss", "color", "eikonal", "mask", "psnr", "s"}
+    assert set(history[0]) == {"step", "seconds", "loss", "color", "eikonal", "mask", "psnr", "s", "points"}
     assert all(isinstance(v, float) for h in history for k, v in h.items() if k != "step")
     assert [n for n in reads if n] == [10, 10, 3]  # the losses read in batches, the tail at the end
 
