@@ -104,3 +104,21 @@ def test_sizes_left_at_auto_are_the_cpu_defaults_on_the_cpu(cpu_device):
     neus_cfg, info = choose_iterations(cfg.neus, 1_000_000)
     assert neus_cfg.batch_rays == info["batch_rays"] == CPU_NEUS_BATCH
     assert info["iterations"] == 4000  # 2 passes over a million rays of 512 is 3907 steps, held at the 4000 floor
+
+
+def test_tests_that_build_cpu_inputs_skip_where_the_process_runs_on_a_gpu(monkeypatch):
+    import conftest
+
+    class Item:
+        def __init__(self, marked: bool):
+            self.marked = marked
+
+        def get_closest_marker(self, name):
+            return object() if self.marked and name == "cpu_inputs" else None
+
+    monkeypatch.setattr(backend, "torch_device", lambda: torch.device("cuda"))
+    with pytest.raises(pytest.skip.Exception, match="CPU tensors"):
+        conftest.pytest_runtest_setup(Item(marked=True))
+    conftest.pytest_runtest_setup(Item(marked=False))  # unmarked: runs on a GPU too
+    monkeypatch.setattr(backend, "torch_device", lambda: torch.device("cpu"))
+    conftest.pytest_runtest_setup(Item(marked=True))  # on the CPU: runs
