@@ -54,13 +54,14 @@ def Path_(name):
     return Path(name)
 
 
-def test_the_projection_matrix_is_the_cameras_own():
-    rng = np.random.default_rng(1)
-    cam = Camera("c", look_at([1.0, -2.0, 0.7], [0.1, 0.0, 0.2], [0, 0, 1]), 47.0, 120, 90, focal_y_ratio=1.1,
-                 principal=(55.0, 48.0))
-    pts = rng.uniform(-0.5, 0.5, (50, 3))
-    hom = np.column_stack([pts, np.ones(50)]) @ sp.projection(cam).T
-    np.testing.assert_allclose(hom[:, :2] / hom[:, 2:], cam.project(pts), atol=1e-9)
+def test_the_projection_matrix_takes_points_on_the_cameras_rays_to_their_pixels():
+    cam = Camera("c", look_at([1.0, -2.0, 0.7], [0.1, 0.0, 0.2], [0, 0, 1]), 47.0, 12, 9, focal_y_ratio=1.1,
+                 principal=(5.5, 4.8))
+    o, d = camera_rays(cam)  # one ray through each pixel centre, row by row
+    depth = np.random.default_rng(1).uniform(0.5, 3.0, len(o))
+    hom = np.column_stack([o + depth[:, None] * d, np.ones(len(o))]) @ cam.projection().T
+    cols, rows = np.meshgrid(np.arange(12) + 0.5, np.arange(9) + 0.5)
+    np.testing.assert_allclose(hom[:, :2] / hom[:, 2:], np.column_stack([cols.ravel(), rows.ravel()]), atol=1e-6)
     assert np.all(hom[:, 2] > 0)  # in front of the camera: positive depth
 
 
@@ -73,7 +74,7 @@ def test_corresponding_pixels_meet_the_epipolar_constraint_and_triangulate_back(
     ha, hb = (np.column_stack([p, np.ones(20)]) for p in pix[:2])
     assert np.max(np.abs(np.sum(hb * (ha @ f.T), 1))) / np.abs(f).max() < 1e-6
     for k in range(20):
-        x = sp.triangulate_track([sp.projection(c) for c in cams], np.array([p[k] for p in pix]))
+        x = sp.triangulate_track([c.projection() for c in cams], np.array([p[k] for p in pix]))
         np.testing.assert_allclose(x, pts[k], atol=1e-8)
 
 

@@ -59,16 +59,20 @@ class Camera:
         ratio = self.focal_y_ratio * (height / self.height) / (width / self.width)
         return replace(self, width=int(width), height=int(height), principal=principal, focal_y_ratio=ratio)
 
+    def projection(self) -> np.ndarray:
+        """The (3, 4) matrix taking homogeneous world points to homogeneous pixels (x right, y down;
+        pixel centres at +0.5); the third coordinate is the depth, positive in front of the camera."""
+        fx, fy, cx, cy = self.intrinsics()
+        # +X is left and +Y up in Mitsuba camera space, so image x grows towards -X and y towards -Y.
+        k = np.array([[-fx, 0.0, cx], [0.0, -fy, cy], [0.0, 0.0, 1.0]])
+        return k @ np.linalg.inv(self.to_world)[:3]
+
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """Pixel coordinates (x right, y down; pixel centres at +0.5) of world points (N, 3)."""
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-        inv = np.linalg.inv(self.to_world)
-        local = pts @ inv[:3, :3].T + inv[:3, 3]
-        fx, fy, cx, cy = self.intrinsics()
-        # +X is left in Mitsuba camera space, so image x grows towards -X.
-        x = cx - fx * local[:, 0] / local[:, 2]
-        y = cy - fy * local[:, 1] / local[:, 2]
-        return np.stack([x, y], -1)
+        proj = self.projection()
+        hom = pts @ proj[:, :3].T + proj[:, 3]
+        return hom[:, :2] / hom[:, 2:]
 
     def principal_offset(self) -> tuple[float, float]:
         """Mitsuba's principal_point_offset_x / _y: the principal point's offset from the image centre

@@ -18,6 +18,7 @@ import warnings
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.imageio import linear_to_srgb
 
 MIN_VIEWS = 3  # a point seen by fewer views is not kept (SfM's usual floor for a trusted point)
 NEIGHBOURS = 6  # views each view is matched with: its nearest by viewing direction
@@ -28,19 +29,10 @@ EPIPOLAR_PX = 2.0  # a match further from the epipolar line of the known cameras
 REPROJECTION_PX = 2.0  # a track whose point lands further from one of its features is dropped
 
 
-def projection(camera: Camera) -> np.ndarray:
-    """The (3, 4) matrix taking homogeneous world points to homogeneous pixels (x right, y down,
-    pixel centres at +0.5, as `Camera.project`)."""
-    fx, fy, cx, cy = camera.intrinsics()
-    k = np.array([[-fx, 0.0, cx], [0.0, -fy, cy], [0.0, 0.0, 1.0]])  # Mitsuba's +X and +Y point left and up
-    return k @ np.linalg.inv(camera.to_world)[:3]
-
-
 def _gray(image: np.ndarray) -> np.ndarray:
     """A linear RGB image (H, W, 3) as 8-bit sRGB luminance."""
-    lum = np.clip(image[..., :3] @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32), 0.0, 1.0)
-    srgb = np.where(lum <= 0.0031308, 12.92 * lum, 1.055 * np.power(lum, 1 / 2.4) - 0.055)
-    return np.ascontiguousarray(np.round(srgb * 255.0).astype(np.uint8))
+    lum = image[..., :3] @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    return np.ascontiguousarray(np.round(linear_to_srgb(lum) * 255.0).astype(np.uint8))
 
 
 def features(images: np.ndarray, alpha: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -87,7 +79,7 @@ def view_pairs(cameras: list[Camera], neighbours: int = NEIGHBOURS, max_angle_de
 
 def fundamental(a: Camera, b: Camera) -> np.ndarray:
     """F with x_b^T F x_a = 0 for pixels x_a, x_b of one world point (homogeneous)."""
-    pa, pb = projection(a), projection(b)
+    pa, pb = a.projection(), b.projection()
     centre = np.append(a.origin, 1.0)
     e = pb @ centre
     ex = np.array([[0.0, -e[2], e[1]], [e[2], 0.0, -e[0]], [-e[1], e[0], 0.0]])
@@ -166,7 +158,7 @@ def triangulate(cameras: list[Camera], images: np.ndarray, alpha: np.ndarray | N
     "views": len(cameras), "pairs": pairs matched, "seconds": wall time}."""
     t0 = time.perf_counter()
     feats = features(images, alpha)
-    projections = [projection(c) for c in cameras]
+    projections = [c.projection() for c in cameras]
     pairs = view_pairs(cameras)
     matches = {(a, b): match(feats[a][1], feats[b][1], feats[a][0], feats[b][0], fundamental(cameras[a], cameras[b]))
                for a, b in pairs}

@@ -9,7 +9,7 @@ alpha-composited c. Losses: L1 colour, eikonal (|grad f| = 1), BCE between accum
 and the alpha mask (with masks; without them a background model takes the rest of each ray).
 
 On a GPU the model, its training rays and its grids live on the GPU (the grid lookup runs in torch
-there), and a step reads nothing back (the losses are read every 10 steps). What makes it fast
+there), and a step reads its losses back every 10 steps only. What makes it fast
 enough for two CPU cores:
 - the SDF network is a tiny MLP fed by a multi-resolution feature grid (dense levels, hashed past
   2^neus.hash_log2 points), with finer levels faded in coarse-to-fine; its SDF gradient is
