@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from vq_mitsuba.models.residual import ResidualField, add_residual, sh_degree2
+from vq_mitsuba.models.residual import HashEncoding, ResidualField, add_residual, sh_basis
 
 
 def test_an_untrained_field_adds_nothing_and_the_sum_is_never_negative():
@@ -20,9 +20,43 @@ def test_an_untrained_field_adds_nothing_and_the_sum_is_never_negative():
 
 def test_sh_basis_is_orthonormal_over_the_sphere():
     d = torch.nn.functional.normalize(torch.randn(400000, 3, dtype=torch.float64), dim=-1)
-    y = sh_degree2(d)
+    y = sh_basis(d, 4)
     gram = 4 * np.pi * (y.T @ y) / len(d)  # Monte Carlo integral of Y_i Y_j over the sphere
-    assert torch.allclose(gram, torch.eye(9, dtype=torch.float64), atol=0.02)
+    assert torch.allclose(gram, torch.eye(25, dtype=torch.float64), atol=0.02)
+    # each degree's band is rotation invariant: its squared norm is (2l + 1) / (4 pi) for any direction
+    for degree in range(5):
+        band = y[:1000, degree * degree:(degree + 1) ** 2]
+        assert torch.allclose(band.square().sum(-1), torch.full((1000,), (2 * degree + 1) / (4 * np.pi),
+                                                               dtype=torch.float64), atol=1e-9)
+
+
+def test_hash_encoding_interpolates_its_corners_trilinearly():
+    """On a level indexed densely, features that are a linear function of the corners' grid
+    coordinates come back as that function of the point, exactly, across cell boundaries;
+    levels that hash keep every index inside their own part of the table."""
+    enc = HashEncoding(levels=3, features=2, log2_table=12, coarsest=4, finest=32)
+    assert enc.res.tolist() == [4, 11, 32] and enc.dense.tolist() == [True, True, False]
+    level, res = 1, int(enc.res[1])
+    g = torch.arange(res + 1, dtype=torch.float32)
+    gx, gy, gz = torch.meshgrid(g, g, g, indexing="ij")
+    a, b = 0.3 * gx - 0.7 * gy + 0.1 * gz + 2.0, 1.1 * gz - 0.2 * gx
+    with torch.no_grad():
+        start = int(enc.offsets[level])
+        enc.table[start:start + (res + 1) ** 3] = torch.stack([a, b], -1).reshape(-1, 2)
+    x = torch.rand(5000, 3)
+    x[:10] = torch.tensor([0.0, 1.0, 0.5])  # the box's faces and a cell boundary
+    out = enc(x)[:, 2 * level:2 * level + 2]
+    p = x * res
+    want = torch.stack([0.3 * p[:, 0] - 0.7 * p[:, 1] + 0.1 * p[:, 2] + 2.0, 1.1 * p[:, 2] - 0.2 * p[:, 0]], -1)
+    assert torch.allclose(out, want, atol=1e-4)
+    # the gradient reaches exactly the 8 corners of each point's cell on each level, weights summing to 1
+    enc.table.grad = None
+    enc(torch.tensor([[0.37, 0.52, 0.91]])).sum().backward()
+    grad = enc.table.grad[:, 0]
+    for lv in range(3):
+        part = grad[int(enc.offsets[lv]):int(enc.offsets[lv]) + int(enc.sizes[lv])]
+        assert int((part != 0).sum()) <= 8 and torch.isclose(part.sum(), torch.tensor(1.0))
+    assert float(grad.sum()) == pytest.approx(3.0)
 
 
 @pytest.fixture(scope="module")
@@ -114,3 +148,22 @@ def test_a_residual_of_another_step_is_not_loaded(view_dependent_run, tmp_path):
     assert r.load().residual is None
     (copy / RunDir.RESIDUAL).unlink()
     assert RunDir(copy).load().residual is None
+
+
+def test_a_residual_of_the_earlier_field_is_left_out_with_a_warning(view_dependent_run, tmp_path):
+    """A run fitted before the residual was a surface light field keeps loading: its residual.pt
+    (positional encoding, no hash table) is left out, and the user is told how to refit it."""
+    import shutil
+
+    from vq_mitsuba.run.run_dir import RunDir
+
+    _, run = view_dependent_run
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    state = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
+    earlier = {k: v for k, v in state["field"].items() if not k.startswith("encoding.")}
+    RunDir(copy).save_residual(earlier, state["step"])
+    from vq_mitsuba.errors import Notice
+
+    with pytest.warns(Notice, match="earlier version of the field"):
+        assert RunDir(copy).load().residual is None

@@ -222,8 +222,8 @@ class TrainConfig:
 class ResidualConfig:
     """The view-dependent residual of novel views, fitted after the materials (VQ-NeRF, Sec. 4)."""
 
-    iterations: int = setting(500, "steps fitting the residual on the training pixels, materials and light frozen "
-                                   "(0: no residual)")
+    iterations: int = setting(3000, "steps fitting the residual on the training pixels, materials and light frozen "
+                                    "(0: no residual)")
 
 
 @dataclass

@@ -3,15 +3,19 @@
 Materials and light are frozen, so the physically based radiance of each training hit is a
 constant: it is rendered once (`PREDICTION_SPP` sample pairs, the continuous branch with the
 render's bounce, as `render.views.Renderer` shades it) for up to `RESIDUAL_HITS` random hits of
-the trainer's pixel pool. The residual field (`vq_mitsuba.models.residual`) is then fitted in
-torch alone, without Mitsuba in the loop, to the gamma-encoded pixel colours:
+the trainer's pixel pool (every hit of a capture of a few million pixels). The residual field, a
+surface light field (`vq_mitsuba.models.residual`), is then fitted in torch alone, without
+Mitsuba in the loop, to the gamma-encoded pixel colours:
 
     min_r  mean || enc(L_pbr(x, wi) + r(x, wi)) - enc(target) ||^2,   enc(c) = c^(1/loss.gamma)
 
+Adam, the hash table at `LR` and the network at `LR_NET`, both decaying to `LR_END` of that over
+residual.iterations steps of `BATCH` hits (fewer on a small pool: at most `MAX_EPOCHS` passes).
+
 Approximate: each hit's L_pbr is one Monte Carlo estimate, not its mean, so the targets of the
-residual carry that noise; the field is smooth and fitted over many hits, so it averages it out
-rather than learning it (fit.json's `residual` block shows the training-pixel PSNR before and
-after, on hits the field was not fitted on).
+residual carry that noise; neighbouring hits share the field's cells and it is fitted over many
+hits, so it averages the noise out rather than learning it (fit.json's `residual` block shows
+the training-pixel PSNR before and after, on hits the field was not fitted on).
 """
 
 from __future__ import annotations
@@ -29,11 +33,12 @@ from vq_mitsuba.models.residual import ResidualField, add_residual
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir
 
-RESIDUAL_HITS = 1 << 17  # training hits the residual is fitted on (a random subset of larger pools)
+RESIDUAL_HITS = 1 << 21  # training hits the residual is fitted on (a random subset of larger pools)
 CHECK_SHARE = 0.1  # share of those hits kept aside to measure it
-PREDICTION_SPP = 32  # sample pairs of each hit's physically based radiance
-BATCH = 4096
-LR = 2e-3
+PREDICTION_SPP = 16  # sample pairs of each hit's physically based radiance
+BATCH = 8192
+LR = 1e-2  # the hash table's; the network's is LR_NET
+LR_NET = 2e-3
 LR_END = 0.1  # learning-rate factor at the last step (exponential decay)
 MAX_EPOCHS = 200  # passes over the fitted hits at most: a small pool needs fewer steps than residual.iterations
 MIN_STEPS = 50
@@ -71,14 +76,16 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     if len(fit_ids) == 0:
         fit_ids = check_ids
     field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4))).to(device)
-    optim = torch.optim.Adam(field.parameters(), lr=LR)
+    table = [field.encoding.table]
+    optim = torch.optim.Adam([{"params": table, "lr": LR, "base": LR},
+                              {"params": list(field.mlp.parameters()), "lr": LR_NET, "base": LR_NET}], eps=1e-15)
     gamma = cfg.loss.gamma
     position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
     batch = min(BATCH, len(fit_ids))
 
     def step(p: Progress) -> None:
         for g in optim.param_groups:
-            g["lr"] = LR * LR_END ** p.step_share
+            g["lr"] = g["base"] * LR_END ** p.step_share
         b = fit_ids[torch.randint(0, len(fit_ids), (batch,), generator=gen, device=device)]
         rgb = add_residual(physical[b], field(position[b], normal[b], wi[b]))
         loss = losses.reconstruction_l2(rgb, target[b], gamma)

@@ -45,7 +45,7 @@ import torch
 import yaml
 
 from vq_mitsuba.config import Config, load_config, save_config
-from vq_mitsuba.errors import InputError, NumericalError
+from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models.material_edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
@@ -514,7 +514,12 @@ class RunDir:
         if not isinstance(state.get("step"), int) or not isinstance(state.get("field"), dict):
             raise InputError(path, "not a residual state ('step' and 'field' missing): fit the run again, or remove "
                                    "the file")
-        return state["field"] if state["step"] == step else None
+        if state["step"] != step:
+            return None
+        if "encoding.table" not in state["field"]:  # the field before the surface light field
+            warn(f"{path}: a residual of an earlier version of the field, left out (fit the run again to refit it)")
+            return None
+        return state["field"]
 
     def snapshot_path(self, elapsed_s: float, step: int) -> Path:
         (self.dir / self.SNAPSHOTS).mkdir(exist_ok=True)
