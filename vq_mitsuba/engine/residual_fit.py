@@ -11,6 +11,10 @@ Mitsuba in the loop, to the gamma-encoded pixel colours:
 
 Adam, the hash table at `LR` and the network at `LR_NET`, both decaying to `LR_END` of that over
 residual.iterations steps of `BATCH` hits (fewer on a small pool: at most `MAX_EPOCHS` passes).
+The finest cells of the hash encoding follow the hits (`models.residual.finest_for_hits`); the
+kept-aside hits are scored `CHECKS` times and the best field is kept, the untrained (zero) one
+included, so the residual never makes the training pixels it was not fitted on worse; after
+`PATIENCE` scores in a row below the best, the fit stops.
 
 Approximate: each hit's L_pbr is one Monte Carlo estimate, not its mean, so the targets of the
 residual carry that noise; neighbouring hits share the field's cells and it is fitted over many
@@ -20,6 +24,7 @@ the training-pixel PSNR before and after, on hits the field was not fitted on).
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 
@@ -29,7 +34,7 @@ from vq_mitsuba.backend import sized
 from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
 from vq_mitsuba.data.pixels import PixelPool
 from vq_mitsuba.models import losses
-from vq_mitsuba.models.residual import ResidualField, add_residual
+from vq_mitsuba.models.residual import ResidualField, add_residual, finest_for_hits
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir
 
@@ -42,6 +47,8 @@ LR_NET = 2e-3
 LR_END = 0.1  # learning-rate factor at the last step (exponential decay)
 MAX_EPOCHS = 200  # passes over the fitted hits at most: a small pool needs fewer steps than residual.iterations
 MIN_STEPS = 50
+CHECKS = 10  # times the kept-aside hits are scored during the fit: the best field is kept ...
+PATIENCE = 3  # ... and the fit stops after this many scores in a row below the best
 
 
 @torch.no_grad()
@@ -75,13 +82,25 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     fit_ids, check_ids = torch.arange(n_check, n, device=device), torch.arange(n_check, device=device)
     if len(fit_ids) == 0:
         fit_ids = check_ids
-    field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4))).to(device)
+    field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4)),
+                          finest=finest_for_hits(len(fit_ids))).to(device)
     table = [field.encoding.table]
     optim = torch.optim.Adam([{"params": table, "lr": LR, "base": LR},
                               {"params": list(field.mlp.parameters()), "lr": LR_NET, "base": LR_NET}], eps=1e-15)
     gamma = cfg.loss.gamma
     position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
     batch = min(BATCH, len(fit_ids))
+    steps = min(cfg.residual.iterations, max(MIN_STEPS, math.ceil(MAX_EPOCHS * len(fit_ids) / batch)))
+    every = max(1, steps // CHECKS)
+
+    @torch.no_grad()
+    def check_psnr() -> float:
+        c = check_ids
+        return losses.psnr(float(losses.srgb_mse(add_residual(physical[c], field(position[c], normal[c], wi[c])),
+                                                 target[c])))
+
+    before = check_psnr()  # the untrained field adds nothing
+    best = {"psnr": before, "step": 0, "state": copy.deepcopy(field.state_dict()), "worse": 0}
 
     def step(p: Progress) -> None:
         for g in optim.param_groups:
@@ -92,19 +111,21 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
+        if (p.step + 1) % every == 0 or p.step + 1 == steps:
+            now = check_psnr()
+            if now > best["psnr"]:
+                best.update(psnr=now, step=p.step + 1, state=copy.deepcopy(field.state_dict()), worse=0)
+            else:
+                best["worse"] += 1
 
     t0 = time.perf_counter()
-    steps = min(cfg.residual.iterations, max(MIN_STEPS, math.ceil(MAX_EPOCHS * len(fit_ids) / batch)))
-    Loop("residual", Budget(steps), step, progress_bar=progress).run()
+    done = Loop("residual", Budget(steps), step, progress_bar=progress, done=lambda: best["worse"] >= PATIENCE).run()
+    field.load_state_dict(best["state"])
     field.eval()
-    with torch.no_grad():
-        c = check_ids
-        with_residual = add_residual(physical[c], field(position[c], normal[c], wi[c]))
-        before = losses.psnr(float(losses.srgb_mse(physical[c], target[c])))
-        after = losses.psnr(float(losses.srgb_mse(with_residual, target[c])))
-    info = {"iterations": steps, "hits": n, "check_hits": len(check_ids),
-            "prediction_spp": PREDICTION_SPP, "seconds": time.perf_counter() - t0,
-            "psnr_check_hits_before": before, "psnr_check_hits_after": after}
+    info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "check_hits": len(check_ids),
+            "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
+            "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
+            "psnr_check_hits_after": best["psnr"]}
     return field, info
 
 

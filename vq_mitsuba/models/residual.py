@@ -26,10 +26,11 @@ import numpy as np
 import torch
 from torch import nn
 
-LEVELS = 12  # resolutions of the hash encoding, geometric from COARSEST to FINEST cells a box side
+LEVELS = 12  # resolutions of the hash encoding, geometric from COARSEST to the finest cells a box side
 FEATURES = 2  # features a level
 LOG2_TABLE = 16  # entries a level: 2^16 (a level with fewer cells is indexed densely)
-COARSEST, FINEST = 16, 512
+COARSEST, FINEST = 16, 512  # FINEST: the finest level's cells at most (`finest_for_hits` sets it)
+HITS_PER_CELL = 8  # training hits the finest level's cells of the surface are meant to hold, at least
 HIDDEN = 64  # width of the hidden layers
 HIDDEN_LAYERS = 2
 MIRROR_DEGREE = 4  # spherical-harmonic degree of the mirror direction
@@ -61,6 +62,14 @@ def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:
     if degree > 4:
         raise ValueError(f"spherical harmonics up to degree 4, not {degree}")
     return torch.stack(out, -1)
+
+
+def finest_for_hits(hits: int) -> int:
+    """The finest level's cells a box side for a field fitted on `hits` surface hits: about
+    HITS_PER_CELL hits a cell on a surface as large as the box's cross-section, so that a cell
+    averages the pixels (and the Monte Carlo noise of their targets) it holds instead of
+    memorising one; between 2 COARSEST and FINEST."""
+    return int(min(FINEST, max(2 * COARSEST, math.sqrt(max(hits, 0) / HITS_PER_CELL))))
 
 
 class HashEncoding(nn.Module):
@@ -107,15 +116,16 @@ class ResidualField(nn.Module):
     """r(x, n, wi): linear RGB radiance (N, 3) added to the physically based render of the
     capture's own light; may be negative (the render can also be too bright)."""
 
-    def __init__(self, bbox_min, bbox_max, scale: float = 1.0):
+    def __init__(self, bbox_min, bbox_max, scale: float = 1.0, finest: int = FINEST):
         super().__init__()
         bbox_min = torch.tensor(np.array(bbox_min, dtype=np.float32))
         bbox_max = torch.tensor(np.array(bbox_max, dtype=np.float32))
         self.register_buffer("center", 0.5 * (bbox_min + bbox_max))
+        self.register_buffer("finest", torch.tensor(int(finest)))
         self.register_buffer("half_extent", (0.5 * (bbox_max - bbox_min).max() * 1.05).reshape(()))
         # The radiance scale of the capture (mean target): the network works at order one.
         self.register_buffer("scale", torch.tensor(float(scale)))
-        self.encoding = HashEncoding()
+        self.encoding = HashEncoding(finest=int(finest))
         dims = [self.encoding.out_dim + 9 + (MIRROR_DEGREE + 1) ** 2 + 1] + [HIDDEN] * HIDDEN_LAYERS
         layers = []
         for a, b in zip(dims[:-1], dims[1:]):

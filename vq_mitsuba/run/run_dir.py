@@ -516,7 +516,7 @@ class RunDir:
                                    "the file")
         if state["step"] != step:
             return None
-        if "encoding.table" not in state["field"]:  # the field before the surface light field
+        if "finest" not in state["field"]:  # the field before the surface light field
             warn(f"{path}: a residual of an earlier version of the field, left out (fit the run again to refit it)")
             return None
         return state["field"]
@@ -587,7 +587,7 @@ class RunDir:
                              int(state.get("step", -1)))
         residual = self.residual_state(fitted.step, device) if checkpoint is None else None
         if residual is not None:
-            fitted.residual = ResidualField(*mesh.bounds).to(device)
+            fitted.residual = ResidualField(*mesh.bounds, finest=int(residual["finest"])).to(device)
             load_module_state(fitted.residual, residual, self.dir / self.RESIDUAL, "field")
             fitted.residual.eval()
         return fitted
