@@ -127,7 +127,7 @@ def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path:
         # material fit from the beginning, keeping what the folder already holds (mesh.ply).
         print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
         resume = False
-    capture = _load(capture_path, mesh_path, run, cfg)  # every input check happens here, first
+    capture = load_training_capture(capture_path, mesh_path, run, cfg)  # every input check happens here, first
     state = None
     if resume:
         state, cfg = _resume_point(run, capture, cfg)
@@ -152,7 +152,8 @@ def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path:
     return summary
 
 
-def _load(capture_path: str | Path, mesh_path: str | Path | None, run: RunDir, cfg: Config) -> Capture:
+def load_training_capture(capture_path: str | Path, mesh_path: str | Path | None, run: RunDir,
+                          cfg: Config) -> Capture:
     """The training views with their geometry (masked by the mesh when NeuS made it without masks)."""
     capture = load_capture(capture_path, mesh=mesh_path, options=cfg.capture, split="train",
                            cache_dir=run.undistorted_dir)

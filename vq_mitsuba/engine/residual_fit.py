@@ -122,7 +122,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     done = Loop("residual", Budget(steps), step, progress_bar=progress, done=lambda: best["worse"] >= PATIENCE).run()
     field.load_state_dict(best["state"])
     field.eval()
-    info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "check_hits": len(check_ids),
+    info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n,
+            "check_hits": len(check_ids),
             "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"]}
