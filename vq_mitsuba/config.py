@@ -122,7 +122,7 @@ class EnvmapConfig:
     height: int = setting(
         128, "rows of the learned envmap at the end of the fit (width is twice this); it grows from 32", ">=2")
     init_scale: float = setting(2.0, "initial radiance as a multiple of the mean foreground pixel value", ">0")
-    lr: float = setting(0.02, "Adam learning rate of the log-radiance texels", "(0,1]")
+    lr: float = setting(0.05, "Adam learning rate of the log-radiance texels", "(0,1]")
     tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
     final_height: str = setting(
         "auto", "the learned envmap's last rung: auto stops growing at the rows the fitted roughness can resolve "
