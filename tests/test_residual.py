@@ -169,3 +169,35 @@ def test_a_residual_of_the_earlier_field_is_left_out_with_a_warning(view_depende
 
     with pytest.warns(Notice, match="earlier version of the field"):
         assert RunDir(copy).load().residual is None
+
+
+def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dependent_run, tmp_path, capsys):
+    """`fit --resume` on a finished run whose residual.pt is of the earlier field (or missing)
+    fits the residual again on the frozen materials; with a current one it leaves the run alone."""
+    import shutil
+
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.errors import Notice
+    from vq_mitsuba.run.run_dir import RunDir
+
+    xml, run = view_dependent_run
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    state = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
+    earlier = {k: v for k, v in state["field"].items() if not k.startswith("encoding.") and k != "finest"}
+    RunDir(copy).save_residual(earlier, state["step"])
+    (copy / RunDir.FIT).write_text(json.dumps({**json.loads((copy / RunDir.FIT).read_text()), "residual": None}))
+    cfg = load_config(copy / "config.yaml", [])
+    with pytest.warns(Notice, match="earlier version of the field"):
+        fit(xml, copy, cfg, resume=True, progress=False)
+    assert "fitting it again" in capsys.readouterr().out
+    refitted = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
+    assert refitted["step"] == state["step"] and "finest" in refitted["field"]
+    info = json.loads((copy / RunDir.FIT).read_text())["residual"]
+    assert info["psnr_check_hits_after"] > info["psnr_check_hits_before"] + 3.0
+    assert RunDir(copy).load().residual is not None
+    before = (copy / RunDir.RESIDUAL).stat().st_mtime_ns
+    fit(xml, copy, cfg, resume=True, progress=False)
+    assert "nothing to do" in capsys.readouterr().out
+    assert (copy / RunDir.RESIDUAL).stat().st_mtime_ns == before

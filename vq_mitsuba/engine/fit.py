@@ -169,7 +169,9 @@ def load_training_capture(capture_path: str | Path, mesh_path: str | Path | None
 def _resume_point(run: RunDir, capture: Capture, cfg: Config) -> tuple[dict | None, Config]:
     """(the checkpoint to resume from, the config to resume with), refused before any work when the
     run was fitted to another capture or mesh or with networks the config does not build; (None,
-    cfg) when the run is already fitted as far as train.iterations asks."""
+    cfg) when the run is already fitted as far as train.iterations asks (and has its residual, when
+    residual.iterations asks for one: a fitted run without it resumes at its last step, so that its
+    results, the residual included, are written again)."""
     info = run.info()
     if Path(info["capture"]) != Path(capture.source).resolve():
         raise InputError(run.dir, f"was fitted to {info['capture']}, not {Path(capture.source).resolve()}; "
@@ -191,9 +193,13 @@ def _resume_point(run: RunDir, capture: Capture, cfg: Config) -> tuple[dict | No
         return state, cfg
     # nothing to train: config.yaml keeps matching the checkpoint
     if run.fit_summary().get("iterations") == done:
-        print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
-              "asks for no more): nothing to do, the run is unchanged")
-        return None, cfg
+        if cfg.residual.iterations > 0 and run.residual_state(done) is None:
+            print(f"{run.dir}: already fitted ({done} iterations); its residual is missing or of an earlier "
+                  "version: fitting it again")
+        else:
+            print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
+                  "asks for no more): nothing to do, the run is unchanged")
+            return None, cfg
     discrete = state.get("discrete")
     if cfg.vq.enabled and not (isinstance(discrete, dict) and bool(discrete.get("initialised", False))):
         raise InputError(run.dir, f"already has {done} steps, and its discrete branch has not started yet: "

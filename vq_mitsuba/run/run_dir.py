@@ -517,7 +517,8 @@ class RunDir:
         if state["step"] != step:
             return None
         if "finest" not in state["field"]:  # the field before the surface light field
-            warn(f"{path}: a residual of an earlier version of the field, left out (fit the run again to refit it)")
+            warn(f"{path}: a residual of an earlier version of the field, left out (`vq-mitsuba fit CAPTURE -o RUN "
+                 "--resume` fits it again)")
             return None
         return state["field"]
 
