@@ -152,21 +152,28 @@ def test_a_residual_of_another_step_is_not_loaded(view_dependent_run, tmp_path):
     assert RunDir(copy).load().residual is None
 
 
-def test_a_residual_of_the_earlier_field_is_left_out_with_a_warning(view_dependent_run, tmp_path):
-    """A run fitted before the residual was a surface light field keeps loading: its residual.pt
-    (positional encoding, no hash table) is left out, and the user is told how to refit it."""
+def _copy_with_earlier_residual(run, tmp_path):
+    """A copy of the fitted `run` whose residual.pt holds the earlier field (no hash encoding), and
+    the original residual state."""
     import shutil
 
     from vq_mitsuba.run.run_dir import RunDir
 
-    _, run = view_dependent_run
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)
     state = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
     earlier = {k: v for k, v in state["field"].items() if not k.startswith("encoding.") and k != "finest"}
     RunDir(copy).save_residual(earlier, state["step"])
-    from vq_mitsuba.errors import Notice
+    return copy, state
 
+
+def test_a_residual_of_the_earlier_field_is_left_out_with_a_warning(view_dependent_run, tmp_path):
+    """A run fitted before the residual was a surface light field keeps loading: its residual.pt
+    (positional encoding, no hash table) is left out, and the user is told how to refit it."""
+    from vq_mitsuba.errors import Notice
+    from vq_mitsuba.run.run_dir import RunDir
+
+    copy, _ = _copy_with_earlier_residual(view_dependent_run[1], tmp_path)
     with pytest.warns(Notice, match="earlier version of the field"):
         assert RunDir(copy).load().residual is None
 
@@ -174,19 +181,13 @@ def test_a_residual_of_the_earlier_field_is_left_out_with_a_warning(view_depende
 def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dependent_run, tmp_path, capsys):
     """`fit --resume` on a finished run whose residual.pt is of the earlier field (or missing)
     fits the residual again on the frozen materials; with a current one it leaves the run alone."""
-    import shutil
-
     from vq_mitsuba.config import load_config
     from vq_mitsuba.engine.fit import fit
     from vq_mitsuba.errors import Notice
     from vq_mitsuba.run.run_dir import RunDir
 
     xml, run = view_dependent_run
-    copy = tmp_path / "copy"
-    shutil.copytree(run, copy)
-    state = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
-    earlier = {k: v for k, v in state["field"].items() if not k.startswith("encoding.") and k != "finest"}
-    RunDir(copy).save_residual(earlier, state["step"])
+    copy, state = _copy_with_earlier_residual(run, tmp_path)
     (copy / RunDir.FIT).write_text(json.dumps({**json.loads((copy / RunDir.FIT).read_text()), "residual": None}))
     cfg = load_config(copy / "config.yaml", [])
     with pytest.warns(Notice, match="earlier version of the field"):

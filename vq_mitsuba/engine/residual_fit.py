@@ -84,8 +84,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         fit_ids = check_ids
     field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4)),
                           finest=finest_for_hits(len(fit_ids))).to(device)
-    table = [field.encoding.table]
-    optim = torch.optim.Adam([{"params": table, "lr": LR, "base": LR},
+    optim = torch.optim.Adam([{"params": [field.encoding.table], "lr": LR, "base": LR},
                               {"params": list(field.mlp.parameters()), "lr": LR_NET, "base": LR_NET}], eps=1e-15)
     gamma = cfg.loss.gamma
     position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
@@ -123,8 +122,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     field.load_state_dict(best["state"])
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n,
-            "check_hits": len(check_ids),
-            "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
+            "check_hits": len(check_ids), "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"]}
     return field, info

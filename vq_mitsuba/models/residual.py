@@ -76,11 +76,9 @@ class HashEncoding(nn.Module):
     """Multiresolution hash encoding of points in [0, 1]^3: (N, 3) -> (N, LEVELS * FEATURES),
     each level's features trilinearly interpolated from the 8 corners of the point's cell."""
 
-    def __init__(self, levels: int | None = None, features: int | None = None, log2_table: int | None = None,
-                 coarsest: int | None = None, finest: int | None = None):
+    def __init__(self, levels: int = LEVELS, features: int = FEATURES, log2_table: int = LOG2_TABLE,
+                 coarsest: int = COARSEST, finest: int = FINEST):
         super().__init__()
-        levels, features = levels or LEVELS, features or FEATURES
-        log2_table, coarsest, finest = log2_table or LOG2_TABLE, coarsest or COARSEST, finest or FINEST
         growth = math.exp(math.log(finest / coarsest) / max(levels - 1, 1))
         res = [int(math.floor(coarsest * growth ** level + 1e-6)) for level in range(levels)]
         table = 1 << log2_table
