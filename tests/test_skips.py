@@ -95,6 +95,35 @@ def test_a_fit_records_its_envmap_rung_and_keeps_it_on_resume(tmp_path, monkeypa
     assert state["envmap"]["log_radiance"].shape[0] == 32 and state["skips"]["envmap"]["cap"] == 32
 
 
+def test_a_roughness_that_falls_after_the_first_decision_still_grows_the_envmap(tmp_path, monkeypatch):
+    """The ladder (32, 64) reaches 64 at step 6 of 12 while the field reads as matte: 32 rows kept.
+    From step 8 it reads as glossy; the next reading (every 2 steps here) grows the light to 64 rows,
+    and fit.json records both decisions."""
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
+    cfg = load_config(None, QUICK + ["train.iterations=12", "envmap.height=64", "field.pe_anneal=1.0"])
+    monkeypatch.setattr(skips, "ENVMAP_RECHECK_EVERY", 2)
+    real = Trainer.envmap_height
+
+    def falling(self, progress):
+        forward = self.model.forward
+        rough = 0.9 if self.step < 8 else 0.1
+        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), rough)}
+        try:
+            return real(self, progress)
+        finally:
+            del self.model.forward
+
+    monkeypatch.setattr(Trainer, "envmap_height", falling)
+    summary = fit(capture, tmp_path / "run", cfg, progress=False)
+    env = summary["decisions"]["envmap"]
+    first, second = env["checks"]
+    assert (first["step"], first["rows"], first["ladder_rows"]) == (6, 32, 64)
+    assert (second["step"], second["rows"]) == (8, 64) and "quantile 0.100" in second["reason"]
+    assert env["choice"] == 64
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    assert state["envmap"]["log_radiance"].shape[0] == 64 and state["skips"]["envmap"]["cap"] == 64
+
+
 # --- pace ------------------------------------------------------------------------------------------
 def _run_pace(pace: skips.Pace, loss) -> int:
     """Advance `pace` step by step, measuring `loss(step)` when due; the step it finished at."""

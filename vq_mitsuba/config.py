@@ -126,7 +126,7 @@ class EnvmapConfig:
     tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
     final_height: str = setting(
         "auto", "the learned envmap's last rung: auto stops growing at the rows the fitted roughness can resolve "
-                "(decided where the ladder would grow), full grows to envmap.height", ("auto", "full"))
+                "(read as the ladder grows and as the fit goes on), full grows to envmap.height", ("auto", "full"))
 
 
 @dataclass

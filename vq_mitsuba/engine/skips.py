@@ -13,7 +13,10 @@ reason go into fit.json (`decisions`) and the progress line.
   training hits; a GGX lobe of alpha = roughness^2 is about 2.6 alpha wide (its reflected
   directions' half-maximum width), and an envmap row of pi / H radians finer than
   `ROW_PER_ALPHA` alpha resolves what such a lobe reflects (less than 10 % of its detail lost at
-  the map's Nyquist frequency). The ladder grows no higher than the first rung that fine.
+  the map's Nyquist frequency). The ladder grows no higher than the first rung that fine. The
+  roughness is read where the ladder reaches a rung, and again every `ENVMAP_RECHECK_EVERY` steps
+  while the ladder is above the rung kept: a rung decided early is no ceiling for a roughness
+  that falls later.
 - **Pace** (`train.stop`): the schedule (learning-rate decay, prior decay, barrier, encoding
   frequencies, envmap ladder, discrete start) runs on schedule steps; each training step advances
   them by the pace (1 at first). Every `Pace.every` steps the loss of held-aside training pixels
@@ -43,6 +46,7 @@ ROUGHNESS_QUANTILE = 0.02  # the sharpest lobes: this quantile of the fitted rou
 ROUGHNESS_HITS = 4096  # fixed training hits it is read on
 ROW_PER_ALPHA = 1.6  # an envmap row (pi / H radians) at most this many alpha resolves a lobe of alpha
 ALPHA_MIN = 0.001  # Mitsuba's (and Cycles') smallest GGX alpha
+ENVMAP_RECHECK_EVERY = 50  # steps between readings of the roughness while the ladder is above the rung kept
 
 STOP_PIXELS = 2048  # held-aside pixels (at most STOP_PIXELS_SHARE of the pixels)
 STOP_PIXELS_SHARE = 0.05

@@ -336,23 +336,29 @@ class Trainer:
     def envmap_height(self, progress: float) -> int:
         """The ladder's rows at `progress` (`envmap_height_at`), no higher than the rung the fitted
         roughness asks for when envmap.final_height is auto: decided each time the ladder reaches
-        a rung it has not reached before (the rung kept never goes down)."""
+        a rung it has not reached before, and read again every `skips.ENVMAP_RECHECK_EVERY` steps
+        while the ladder is above it, so a roughness that falls later still grows the light (the
+        rung kept never goes down). A decision is recorded when the ladder reaches a rung or the
+        rung grows."""
         want = envmap_height_at(self.cfg, progress)
         if not self.env_auto:
             return want
         ladder = envmap_ladder(self.cfg)
         k = ladder.index(want)
-        if k > self.env_decided:
-            self.env_decided = k
+        reached = k > self.env_decided
+        if reached or (want > self.env_cap and self.step % skips.ENVMAP_RECHECK_EVERY == 0):
+            self.env_decided = max(self.env_decided, k)
             with torch.no_grad():
                 roughness = self.model(self.pool.position[self.rough_idx])["roughness"]
             rows, why = skips.envmap_rung(ladder, roughness)
+            grows = rows > self.env_cap
             if rows < self.env_cap:
                 why += f"; kept at {self.env_cap} rows (a rung reached is kept)"
             self.env_cap = max(self.env_cap, rows)
-            self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
-                                     "reason": why})
-            self._say(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
+            if reached or grows:
+                self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
+                                         "reason": why})
+                self._say(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
         return min(want, self.env_cap)
 
     def _say(self, text: str) -> None:
