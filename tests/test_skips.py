@@ -72,22 +72,27 @@ def test_the_envmap_stops_lower_for_matte_materials_than_for_glossy_ones():
     assert skips.rows_for_roughness(0.15) > 64 and skips.rows_for_roughness(0.3) < 32
 
 
-def test_a_fit_records_its_envmap_rung_and_keeps_it_on_resume(tmp_path, monkeypatch):
-    """A learned envmap on a matte sphere: the ladder (32, 64) would grow at step 4 of 8; the fitted
-    roughness (here the field's, near 1) keeps it at 32 rows, recorded in fit.json and the checkpoint."""
-    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
-    cfg = load_config(None, QUICK + ["train.iterations=8", "envmap.height=64", "field.pe_anneal=1.0"])
+def _rung_reads(monkeypatch, roughness_at) -> None:
+    """The envmap rule reads the material field's roughness as `roughness_at(step)` everywhere."""
     real = Trainer.envmap_height
 
-    def matte(self, progress):  # the material field reads as matte whatever it has learned in 4 steps
-        forward = self.model.forward
-        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), 0.9)}
+    def reading(self, progress):
+        forward, rough = self.model.forward, roughness_at(self.step)
+        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), rough)}
         try:
             return real(self, progress)
         finally:
             del self.model.forward
 
-    monkeypatch.setattr(Trainer, "envmap_height", matte)
+    monkeypatch.setattr(Trainer, "envmap_height", reading)
+
+
+def test_a_fit_records_its_envmap_rung_and_keeps_it_on_resume(tmp_path, monkeypatch):
+    """A learned envmap on a matte sphere: the ladder (32, 64) would grow at step 4 of 8; the fitted
+    roughness (here the field's, near 1) keeps it at 32 rows, recorded in fit.json and the checkpoint."""
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
+    cfg = load_config(None, QUICK + ["train.iterations=8", "envmap.height=64", "field.pe_anneal=1.0"])
+    _rung_reads(monkeypatch, lambda step: 0.9)  # matte whatever the field has learned in 4 steps
     summary = fit(capture, tmp_path / "run", cfg, progress=False)
     env = summary["decisions"]["envmap"]
     assert env["choice"] == 32 and env["ladder"] == [32, 64] and env["checks"][0]["step"] == 4
@@ -102,18 +107,7 @@ def test_a_roughness_that_falls_after_the_first_decision_still_grows_the_envmap(
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
     cfg = load_config(None, QUICK + ["train.iterations=12", "envmap.height=64", "field.pe_anneal=1.0"])
     monkeypatch.setattr(skips, "ENVMAP_RECHECK_EVERY", 2)
-    real = Trainer.envmap_height
-
-    def falling(self, progress):
-        forward = self.model.forward
-        rough = 0.9 if self.step < 8 else 0.1
-        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), rough)}
-        try:
-            return real(self, progress)
-        finally:
-            del self.model.forward
-
-    monkeypatch.setattr(Trainer, "envmap_height", falling)
+    _rung_reads(monkeypatch, lambda step: 0.9 if step < 8 else 0.1)
     summary = fit(capture, tmp_path / "run", cfg, progress=False)
     env = summary["decisions"]["envmap"]
     first, second = env["checks"]
