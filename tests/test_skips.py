@@ -14,6 +14,7 @@ from vq_mitsuba.config import load_config
 from vq_mitsuba.engine import skips
 from vq_mitsuba.engine.fit import fit
 from vq_mitsuba.engine.trainer import Trainer
+from vq_mitsuba.models import losses
 
 QUICK = ["train.batch_rays=64", "residual.iterations=0", "vq.enabled=false"]
 
@@ -272,3 +273,40 @@ def test_the_error_sampler_draws_where_the_error_is_with_a_floor_for_every_pixel
     tiled = ErrorSampler(_pool(copies=4), torch.arange(4 * n), 8, 8, tile=4)
     assert tiled.num_tiles == 2 * 2 * 2 and int(tiled.counts.sum()) == 4 * n
     assert sampler_tile(100_000, 2048 * 3000) == 1 and sampler_tile(2_000_000, 2048 * 3000) == 4
+
+
+def test_a_step_shades_whole_pixels_and_scores_their_means(small_sphere, tmp_path, monkeypatch):
+    """A step draws train.batch_rays / 4 pixels and shades every jittered hit of each, pixel by
+    pixel; the reconstruction scores each pixel's mean: shading that varies inside a pixel around
+    its colour costs nothing, where scoring hit by hit would ask every hit for the pixel's colour."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.engine.schedule import StepSchedule
+    from vq_mitsuba.run.run_dir import RunDir
+
+    capture = load_capture(small_sphere, split="train")
+    trainer = Trainer(capture, RunDir(tmp_path / "run"), load_config(None, QUICK + ["train.iterations=10"]))
+    pool = trainer.pool
+    key = pool.view * capture.width * capture.height + pool.pixel
+    table = trainer.pixel_hits.cpu()
+    assert trainer.copies == 4 and table.shape == (len(torch.unique(key)), 4)
+    for row in table[torch.randperm(len(table))[:200]]:  # a pixel's row: its own hits, each of them
+        assert len(set(key[row].tolist())) == 1
+        assert set(row.tolist()) == set(torch.nonzero(key == key[row[0]])[:, 0].tolist())
+    spread = torch.tensor([1.2, 0.8, 1.1, 0.9])  # the mean of each pixel's four hits is its colour
+    shaded = []
+
+    def render(self, idx, material, env, bounce_fn, fixed_light=None):
+        shaded.append(idx)
+        return (pool.rgb[idx] * spread.repeat(len(idx) // 4)[:, None])[:, None, :].expand(-1, 8, -1)
+
+    monkeypatch.setattr(Trainer, "_render", render)
+    schedule = StepSchedule(done=0.0, progress=0.0, lr_factor=1.0, w_lam=0.0, w_lam_d=0.0,
+                            metallic_barrier=False, discrete=False)
+    idx, _ = trainer.draw()
+    terms, rgb, _ = trainer.loss_terms(idx, schedule, bounce=False)
+    assert len(idx) == 16 and len(shaded[0]) == 64
+    assert torch.equal(key[shaded[0]].reshape(16, 4), key[idx][:, None].expand(-1, 4))
+    assert float(terms["rec_c"]) == pytest.approx(0.0, abs=1e-9) and torch.allclose(rgb, pool.rgb[idx])
+    per_hit = losses.reconstruction_l2_decorrelated(render(trainer, shaded[0], None, None, None), pool.rgb[shaded[0]],
+                                                    trainer.cfg.loss.gamma)
+    assert float(per_hit) > 1e-4

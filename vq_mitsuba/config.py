@@ -190,7 +190,8 @@ class TrainConfig:
     """The training loop."""
 
     iterations: int = setting(3000, "optimisation steps", ">0")
-    batch_rays: int = setting(2048, "random foreground pixels per step, drawn across all training views", ">0")
+    batch_rays: int = setting(
+        2048, "primary hits shaded per step: whole random foreground pixels from all training views", ">0")
     spp: int = setting(8, "emitter + BSDF sample pairs per pixel and step", ">0")
     lr: float = setting(2e-3, "Adam learning rate of the material networks", "(0,1]")
     lr_end_exponential: float = setting(

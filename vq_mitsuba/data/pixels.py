@@ -108,6 +108,19 @@ def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
     return torch.cat(pairs)
 
 
+def pixel_hit_table(pool: PixelPool, width: int, height: int, copies: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(each hit's row (P,), (R, copies) pool indices of the jittered hits of each of the R pixels
+    that have any): a pixel with fewer hits (its other rays missed) repeats one of them."""
+    keys = pool.view.cpu() * (width * height) + pool.pixel.cpu()
+    _, row = torch.unique(keys, return_inverse=True)
+    table = torch.full((int(row.max()) + 1 if len(row) else 0, copies), -1, dtype=torch.int64)
+    table[row, pool.copy.cpu()] = torch.arange(len(keys))
+    any_hit = table.max(dim=1).values
+    table = torch.where(table < 0, any_hit[:, None], table)
+    device = pool.position.device
+    return row.to(device), table.to(device)
+
+
 def hold_aside(pool: PixelPool, width: int, height: int, n_pixels: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(pool indices of `n_pixels` random pixels' first hits, pool indices of every hit of the
     other pixels): a fixed set of pixels kept out of the gradient steps, all jittered hits of a

@@ -20,7 +20,8 @@ import torch
 from vq_mitsuba.backend import init_mitsuba, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture
-from vq_mitsuba.data.pixels import ErrorSampler, hold_aside, neighbour_pairs, sampler_tile, trace_training_pixels
+from vq_mitsuba.data.pixels import (ErrorSampler, hold_aside, neighbour_pairs, pixel_hit_table, sampler_tile,
+                                    trace_training_pixels)
 from vq_mitsuba.run.run_dir import RunDir
 from vq_mitsuba.engine import skips
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
@@ -121,6 +122,12 @@ class Trainer:
         self.pairs = neighbour_pairs(self.pool, capture.width, capture.height).to(device) \
             if cfg.loss.w_sm > 0 else None
         self.batch = min(cfg.train.batch_rays, len(self.pool))
+        # a pixel's colour is the mean over its footprint: its jittered hits are shaded together and
+        # their mean is scored, so the loss does not also ask each hit for the pixel's mean colour
+        self.copies = int(self.pool_stats["hits_per_pixel"]) if cfg.train.pixel_jitter > 0 else 1
+        self.hit_row = self.pixel_hits = None
+        if self.copies > 1:
+            self.hit_row, self.pixel_hits = pixel_hit_table(self.pool, capture.width, capture.height, self.copies)
         self.history: list[dict] = []
         self.step, self.elapsed_before = 0, 0.0
         self._decide_at_start()
@@ -146,7 +153,7 @@ class Trainer:
         if t.sampling == "auto":
             candidates = self.train_idx if self.train_idx is not None else torch.arange(len(pool))
             drawable = n_pixels - (0 if self.held is None else len(self.held))
-            tile = sampler_tile(drawable, self.batch * t.iterations, skips.SAMPLER_VISITS)
+            tile = sampler_tile(drawable, self.pixels_per_step * t.iterations, skips.SAMPLER_VISITS)
             self.sampler = ErrorSampler(pool, candidates, w, h, tile, skips.SAMPLER_FLOOR)
         self.env_auto = self.learn_env and cfg.envmap.final_height == "auto"
         ladder = envmap_ladder(cfg)
@@ -274,9 +281,12 @@ class Trainer:
         reconstruction terms; the priors, chromaticity and VQ terms are means over the batch."""
         cfg, pool, ab = self.cfg, self.pool, self.cfg.ablation
         gamma = cfg.loss.gamma
+        target, hits = pool.rgb[idx], self.footprint(idx)
+        per_hit = None if weight is None else weight.repeat_interleave(len(hits) // len(idx))
+        # shading, priors and VQ per hit; the reconstruction per pixel, with the pixels' weights
+        idx, pixel_weight, weight = hits, weight, per_hit
         out = self.model(pool.position[idx])
         env = self.envmap()
-        target = pool.rgb[idx]
         bounce_fn = self.model if bounce else None
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
         single = discrete_on and ab.single_branch
@@ -295,17 +305,20 @@ class Trainer:
             fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
             samples_both = self._render(torch.cat([idx, idx]), both, env, bounce_fn, fixed)
             samples, samples_d = samples_both[:n], samples_both[n:]
+            samples_d = self._pixel_means(samples_d, len(target))
+        samples = self._pixel_means(samples, len(target))
         per_pixel = None
         if self.sampler is not None:
             with torch.no_grad():
                 per_pixel = losses.decorrelated_error(samples, target, gamma)
         terms = {
             "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
-                                                                                                     gamma, weight),
+                                                                                                     gamma, pixel_weight),
             "lam_c": s.w_lam * self._lambertian(out, s, weight),
         }
         if discrete_on:
-            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
+            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma,
+                                                                                      pixel_weight)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
                                                                                            out["basecolor"], weight)
             terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
@@ -322,16 +335,33 @@ class Trainer:
             terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
         return terms, samples.mean(1), per_pixel
 
+    @staticmethod
+    def _pixel_means(samples: torch.Tensor, n_pixels: int) -> torch.Tensor:
+        """(n_pixels, spp, 3): the mean of each pixel's hits' samples (hits in pixel order)."""
+        return samples.reshape(n_pixels, -1, *samples.shape[1:]).mean(1)
+
     def draw(self) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The step's pixels (pool indices) and their importance weights (None: drawn uniformly)."""
         if self.sampler is not None:
             if self.step % skips.SAMPLER_REFRESH == 0:
                 self.sampler.refresh()
-            return self.sampler.draw(self.batch, self.gen)
+            return self.sampler.draw(self.pixels_per_step, self.gen)
         if self.train_idx is not None:  # all but the held-aside pixels
-            pick = torch.randint(0, len(self.train_idx), (self.batch,), generator=self.gen, device=self.device)
+            pick = torch.randint(0, len(self.train_idx), (self.pixels_per_step,), generator=self.gen,
+                                 device=self.device)
             return self.train_idx[pick], None
-        return torch.randint(0, len(self.pool), (self.batch,), generator=self.gen, device=self.device), None
+        return torch.randint(0, len(self.pool), (self.pixels_per_step,), generator=self.gen, device=self.device), None
+
+    @property
+    def pixels_per_step(self) -> int:
+        """Pixels a step draws: train.batch_rays hits, all the jittered hits of each pixel."""
+        return max(1, self.batch // self.copies)
+
+    def footprint(self, idx: torch.Tensor) -> torch.Tensor:
+        """(len(idx) * copies,) the jittered hits of the pixels of the hits `idx`, pixel by pixel."""
+        if self.pixel_hits is None:
+            return idx
+        return self.pixel_hits[self.hit_row[idx]].reshape(-1)
 
     def envmap_height(self, progress: float) -> int:
         """The ladder's rows at `progress` (`envmap_height_at`), no higher than the rung the fitted
