@@ -66,18 +66,20 @@ def roughness_scores(root: Path, meta: dict, shapes: dict, sensors, masks, specs
         sel = [m & (np.asarray(iio.imread(root / "gt" / f"{s.id()}_material.png")) == materials[name]["id"])
                for s, m in zip(sensors, masks)]
         gts = [read_exr(root / "images" / f"{s.id()}.exr")[..., :3] for s in sensors]
+        n_pixels = sum(int(m.sum()) for m in sel)
         scores = {}
         for value in values:
             for k in keys:
                 params[k] = value
             params.update()
-            imgs = [np.array(mi.render(truth, sensor=s, spp=spp, seed=7919 + i))[..., :3] for i, s in enumerate(sensors)]
+            imgs = [np.array(mi.render(truth, sensor=s, spp=spp, seed=7919 + i))[..., :3]
+                    for i, s in enumerate(sensors)]
             pred = np.concatenate([M.srgb(im)[m] for im, m in zip(imgs, sel)])
             ref = np.concatenate([M.srgb(g)[m] for g, m in zip(gts, sel)])
             scores[f"{value:g}"] = float(10 * np.log10(1.0 / np.mean((pred - ref) ** 2)))
             print(f"{name} at roughness {value:g} (truth {materials[name]['roughness']:g}): "
-                  f"{scores[f'{value:g}']:.2f} dB on its {sum(int(m.sum()) for m in sel)} pixels")
-        out[name] = {"truth": materials[name]["roughness"], "pixels": sum(int(m.sum()) for m in sel), "psnr": scores}
+                  f"{scores[f'{value:g}']:.2f} dB on its {n_pixels} pixels")
+        out[name] = {"truth": materials[name]["roughness"], "pixels": n_pixels, "psnr": scores}
     return out
 
 

@@ -108,10 +108,15 @@ def neighbour_pairs(pool: PixelPool, width: int, height: int) -> torch.Tensor:
     return torch.cat(pairs)
 
 
+def pixel_keys(pool: PixelPool, width: int, height: int) -> torch.Tensor:
+    """(P,) each hit's pixel key view * W * H + pixel, on the CPU."""
+    return pool.view.cpu() * (width * height) + pool.pixel.cpu()
+
+
 def pixel_hit_table(pool: PixelPool, width: int, height: int, copies: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(each hit's row (P,), (R, copies) pool indices of the jittered hits of each of the R pixels
     that have any): a pixel with fewer hits (its other rays missed) repeats one of them."""
-    keys = pool.view.cpu() * (width * height) + pool.pixel.cpu()
+    keys = pixel_keys(pool, width, height)
     _, row = torch.unique(keys, return_inverse=True)
     table = torch.full((int(row.max()) + 1 if len(row) else 0, copies), -1, dtype=torch.int64)
     table[row, pool.copy.cpu()] = torch.arange(len(keys))
@@ -129,8 +134,7 @@ def hold_aside(pool: PixelPool, width: int, height: int, n_pixels: int, seed: in
     gen = torch.Generator().manual_seed(seed)
     n = max(0, min(n_pixels, len(first) - 1))
     held_keys = key[torch.randperm(len(first), generator=gen)[:n]]
-    all_keys = pool.view.cpu() * (width * height) + pool.pixel.cpu()
-    out = torch.isin(all_keys, held_keys)
+    out = torch.isin(pixel_keys(pool, width, height), held_keys)
     device = pool.position.device
     held = first[torch.isin(key, held_keys)]
     return held.to(device), torch.nonzero(~out)[:, 0].to(device)

@@ -124,7 +124,7 @@ class Trainer:
         self.batch = min(cfg.train.batch_rays, len(self.pool))
         # a pixel's colour is the mean over its footprint: its jittered hits are shaded together and
         # their mean is scored, so the loss does not also ask each hit for the pixel's mean colour
-        self.copies = int(self.pool_stats["hits_per_pixel"]) if cfg.train.pixel_jitter > 0 else 1
+        self.copies = int(self.pool_stats["hits_per_pixel"])  # 1 without jitter
         self.hit_row = self.pixel_hits = None
         if self.copies > 1:
             self.hit_row, self.pixel_hits = pixel_hit_table(self.pool, capture.width, capture.height, self.copies)
@@ -281,29 +281,28 @@ class Trainer:
         reconstruction terms; the priors, chromaticity and VQ terms are means over the batch."""
         cfg, pool, ab = self.cfg, self.pool, self.cfg.ablation
         gamma = cfg.loss.gamma
+        # shaded, priors and VQ per hit; the reconstruction per pixel of `idx`, with its weight
         target, hits = pool.rgb[idx], self.footprint(idx)
-        per_hit = None if weight is None else weight.repeat_interleave(len(hits) // len(idx))
-        # shading, priors and VQ per hit; the reconstruction per pixel, with the pixels' weights
-        idx, pixel_weight, weight = hits, weight, per_hit
-        out = self.model(pool.position[idx])
+        hit_weight = None if weight is None else weight.repeat_interleave(self.copies)
+        out = self.model(pool.position[hits])
         env = self.envmap()
         bounce_fn = self.model if bounce else None
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
         single = discrete_on and ab.single_branch
         if not discrete_on:
-            samples = self._render(idx, out, env, bounce_fn)
+            samples = self._render(hits, out, env, bounce_fn)
         else:
             z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
             drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
-            od = self.discrete(z, drop, weight=weight)
+            od = self.discrete(z, drop, weight=hit_weight)
             # Both branches are shaded in one call. The discrete branch is lit by the envmap and
             # bounce that the continuous branch fits, without training them: a few materials
             # cannot explain a texture, and their residual would otherwise bend the shared light
             # (ablation.shared_light lets it).
-            n = len(idx)
+            n = len(hits)
             both = {k: torch.cat([out[k], od[k]]) for k in ("basecolor", "metallic", "roughness")}
             fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
-            samples_both = self._render(torch.cat([idx, idx]), both, env, bounce_fn, fixed)
+            samples_both = self._render(torch.cat([hits, hits]), both, env, bounce_fn, fixed)
             samples, samples_d = samples_both[:n], samples_both[n:]
             samples_d = self._pixel_means(samples_d, len(target))
         samples = self._pixel_means(samples, len(target))
@@ -313,16 +312,15 @@ class Trainer:
                 per_pixel = losses.decorrelated_error(samples, target, gamma)
         terms = {
             "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
-                                                                                                     gamma, pixel_weight),
-            "lam_c": s.w_lam * self._lambertian(out, s, weight),
+                                                                                                     gamma, weight),
+            "lam_c": s.w_lam * self._lambertian(out, s, hit_weight),
         }
         if discrete_on:
-            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma,
-                                                                                      pixel_weight)
+            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
-                                                                                           out["basecolor"], weight)
+                                                                                           out["basecolor"], hit_weight)
             terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
-            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, weight)
+            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, hit_weight)
         if self.pairs is not None and len(self.pairs) > 0:
             pick = self.pairs[torch.randint(0, len(self.pairs), (max(self.batch // 4, 1),), generator=self.gen,
                                             device=self.device)]
