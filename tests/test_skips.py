@@ -210,6 +210,32 @@ def test_held_aside_pixels_are_never_drawn(small_sphere, tmp_path):
     assert not held & set(key[drawn.cpu()].tolist())
 
 
+def test_the_held_aside_loss_scores_each_pixels_mean(small_sphere, tmp_path, monkeypatch):
+    """The held-aside loss shades every jittered hit of each held pixel and scores the pixel's mean,
+    as a step does: shading that varies inside a pixel around its colour costs nothing, a pixel's
+    mean off its colour does."""
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.run.run_dir import RunDir
+
+    capture = load_capture(small_sphere, split="train")
+    trainer = Trainer(capture, RunDir(tmp_path / "run"), load_config(None, QUICK + ["train.iterations=10",
+                                                                                   "train.stop=auto"]))
+    pool, shaded = trainer.pool, []
+    key = pool.view * capture.width * capture.height + pool.pixel
+
+    def shade(position, normal, wi, basecolor, metallic, roughness, env, spp, **kw):
+        hit = torch.cat([torch.nonzero((pool.position == p).all(1))[:1, 0] for p in position])
+        shaded.append(hit)
+        return pool.rgb[hit] * scale.repeat(len(hit) // 4)[:, None]
+
+    monkeypatch.setattr(trainer.scene, "shade", shade)
+    scale = torch.tensor([1.2, 0.8, 1.1, 0.9])  # each pixel's mean is its colour
+    assert trainer.held_loss() == pytest.approx(0.0, abs=1e-9)
+    assert torch.equal(key[shaded[0]].reshape(-1, 4), key[trainer.held][:, None].expand(-1, 4))
+    scale = torch.tensor([1.2, 1.2, 1.2, 1.2])
+    assert trainer.held_loss() > 1e-4
+
+
 def test_the_training_pool_keeps_to_its_hit_budget(small_sphere, tmp_path):
     """train.max_hits: first fewer jittered hits per pixel, then a share of the pixels; every
     opaque pixel keeps its hits under the budget."""

@@ -428,10 +428,12 @@ class Trainer:
 
     @torch.no_grad()
     def held_loss(self) -> float:
-        """The reconstruction loss (gamma-encoded L2) of the held-aside pixels, with the same light
-        samples each time: the continuous branch's, plus the discrete branch's once it trains."""
-        cfg, pool, idx = self.cfg, self.pool, self.held
-        out = self.model(pool.position[idx])
+        """The reconstruction loss (gamma-encoded L2) of the held-aside pixels, each pixel's mean over
+        its jittered hits against its colour as in a step, with the same light samples each time: the
+        continuous branch's, plus the discrete branch's once it trains."""
+        cfg, pool = self.cfg, self.pool
+        idx = hits = self.footprint(self.held)
+        out = self.model(pool.position[hits])
         mats = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
         if discrete_on:
@@ -445,10 +447,10 @@ class Trainer:
         rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats["basecolor"],
                                mats["metallic"], mats["roughness"], self.envmap().detach(), cfg.train.spp,
                                generator=gen, material_fn=self.model if self.bounce_active() else None)
-        n = len(self.held)
-        loss = float(losses.reconstruction_l2(rgb[:n], pool.rgb[self.held], cfg.loss.gamma))
+        target, n = pool.rgb[self.held], len(hits)
+        loss = float(losses.reconstruction_l2(self._pixel_means(rgb[:n], len(target)), target, cfg.loss.gamma))
         if discrete_on:
-            loss += float(losses.reconstruction_l2(rgb[n:], pool.rgb[self.held], cfg.loss.gamma))
+            loss += float(losses.reconstruction_l2(self._pixel_means(rgb[n:], len(target)), target, cfg.loss.gamma))
         return loss
 
     # --- the loop -------------------------------------------------------------------------------
