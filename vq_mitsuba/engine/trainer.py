@@ -432,7 +432,7 @@ class Trainer:
         its jittered hits against its colour as in a step, with the same light samples each time: the
         continuous branch's, plus the discrete branch's once it trains."""
         cfg, pool = self.cfg, self.pool
-        idx = hits = self.footprint(self.held)
+        idx = hits = self.footprint(self.held)  # idx: the hits shaded, once per branch
         out = self.model(pool.position[hits])
         mats = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
@@ -447,11 +447,9 @@ class Trainer:
         rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats["basecolor"],
                                mats["metallic"], mats["roughness"], self.envmap().detach(), cfg.train.spp,
                                generator=gen, material_fn=self.model if self.bounce_active() else None)
-        target, n = pool.rgb[self.held], len(hits)
-        loss = float(losses.reconstruction_l2(self._pixel_means(rgb[:n], len(target)), target, cfg.loss.gamma))
-        if discrete_on:
-            loss += float(losses.reconstruction_l2(self._pixel_means(rgb[n:], len(target)), target, cfg.loss.gamma))
-        return loss
+        target = pool.rgb[self.held]
+        return sum(float(losses.reconstruction_l2(self._pixel_means(branch, len(target)), target, cfg.loss.gamma))
+                   for branch in rgb.split(len(hits)))
 
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:
