@@ -202,3 +202,35 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
     fit(xml, copy, cfg, resume=True, progress=False)
     assert "nothing to do" in capsys.readouterr().out
     assert (copy / RunDir.RESIDUAL).stat().st_mtime_ns == before
+
+
+def test_a_residual_with_nothing_to_learn_stops_within_a_few_early_scores(monkeypatch):
+    """Targets the physically based radiance already gives (a scene rendered by the model itself):
+    the zero field is kept, and the fit stops after PATIENCE scores FIRST_GAP steps apart, eagerly
+    (the compiler is never waited for), long before its planned steps."""
+    from types import SimpleNamespace
+
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine import residual_fit
+
+    class Pool(SimpleNamespace):
+        def __len__(self):
+            return len(self.rgb)
+
+    gen = torch.Generator().manual_seed(3)
+    n = 20000
+    unit = lambda: torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)  # noqa: E731
+    normal = unit()
+    pool = Pool(position=torch.rand(n, 3, generator=gen), normal=normal,
+                wi=torch.nn.functional.normalize(normal + 0.5 * unit(), dim=-1),
+                rgb=0.05 + 0.9 * torch.rand(n, 3, generator=gen))
+    monkeypatch.setattr(residual_fit, "physical_radiance",
+                        lambda scene, model, pool, idx, env, cfg, generator: pool.rgb[idx].clone())
+
+    field, info = residual_fit.fit_residual(None, None, pool, torch.ones(4, 8, 3),
+                                            ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), load_config(None))
+    assert info["kept_step"] == 0 and info["psnr_check_hits_after"] == info["psnr_check_hits_before"]
+    assert info["iterations"] == residual_fit.PATIENCE * residual_fit.FIRST_GAP < info["planned_iterations"]
+    assert info["step"] == "eager"
+    x = torch.rand(100, 3)
+    assert torch.equal(field(x, unit()[:100], unit()[:100]), torch.zeros(100, 3))  # the untrained field

@@ -12,9 +12,14 @@ Mitsuba in the loop, to the gamma-encoded pixel colours:
 Adam, the hash table at `LR` and the network at `LR_NET`, both decaying to `LR_END` of that over
 residual.iterations steps of `BATCH` hits (fewer on a small pool: at most `MAX_EPOCHS` passes).
 The finest cells of the hash encoding follow the hits (`models.residual.finest_for_hits`); the
-kept-aside hits are scored `CHECKS` times and the best field is kept, the untrained (zero) one
-included, so the residual never makes the training pixels it was not fitted on worse; after
-`PATIENCE` scores in a row below the best, the fit stops.
+kept-aside hits are scored every `steps / CHECKS` steps (every `FIRST_GAP` at most until they first
+improve) and the best field is kept, the untrained (zero) one included, so the residual never makes
+the training pixels it was not fitted on worse. The fit stops after `PATIENCE` scores in a row below
+the best; when none has yet beaten the zero field (a capture the physically based render already
+explains, such as a scene rendered by the model itself), that takes `PATIENCE * FIRST_GAP` steps,
+seconds. The step runs eagerly until the field first improves and is then compiled
+(`vq_mitsuba.compiled`) when `COMPILE_FROM` full batches are left, so a residual with nothing to
+learn, or little to do, never waits for the compiler.
 
 Approximate: each hit's L_pbr is one Monte Carlo estimate, not its mean, so the targets of the
 residual carry that noise; neighbouring hits share the field's cells and it is fitted over many
@@ -31,6 +36,7 @@ import time
 import torch
 
 from vq_mitsuba.backend import sized
+from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
 from vq_mitsuba.data.pixels import PixelPool
 from vq_mitsuba.models import losses
@@ -49,6 +55,8 @@ MAX_EPOCHS = 200  # passes over the fitted hits at most: a small pool needs fewe
 MIN_STEPS = 50
 CHECKS = 10  # times the kept-aside hits are scored during the fit: the best field is kept ...
 PATIENCE = 3  # ... and the fit stops after this many scores in a row below the best
+FIRST_GAP = 30  # steps between scores at most until a score first beats the zero field
+COMPILE_FROM = 1000  # steps of BATCH hits left that pay for compiling the step (about 16 s the first time)
 
 
 @torch.no_grad()
@@ -85,7 +93,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4)),
                           finest=finest_for_hits(len(fit_ids))).to(device)
     optim = torch.optim.Adam([{"params": [field.encoding.table], "lr": LR, "base": LR},
-                              {"params": list(field.mlp.parameters()), "lr": LR_NET, "base": LR_NET}], eps=1e-15)
+                              {"params": list(field.mlp.parameters()), "lr": LR_NET, "base": LR_NET}], eps=1e-15,
+                             fused=True)
     gamma = cfg.loss.gamma
     position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
     batch = min(BATCH, len(fit_ids))
@@ -98,6 +107,16 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         return losses.psnr(float(losses.srgb_mse(add_residual(physical[c], field(position[c], normal[c], wi[c])),
                                                  target[c])))
 
+    def gradients(b: torch.Tensor) -> torch.Tensor:
+        """The loss of the hits `b`, its gradients left in the parameters."""
+        optim.zero_grad(set_to_none=True)
+        loss = losses.reconstruction_l2(add_residual(physical[b], field(position[b], normal[b], wi[b])), target[b],
+                                        gamma)
+        loss.backward()
+        return loss
+
+    compiled = Compiled(gradients, "the residual's step")
+    use_compiled = {"on": False}  # decided when a score first beats the zero field
     before = check_psnr()  # the untrained field adds nothing
     best = {"psnr": before, "step": 0, "state": copy.deepcopy(field.state_dict()), "worse": 0}
 
@@ -105,15 +124,16 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         for g in optim.param_groups:
             g["lr"] = g["base"] * LR_END ** p.step_share
         b = fit_ids[torch.randint(0, len(fit_ids), (batch,), generator=gen, device=device)]
-        rgb = add_residual(physical[b], field(position[b], normal[b], wi[b]))
-        loss = losses.reconstruction_l2(rgb, target[b], gamma)
-        optim.zero_grad(set_to_none=True)
-        loss.backward()
+        (compiled if use_compiled["on"] else gradients)(b)
         optim.step()
-        if (p.step + 1) % every == 0 or p.step + 1 == steps:
+        done = p.step + 1
+        gap = every if best["step"] > 0 else min(every, FIRST_GAP)
+        if done % gap == 0 or done == steps:
             now = check_psnr()
             if now > best["psnr"]:
-                best.update(psnr=now, step=p.step + 1, state=copy.deepcopy(field.state_dict()), worse=0)
+                if best["step"] == 0:
+                    use_compiled["on"] = batch == BATCH and steps - done >= COMPILE_FROM
+                best.update(psnr=now, step=done, state=copy.deepcopy(field.state_dict()), worse=0)
             else:
                 best["worse"] += 1
 
@@ -123,6 +143,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n,
             "check_hits": len(check_ids), "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
+            "step": compiled.state if use_compiled["on"] else "eager",
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"]}
     return field, info

@@ -115,7 +115,7 @@ class Trainer:
             groups.append({"params": self.discrete.parameters(), "lr": cfg.train.lr})
         if self.learn_env:
             groups.append({"params": self.env_module.parameters(), "lr": cfg.envmap.lr})
-        self.optim = torch.optim.Adam(groups)
+        self.optim = torch.optim.Adam(groups, fused=True)
         self.base_lrs = [g["lr"] for g in self.optim.param_groups]
         self.gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
         self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)

@@ -314,8 +314,27 @@ class ShadingScene:
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
             u = [f(x) for x in u]
 
-            # Emitter sampling with a shadow ray.
-            ds, em_weight = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), True)
+            # Sampling and ray tracing carry no gradient: they are evaluated first, together, so that
+            # the backward pass reads their results instead of tracing the rays again in its kernels.
+            with dr.suspend_grad():
+                # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
+                ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
+                lit = (ds.pdf > 0) & ~scene.ray_test(si.spawn_ray(ds.d), ds.pdf > 0)
+                # BSDF sampling; the sampled direction is detached, its value differentiated.
+                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
+                ray = si.spawn_ray(si.to_world(bs.wo))
+                si_next = scene.ray_intersect(ray)
+                miss = ~si_next.is_valid() & (bs.pdf > 0)
+                ds_next = mi.DirectionSample3f(scene, si_next, si)
+                pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
+                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
+                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
+                hit_obj = si_next.is_valid() & (bs.pdf > 0)
+                wi_next = mi.Vector3f(si_next.wi)  # world direction back along the ray where it missed
+                dr.eval(ds, lit, bs.wo, bs.pdf, miss, w_bs, inv_pdf, hit_obj, wi_next)
+            si_next = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
+            si_next.wi = wi_next
+            em_weight = dr.select(lit, scene.eval_emitter_direction(si, ds, lit) * dr.rcp(ds.pdf), 0.0)
             # Lanes lit by a fixed light pass no gradient to the envmap.
             fixed = f(fixed) > 0.5
             em_weight = dr.select(fixed, dr.detach(em_weight), em_weight)
@@ -326,17 +345,6 @@ class ShadingScene:
             w_em = dr.detach(dr.select(ds.pdf > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / ds.pdf)), 0.0))
             radiance = f_em * em_weight * w_em
 
-            # BSDF sampling; the sampled direction is detached, its value differentiated.
-            with dr.suspend_grad():
-                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
-                ray = si.spawn_ray(si.to_world(bs.wo))
-                si_next = scene.ray_intersect(ray)
-                miss = ~si_next.is_valid() & (bs.pdf > 0)
-                ds_next = mi.DirectionSample3f(scene, si_next, si)
-                pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
-                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
-                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
-                hit_obj = si_next.is_valid() & (bs.pdf > 0)
             f_bs = bsdf.eval(ctx, si, bs.wo)
             le = emitter.eval(si_next, miss)
             le = dr.select(fixed, dr.detach(le), le)
