@@ -12,14 +12,14 @@ Mitsuba in the loop, to the gamma-encoded pixel colours:
 Adam, the hash table at `LR` and the network at `LR_NET`, both decaying to `LR_END` of that over
 residual.iterations steps of `BATCH` hits (fewer on a small pool: at most `MAX_EPOCHS` passes).
 The finest cells of the hash encoding follow the hits (`models.residual.finest_for_hits`); the
-kept-aside hits are scored every `steps / CHECKS` steps (every `FIRST_GAP` at most until they first
-improve) and the best field is kept, the untrained (zero) one included, so the residual never makes
-the training pixels it was not fitted on worse. The fit stops after `PATIENCE` scores in a row below
-the best; when none has yet beaten the zero field (a capture the physically based render already
-explains, such as a scene rendered by the model itself), that takes `PATIENCE * FIRST_GAP` steps,
-seconds. The step runs eagerly until the field first improves and is then compiled
-(`vq_mitsuba.compiled`) when `COMPILE_FROM` full batches are left, so a residual with nothing to
-learn, or little to do, never waits for the compiler.
+kept-aside hits are scored every `steps / CHECKS` steps and the best field is kept, the untrained
+(zero) one included, so the residual never makes the training pixels it was not fitted on worse.
+The fit stops after `PATIENCE` scores in a row below the best. Until a score beats the zero field by
+`MIN_GAIN_DB`, the scores come every `FIRST_GAP` steps, and when none of the first `PATIENCE` does,
+there is nothing to learn (a capture the physically based render already explains, such as a scene
+rendered by the model itself): the fit stops after a few seconds. The step runs eagerly until then
+and is compiled (`vq_mitsuba.compiled`) when `COMPILE_FROM` full batches are left, so a residual
+with nothing to learn, or little to do, never waits for the compiler.
 
 Approximate: each hit's L_pbr is one Monte Carlo estimate, not its mean, so the targets of the
 residual carry that noise; neighbouring hits share the field's cells and it is fitted over many
@@ -55,7 +55,8 @@ MAX_EPOCHS = 200  # passes over the fitted hits at most: a small pool needs fewe
 MIN_STEPS = 50
 CHECKS = 10  # times the kept-aside hits are scored during the fit: the best field is kept ...
 PATIENCE = 3  # ... and the fit stops after this many scores in a row below the best
-FIRST_GAP = 30  # steps between scores at most until a score first beats the zero field
+FIRST_GAP = 30  # steps between scores at most until a score beats the zero field by MIN_GAIN_DB ...
+MIN_GAIN_DB = 0.1  # ... which tells that there is something to learn
 COMPILE_FROM = 1000  # steps of BATCH hits left that pay for compiling the step (about 16 s the first time)
 
 
@@ -116,34 +117,42 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         return loss
 
     compiled = Compiled(gradients, "the residual's step")
-    use_compiled = {"on": False}  # decided when a score first beats the zero field
     before = check_psnr()  # the untrained field adds nothing
     best = {"psnr": before, "step": 0, "state": copy.deepcopy(field.state_dict()), "worse": 0}
+    # learning: a score has beaten the zero field by MIN_GAIN_DB; scores: how many were taken
+    state = {"learning": False, "compiled": False, "scores": 0}
 
     def step(p: Progress) -> None:
         for g in optim.param_groups:
             g["lr"] = g["base"] * LR_END ** p.step_share
         b = fit_ids[torch.randint(0, len(fit_ids), (batch,), generator=gen, device=device)]
-        (compiled if use_compiled["on"] else gradients)(b)
+        (compiled if state["compiled"] else gradients)(b)
         optim.step()
         done = p.step + 1
-        gap = every if best["step"] > 0 else min(every, FIRST_GAP)
-        if done % gap == 0 or done == steps:
-            now = check_psnr()
-            if now > best["psnr"]:
-                if best["step"] == 0:
-                    use_compiled["on"] = batch == BATCH and steps - done >= COMPILE_FROM
-                best.update(psnr=now, step=done, state=copy.deepcopy(field.state_dict()), worse=0)
-            else:
-                best["worse"] += 1
+        if done % (every if state["learning"] else min(every, FIRST_GAP)) and done != steps:
+            return
+        now = check_psnr()
+        state["scores"] += 1
+        if now > best["psnr"]:
+            best.update(psnr=now, step=done, state=copy.deepcopy(field.state_dict()), worse=0)
+        else:
+            best["worse"] += 1
+        if not state["learning"] and best["step"] > 0 and best["psnr"] >= before + MIN_GAIN_DB:
+            state["learning"] = True
+            state["compiled"] = batch == BATCH and steps - done >= COMPILE_FROM
+
+    def finished() -> bool:
+        if not state["learning"]:  # nothing to learn
+            return state["scores"] >= PATIENCE
+        return best["worse"] >= PATIENCE
 
     t0 = time.perf_counter()
-    done = Loop("residual", Budget(steps), step, progress_bar=progress, done=lambda: best["worse"] >= PATIENCE).run()
+    done = Loop("residual", Budget(steps), step, progress_bar=progress, done=finished).run()
     field.load_state_dict(best["state"])
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n,
             "check_hits": len(check_ids), "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
-            "step": compiled.state if use_compiled["on"] else "eager",
+            "step": compiled.state if state["compiled"] else "eager", "learned": state["learning"],
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"]}
     return field, info
