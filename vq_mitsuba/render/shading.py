@@ -183,6 +183,7 @@ class ShadingScene:
             }
         )
         self.ctx = mi.BSDFContext()
+        self._light_set = None  # (the envmap tensor last set for sampling, its version)
         self._shade = self._make_shade()
 
     # -- primary visibility -------------------------------------------------------------
@@ -235,10 +236,10 @@ class ShadingScene:
 
     # -- shading ------------------------------------------------------------------------
     def _make_shade(self):
-        """The shading kernel (returned) and the bounce kernel (kept as self._bounce), both Dr.Jit
-        functions of torch tensors sharing one setup of the shading points."""
+        """The sampling kernel (kept as self._sample) and the shading kernel (returned), sharing one
+        setup of the shading points."""
         setup = self._make_setup()
-        self._bounce = self._make_bounce(setup)
+        self._sample = self._make_sample(setup)
         return self._make_shade_kernel(setup)
 
     def _make_setup(self):
@@ -264,43 +265,62 @@ class ShadingScene:
 
         return setup
 
-    def _make_bounce(self, setup):
-        """The bounce kernel: where each lane's BSDF sample goes (see `shade`'s material_fn)."""
+    def _make_sample(self, setup):
+        """The sampling kernel: each lane's emitter sample with its shadow ray and its BSDF sample
+        with the ray it casts, in one kernel without gradients (the light in the scene must be set).
+        Returns the `SAMPLED` arrays (torch): what shading reads, and where the BSDF sample meets the
+        object (the bounce's points: p2, n2 facing back, wi2)."""
         scene, bsdf, ctx = self.scene, self.bsdf, self.ctx
         tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
-        def bounce(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, u):
-            """Where the BSDF sample of each lane goes: hit flag and the hit (p, n facing back, wi)."""
+        def sample(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, u):
             with dr.suspend_grad():
                 si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
                 u = [f(x) for x in u]
+                # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
+                ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
+                lit = (ds.pdf > 0) & ~scene.ray_test(si.spawn_ray(ds.d), ds.pdf > 0)
+                # BSDF sampling; the sampled direction is detached, its value differentiated in shading.
                 bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
                 ray = si.spawn_ray(si.to_world(bs.wo))
                 si_next = scene.ray_intersect(ray)
+                miss = ~si_next.is_valid() & (bs.pdf > 0)
+                pdf_em = scene.pdf_emitter_direction(si, mi.DirectionSample3f(scene, si_next, si), miss)
+                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
+                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
                 hit = si_next.is_valid() & (bs.pdf > 0)
                 n2 = si_next.sh_frame.n
                 n2 = dr.select(dr.dot(n2, -ray.d) < 0, -n2, n2)
-                out = (dr.select(hit, 1.0, 0.0), si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z,
+                out = (ds.d.x, ds.d.y, ds.d.z, ds.uv.x, ds.uv.y, ds.pdf, dr.select(lit, 1.0, 0.0), bs.wo.x, bs.wo.y, bs.wo.z,
+                       w_bs, inv_pdf, dr.select(miss, 1.0, 0.0), dr.select(hit, 1.0, 0.0),
+                       *(dr.select(hit, v, 0.0) for v in (si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z)),
                        -ray.d.x, -ray.d.y, -ray.d.z)
-                out = tuple(dr.select(hit, o, 0.0) for o in out)
                 dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
             tb.values = tm.values = tr.values = None
             return out
 
-        return bounce
+        return sample
+
+    # The sampling kernel's outputs, in order: the emitter sample (direction, the envmap's texture
+    # coordinates that Mitsuba's envmap looks its radiance up at, pdf, unoccluded), the
+    # BSDF sample (local direction, MIS weight where it escapes, 1 / pdf, escapes, meets the object),
+    # the point it meets (p2, n2 facing back) and the world direction back along it (wi2).
+    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit", "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
+               "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
 
     def _make_shade_kernel(self, setup):
-        """The shading kernel: emitter sampling with a shadow ray plus one BSDF sample (MIS), the
-        BSDF sample lit by the envmap or by the caller's bounce radiance."""
+        """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
+        envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
+        sampling kernel's results (so the backward pass traces no ray)."""
         scene, bsdf, emitter, ctx = self.scene, self.bsdf, self.emitter, self.ctx
         params, key = self.params, self.env_key
         tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, u, fixed):
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, fixed, sampled):
             # `lanes` holds the differentiable per-lane inputs interleaved (basecolor r, g, b,
             # metallic, roughness, bounce radiance r, g, b): one gradient array, so the backward
             # pass is one kernel instead of one per input, each tracing the shading again.
@@ -312,65 +332,57 @@ class ShadingScene:
             params[key] = env
             params.update()
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
-            u = [f(x) for x in u]
-
-            # Sampling and ray tracing carry no gradient: they are evaluated first, together, so that
-            # the backward pass reads their results instead of tracing the rays again in its kernels.
-            with dr.suspend_grad():
-                # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
-                ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
-                lit = (ds.pdf > 0) & ~scene.ray_test(si.spawn_ray(ds.d), ds.pdf > 0)
-                # BSDF sampling; the sampled direction is detached, its value differentiated.
-                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
-                ray = si.spawn_ray(si.to_world(bs.wo))
-                si_next = scene.ray_intersect(ray)
-                miss = ~si_next.is_valid() & (bs.pdf > 0)
-                ds_next = mi.DirectionSample3f(scene, si_next, si)
-                pdf_em = scene.pdf_emitter_direction(si, ds_next, miss)
-                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
-                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
-                hit_obj = si_next.is_valid() & (bs.pdf > 0)
-                wi_next = mi.Vector3f(si_next.wi)  # world direction back along the ray where it missed
-                dr.eval(ds, lit, bs.wo, bs.pdf, miss, w_bs, inv_pdf, hit_obj, wi_next)
-            si_next = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
-            si_next.wi = wi_next
-            em_weight = dr.select(lit, scene.eval_emitter_direction(si, ds, lit) * dr.rcp(ds.pdf), 0.0)
+            sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
+            ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
+            ds.d, ds.uv, ds.pdf = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), mi.Point2f(sm["ds_u"], sm["ds_v"]), sm["ds_pdf"]
+            lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
+            em_weight = dr.select(lit, emitter.eval_direction(si, ds, lit) * dr.rcp(ds.pdf), 0.0)
             # Lanes lit by a fixed light pass no gradient to the envmap.
             fixed = f(fixed) > 0.5
             em_weight = dr.select(fixed, dr.detach(em_weight), em_weight)
-            wo = si.to_local(ds.d)
-            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo)
+            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d))
             # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
             # pdf cannot overflow a square into inf / inf.
             w_em = dr.detach(dr.select(ds.pdf > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / ds.pdf)), 0.0))
             radiance = f_em * em_weight * w_em
 
-            f_bs = bsdf.eval(ctx, si, bs.wo)
-            le = emitter.eval(si_next, miss)
+            # The BSDF sample: its direction detached, its value differentiated.
+            f_bs = bsdf.eval(ctx, si, mi.Vector3f(sm["wo_x"], sm["wo_y"], sm["wo_z"]))
+            escaped = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
+            escaped.wi = mi.Vector3f(sm["wi2x"], sm["wi2y"], sm["wi2z"])  # world, as for a missed ray
+            le = emitter.eval(escaped, miss)
             le = dr.select(fixed, dr.detach(le), le)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
             li_obj = mi.Color3f(*li)
-            radiance += f_bs * dr.select(hit_obj, li_obj, le * w_bs) * inv_pdf
+            radiance += f_bs * dr.select(hit_obj, li_obj, le * sm["w_bs"]) * sm["inv_pdf"]
             dr.eval(radiance)  # one kernel for the three channels, not one each
             tb.values = tm.values = tr.values = None
             return radiance.x, radiance.y, radiance.z
 
         return shade
 
+    def _set_light(self, env_linear: torch.Tensor) -> None:
+        """The envmap the sampling kernel draws emitter samples from (its distribution rebuilt, unless
+        these values are already set: the bounce's shading and the step's share one light)."""
+        if self._light_set is not None and self._light_set[0] is env_linear \
+                and self._light_set[1] == env_linear._version:
+            return
+        self.params[self.env_key] = mi.TensorXf(envmap_padded(env_linear.detach()).contiguous())
+        self.params.update()
+        self._light_set = (env_linear, env_linear._version)
+
     def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
-              reduce: bool = True, material_fn=None, groups: int = 1, bounce_memo: dict | None = None,
+              reduce: bool = True, material_fn=None, groups: int = 1,
               fixed_light: torch.Tensor | None = None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
         With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
-        samples that hit the object are lit by that point's direct radiance (one bounce).
+        samples that hit the object are lit by that point's direct radiance (one bounce): where
+        they go is found by the same rays that shading traces.
         `groups` independent stratified sample sets per point (see `stratified_samples`).
-        `bounce_memo`: a dict shared by calls that shade the same points with the same samples
-        under other lightings (same geometry, generators seeded alike): the bounce rays, which do
-        not depend on the lighting, are traced by the first call only.
 
         basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
         gradients; the result is differentiable with respect to all of them, except that points
@@ -386,18 +398,15 @@ class ShadingScene:
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
         fixed = torch.zeros(n * spp, device=p.device) if fixed_light is None else rep(fixed_light.float())
+        self._set_light(env_linear)
+        with torch.no_grad():
+            sampled = self._sample(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(), m.detach(),
+                                   r.detach(), [u[i] for i in range(5)])
         if material_fn is not None:
-            if bounce_memo is not None and "hit" in bounce_memo:
-                hit, p2, n2, wi2 = (bounce_memo[k] for k in ("hit", "p2", "n2", "wi2"))
-            else:
-                with torch.no_grad():
-                    out = self._bounce(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(),
-                                       m.detach(), r.detach(), [u[i] for i in range(5)])
-                hit = torch.nonzero(out[0] > 0.5)[:, 0]
-                p2, n2, wi2 = (torch.stack(out[a:a + 3], -1)[hit] for a in (1, 4, 7))
-                if bounce_memo is not None:
-                    bounce_memo.update(hit=hit, p2=p2, n2=n2, wi2=wi2)
+            hit = torch.nonzero(sampled[self.SAMPLED.index("hit")] > 0.5)[:, 0]
             if len(hit) > 0:
+                first = self.SAMPLED.index("p2x")
+                p2, n2, wi2 = (torch.stack(sampled[a:a + 3], -1)[hit] for a in (first, first + 3, first + 6))
                 # The bounce light is incoming light for this step, not trained through: its
                 # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
                 with torch.no_grad():
@@ -405,7 +414,7 @@ class ShadingScene:
                     li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
                                                          mat2["roughness"], env_linear, 1, generator))
         lanes = torch.cat([bc, m[:, None], r[:, None], li], 1).reshape(-1)
-        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), [u[i] for i in range(5)], fixed)
+        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), fixed, list(sampled))
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
 
