@@ -35,7 +35,7 @@ import time
 
 import torch
 
-from vq_mitsuba.backend import sized
+from vq_mitsuba.backend import device_scale, sized
 from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
 from vq_mitsuba.data.pixels import PixelPool
@@ -44,10 +44,10 @@ from vq_mitsuba.models.residual import ResidualField, add_residual, finest_for_h
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir
 
-RESIDUAL_HITS = 1 << 21  # training hits the residual is fitted on (a random subset of larger pools)
+RESIDUAL_HITS = 1 << 21  # training hits the residual is fitted on (a random subset of larger pools), on a CPU
 CHECK_SHARE = 0.1  # share of those hits kept aside to measure it
 PREDICTION_SPP = 16  # sample pairs of each hit's physically based radiance
-BATCH = 8192
+BATCH = 8192  # hits a step on a CPU; RESIDUAL_HITS and BATCH grow with a GPU (`backend.device_scale`)
 LR = 1e-2  # the hash table's; the network's is LR_NET
 LR_NET = 2e-3
 LR_END = 0.1  # learning-rate factor at the last step (exponential decay)
@@ -83,7 +83,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     and its summary: hits, steps, and the sRGB PSNR of the kept-aside hits before and after."""
     device = pool.position.device
     gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
-    n = min(len(pool), RESIDUAL_HITS)
+    scale = device_scale()
+    n = min(len(pool), RESIDUAL_HITS * scale)
     idx = torch.randperm(len(pool), generator=gen, device=device)[:n]
     target = pool.rgb[idx]
     physical = physical_radiance(scene, model, pool, idx, env, cfg, gen)
@@ -98,7 +99,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
                              fused=True)
     gamma = cfg.loss.gamma
     position, normal, wi = pool.position[idx], pool.normal[idx], pool.wi[idx]
-    batch = min(BATCH, len(fit_ids))
+    batch = min(BATCH * scale, len(fit_ids))
     steps = min(cfg.residual.iterations, max(MIN_STEPS, math.ceil(MAX_EPOCHS * len(fit_ids) / batch)))
     every = max(1, steps // CHECKS)
 
@@ -139,7 +140,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
             best["worse"] += 1
         if not state["learning"] and best["step"] > 0 and best["psnr"] >= before + MIN_GAIN_DB:
             state["learning"] = True
-            state["compiled"] = batch == BATCH and steps - done >= COMPILE_FROM
+            state["compiled"] = batch == BATCH * scale and steps - done >= COMPILE_FROM
 
     def finished() -> bool:
         if not state["learning"]:  # nothing to learn
@@ -150,7 +151,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     done = Loop("residual", Budget(steps), step, progress_bar=progress, done=finished).run()
     field.load_state_dict(best["state"])
     field.eval()
-    info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n,
+    info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "batch": batch,
             "check_hits": len(check_ids), "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
             "step": compiled.state if state["compiled"] else "eager", "learned": state["learning"],
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,

@@ -1,0 +1,221 @@
+#!/usr/bin/env python
+"""Benchmark: each hot loop's step eager against compiled with torch.compile, in one process.
+
+    .venv/bin/python benchmarks/bench_compiled.py [--loops residual neus material] [--neus-capture DIR]
+        [--downscale 4] [--material-capture DATA/scene.xml] [--rounds 5] [--steps 15]
+        [--out benchmarks/out/compiled]
+
+- residual: the residual's step (`vq_mitsuba.engine.residual_fit`: forward, gamma-space L2, backward,
+  fused Adam) at its batch of 8192 hits, on random hits of a 2^17-hit pool, as `fit` compiles it
+  (`vq_mitsuba.compiled.Compiled`), with the first call's compile time.
+- neus: a NeuS training step (`geometry/neus/fit.py: _NeuSFit.loop_step`) on --neus-capture (its auto
+  grid, the occupancy opened at half-way) with the SDF network's closed-form head (the layers after
+  the grid lookup, and the gradient through them) and the compositing weights compiled with dynamic
+  shapes (a ray batch's valid rays and samples vary), against the eager step. The grid lookup stays
+  the C kernel (its ctypes call cannot be traced).
+- material: a material step on --material-capture (`Trainer.train_step` in the discrete branch's
+  phase) with the continuous material network compiled (static shapes: the step's batch), against
+  the eager step.
+
+Rounds of --steps steps alternate between the two variants (so that a neighbour's load falls on
+both alike); printed and written to OUT/compiled_<commit>.json with the machine and versions: the
+median ms a step of each, their ratio, the first compiled call's seconds and the losses at the end
+(the same arithmetic up to rounding). A variant that is not the default says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+from provenance import describe, provenance, write_result
+
+
+def alternate(variants: dict, rounds: int, steps: int) -> dict:
+    """Median ms a step of each variant (name -> step function), rounds alternating."""
+    times = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, step in variants.items():
+            t0 = time.perf_counter()
+            for i in range(steps):
+                step(i)
+            times[name].append((time.perf_counter() - t0) / steps * 1000)
+    return {name: {"median_ms": statistics.median(t), "rounds_ms": t} for name, t in times.items()}
+
+
+def residual_loop(args) -> dict:
+    import torch
+
+    from vq_mitsuba.compiled import Compiled
+    from vq_mitsuba.engine.residual_fit import BATCH, LR, LR_NET
+    from vq_mitsuba.models import losses
+    from vq_mitsuba.models.residual import ResidualField, add_residual
+
+    gen = torch.Generator().manual_seed(0)
+    n = 1 << 17
+    unit = lambda: torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)  # noqa: E731
+    pos, nrm, wi = torch.rand(n, 3, generator=gen), unit(), unit()
+    physical, target = torch.rand(n, 3, generator=gen), torch.rand(n, 3, generator=gen)
+
+    def make():
+        torch.manual_seed(1)
+        field = ResidualField([0, 0, 0], [1, 1, 1], scale=0.5, finest=128)
+        optim = torch.optim.Adam([{"params": [field.encoding.table], "lr": LR},
+                                  {"params": list(field.mlp.parameters()), "lr": LR_NET}], eps=1e-15, fused=True)
+
+        def gradients(b):
+            optim.zero_grad(set_to_none=True)
+            loss = losses.reconstruction_l2(add_residual(physical[b], field(pos[b], nrm[b], wi[b])), target[b], 2.2)
+            loss.backward()
+            return loss
+        return optim, gradients
+
+    batches = [torch.randint(0, n, (BATCH,), generator=gen) for _ in range(args.steps)]
+    eager_optim, eager_grad = make()
+    comp_optim, comp_grad = make()
+    compiled = Compiled(comp_grad, "the residual's step")
+    t0 = time.perf_counter()
+    compiled(batches[0])
+    first = time.perf_counter() - t0
+    last = {}
+
+    def eager(i):
+        last["eager"] = float(eager_grad(batches[i]))
+        eager_optim.step()
+
+    def comp(i):
+        last["compiled"] = float(compiled(batches[i]))
+        comp_optim.step()
+
+    out = alternate({"eager": eager, "compiled": comp}, args.rounds, args.steps)
+    return {"batch": BATCH, "first_compiled_call_s": first, "state": compiled.state, "last_loss": last,
+            "kept": "compiled (the default once the residual learns with 1000 full batches left)", **out}
+
+
+def neus_loop(args) -> dict:
+    import torch
+    import torch.nn.functional as F
+
+    from vq_mitsuba.config import CaptureConfig, load_config
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.geometry import neus as module
+    from vq_mitsuba.run.loop import Progress
+
+    torch.set_num_threads(2)
+    capture = load_capture(args.neus_capture, options=CaptureConfig(downscale=args.downscale))
+    neus = module.NeuS(capture, load_config(None).neus)
+    fit = module.fit._NeuSFit(neus, None)
+    fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
+    neus.refresh_occupancy(neus.level_weights(0.5))
+    sdf = neus.model.sdf
+    eager_head = sdf.forward_with_gradient
+
+    def head(p, enc, jac, base, base_grad, l1w, l1b, ow, ob, beta: float):
+        a1 = F.linear(torch.cat([p, enc], -1), l1w, l1b)
+        o = F.linear(F.softplus(a1, beta=beta), ow, ob)
+        g = (ow[0] * torch.sigmoid(beta * a1)) @ l1w
+        grad = g[:, :3] + (g[:, 3:, None] * jac).sum(1) + base_grad
+        return base + o[:, 0], o[:, 1:], grad
+
+    compiled_head = torch.compile(head, dynamic=True)
+
+    def with_compiled_head(p, level_weights):
+        enc, jac = sdf.encoding(p, level_weights, jacobian=True)
+        base, base_grad = sdf.base(p, gradient=True)
+        return compiled_head(p, enc, jac, base, base_grad, sdf.l1.weight, sdf.l1.bias, sdf.out.weight, sdf.out.bias,
+                             float(sdf.act.beta))
+
+    if sdf.l2 is not None:
+        raise SystemExit("the compiled NeuS head covers one hidden SDF layer (the fine grid's); this capture has two")
+
+    def run(head_fn):
+        def step(i):
+            sdf.forward_with_gradient = head_fn
+            fit.loop_step(Progress(step=1000 + i, seconds=0.0, step_share=0.5, time_share=0.5))
+        return step
+
+    t0 = time.perf_counter()
+    run(with_compiled_head)(0)
+    first = time.perf_counter() - t0
+    out = alternate({"eager": run(eager_head), "compiled": run(with_compiled_head)}, args.rounds, args.steps)
+    sdf.forward_with_gradient = eager_head
+    return {"capture": args.neus_capture, "downscale": args.downscale, "grid": neus.grid,
+            "first_compiled_call_s": first, "kept": "eager (the compiled head was slower)", **out}
+
+
+def material_loop(args) -> dict:
+    import shutil
+    import tempfile
+
+    import torch
+
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.fit import load_training_capture
+    from vq_mitsuba.engine.schedule import schedule_at
+    from vq_mitsuba.engine.trainer import Trainer
+    from vq_mitsuba.run.loop import Progress
+    from vq_mitsuba.run.run_dir import RunDir
+
+    preset = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+    cfg = load_config(preset, ["train.bounce_after=0"])
+    folder = Path(tempfile.mkdtemp())
+    run = RunDir(folder / "run")
+    run.create()
+    trainer = Trainer(load_training_capture(args.material_capture, None, run, cfg), run, cfg)
+    eager_model = trainer.model
+    compiled_model = torch.compile(eager_model, dynamic=False)
+
+    class StepModel:
+        """The compiled network for the step's fixed-size batches, the eager one elsewhere (the bounce)."""
+
+        def __getattr__(self, name):
+            return getattr(eager_model, name)
+
+        def __call__(self, x):
+            sizes = (trainer.batch, max(trainer.batch // 4, 1))
+            return compiled_model(x) if x.shape[0] in sizes else eager_model(x)
+
+    def run_with(model):
+        def step(i):
+            trainer.model = model
+            trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, 0.6, 0.0)))
+            trainer.model = eager_model
+        return step
+
+    t0 = time.perf_counter()
+    for i in range(3):
+        run_with(StepModel())(i)
+    first = time.perf_counter() - t0
+    out = alternate({"eager": run_with(eager_model), "compiled": run_with(StepModel())}, args.rounds, args.steps)
+    shutil.rmtree(folder, ignore_errors=True)
+    return {"capture": args.material_capture, "batch_rays": trainer.batch, "first_compiled_calls_s": first,
+            "kept": "eager (within the noise of the step)", **out}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--loops", nargs="+", default=["residual"], choices=["residual", "neus", "material"],
+                    help="the loops to time (default residual)")
+    ap.add_argument("--neus-capture", help="a capture NeuS trains on (for --loops neus)")
+    ap.add_argument("--downscale", type=int, default=4, help="image downscale of --neus-capture (default 4)")
+    ap.add_argument("--material-capture", help="a capture with geometry, e.g. DATA/scene.xml (for --loops material)")
+    ap.add_argument("--rounds", type=int, default=5, help="alternating rounds a variant (default 5)")
+    ap.add_argument("--steps", type=int, default=15, help="steps a round (default 15)")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "out" / "compiled")
+    args = ap.parse_args()
+    loops = {"residual": residual_loop, "neus": neus_loop, "material": material_loop}
+    results = {}
+    for name in args.loops:
+        results[name] = r = loops[name](args)
+        print(f"{name}: eager {r['eager']['median_ms']:.1f} ms, compiled {r['compiled']['median_ms']:.1f} ms a step "
+              f"({r['eager']['median_ms'] / r['compiled']['median_ms']:.2f}x); kept: {r['kept']}")
+    record = provenance()
+    path = write_result(args.out / f"compiled_{record['commit']}.json", {**record, "results": results})
+    print(describe(record))
+    print(f"written {path}")
+
+
+if __name__ == "__main__":
+    main()
