@@ -129,3 +129,22 @@ def set_threads(n: int | None = None) -> int:
     # one worker: Dr.Jit gets two threads at least (the second sleeps while the first computes).
     dr.set_thread_count(max(n, 2))
     return n
+
+
+class shading_threads:
+    """Within the block, torch uses half its CPU threads (at least one) while Dr.Jit shades beside
+    it: Dr.Jit's LLVM kernels run asynchronously on its own pool of every core, next to torch's
+    operations, and a second pool of every core for torch makes them fight over the cores (on 2
+    cores a material step took 1.7-2x as long; benchmarks/results/compiled/). Nothing changes on a
+    GPU. Restores torch's count on leaving."""
+
+    def __enter__(self):
+        self.old = torch.get_num_threads()
+        if torch_device().type == "cpu":
+            torch.set_num_threads(max(1, self.old // 2))
+        return self
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.old)
+        return False
+

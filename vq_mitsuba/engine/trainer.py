@@ -17,7 +17,7 @@ import math
 import numpy as np
 import torch
 
-from vq_mitsuba.backend import init_mitsuba, torch_device
+from vq_mitsuba.backend import init_mitsuba, shading_threads, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.data.pixels import (ErrorSampler, hold_aside, neighbour_pairs, pixel_hit_table, sampler_tile,
@@ -468,7 +468,8 @@ class Trainer:
         self._phase = self._stage()
         for name in ("bounce",):
             self._say(f"{name} {self.decisions[name]['choice']}: {self.decisions[name]['reason']}")
-        result = loop.run()
+        with shading_threads():
+            result = loop.run()
         if result.stopped_by_time:
             print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
         elif result.stopped_early:
