@@ -122,3 +122,22 @@ def test_tests_that_build_cpu_inputs_skip_where_the_process_runs_on_a_gpu(monkey
     conftest.pytest_runtest_setup(Item(marked=False))  # unmarked: runs on a GPU too
     monkeypatch.setattr(backend, "torch_device", lambda: torch.device("cpu"))
     conftest.pytest_runtest_setup(Item(marked=True))  # on the CPU: runs
+
+
+def test_torch_takes_half_the_threads_while_dr_jit_shades_beside_it_and_gets_them_back(cpu_device):
+    """`backend.shading_threads`: on the CPU, torch's pool shrinks to half (at least one thread) in the
+    block, so that Dr.Jit's kernels and torch's operations do not both claim every core; the count
+    comes back on leaving, also when the block raises."""
+    before = torch.get_num_threads()
+    try:
+        for threads, inside in ((4, 2), (2, 1), (1, 1)):
+            torch.set_num_threads(threads)
+            with backend.shading_threads():
+                assert torch.get_num_threads() == inside
+            assert torch.get_num_threads() == threads
+        torch.set_num_threads(2)
+        with pytest.raises(RuntimeError), backend.shading_threads():
+            raise RuntimeError("a failed step")
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
