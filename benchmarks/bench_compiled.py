@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmark: each hot loop's step eager against compiled with torch.compile, in one process.
 
-    .venv/bin/python benchmarks/bench_compiled.py [--loops residual neus material] [--neus-capture DIR]
+    .venv/bin/python benchmarks/bench_compiled.py [--loops residual neus material threads] [--neus-capture DIR]
         [--downscale 4] [--material-capture DATA/scene.xml] [--rounds 5] [--steps 15]
         [--out benchmarks/out/compiled]
 
@@ -16,6 +16,9 @@
 - material: a material step on --material-capture (`Trainer.train_step` in the discrete branch's
   phase) with the continuous material network compiled (static shapes: the step's batch), against
   the eager step.
+- threads: the same material step (the bounce on, the continuous and the discrete branch's phase)
+  with torch on every core beside Dr.Jit's pool of every core, against torch on half of them
+  (`backend.shading_threads`, what `fit` does).
 
 Rounds of --steps steps alternate between the two variants (so that a neighbour's load falls on
 both alike); printed and written to OUT/compiled_<commit>.json with the machine and versions: the
@@ -194,9 +197,50 @@ def material_loop(args) -> dict:
             "kept": "eager (within the noise of the step)", **out}
 
 
+def threads_loop(args) -> dict:
+    import shutil
+    import tempfile
+
+    import torch
+
+    from vq_mitsuba.backend import available_cores
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.fit import load_training_capture
+    from vq_mitsuba.engine.schedule import schedule_at
+    from vq_mitsuba.engine.trainer import Trainer
+    from vq_mitsuba.run.loop import Progress
+    from vq_mitsuba.run.run_dir import RunDir
+
+    preset = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+    cfg = load_config(preset, ["train.bounce_after=0"])
+    folder = Path(tempfile.mkdtemp())
+    run = RunDir(folder / "run")
+    run.create()
+    trainer = Trainer(load_training_capture(args.material_capture, None, run, cfg), run, cfg)
+    cores = available_cores()
+    import drjit as dr
+
+    out = {"cores": cores, "dr_jit_threads": dr.thread_count(),
+           "kept": f"torch on {max(1, cores // 2)} thread(s) while Dr.Jit shades (the default)"}
+    for phase, progress in (("continuous", 0.1), ("discrete", 0.6)):
+        def run_with(threads):
+            def step(i):
+                torch.set_num_threads(threads)
+                trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, progress, 0.0)))
+            return step
+        for i in range(5):
+            run_with(cores)(i)
+        half = max(1, cores // 2)
+        out[phase] = alternate({f"torch {cores}": run_with(cores), f"torch {half}": run_with(half)}, args.rounds,
+                               args.steps)
+    torch.set_num_threads(cores)
+    shutil.rmtree(folder, ignore_errors=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--loops", nargs="+", default=["residual"], choices=["residual", "neus", "material"],
+    ap.add_argument("--loops", nargs="+", default=["residual"], choices=["residual", "neus", "material", "threads"],
                     help="the loops to time (default residual)")
     ap.add_argument("--neus-capture", help="a capture NeuS trains on (for --loops neus)")
     ap.add_argument("--downscale", type=int, default=4, help="image downscale of --neus-capture (default 4)")
@@ -205,10 +249,17 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=15, help="steps a round (default 15)")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "out" / "compiled")
     args = ap.parse_args()
-    loops = {"residual": residual_loop, "neus": neus_loop, "material": material_loop}
+    loops = {"residual": residual_loop, "neus": neus_loop, "material": material_loop, "threads": threads_loop}
     results = {}
     for name in args.loops:
         results[name] = r = loops[name](args)
+        if name == "threads":
+            for phase in ("continuous", "discrete"):
+                a, b = (r[phase][k]["median_ms"] for k in r[phase])
+                names = list(r[phase])
+                print(f"threads, {phase} phase: {names[0]} {a:.1f} ms, {names[1]} {b:.1f} ms a step ({a / b:.2f}x)")
+            print(f"threads: kept: {r['kept']}")
+            continue
         print(f"{name}: eager {r['eager']['median_ms']:.1f} ms, compiled {r['compiled']['median_ms']:.1f} ms a step "
               f"({r['eager']['median_ms'] / r['compiled']['median_ms']:.2f}x); kept: {r['kept']}")
     record = provenance()

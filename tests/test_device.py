@@ -141,3 +141,37 @@ def test_torch_takes_half_the_threads_while_dr_jit_shades_beside_it_and_gets_the
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_shading_blocks_nest_and_one_in_another_thread_leaves_this_threads_count(cpu_device):
+    """Nested blocks restore the count each found; a block in another thread (the editor's server
+    renders in its own) halves that thread's count, not this one's."""
+    import threading
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(4)
+        with backend.shading_threads():
+            with backend.shading_threads():
+                assert torch.get_num_threads() == 1
+            assert torch.get_num_threads() == 2
+        assert torch.get_num_threads() == 4
+        inside, leave, seen = threading.Event(), threading.Event(), []
+
+        def other():
+            torch.set_num_threads(2)
+            with backend.shading_threads():
+                seen.append(torch.get_num_threads())
+                inside.set()
+                leave.wait(5)
+            seen.append(torch.get_num_threads())
+
+        worker = threading.Thread(target=other)
+        worker.start()
+        assert inside.wait(5)
+        assert torch.get_num_threads() == 4
+        leave.set()
+        worker.join(5)
+        assert seen == [1, 2] and torch.get_num_threads() == 4
+    finally:
+        torch.set_num_threads(before)

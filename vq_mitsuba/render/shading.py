@@ -13,7 +13,10 @@ caller (`shade(..., material_fn=...)` shades that second hit with the same field
 only, as incoming light that is not differentiated), so one interreflection is simulated; deeper
 paths are not (biased dark in deep concavities).
 Sampled directions carry no gradient (as in Mitsuba's `prb`: BSDF values are differentiated,
-sampling is detached).
+sampling is detached). So a call runs two kernels: the sampling kernel draws both samples and traces
+every ray without gradients (the shadow ray, and the BSDF sample's ray, whose hit is also the
+bounce's point), and the differentiable kernel evaluates the BSDF and the envmap at the stored
+samples. The backward pass then traces no ray again: it differentiates the second kernel alone.
 """
 
 from __future__ import annotations
@@ -293,7 +296,8 @@ class ShadingScene:
                 hit = si_next.is_valid() & (bs.pdf > 0)
                 n2 = si_next.sh_frame.n
                 n2 = dr.select(dr.dot(n2, -ray.d) < 0, -n2, n2)
-                out = (ds.d.x, ds.d.y, ds.d.z, ds.uv.x, ds.uv.y, ds.pdf, dr.select(lit, 1.0, 0.0), bs.wo.x, bs.wo.y, bs.wo.z,
+                out = (ds.d.x, ds.d.y, ds.d.z, ds.uv.x, ds.uv.y, ds.pdf, dr.select(lit, 1.0, 0.0),
+                       bs.wo.x, bs.wo.y, bs.wo.z,
                        w_bs, inv_pdf, dr.select(miss, 1.0, 0.0), dr.select(hit, 1.0, 0.0),
                        *(dr.select(hit, v, 0.0) for v in (si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z)),
                        -ray.d.x, -ray.d.y, -ray.d.z)
@@ -307,7 +311,8 @@ class ShadingScene:
     # coordinates that Mitsuba's envmap looks its radiance up at, pdf, unoccluded), the
     # BSDF sample (local direction, MIS weight where it escapes, 1 / pdf, escapes, meets the object),
     # the point it meets (p2, n2 facing back) and the world direction back along it (wi2).
-    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit", "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
+    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit", "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss",
+               "hit",
                "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
 
     def _make_shade_kernel(self, setup):
@@ -334,7 +339,8 @@ class ShadingScene:
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
             sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
             ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
-            ds.d, ds.uv, ds.pdf = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), mi.Point2f(sm["ds_u"], sm["ds_v"]), sm["ds_pdf"]
+            ds.d, ds.uv = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), mi.Point2f(sm["ds_u"], sm["ds_v"])
+            ds.pdf = sm["ds_pdf"]
             lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
             em_weight = dr.select(lit, emitter.eval_direction(si, ds, lit) * dr.rcp(ds.pdf), 0.0)
             # Lanes lit by a fixed light pass no gradient to the envmap.
