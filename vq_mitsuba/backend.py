@@ -133,10 +133,11 @@ def set_threads(n: int | None = None) -> int:
 
 class shading_threads:
     """Within the block, torch uses half its CPU threads (at least one) while Dr.Jit shades beside
-    it: Dr.Jit's LLVM kernels run asynchronously on its own pool of every core, next to torch's
-    operations, and a second pool of every core for torch makes them fight over the cores (on 2
-    cores a material step took 1.5-2x as long; benchmarks/results/compiled/). Nothing changes on a
-    GPU. torch's count is the calling thread's own (OpenMP's), so blocks in several threads (the
+    it: in a training step Dr.Jit's LLVM kernels run asynchronously on its own pool of every core,
+    next to torch's operations, and a second pool of every core for torch makes them fight over the
+    cores (on 2 cores a material step took 1.5-2x as long; rendering, whose torch work waits for the
+    kernels, was 1.25x slower with half: it keeps every thread; benchmarks/results/compiled/).
+    Nothing changes on a GPU. torch's count is the calling thread's own (OpenMP's), so blocks in several threads (the
     editor's server) do not touch each other's; leaving restores the count the block found."""
 
     def __enter__(self):

@@ -4,7 +4,6 @@ the loss plot and fit.json."""
 
 from __future__ import annotations
 
-from vq_mitsuba.backend import shading_threads
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
 from vq_mitsuba.engine.ranking import rank_materials
 from vq_mitsuba.engine.residual_fit import residual_stage
@@ -20,8 +19,7 @@ def write_products(trainer: Trainer, summary: dict) -> None:
 
     run, cfg, env = trainer.run, trainer.cfg, trainer.envmap().detach()
     if trainer.discrete is not None and bool(trainer.discrete.initialised):
-        with shading_threads():
-            info = rank_materials(trainer.scene, trainer.model, trainer.discrete, trainer.pool, env, cfg)
+        info = rank_materials(trainer.scene, trainer.model, trainer.discrete, trainer.pool, env, cfg)
         trainer.checkpoint(summary["seconds"])  # with the ranked codebook and M
         run.write_materials(info)
         run.write_file(RunDir.ERR_PLOT, lambda path: plot_err_k(info["err_k"], info["num_materials"],

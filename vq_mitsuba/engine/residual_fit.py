@@ -35,7 +35,7 @@ import time
 
 import torch
 
-from vq_mitsuba.backend import device_scale, shading_threads, sized
+from vq_mitsuba.backend import device_scale, sized
 from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
 from vq_mitsuba.data.pixels import PixelPool
@@ -87,8 +87,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     n = min(len(pool), RESIDUAL_HITS * scale)
     idx = torch.randperm(len(pool), generator=gen, device=device)[:n]
     target = pool.rgb[idx]
-    with shading_threads():
-        physical = physical_radiance(scene, model, pool, idx, env, cfg, gen)
+    physical = physical_radiance(scene, model, pool, idx, env, cfg, gen)
     n_check = max(1, int(CHECK_SHARE * n)) if n > 1 else 0
     fit_ids, check_ids = torch.arange(n_check, n, device=device), torch.arange(n_check, device=device)
     if len(fit_ids) == 0:

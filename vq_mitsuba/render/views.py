@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from vq_mitsuba.backend import shading_threads, sized
+from vq_mitsuba.backend import sized
 from vq_mitsuba.config import CPU_RENDER_CHUNK
 from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
@@ -82,8 +82,7 @@ class Renderer:
         lights = [self, *relight]
         if any(r.fitted is not self.fitted for r in relight):
             raise ValueError("relight renderers must render the same fitted run")
-        with shading_threads():
-            self._trace_passes(camera, sums, lights, aa, max(2, spp // aa), seed)
+        self._trace_passes(camera, sums, lights, aa, max(2, spp // aa), seed)
         return sums.images(camera.height, camera.width, aa)
 
     def _residual(self):
