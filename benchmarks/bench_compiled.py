@@ -148,11 +148,10 @@ def neus_loop(args) -> dict:
             "first_compiled_call_s": first, "kept": "eager (the compiled head was slower)", **out}
 
 
-def material_loop(args) -> dict:
-    import shutil
+def demo_trainer(capture: str):
+    """A Trainer of the demo preset on `capture` in a temporary run folder (the bounce from the first
+    step), and a function taking one step at a schedule progress; remove the folder when done."""
     import tempfile
-
-    import torch
 
     from vq_mitsuba.config import load_config
     from vq_mitsuba.engine.fit import load_training_capture
@@ -161,12 +160,23 @@ def material_loop(args) -> dict:
     from vq_mitsuba.run.loop import Progress
     from vq_mitsuba.run.run_dir import RunDir
 
-    preset = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
-    cfg = load_config(preset, ["train.bounce_after=0"])
+    cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "demo.yaml", ["train.bounce_after=0"])
     folder = Path(tempfile.mkdtemp())
     run = RunDir(folder / "run")
     run.create()
-    trainer = Trainer(load_training_capture(args.material_capture, None, run, cfg), run, cfg)
+    trainer = Trainer(load_training_capture(capture, None, run, cfg), run, cfg)
+
+    def take_step(progress: float) -> None:
+        trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, progress, 0.0)))
+    return trainer, take_step, folder
+
+
+def material_loop(args) -> dict:
+    import shutil
+
+    import torch
+
+    trainer, take_step, folder = demo_trainer(args.material_capture)
     eager_model = trainer.model
     compiled_model = torch.compile(eager_model, dynamic=False)
 
@@ -183,7 +193,7 @@ def material_loop(args) -> dict:
     def run_with(model):
         def step(i):
             trainer.model = model
-            trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, 0.6, 0.0)))
+            take_step(0.6)
             trainer.model = eager_model
         return step
 
@@ -199,34 +209,21 @@ def material_loop(args) -> dict:
 
 def threads_loop(args) -> dict:
     import shutil
-    import tempfile
 
+    import drjit as dr
     import torch
 
     from vq_mitsuba.backend import available_cores
-    from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import load_training_capture
-    from vq_mitsuba.engine.schedule import schedule_at
-    from vq_mitsuba.engine.trainer import Trainer
-    from vq_mitsuba.run.loop import Progress
-    from vq_mitsuba.run.run_dir import RunDir
 
-    preset = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
-    cfg = load_config(preset, ["train.bounce_after=0"])
-    folder = Path(tempfile.mkdtemp())
-    run = RunDir(folder / "run")
-    run.create()
-    trainer = Trainer(load_training_capture(args.material_capture, None, run, cfg), run, cfg)
+    trainer, take_step, folder = demo_trainer(args.material_capture)
     cores = available_cores()
-    import drjit as dr
-
     out = {"cores": cores, "dr_jit_threads": dr.thread_count(),
            "kept": f"torch on {max(1, cores // 2)} thread(s) while Dr.Jit shades (the default)"}
     for phase, progress in (("continuous", 0.1), ("discrete", 0.6)):
         def run_with(threads):
             def step(i):
                 torch.set_num_threads(threads)
-                trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, progress, 0.0)))
+                take_step(progress)
             return step
         for i in range(5):
             run_with(cores)(i)
