@@ -206,9 +206,9 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
 
 def test_a_residual_with_nothing_to_learn_stops_within_a_few_early_scores(monkeypatch):
     """Targets the physically based radiance already gives up to pixel noise (a scene rendered by
-    the model itself):
-    the zero field is kept, and the fit stops after PATIENCE scores FIRST_GAP steps apart, eagerly
-    (the compiler is never waited for), long before its planned steps."""
+    the model itself): no field beats the zero one by MIN_GAIN_DB, and the fit stops after PATIENCE
+    scores FIRST_GAP steps apart, eagerly (the compiler is never waited for), long before its
+    planned steps."""
     from types import SimpleNamespace
 
     from vq_mitsuba.config import load_config

@@ -137,8 +137,9 @@ class shading_threads:
     next to torch's operations, and a second pool of every core for torch makes them fight over the
     cores (on 2 cores a material step took 1.5-2x as long; rendering, whose torch work waits for the
     kernels, was 1.25x slower with half: it keeps every thread; benchmarks/results/compiled/).
-    Nothing changes on a GPU. torch's count is the calling thread's own (OpenMP's), so blocks in several threads (the
-    editor's server) do not touch each other's; leaving restores the count the block found."""
+    Nothing changes on a GPU. torch's count is the calling thread's own (OpenMP's), so blocks in
+    several threads (the editor's server) do not touch each other's; leaving restores the count the
+    block found."""
 
     def __enter__(self):
         self.old = torch.get_num_threads()

@@ -311,15 +311,15 @@ class ShadingScene:
     # coordinates that Mitsuba's envmap looks its radiance up at, pdf, unoccluded), the
     # BSDF sample (local direction, MIS weight where it escapes, 1 / pdf, escapes, meets the object),
     # the point it meets (p2, n2 facing back) and the world direction back along it (wi2).
-    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit", "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss",
-               "hit",
+    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit",
+               "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
                "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
 
     def _make_shade_kernel(self, setup):
         """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
         envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
         sampling kernel's results (so the backward pass traces no ray)."""
-        scene, bsdf, emitter, ctx = self.scene, self.bsdf, self.emitter, self.ctx
+        bsdf, emitter, ctx = self.bsdf, self.emitter, self.ctx
         params, key = self.params, self.env_key
         tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
         f = _flat
