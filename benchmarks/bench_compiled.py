@@ -160,7 +160,7 @@ def demo_trainer(capture: str):
     from vq_mitsuba.run.loop import Progress
     from vq_mitsuba.run.run_dir import RunDir
 
-    cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "demo.yaml", ["train.bounce_after=0"])
+    cfg = load_config(None, ["train.bounce_after=0"], preset="demo")
     folder = Path(tempfile.mkdtemp())
     run = RunDir(folder / "run")
     run.create()

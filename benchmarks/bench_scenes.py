@@ -7,7 +7,7 @@
 
 For each scene: `make_scene` into OUT/data/NAME (reused when its scene.json has the same
 resolution). Then one `vq-mitsuba batch` (vq_mitsuba/batch.py) fits every scene from its scene.xml
-into OUT/runs/NAME-s0 (old runs there are deleted first) with configs/NAME.yaml if present, and
+into OUT/runs/NAME-s0 (old runs there are deleted first) with the preset of the scene's name if there is one, and
 evaluates each on its test views. Each run reserves --threads-per-run CPU threads (default: every
 core, so on one machine the fits run one after another, timed alone; fewer run several at once;
 --address spreads them over a Ray cluster). Writes OUT/bench_scenes.json and OUT/bench_scenes.md and
@@ -28,7 +28,7 @@ from pathlib import Path
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 from vq_mitsuba.batch import run_batch
-from vq_mitsuba.config import load_config
+from vq_mitsuba.config import load_config, preset_path, presets
 from vq_mitsuba.eval.evaluate import format_table, json_safe
 from vq_mitsuba.run.run_dir import RunDir
 
@@ -48,10 +48,9 @@ FIGURES = [
 
 
 def scene_config(name: str, overrides: list[str], preset: str | None = None):
-    """A bundled scene's fit config: the named preset (if any), configs/NAME.yaml when there is one,
-    then the overrides. Returns (config, the scene file's path or None)."""
-    path = REPO / "configs" / f"{name}.yaml"
-    path = path if path.is_file() else None
+    """A bundled scene's fit config: the named preset (if any), the preset of the scene's name when
+    there is one, then the overrides. Returns (config, the preset file's path or None)."""
+    path = preset_path(name) if name in presets() else None
     return load_config(path, overrides, preset=preset), path
 
 

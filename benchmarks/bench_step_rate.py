@@ -6,7 +6,7 @@
         [--data DIR] [--iterations 200] [--repeats 3] [--eval-spp 0] [--out benchmarks/out/step_rate]
 
 Each revision is checked out into a temporary git worktree and `fit` runs from there in a child
-process, on the same dataset and config (configs/SCENE.yaml of that revision), with a new
+process, on the same dataset and config (the preset of the scene's name in that revision), with a new
 `train.seed` per repeat. Runs of the revisions alternate (A B A B ...), so that both see the
 same machine load. The rate is measured after the first `--warmup` steps, which include Dr.Jit's
 kernel compilation; a kernel that compiles again at every step (a size baked into it) still
@@ -44,7 +44,9 @@ def child(args) -> int:
     if not Path(vq_mitsuba.__file__).resolve().is_relative_to(Path(args.src).resolve()):
         raise SystemExit(f"imported {vq_mitsuba.__file__}, not the revision's copy in {args.src}")
 
-    preset = Path(args.src) / "configs" / f"{args.scene}.yaml"
+    # The revision's preset of the scene's name: inside the package, or configs/ in older revisions.
+    preset = next((p for p in (Path(args.src) / "vq_mitsuba" / "presets" / f"{args.scene}.yaml",
+                               Path(args.src) / "configs" / f"{args.scene}.yaml") if p.is_file()), Path("-"))
     overrides = [f"train.iterations={args.iterations}", f"train.seed={args.seed}", "train.log_every=10",
                  f"train.checkpoint_every={args.iterations + 1}", "train.time_limit_s=0"]
     if "bounce_after" in vars(load_config(None).train):

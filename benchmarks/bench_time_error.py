@@ -15,7 +15,7 @@ fit of its own with that time limit instead, so that the schedules (learning-rat
 and barrier, frequency annealing) run their course in the budget, as when a user sets
 `train.time_limit_s`; its final state is scored. Methods:
 
-- `vqnerf`: `vq-mitsuba fit` with its defaults (configs/NAME.yaml when present): its final state
+- `vqnerf`: `vq-mitsuba fit` with its defaults (the preset of the scene's name when present): its final state
   also gives the segmentation and the MeanShift baseline on its continuous maps;
 - `continuous`: the same with `--preset continuous` (the continuous branch alone);
 - `texel`: per-texel principled textures on an xatlas UV map and an envmap, optimised with
@@ -105,7 +105,7 @@ def fresh_run(name: str, data: Path, label: str, args, out: Path) -> tuple[Path,
 
 def ours_config(name: str, method: str, args, overrides: list[str], last: list[str] = ()):
     """The config of one of our methods: the preset of the method (`continuous`, or the defaults),
-    configs/NAME.yaml, `overrides`, the user's --set, then `last`."""
+    the preset of the scene's name, `overrides`, the user's --set, then `last`."""
     cfg, _ = scene_config(name, overrides + list(args.set) + list(last),
                           preset="continuous" if method == "continuous" else None)
     return cfg

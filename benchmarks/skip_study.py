@@ -22,7 +22,7 @@ The rules (`vq_mitsuba/engine/skips.py`), each with one config key (auto or forc
 Datasets: DATA/NAME, `vq-mitsuba make-scene NAME --renderer cycles` at --resolution with
 --n-train / --n-test views (rendered here when missing; Cycles needs `make cycles`). Each fit is
 `vq-mitsuba fit DATA/NAME/transforms_train.json --mesh DATA/NAME/mesh.ply` (with
-configs/NAME.yaml when there is one, as `make demo` and `bench_time_error.py` fit), one process per
+the preset of the scene's name when there is one, as `make demo` and `bench_time_error.py` fit), one process per
 fit, timed from the command's start to its exit (start-up and the end's ranking and residual
 included), run through `vq-mitsuba batch` (one batch of the scenes per variant and seed, each fit
 on every core, so one after another on one machine; `--address` for a Ray cluster), then scored by
@@ -52,6 +52,7 @@ from pathlib import Path
 from bench_scenes import _fmt
 from bench_time_error import figures
 from provenance import command_line, describe, provenance, write_result
+from vq_mitsuba.config import presets
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = ["demo", "texture", "balls", "tabletop"]
@@ -101,9 +102,8 @@ def ensure_cycles_dataset(name: str, data_dir: Path, args) -> Path:
 def fit_command(name: str, data: Path, run_dir: Path, overrides: list[str]) -> list[str]:
     cmd = [sys.executable, "-m", "vq_mitsuba.cli", "fit", str(data / "transforms_train.json"),
            "--mesh", str(data / "mesh.ply"), "-o", str(run_dir), "--quiet"]
-    scene_cfg = REPO / "configs" / f"{name}.yaml"
-    if scene_cfg.is_file():
-        cmd += ["--config", str(scene_cfg)]
+    if name in presets():
+        cmd += ["--preset", name]
     for kv in overrides:
         cmd += ["--set", kv]
     return cmd
@@ -128,7 +128,7 @@ def fit_batch(datasets: dict[str, Path], variant: str, seed: int, args) -> dict[
         shutil.rmtree(out)
     overrides = variant_overrides(variant) + ([f"train.iterations={args.iterations}"] if args.iterations else [])
     own = {str(data / "transforms_train.json"): ["--mesh", str(data / "mesh.ply")] + (
-        ["--config", str(REPO / "configs" / f"{name}.yaml")] if (REPO / "configs" / f"{name}.yaml").is_file() else [])
+        ["--preset", name] if name in presets() else [])
         for name, data in datasets.items()}
     print(f"[{variant}/s{seed}] batch of {', '.join(datasets)}: {' '.join(overrides) or 'no key forced'}", flush=True)
     rows = run_batch(list(own), out, seeds=[seed], fit_args=[x for kv in overrides for x in ("--set", kv)],

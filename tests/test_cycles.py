@@ -343,7 +343,7 @@ def test_patterned_basecolor_matches_the_mitsuba_generator(tmp_path):
     import imageio.v3 as iio
 
     ids = np.asarray(iio.imread(mi / "gt" / "test_000_material.png"))
-    striped = _interior(ids == 1)  # material 1 of scenes/texture.yaml: the striped sphere
+    striped = _interior(ids == 1)  # material 1 of synthetic/scenes/texture.yaml: the striped sphere
     assert striped.sum() > 20
     assert bc_cy[striped].max() > 0.5  # not black
     diff = np.abs(bc_cy[striped] - bc_mi[striped]).max(-1)  # stripe edges mix colours within a pixel

@@ -1,4 +1,4 @@
-"""Every preset in configs/ fits a few steps on a tiny sphere through `vq-mitsuba fit --preset`: the
+"""Every bundled preset (vq_mitsuba/presets/) fits a few steps on a tiny sphere through `vq-mitsuba fit --preset`: the
 run is complete, its saved config holds the preset's values, and the discrete branch's materials
 are written wherever the preset keeps that branch on."""
 
@@ -32,7 +32,7 @@ def _flat(data: dict, prefix: str = "") -> dict:
     return out
 
 
-def test_the_presets_are_the_files_in_configs():
+def test_the_presets_are_the_bundled_files():
     assert {"continuous", "demo", "ablation_no_ranking", "ablation_separate", "ablation_single_branch",
             "ablation_shared_light", "ablation_single_pass_ranking"} <= set(presets())
 

@@ -23,12 +23,22 @@ COMMANDS = (fit, geometry, pose, render, edit, export, ui, evaluate, make_scene,
 MANUAL_WIDTH = 100  # columns of docs/cli.md's help texts, whatever the terminal
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("vq-mitsuba")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="vq-mitsuba",
         description="Neural reflectance decomposition (VQ-NeRF) on Mitsuba 3: fit materials and lighting "
                     "to posed images, then render novel views, material maps and relighting.",
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     shared = shared_parents()
     for command in COMMANDS:

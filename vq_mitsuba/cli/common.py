@@ -58,7 +58,7 @@ def shared_parents() -> dict[str, argparse.ArgumentParser]:
     quiet = _parent()
     quiet.add_argument("--quiet", action="store_true", help="no progress bar")
     config = _parent()  # the config file system: docs/configuration.md
-    config.add_argument("--preset", metavar="NAME", help="apply the named preset configs/NAME.yaml (see --help-config)")
+    config.add_argument("--preset", metavar="NAME", help="apply the named bundled preset (see --help-config)")
     config.add_argument("--config", metavar="FILE", help="apply a YAML config file, after --preset")
     config.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one config key, e.g. train.iterations=500 (repeatable)")
@@ -94,7 +94,7 @@ def help_config() -> int:
 
     print("Config keys (set them in a preset, a YAML file, or with --set section.key=value):")
     print("\n".join(describe()))
-    print(f"Presets (--preset NAME, configs/NAME.yaml): {', '.join(presets())}")
+    print(f"Presets (--preset NAME): {', '.join(presets())}")
     return 0
 
 

@@ -1,10 +1,11 @@
 """Deferred physically based shading with Mitsuba's `principled` BSDF and an envmap emitter.
 
-This is the only module that drives Dr.Jit/Mitsuba during fitting and rendering. Geometry is
-fixed, so primary hits are traced once (no gradients) and reused; at each step the material
-fields are evaluated in torch once per hit point and handed to Mitsuba through `dr.wrap`. A
-small texture plugin (`vqm_lanes`) returns those per-lane values when `principled` asks for
-`base_color`, `metallic` or `roughness`, so the BSDF code is Mitsuba's own, not a copy.
+This module drives Dr.Jit/Mitsuba's shading during fitting and rendering (ray casting for coverage
+masks is `geometry/mesh.py`'s). Geometry is fixed, so primary hits are traced once (no gradients)
+and reused; at each step the material fields are evaluated in torch once per hit point and
+handed to Mitsuba through `dr.wrap`. A small texture plugin (`vqm_lanes`) returns those per-lane
+values when `principled` asks for `base_color`, `metallic` or `roughness`, so the BSDF code is
+Mitsuba's own, not a copy.
 
 Each lane takes one emitter sample (`scene.sample_emitter_direction`, importance-sampled from
 the envmap, shadow ray tested) and one BSDF sample, combined with the power heuristic. When the

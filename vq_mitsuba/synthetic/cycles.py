@@ -42,7 +42,8 @@ from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+_ROOT = Path(__file__).resolve().parents[2]
+CHECKOUT = _ROOT if (_ROOT / "pyproject.toml").is_file() else None  # None when installed from the wheel
 WORKER = Path(__file__).resolve().parent / "cycles_worker.py"
 ENV_VAR = "VQ_CYCLES_PYTHON"  # overrides the interpreter that has bpy
 MAX_BOUNCES = synthetic.MAX_DEPTH - 2
@@ -55,9 +56,10 @@ WORK_DIR = DatasetDir.CYCLES_WORK  # job file and raw multilayer EXRs inside the
 # The Blender environment
 # --------------------------------------------------------------------------------------------
 def cycles_python() -> Path:
-    """The interpreter of the environment with bpy: $VQ_CYCLES_PYTHON or .venv-cycles/bin/python."""
+    """The interpreter of the environment with bpy: $VQ_CYCLES_PYTHON, else .venv-cycles/bin/python of
+    the checkout (of the working folder when installed from the wheel)."""
     env = os.environ.get(ENV_VAR)
-    return Path(env) if env else REPO_ROOT / ".venv-cycles" / "bin" / "python"
+    return Path(env) if env else (CHECKOUT or Path.cwd()) / ".venv-cycles" / "bin" / "python"
 
 
 def _site_packages(python: Path) -> list[Path]:

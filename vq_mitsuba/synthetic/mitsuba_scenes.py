@@ -1,6 +1,6 @@
 """Bundled synthetic scenes rendered with Mitsuba, written as both capture formats.
 
-A scene is defined in `scenes/<name>.yaml` in Blender world (Z up): principled materials
+A scene is defined in `synthetic/scenes/<name>.yaml` in Blender world (Z up): principled materials
 (base_color, metallic, roughness; base_color may be a procedural pattern baked into per-vertex
 colours) and shapes made with trimesh. `make_scene` writes into `out_dir` the layout that
 `vq_mitsuba.data.dataset_dir.DatasetDir` names and describes: both capture formats (transforms json
@@ -24,6 +24,7 @@ import shutil
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,7 @@ from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
 from vq_mitsuba.errors import InputError
 
-SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+SCENES_DIR = Path(str(resources.files("vq_mitsuba.synthetic") / "scenes"))  # package data, installed with the wheel
 R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = R @ Mitsuba_world
 FOV_X_DEG = 40.0
 FILL = 0.7  # fraction of the half-frame the bounding sphere's silhouette covers
@@ -61,7 +62,7 @@ SCENES: tuple[str, ...] = _scene_names()
 # Scene definitions
 # --------------------------------------------------------------------------------------------
 def load_scene_spec(name: str) -> dict:
-    """The parsed and checked `scenes/<name>.yaml`."""
+    """The parsed and checked `vq_mitsuba/synthetic/scenes/<name>.yaml`."""
     import yaml
 
     path = SCENES_DIR / f"{name}.yaml"
@@ -664,7 +665,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
                progress: bool = True, photo_formats: bool = False) -> Path:
     """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
     relit test views). None for resolution / n_train / n_test / spp takes the scene's default
-    (scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
+    (synthetic/scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
     training views as NeuS/IDR (neus/), COLMAP (colmap/, colmap_opencv/), nerfstudio (nerfstudio/) and
     LLFF (llff/) captures. Returns out_dir."""
     check_seed(seed)
