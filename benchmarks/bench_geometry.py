@@ -189,6 +189,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     result = reconstruct(capture, run_dir, cfg, progress=not args.quiet, callback=checkpoint,
                          callback_every_s=args.checkpoint_every)
     info, neus = result.summary, result.neus
+    result.mesh.export(run_dir / "mesh.ply")
     # The hull-initialised start (step 0) and the final state belong on the curve too.
     normals = score(run_dir / "mesh.ply", data, "test", gt=gt)  # mesh_metrics, per object too, and in view
     final = {**normals["surface"], "in_view": normals["view"]}

@@ -38,6 +38,7 @@ def run(variant: str, data: Path, out: Path, overrides: list[str], gt) -> dict:
     finally:
         neus_module._lr_factor = original
     s = result.summary
+    result.mesh.export(out / variant / "mesh.ply")
     normals = score(out / variant / "mesh.ply", data, "test", gt=gt)
     row = {"variant": variant, "iterations": s["iterations"], "stopped_by_time_limit": s["stopped_by_time_limit"],
            "train_s": s["seconds"]["train"], "iterations_per_s_spread": s["iterations_per_s_spread"],

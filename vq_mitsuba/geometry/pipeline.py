@@ -143,7 +143,8 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
 
         result.summary["metrics"] = mesh_metrics(result.mesh, gt)
         result.summary["gt_mesh"] = str(Path(gt_mesh).resolve())
-    run.write_geometry_summary(result.summary)
+    run.write_geometry_summary(result.summary)  # the stage's one record, then its product:
+    run.write_mesh(result.mesh)  # a mesh.ply is a finished stage (fit --resume reuses it)
     return result
 
 

@@ -297,8 +297,8 @@ def sample_views(count: int, at_most: int) -> list[int]:
 
 @dataclass
 class Reconstruction:
-    """What the geometry stage made: the exported mesh, the trained NeuS model and its summary
-    (the content of geometry.json)."""
+    """What NeuS made: the extracted mesh, the trained model and its summary (the geometry stage,
+    `geometry/pipeline.py`, writes them as mesh.ply and geometry.json)."""
 
     mesh: object  # trimesh.Trimesh, in the capture's world
     neus: NeuS
@@ -309,8 +309,8 @@ def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None
                 progress: bool = True, callback=None, callback_every_s: float = 0.0,
                 sphere: tuple | None = None, support: tuple | None = None,
                 points: np.ndarray | None = None) -> Reconstruction:
-    """NeuS on a loaded capture, then mesh export: writes the run's mesh.ply, geometry.json,
-    geometry_loss.png (and the NeuS checkpoint neus.pt). `sphere`, `support`, `points`: the
+    """NeuS on a loaded capture, then mesh extraction: writes the run's NeuS checkpoint neus.pt and
+    geometry_loss.png, and returns the mesh and the summary. `sphere`, `support`, `points`: the
     bounding sphere, a known supporting plane and the sparse points when NeuS runs without masks
     (`NeuS`)."""
     cfg = cfg or NeuSConfig()
@@ -330,7 +330,6 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
     t1 = time.perf_counter()
     mesh = neus.extract_mesh()
     export_s = time.perf_counter() - t1
-    run.write_mesh(mesh)
     if summary["history"]:
         run.write_file(run.GEOMETRY_PLOT, lambda path: _plot_history(summary["history"], path))
     last = summary["history"][-1] if summary["history"] else {}
@@ -363,5 +362,4 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "grid_lookup": grid_kernel.status(),
         "device": device_record(),
     }
-    run.write_geometry_summary(info)
     return Reconstruction(mesh, neus, info)
