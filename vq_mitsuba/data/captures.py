@@ -88,8 +88,8 @@ def capture_framing(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | N
     (centre, radius), as an IDR capture's scale_mat_0 gives it, or None)."""
     source = resolve_capture_path(path)
     fmt = format_of(source)
-    points = fmt.points(source) if hasattr(fmt, "points") else None
-    sphere = fmt.sphere(source) if hasattr(fmt, "sphere") else None
+    points = fmt.points(source) if fmt.POSED and fmt.points is not None else None
+    sphere = fmt.sphere(source) if fmt.POSED and fmt.sphere is not None else None
     return points, sphere
 
 

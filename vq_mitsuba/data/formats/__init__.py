@@ -1,6 +1,7 @@
 """Capture formats, one module each, and the registry that `vq_mitsuba.data.captures` walks.
 
-A format module names its layout in its docstring and defines:
+A format module names its layout in its docstring and is a `CaptureFormat` (a `PosedFormat` when
+POSED); `tests/test_capture_formats.py` checks every registered one. It defines:
 
     KIND           the name `capture_kind` gives it ("xml", "json", "idr", "llff", "colmap", ...)
     SUFFIXES       the file suffixes it reads (empty for a folder)
@@ -9,10 +10,11 @@ A format module names its layout in its docstring and defines:
     detect(source)             whether `source` (a file, or a folder for COLMAP and photos) is one
     cameras(source)            (cameras, world) without reading the images (posed formats)
     load(source, mesh_arg, shrink, cache_dir)   the validated `Capture` (posed formats)
+    points(source)             sparse points and their track lengths (posed formats; the attribute
+                               is None where the format has none)
+    sphere(source)             the region of interest as (centre, radius) (likewise)
 
-and, where the format has them, `points(source)` (sparse points and their track lengths),
-`sphere(source)` (the region of interest as (centre, radius)) and `write_capture(...)` (the
-writer the synthetic scenes use: `vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the
+and, where the format has one, `write_capture(...)` (the writer the synthetic scenes use: `vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the
 transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
 
 Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
@@ -24,8 +26,35 @@ from __future__ import annotations
 
 from pathlib import Path
 from types import ModuleType
+from typing import Callable, Optional, Protocol, runtime_checkable
 
 from vq_mitsuba.data.formats import colmap, idr, llff, mitsuba_xml, nerf_synthetic, nerfstudio, photos, video
+
+
+@runtime_checkable
+class CaptureFormat(Protocol):
+    """What every format module defines."""
+
+    KIND: str
+    SUFFIXES: tuple[str, ...]
+    FOLDER_FILES: tuple[str, ...]
+    POSED: bool
+
+    def detect(self, source: Path) -> bool: ...
+
+
+@runtime_checkable
+class PosedFormat(CaptureFormat, Protocol):
+    """What a format of posed captures defines besides: its cameras, its loader, and its sparse
+    points and region of interest (None where it has none)."""
+
+    points: Optional[Callable]
+    sphere: Optional[Callable]
+
+    def cameras(self, source: Path) -> tuple[list, str]: ...
+
+    def load(self, source: Path, mesh_arg, shrink=None, cache_dir=None): ...
+
 
 FORMATS: tuple[ModuleType, ...] = (nerf_synthetic, nerfstudio, mitsuba_xml, idr, llff, colmap, photos, video)
 

@@ -36,6 +36,7 @@ KIND = "colmap"
 SUFFIXES = ()  # a folder
 FOLDER_FILES = ()
 POSED = True
+sphere = None  # no region of interest (points: the sparse model's)
 # COLMAP's models we do not read, named when refused
 OTHER_MODELS = {6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE",
                 10: "THIN_PRISM_FISHEYE"}

@@ -29,6 +29,7 @@ KIND = "idr"
 SUFFIXES = (".npz",)
 FOLDER_FILES = ("cameras_sphere.npz",)
 POSED = True
+points = None  # no sparse points (sphere: scale_mat_0's region of interest)
 
 
 def detect(source: Path) -> bool:

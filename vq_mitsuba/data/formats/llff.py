@@ -25,6 +25,7 @@ KIND = "llff"
 SUFFIXES = (".npy",)
 FOLDER_FILES = ("poses_bounds.npy",)
 POSED = True
+points = sphere = None  # no sparse points, no region of interest
 COLUMNS = 17  # 3x5 pose [R | t | hwf] row by row, near, far
 
 

@@ -33,6 +33,7 @@ KIND = "xml"
 SUFFIXES = (".xml",)
 FOLDER_FILES = ("scene.xml",)  # the file a capture folder holds
 POSED = True
+points = sphere = None  # no sparse points, no region of interest
 MESH_SHAPES = ("ply", "obj", "serialized", "cube")  # loaded by Mitsuba as triangle meshes
 SPHERE_SUBDIVISIONS = 4
 

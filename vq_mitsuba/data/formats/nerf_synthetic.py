@@ -31,6 +31,7 @@ KIND = "json"
 SUFFIXES = (".json",)
 FOLDER_FILES = ("transforms_train.json", "transforms.json")  # the file a capture folder holds, in this order
 POSED = True
+points = sphere = None  # no sparse points, no region of interest
 
 
 def detect(source: Path) -> bool:

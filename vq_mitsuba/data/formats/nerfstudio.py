@@ -40,6 +40,7 @@ KIND = "json"
 SUFFIXES = (".json",)
 FOLDER_FILES = ("transforms.json",)
 POSED = True
+points = sphere = None  # no sparse points, no region of interest
 CAMERA_MODELS = ("PINHOLE", "OPENCV", FISHEYE)
 UP_COS = math.cos(math.radians(45.0))  # mean camera up within this of +Z: Blender's envmap frame
 

@@ -1,0 +1,70 @@
+"""Every registered capture format keeps the format contract (`vq_mitsuba.data.formats`): its
+declared members, and on a capture its own writer made: the folder resolves to it, its `detect`
+takes its own capture and no other format's, its cameras and its loaded capture agree."""
+
+import inspect
+
+import numpy as np
+import pytest
+
+from vq_mitsuba.data.captures import resolve_capture_path
+from vq_mitsuba.data.formats import FORMATS, CaptureFormat, PosedFormat, format_of
+
+# Where make-scene --photo-formats puts each posed format's copy of the training views.
+FOLDERS = {"nerf_synthetic": "", "mitsuba_xml": "scene.xml", "idr": "neus", "colmap": "colmap",
+           "nerfstudio": "nerfstudio", "llff": "llff"}
+
+
+def _name(fmt) -> str:
+    return fmt.__name__.rsplit(".", 1)[1]
+
+
+@pytest.mark.parametrize("fmt", FORMATS, ids=_name)
+def test_each_format_declares_the_contract(fmt):
+    assert isinstance(fmt, CaptureFormat)
+    assert isinstance(fmt.KIND, str) and isinstance(fmt.POSED, bool)
+    assert isinstance(fmt.SUFFIXES, tuple) and all(s.startswith(".") and s == s.lower() for s in fmt.SUFFIXES)
+    assert isinstance(fmt.FOLDER_FILES, tuple) and all(isinstance(n, str) for n in fmt.FOLDER_FILES)
+    assert list(inspect.signature(fmt.detect).parameters) == ["source"]
+    if fmt.POSED:
+        assert isinstance(fmt, PosedFormat)
+        assert len(inspect.signature(fmt.cameras).parameters) == 1
+        assert list(inspect.signature(fmt.load).parameters)[1:] == ["mesh_arg", "shrink", "cache_dir"]
+        assert all(f is None or len(inspect.signature(f).parameters) == 1 for f in (fmt.points, fmt.sphere))
+    else:
+        assert not hasattr(fmt, "load")
+
+
+def test_the_registry_names_each_format_once():
+    assert len({_name(f) for f in FORMATS}) == len(FORMATS)
+    assert set(FOLDERS) == {_name(f) for f in FORMATS if f.POSED}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
+
+    out = tmp_path_factory.mktemp("formats") / "demo"
+    make_scene("demo", out, resolution=16, n_train=5, n_test=1, spp=4, progress=False, photo_formats=True)
+    return out
+
+
+@pytest.mark.parametrize("fmt", [f for f in FORMATS if f.POSED], ids=_name)
+def test_each_posed_format_reads_its_own_capture(fmt, dataset):
+    source = resolve_capture_path(dataset / FOLDERS[_name(fmt)])
+    assert format_of(source) is fmt
+    for other in FORMATS:
+        if other is not fmt and other.POSED:
+            other_source = resolve_capture_path(dataset / FOLDERS[_name(other)])
+            assert not fmt.detect(other_source) or format_of(other_source) is not fmt
+    cameras, world = fmt.cameras(source)
+    assert len(cameras) == 5 and isinstance(world, str)
+    capture = fmt.load(source, None, None, None)
+    assert len(capture.cameras) == 5 and capture.images.shape[:3] == (5, 16, 16)
+    assert np.isfinite(capture.images).all()
+    if fmt.points is not None:
+        points = fmt.points(source)
+        assert points is None or (points[0].ndim == 2 and points[0].shape[1] == 3)
+    if fmt.sphere is not None:
+        centre, radius = fmt.sphere(source)
+        assert np.shape(centre) == (3,) and radius > 0
