@@ -91,8 +91,9 @@ def test_shading_matches_mitsuba_direct_integrator():
     v = hits.valid
     n = int(v.sum())
     base, metal, rough = [0.6, 0.4, 0.2], 0.3, 0.35
-    ours = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], torch.tensor([base]).expand(n, 3),
-                       torch.full((n,), metal), torch.full((n,), rough), torch.tensor(env), spp=128).numpy()
+    material = {"basecolor": torch.tensor([base]).expand(n, 3), "metallic": torch.full((n,), metal),
+                "roughness": torch.full((n,), rough)}
+    ours = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], material, torch.tensor(env), spp=128).numpy()
     ref_scene = mi.load_dict({
         "type": "scene", "integrator": {"type": "direct", "hide_emitters": True},
         "s": {"type": "sphere", "radius": 0.5, "bsdf": {"type": "principled", "base_color": {"type": "rgb", "value": base},
@@ -108,7 +109,7 @@ def test_shading_matches_mitsuba_direct_integrator():
 
 def _loss(scene, env, p, n, wi, base, metal, rough, spp=64, seed=3):
     gen = torch.Generator().manual_seed(seed)
-    rgb = scene.shade(p, n, wi, base, metal, rough, env, spp, generator=gen)
+    rgb = scene.shade(p, n, wi, {"basecolor": base, "metallic": metal, "roughness": rough}, env, spp, generator=gen)
     return (rgb * torch.tensor([0.5, 1.0, 2.0])).sum()
 
 
@@ -170,8 +171,8 @@ def test_bright_texel_lights_the_expected_side():
         scene = _scene(env, to_world)
         nrm = torch.tensor(np.stack([direction, -direction]), dtype=torch.float32)
         p = 0.5 * nrm
-        rgb = scene.shade(p, nrm, nrm, torch.full((2, 3), 0.8), torch.zeros(2), torch.ones(2),
-                          torch.tensor(env), spp=256)
+        material = {"basecolor": torch.full((2, 3), 0.8), "metallic": torch.zeros(2), "roughness": torch.ones(2)}
+        rgb = scene.shade(p, nrm, nrm, material, torch.tensor(env), spp=256)
         lit, dark = rgb[0].mean().item(), rgb[1].mean().item()
         assert lit > 20 * dark, (to_world.tolist(), texel, lit, dark)
 
@@ -194,7 +195,7 @@ def test_extreme_inputs_stay_finite():
         metal = torch.full((N,), 0.5, requires_grad=True)
         rough = torch.full((N,), rough_v, requires_grad=True)
         env = torch.tensor(env0, requires_grad=True)
-        rgb = scene.shade(p, n, view, base, metal, rough, env, spp=16)
+        rgb = scene.shade(p, n, view, {"basecolor": base, "metallic": metal, "roughness": rough}, env, spp=16)
         assert torch.isfinite(rgb).all() and (rgb >= 0).all()
         rgb.sum().backward()
         for g in (base.grad, metal.grad, rough.grad, env.grad):
@@ -220,8 +221,8 @@ def test_no_kernel_recompiles_after_warm_up():
         for step, size in enumerate((128, 128, 96, 160, 112)):
             idx = torch.randint(0, 512, (size,))
             base = torch.rand(size, 3, requires_grad=True)
-            rgb = scene.shade(p[idx], n[idx], wi[idx], base, torch.rand(size), torch.rand(size), env, spp=4,
-                              material_fn=material)
+            mat = {"basecolor": base, "metallic": torch.rand(size), "roughness": torch.rand(size)}
+            rgb = scene.shade(p[idx], n[idx], wi[idx], mat, env, spp=4, material_fn=material)
             rgb.sum().backward()
             history = dr.kernel_history()
             if step >= 2:
@@ -248,8 +249,7 @@ def test_one_bounce_matches_mitsuba_path_depth_3():
                 "roughness": torch.full((m,), rough)}
 
     mat = material(hits.position[v])
-    args = (hits.position[v], hits.normal[v], hits.wi[v], mat["basecolor"], mat["metallic"], mat["roughness"],
-            torch.tensor(env))
+    args = (hits.position[v], hits.normal[v], hits.wi[v], mat, torch.tensor(env))
     with torch.no_grad():
         one_bounce = scene.shade(*args, spp=256, material_fn=material).numpy()
         direct = scene.shade(*args, spp=256).numpy()
@@ -287,8 +287,9 @@ def test_bounce_light_changes_the_image_but_trains_nothing():
             return {"basecolor": tint.expand(k, 3), "metallic": torch.full((k,), 0.0),
                     "roughness": torch.full((k,), 0.7)}
         gen = torch.Generator().manual_seed(3)
-        rgb = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], base.expand(m, 3), torch.full((m,), 0.0),
-                          torch.full((m,), 0.3), env, spp=64, generator=gen, material_fn=material if bounce else None)
+        mat = {"basecolor": base.expand(m, 3), "metallic": torch.full((m,), 0.0), "roughness": torch.full((m,), 0.3)}
+        rgb = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], mat, env, spp=64, generator=gen,
+                          material_fn=material if bounce else None)
         return (rgb * torch.tensor([1.0, 2.0, 3.0])).sum()
 
     tint = torch.tensor([0.5, 0.4, 0.3], requires_grad=True)
@@ -531,7 +532,8 @@ def test_fixed_light_points_shade_alike_but_do_not_train_the_light():
         env = torch.tensor(env0, requires_grad=True)
         p, nrm, wi = (t[v].repeat(2, 1) for t in (hits.position, hits.normal, hits.wi))
         base = torch.full((2 * n, 3), 0.5, requires_grad=True)
-        rgb = scene.shade(p, nrm, wi, base, torch.full((2 * n,), 0.3), torch.full((2 * n,), 0.3), env, 16,
+        mat = {"basecolor": base, "metallic": torch.full((2 * n,), 0.3), "roughness": torch.full((2 * n,), 0.3)}
+        rgb = scene.shade(p, nrm, wi, mat, env, 16,
                           generator=torch.Generator().manual_seed(3), material_fn=material, fixed_light=fixed)
         rgb[rows].sum().backward()
         return rgb.detach(), env.grad.clone(), base.grad.clone()

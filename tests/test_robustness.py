@@ -111,8 +111,8 @@ def test_shading_is_finite_at_material_and_angle_extremes():
         combos = [(0.0, 0.0, 0.02), (1.0, 1.0, 0.02), (0.0, 1.0, 1.0), (1.0, 0.0, 1e-4), (0.5, 0.5, 1.0)]
         for base, metal, rough in combos:
             bc = torch.full((n, 3), base)
-            out = scene.shade(pos, normal, wi, bc, torch.full((n,), metal), torch.full((n,), rough),
-                              torch.as_tensor(env * scale), 16, generator=torch.Generator().manual_seed(0))
+            material = {"basecolor": bc, "metallic": torch.full((n,), metal), "roughness": torch.full((n,), rough)}
+            out = scene.shade(pos, normal, wi, material, torch.as_tensor(env * scale), 16, generator=torch.Generator().manual_seed(0))
             assert torch.isfinite(out).all(), (scale, base, metal, rough)
             assert (out >= 0).all()
 

@@ -45,8 +45,8 @@ def rank_materials(scene, model, discrete: DiscreteBranch, pool: PixelPool, env:
         for k in range(1, K + 1):
             od = discrete(z, n_codes=k)
             g = torch.Generator(device=device).manual_seed(cfg.train.seed + 2)
-            rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od["basecolor"], od["metallic"],
-                              od["roughness"], env, ERR_K_SPP, generator=g, groups=1)
+            rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od, env, ERR_K_SPP, generator=g,
+                              groups=1)
             errs_k.append(float(losses.reconstruction_l2(rgb, pool.rgb[sel], cfg.loss.gamma)))
             if k == K:
                 usage = torch.bincount(od["index"], minlength=K).float().cpu() / n

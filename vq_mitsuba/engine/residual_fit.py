@@ -71,9 +71,8 @@ def physical_radiance(scene, model, pool: PixelPool, idx: torch.Tensor, env: tor
     for s in range(0, len(idx), chunk):
         sel = idx[s:s + chunk]
         out = model(pool.position[sel])
-        parts.append(scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], out["basecolor"],
-                                 out["metallic"], out["roughness"], env, PREDICTION_SPP, generator=generator,
-                                 material_fn=field))
+        parts.append(scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], out, env, PREDICTION_SPP,
+                                 generator=generator, material_fn=field))
     return torch.cat(parts)
 
 

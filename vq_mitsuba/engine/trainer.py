@@ -17,6 +17,7 @@ import math
 import numpy as np
 import torch
 
+from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, shading_threads, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture
@@ -263,8 +264,7 @@ class Trainer:
         """Per-pixel Monte Carlo samples (B, spp, 3) of the pixels `idx` with `material`'s BRDF,
         in two independent halves for the decorrelated loss."""
         p = self.pool
-        return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material["basecolor"],
-                                material["metallic"], material["roughness"], env, self.cfg.train.spp,
+        return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material, env, self.cfg.train.spp,
                                 generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2,
                                 fixed_light=fixed_light)
 
@@ -434,7 +434,7 @@ class Trainer:
         cfg, pool = self.cfg, self.pool
         idx = hits = self.footprint(self.held)  # idx: the hits shaded, once per branch
         out = self.model(pool.position[hits])
-        mats = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
+        mats = brdf.select(out)
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
         if discrete_on:
             was_training = self.discrete.training
@@ -444,8 +444,8 @@ class Trainer:
             mats = {k: torch.cat([mats[k], od[k]]) for k in mats}
             idx = torch.cat([idx, idx])
         gen = torch.Generator(device=self.device).manual_seed(skips.np_seed(cfg.train.seed, 4))
-        rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats["basecolor"],
-                               mats["metallic"], mats["roughness"], self.envmap().detach(), cfg.train.spp,
+        rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats, self.envmap().detach(),
+                               cfg.train.spp,
                                generator=gen, material_fn=self.model if self.bounce_active() else None)
         target = pool.rgb[self.held]
         return sum(float(losses.reconstruction_l2(self._pixel_means(branch, len(target)), target, cfg.loss.gamma))

@@ -30,10 +30,11 @@ import torch
 import drjit as dr
 import mitsuba as mi
 
+from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, torch_device
 
 _PLUGINS_READY = False
-LANE_INPUTS = 8  # differentiable inputs per shading lane: basecolor (3), metallic, roughness, bounce radiance (3)
+LANE_INPUTS = brdf.CHANNELS + 3  # differentiable inputs per shading lane: the BRDF's, bounce radiance (3)
 
 
 def _register_plugins() -> None:
@@ -174,18 +175,9 @@ class ShadingScene:
         self.emitter = self.scene.environment()
         self.params = mi.traverse(self.scene)
         self.env_key = [k for k in self.params.keys() if k.endswith(".data")][0]
-        self.tex_base = mi.load_dict({"type": "vqm_lanes"})
-        self.tex_metal = mi.load_dict({"type": "vqm_lanes"})
-        self.tex_rough = mi.load_dict({"type": "vqm_lanes"})
-        self.bsdf = mi.load_dict(
-            {
-                "type": "principled",
-                "base_color": self.tex_base,
-                "metallic": self.tex_metal,
-                "roughness": self.tex_rough,
-                "specular": 0.5,
-            }
-        )
+        self.textures = tuple(mi.load_dict({"type": "vqm_lanes"}) for _ in brdf.INPUTS)  # one per input
+        self.bsdf = mi.load_dict({"type": "principled", **brdf.FIXED,
+                                  **{i.principled: t for i, t in zip(brdf.INPUTS, self.textures)}})
         self.ctx = mi.BSDFContext()
         self._light_set = None  # (the envmap tensor last set for sampling, its version)
         self._shade = self._make_shade()
@@ -247,12 +239,13 @@ class ShadingScene:
         return self._make_shade_kernel(setup)
 
     def _make_setup(self):
-        """setup(p, n, wi, basecolor, metallic, roughness as flat arrays) -> the SurfaceInteraction3f
-        of the lanes, with the lanes' BRDF loaded into the textures of self.bsdf."""
-        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        """setup(p, n, wi, the BRDF's channels (brdf.CHANNELS flat arrays, in the order of brdf.INPUTS))
+        -> the SurfaceInteraction3f of the lanes, with the lanes' BRDF loaded into the textures of
+        self.bsdf."""
+        textures = self.textures
         f = _flat
 
-        def setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough):
+        def setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans):
             # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
             px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
             si = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
@@ -262,9 +255,10 @@ class ShadingScene:
             si.sh_frame = mi.Frame3f(normal)
             si.wi = si.sh_frame.to_local(mi.Vector3f(wx, wy, wz))
             si.t = mi.Float(1.0)
-            tb.values = (f(br), f(bg), f(bb))
-            tm.values = (f(metal),)
-            tr.values = (f(rough),)
+            at = 0
+            for inp, tex in zip(brdf.INPUTS, textures):
+                tex.values = tuple(f(c) for c in chans[at:at + inp.channels])
+                at += inp.channels
             return si
 
         return setup
@@ -274,14 +268,13 @@ class ShadingScene:
         with the ray it casts, in one kernel without gradients (the light in the scene must be set).
         Returns the `SAMPLED` arrays (torch): what shading reads, and where the BSDF sample meets the
         object (the bounce's points: p2, n2 facing back, wi2)."""
-        scene, bsdf, ctx = self.scene, self.bsdf, self.ctx
-        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        scene, bsdf, ctx, textures = self.scene, self.bsdf, self.ctx, self.textures
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
-        def sample(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough, u):
+        def sample(px, py, pz, nx, ny, nz, wx, wy, wz, chans, u):
             with dr.suspend_grad():
-                si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
+                si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
                 u = [f(x) for x in u]
                 # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
                 ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
@@ -303,7 +296,8 @@ class ShadingScene:
                        *(dr.select(hit, v, 0.0) for v in (si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z)),
                        -ray.d.x, -ray.d.y, -ray.d.z)
                 dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
-            tb.values = tm.values = tr.values = None
+            for tex in textures:
+                tex.values = None
             return out
 
         return sample
@@ -321,23 +315,22 @@ class ShadingScene:
         envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
         sampling kernel's results (so the backward pass traces no ray)."""
         bsdf, emitter, ctx = self.bsdf, self.emitter, self.ctx
-        params, key = self.params, self.env_key
-        tb, tm, tr = self.tex_base, self.tex_metal, self.tex_rough
+        params, key, textures = self.params, self.env_key, self.textures
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
         def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, fixed, sampled):
-            # `lanes` holds the differentiable per-lane inputs interleaved (basecolor r, g, b,
-            # metallic, roughness, bounce radiance r, g, b): one gradient array, so the backward
+            # `lanes` holds the differentiable per-lane inputs interleaved (the BRDF's channels,
+            # then bounce radiance r, g, b): one gradient array, so the backward
             # pass is one kernel instead of one per input, each tracing the shading again.
             # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
             # the default mode's per-thread copies bake the array size in: a compile per size.
             lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
-            br, bg, bb, metal, rough, *li = (dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute)
-                                             for c in range(LANE_INPUTS))
+            *chans, lr, lg, lb = (dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute)
+                                  for c in range(LANE_INPUTS))
             params[key] = env
             params.update()
-            si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, metal, rough)
+            si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
             sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
             ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
             ds.d, ds.uv = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), mi.Point2f(sm["ds_u"], sm["ds_v"])
@@ -361,10 +354,11 @@ class ShadingScene:
             le = dr.select(fixed, dr.detach(le), le)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
-            li_obj = mi.Color3f(*li)
+            li_obj = mi.Color3f(lr, lg, lb)
             radiance += f_bs * dr.select(hit_obj, li_obj, le * sm["w_bs"]) * sm["inv_pdf"]
             dr.eval(radiance)  # one kernel for the three channels, not one each
-            tb.values = tm.values = tr.values = None
+            for tex in textures:
+                tex.values = None
             return radiance.x, radiance.y, radiance.z
 
         return shade
@@ -379,20 +373,20 @@ class ShadingScene:
         self.params.update()
         self._light_set = (env_linear, env_linear._version)
 
-    def shade(self, hits_position, hits_normal, hits_wi, basecolor, metallic, roughness,
+    def shade(self, hits_position, hits_normal, hits_wi, material: dict,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
               reduce: bool = True, material_fn=None, groups: int = 1,
               fixed_light: torch.Tensor | None = None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
-        With `material_fn` (world points (M, 3) -> dict of basecolor, metallic, roughness), BSDF
+        `material` holds the BRDF inputs of the N points (`vq_mitsuba.brdf`: basecolor (N, 3), metallic
+        (N,), roughness (N,)). With `material_fn` (world points (M, 3) -> such a dict), BSDF
         samples that hit the object are lit by that point's direct radiance (one bounce): where
         they go is found by the same rays that shading traces.
         `groups` independent stratified sample sets per point (see `stratified_samples`).
 
-        basecolor (N, 3), metallic (N,), roughness (N,) and env_linear (H, W, 3) may carry torch
-        gradients; the result is differentiable with respect to all of them, except that points
+        The material's inputs and env_linear (H, W, 3) may carry torch gradients; the result is differentiable with respect to all of them, except that points
         where `fixed_light` (N,) is true pass no gradient to the envmap (several materials are
         shaded in one call, some of them lit by a light they do not train). The bounce light
         carries no gradient: neither into `material_fn` nor into the envmap through it.
@@ -400,15 +394,15 @@ class ShadingScene:
         n = hits_position.shape[0]
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()  # noqa: E731
         p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
-        bc, m, r = rep(basecolor), rep(metallic), rep(roughness)
+        chans = torch.cat([rep(material[i.name]).reshape(n * spp, i.channels) for i in brdf.INPUTS], 1)
         u = stratified_samples(n, spp, groups, generator, p.device)
         geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
         li = torch.zeros(n * spp, 3, device=p.device)
         fixed = torch.zeros(n * spp, device=p.device) if fixed_light is None else rep(fixed_light.float())
         self._set_light(env_linear)
         with torch.no_grad():
-            sampled = self._sample(*geo, bc[:, 0].detach(), bc[:, 1].detach(), bc[:, 2].detach(), m.detach(),
-                                   r.detach(), [u[i] for i in range(5)])
+            sampled = self._sample(*geo, [chans[:, c].detach() for c in range(brdf.CHANNELS)],
+                                   [u[i] for i in range(5)])
         if material_fn is not None:
             hit = torch.nonzero(sampled[self.SAMPLED.index("hit")] > 0.5)[:, 0]
             if len(hit) > 0:
@@ -418,9 +412,8 @@ class ShadingScene:
                 # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
                 with torch.no_grad():
                     mat2 = material_fn(p2)
-                    li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2["basecolor"], mat2["metallic"],
-                                                         mat2["roughness"], env_linear, 1, generator))
-        lanes = torch.cat([bc, m[:, None], r[:, None], li], 1).reshape(-1)
+                    li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2, env_linear, 1, generator))
+        lanes = torch.cat([chans, li], 1).reshape(-1)
         rgb = self._shade(*geo, lanes, envmap_padded(env_linear), fixed, list(sampled))
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples

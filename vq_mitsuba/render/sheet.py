@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.cameras import Camera, camera_rays, look_at
 from vq_mitsuba.data.imageio import linear_to_srgb
 
@@ -34,12 +35,10 @@ def render_spheres(materials: list[dict], envmap: np.ndarray, env_to_world: np.n
     images = []
     for m in materials:
         n = len(idx)
-        basecolor = torch.tensor(m["basecolor"], dtype=torch.float32, device=dev).expand(n, 3)
-        metallic = torch.full((n,), float(m["metallic"]), device=dev)
-        roughness = torch.full((n,), float(m["roughness"]), device=dev)
+        material = {i.name: torch.tensor(m[i.name], dtype=torch.float32, device=dev)
+                    .expand((n, 3) if i.colour else (n,)) for i in brdf.INPUTS}  # the one material at every hit
         gen = torch.Generator(device=dev).manual_seed(seed)
-        rgb = scene.shade(hits.position[idx], hits.normal[idx], hits.wi[idx], basecolor, metallic, roughness,
-                          env_t, spp, generator=gen)
+        rgb = scene.shade(hits.position[idx], hits.normal[idx], hits.wi[idx], material, env_t, spp, generator=gen)
         img = np.zeros((size * size, 4), np.float32)
         img[idx.cpu().numpy(), :3] = rgb.detach().cpu().numpy()
         img[idx.cpu().numpy(), 3] = 1.0

@@ -119,8 +119,7 @@ class Renderer:
         # Every lighting's bounce samples land on the same points: the field runs once for them.
         bounce_field = _LastAnswer(lambda p: self.fitted.materials_at(p, ids=False)) \
             if self.fitted.cfg.train.bounces > 0 else None
-        rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel],
-                                             out["basecolor"], out["metallic"], out["roughness"],
+        rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out,
                                              light.env_t, light_spp, generator=g, material_fn=bounce_field)
                            for light, g in zip(lights, gens))
         values = {"basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
