@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from vq_mitsuba.brdf import INPUTS
 from vq_mitsuba.config import Config
 from vq_mitsuba.data.pixels import PixelPool
 from vq_mitsuba.models import losses
@@ -62,8 +63,8 @@ def rank_materials(scene, model, discrete: DiscreteBranch, pool: PixelPool, env:
     discrete.train(was_training)
     brdf = discrete.codeword_brdfs()
     usage_m = torch.bincount(discrete(z, n_codes=M)["index"], minlength=K).float().cpu() / n
-    materials = [{"id": k + 1, "basecolor": brdf["basecolor"][k].tolist(), "metallic": float(brdf["metallic"][k]),
-                  "roughness": float(brdf["roughness"][k]), "pixel_fraction": float(usage_m[k]),
+    materials = [{"id": k + 1, **{i.name: brdf[i.name][k].tolist() for i in INPUTS},
+                  "pixel_fraction": float(usage_m[k]),
                   "pixel_fraction_all_codewords": float(usage[k])} for k in range(K)]
     return {"num_materials": M, "num_codewords": K, "epsilon": cfg.vq.rank_eps, "ranking": ranking,
             "min_share": cfg.vq.min_share, "codewords_used": int(used.sum()),

@@ -300,7 +300,7 @@ class Trainer:
             # cannot explain a texture, and their residual would otherwise bend the shared light
             # (ablation.shared_light lets it).
             n = len(hits)
-            both = {k: torch.cat([out[k], od[k]]) for k in ("basecolor", "metallic", "roughness")}
+            both = {k: torch.cat([out[k], od[k]]) for k in brdf.NAMES}
             fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
             samples_both = self._render(torch.cat([hits, hits]), both, env, bounce_fn, fixed)
             samples, samples_d = samples_both[:n], samples_both[n:]

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from vq_mitsuba.brdf import select
 from vq_mitsuba.config import Config
 from vq_mitsuba.models.material_edits import Edit, apply_edits
 from vq_mitsuba.models.fields import ContinuousMaterial
@@ -41,7 +42,7 @@ class FittedModel:
         three maps decoded from each point's material (edited alike). `ids=False` skips the
         material ids where no edit needs them (the cheaper bounce evaluation)."""
         out = self.model(points)
-        brdf = {k: out[k] for k in ("basecolor", "metallic", "roughness")}
+        brdf = select(out)
         material, od = None, None
         if self.discrete is not None and (discrete or ids or self.edits):
             od = self.discrete(out["z"], n_codes=self.num_materials)
@@ -52,7 +53,7 @@ class FittedModel:
         if material is not None:
             brdf["material"] = material
         if discrete and od is not None:
-            d = {k: od[k] for k in ("basecolor", "metallic", "roughness")}
+            d = select(od)
             brdf["discrete"] = apply_edits(self.edits, points, d, material, r0) if self.edits else d
         return brdf
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from vq_mitsuba.brdf import INPUTS
+
 
 def encode_gamma(rgb_linear: torch.Tensor, gamma: float) -> torch.Tensor:
     """x^(1/gamma) with a small offset so the gradient stays finite at black pixels."""
@@ -101,6 +103,7 @@ def colour_aware_smoothness(brdf_a: dict, brdf_b: dict, rgb_a: torch.Tensor, rgb
     so the field is smooth where the image is, and free to change across colour edges; metallic
     and roughness differences count `beta` times."""
     w = torch.exp(-alpha * (rgb_a - rgb_b).abs().mean(-1))
-    d = (brdf_a["basecolor"] - brdf_b["basecolor"]).abs().mean(-1)
-    d = d + beta * ((brdf_a["metallic"] - brdf_b["metallic"]).abs() + (brdf_a["roughness"] - brdf_b["roughness"]).abs())
+    diff = {i.name: (brdf_a[i.name] - brdf_b[i.name]).abs() for i in INPUTS}
+    d = sum(diff[i.name].mean(-1) for i in INPUTS if i.colour)
+    d = d + beta * sum(diff[i.name] for i in INPUTS if not i.colour)
     return torch.mean(w * d)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from vq_mitsuba.brdf import INPUTS
 from torch import nn
 
 
@@ -137,8 +139,8 @@ def duplicates_last(brdf: dict[str, torch.Tensor], order: list[int], n_used: int
     count once in err_k."""
     if tol <= 0:
         return list(order), n_used
-    feats = torch.cat([brdf["basecolor"].clamp(min=0) ** (1 / 2.2), brdf["metallic"].reshape(-1, 1),
-                       brdf["roughness"].reshape(-1, 1)], -1)
+    feats = torch.cat([brdf[i.name].clamp(min=0) ** (1 / 2.2) if i.colour else brdf[i.name].reshape(-1, 1)
+                       for i in INPUTS], -1)
     kept, dup = [], []
     for i in order[:n_used]:
         if any(float((feats[i] - feats[j]).abs().max()) < tol for j in kept):

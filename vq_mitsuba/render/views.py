@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from vq_mitsuba.backend import sized
+from vq_mitsuba.brdf import INPUTS
 from vq_mitsuba.config import CPU_RENDER_CHUNK
 from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
@@ -122,8 +123,7 @@ class Renderer:
         rgb, *rgb_relit = (light.scene.shade(hits.position[sel], hits.normal[sel], hits.wi[sel], out,
                                              light.env_t, light_spp, generator=g, material_fn=bounce_field)
                            for light, g in zip(lights, gens))
-        values = {"basecolor": out["basecolor"], "metallic": out["metallic"][:, None],
-                  "roughness": out["roughness"][:, None], "normal": hits.normal[sel],
+        values = {**{i.name: out[i.name].reshape(-1, i.channels) for i in INPUTS}, "normal": hits.normal[sel],
                   **dict(zip(sums.relit_keys, rgb_relit))}
         residual = self._residual()
         if residual is not None:
@@ -137,8 +137,7 @@ class Renderer:
             od = out["discrete"]
             sums.votes.index_put_((pix, out["material"]), torch.ones_like(pix, dtype=torch.int32),
                                   accumulate=True)
-            values.update({"basecolor_d": od["basecolor"], "metallic_d": od["metallic"][:, None],
-                           "roughness_d": od["roughness"][:, None]})
+            values.update({f"{i.name}_d": od[i.name].reshape(-1, i.channels) for i in INPUTS})
         for k, v in values.items():  # hits of one chunk may share a pixel: index_add sums them
             sums.acc[k].index_add_(0, pix, v.double())
 
@@ -150,12 +149,12 @@ class _PixelSums:
     def __init__(self, n_pix: int, discrete, n_relight: int, dev, physical: bool = False):
         self.n_pix = n_pix
         self.hits_count = torch.zeros(n_pix, dtype=torch.float64, device=dev)
-        channels = {"rgb": 3, "basecolor": 3, "metallic": 1, "roughness": 1, "normal": 3}
+        channels = {"rgb": 3, **{i.name: i.channels for i in INPUTS}, "normal": 3}
         self.discrete = discrete is not None
         n_mat = int(discrete.num_materials) if discrete is not None else 0
         self.votes = torch.zeros(n_pix, n_mat + 1, dtype=torch.int32, device=dev) if discrete is not None else None
         if discrete is not None:  # the discrete branch's maps: each hit's material, decoded
-            channels.update({"basecolor_d": 3, "metallic_d": 1, "roughness_d": 1})
+            channels.update({f"{i.name}_d": i.channels for i in INPUTS})
         self.relit_keys = [f"relit_{j}" for j in range(n_relight)]  # rgb under each other lighting
         if physical:  # the rgb without the residual
             channels["rgb_physical"] = 3
@@ -176,17 +175,16 @@ class _PixelSums:
         if self.relit_keys:
             out["relit"] = [(acc[k] / aa).reshape(h, w, 3).astype(np.float32) for k in self.relit_keys]
         safe = np.maximum(hits_count, 1)[:, None]
-        for k in ("basecolor", "metallic", "roughness"):
-            out[k] = (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
+        def maps(suffix: str) -> dict:  # each BRDF input's map, (h, w, 3) or (h, w)
+            return {i.name: (acc[i.name + suffix] / safe).reshape((h, w, 3) if i.colour else (h, w))
+                    .astype(np.float32) for i in INPUTS}
+
+        out.update(maps(""))
         nrm = acc["normal"] / safe
         nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
         out["normal"] = nrm.reshape(h, w, 3).astype(np.float32)
-        out["metallic"], out["roughness"] = out["metallic"][..., 0], out["roughness"][..., 0]
         if self.discrete:
-            out["discrete"] = {k[:-2]: (acc[k] / safe).reshape(h, w, -1).astype(np.float32)
-                               for k in ("basecolor_d", "metallic_d", "roughness_d")}
-            for k in ("metallic", "roughness"):
-                out["discrete"][k] = out["discrete"][k][..., 0]
+            out["discrete"] = maps("_d")
         if votes is not None:  # majority over the pixel's primary rays; background (alpha < 0.5) is 0
             ids = np.argmax(votes[:, 1:], axis=1) + 1
             out["material"] = np.where(alpha >= 0.5, ids, 0).reshape(h, w).astype(np.uint8)
@@ -254,9 +252,8 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
     a = images["alpha"]
     write_exr(out_dir / f"{name}_rgb.exr", np.concatenate([images["rgb"], a[..., None]], -1))
     write_rgb_png(out_dir / f"{name}_rgb.png", images)
-    write_exr(out_dir / f"{name}_basecolor.exr", images["basecolor"])
-    write_exr(out_dir / f"{name}_metallic.exr", images["metallic"])
-    write_exr(out_dir / f"{name}_roughness.exr", images["roughness"])
+    for i in INPUTS:
+        write_exr(out_dir / f"{name}_{i.name}.exr", images[i.name])
     write_exr(out_dir / f"{name}_normal.exr", images["normal"])
     write_png(out_dir / f"{name}_alpha.png", a, srgb=False)
     if "material" in images:
