@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from vq_mitsuba.brdf import INPUTS
 from vq_mitsuba.geometry.uv import uv_unwrap
 from vq_mitsuba.models.fitted import FittedModel
 
@@ -158,17 +159,14 @@ def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous", prog
     t0 = time.perf_counter()
     dev = fitted.model.center.device
     n = len(points)
-    base = np.zeros((n, 3), np.float32)
-    metal = np.zeros(n, np.float32)
-    rough = np.zeros(n, np.float32)
+    values = {i.name: np.zeros((n, i.channels), np.float32) for i in INPUTS}
     ids = np.zeros(n, np.uint8) if fitted.discrete is not None else None
     for s in tqdm(range(0, n, CHUNK), desc=f"bake {size}x{size}", disable=not progress, dynamic_ncols=True):
         pts = torch.as_tensor(points[s:s + CHUNK], device=dev)
         out = fitted.materials_at(pts, discrete=branch == "discrete")
         src = out["discrete"] if branch == "discrete" else out
-        base[s:s + CHUNK] = src["basecolor"].cpu().numpy()
-        metal[s:s + CHUNK] = src["metallic"].cpu().numpy()
-        rough[s:s + CHUNK] = src["roughness"].cpu().numpy()
+        for i in INPUTS:
+            values[i.name][s:s + CHUNK] = src[i.name].reshape(-1, i.channels).cpu().numpy()
         if ids is not None:
             ids[s:s + CHUNK] = out["material"].cpu().numpy().astype(np.uint8)
     seconds["evaluate"] = time.perf_counter() - t0
@@ -177,19 +175,18 @@ def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous", prog
     filled[texel] = True
     filled = filled.reshape(size, size)
 
-    def image(values, channels):
-        img = np.zeros((size * size, channels), np.float32)
-        img[texel] = values.reshape(n, channels)
-        return pad_texture(img.reshape(size, size, channels), filled)
+    def image(i):  # the input's texture, (S, S, 3) for a colour, (S, S) for a scalar
+        img = np.zeros((size * size, i.channels), np.float32)
+        img[texel] = values[i.name]
+        img = pad_texture(img.reshape(size, size, i.channels), filled)
+        return img if i.colour else img[..., 0]
 
-    basecolor = image(base, 3)
-    metallic = image(metal, 1)[..., 0]
-    roughness = image(rough, 1)[..., 0]
+    textures = {i.name: image(i) for i in INPUTS}
     material = None
     if ids is not None:
         material = np.zeros(size * size, np.uint8)
         material[texel] = ids
         material = pad_ids(material.reshape(size, size), filled)
     seconds["pad"] = time.perf_counter() - t0
-    return BakedMesh(vertices, faces, normals, uvs.astype(np.float32), basecolor, metallic, roughness, material,
-                     filled, seconds)
+    return BakedMesh(vertices, faces, normals, uvs.astype(np.float32), **textures, material=material,
+                     coverage=filled, seconds=seconds)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.brdf import INPUTS
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, world_rotation
 from vq_mitsuba.data.envmaps import direction_to_pixel, texel_directions
 from vq_mitsuba.data.imageio import linear_to_srgb
@@ -50,8 +51,8 @@ def texture_images(baked: BakedMesh) -> dict[str, np.ndarray]:
     """8-bit images: basecolor (sRGB), metallic, roughness (linear grey) and glTF's combined
     metallic-roughness (R unused, G roughness, B metallic)."""
     mr = np.stack([np.zeros_like(baked.roughness), baked.roughness, baked.metallic], -1)
-    return {"basecolor": srgb8(baked.basecolor), "metallic": unit8(baked.metallic),
-            "roughness": unit8(baked.roughness), "metallic_roughness": unit8(mr)}
+    return {**{i.name: (srgb8 if i.colour else unit8)(getattr(baked, i.name)) for i in INPUTS},
+            "metallic_roughness": unit8(mr)}
 
 
 def sample_latlong(env: np.ndarray, dirs_blender_convention: np.ndarray) -> np.ndarray:

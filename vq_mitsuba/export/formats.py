@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.run.outputs import EXPORT_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
@@ -32,7 +33,7 @@ def _name(run: RunDir) -> str:
 def _planned_files(fmt: str, name: str) -> list[str]:
     """The names an export of `fmt` may write into its folder (what the writers below write)."""
     textures = {"gltf": [], "obj": ["png"], "mitsuba": ["exr"]}[fmt]
-    files = [f"{name}_{key}.{ext}" for ext in textures for key in ("basecolor", "metallic", "roughness")]
+    files = [f"{name}_{key}.{ext}" for ext in textures for key in NAMES]
     files += {"gltf": [f"{name}.glb"], "obj": [f"{name}.obj", f"{name}.mtl"],
               "mitsuba": ["scene.xml", f"{name}.ply"]}[fmt]
     return files + ["envmap.exr", "envmap.hdr", f"{name}_material_id.png", "export.json"]

@@ -11,6 +11,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from vq_mitsuba.brdf import FIXED, INPUTS
 from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.imageio import write_exr
 from vq_mitsuba.data.names import unique_names
@@ -64,14 +65,14 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
     from vq_mitsuba.export.files import write_envmap
 
     written = [write_ply(out / f"{name}.ply", baked.vertices, baked.normals, baked.uvs, baked.faces)]
-    for key in ("basecolor", "metallic", "roughness"):
-        write_exr(out / f"{name}_{key}.exr", getattr(baked, key))
-        written.append(out / f"{name}_{key}.exr")
+    for i in INPUTS:
+        write_exr(out / f"{name}_{i.name}.exr", getattr(baked, i.name))
+        written.append(out / f"{name}_{i.name}.exr")
     written += write_envmap(out / "envmap", envmap)
 
-    def texture(key: str) -> str:
-        return (f'<texture type="bitmap" name="{"base_color" if key == "basecolor" else key}">'
-                f'<string name="filename" value={quoteattr(f"{name}_{key}.exr")}/><boolean name="raw" value="true"/>'
+    def texture(i) -> str:
+        return (f'<texture type="bitmap" name="{i.principled}">'
+                f'<string name="filename" value={quoteattr(f"{name}_{i.name}.exr")}/><boolean name="raw" value="true"/>'
                 f'<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>')
 
     xml = "\n".join([
@@ -83,8 +84,8 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
         *[sensor_xml(c, spp, sid) for c, sid in zip(cameras, unique_names([c.name for c in cameras]))],
         f'  <shape type="ply" id={quoteattr(name)}><string name="filename" value={quoteattr(f"{name}.ply")}/>',
         '    <bsdf type="twosided"><bsdf type="principled">',
-        *[f"      {texture(k)}" for k in ("basecolor", "metallic", "roughness")],
-        '      <float name="specular" value="0.5"/>',
+        *[f"      {texture(i)}" for i in INPUTS],
+        *[f'      <float name="{key}" value="{value:g}"/>' for key, value in FIXED.items()],
         "    </bsdf></bsdf>",
         "  </shape>",
         '  <emitter type="envmap"><string name="filename" value="envmap.exr"/>',

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.export.bake import BakedMesh
 from vq_mitsuba.export.files import texture_images
 
@@ -22,7 +23,7 @@ def write_obj(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
     n = baked.normals.astype(np.float64) @ rot.T
     images = texture_images(baked)
     written = []
-    for key in ("basecolor", "metallic", "roughness"):
+    for key in NAMES:
         iio.imwrite(out / f"{name}_{key}.png", images[key])
         written.append(out / f"{name}_{key}.png")
     mtl = path.with_suffix(".mtl")
