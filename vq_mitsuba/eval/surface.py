@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vq_mitsuba.brdf import CHANNELS, INPUTS
 from vq_mitsuba.data.cameras import camera_rays, pixel_jitter, world_rotation
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.eval import metrics as M
@@ -162,7 +163,7 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
     h, w = camera.height, camera.width
     n_pix = h * w
     rng = np.random.default_rng(seed)  # the offsets `render.views.Renderer` draws for this seed
-    sums = np.zeros((n_pix, 5))
+    sums = np.zeros((n_pix, CHANNELS))
     count = np.zeros(n_pix)
     distances = []
     device = fitted.model.center.device
@@ -174,15 +175,18 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
             continue
         near, dist = lookup(hits.position[idx].double().cpu().numpy())
         out = fitted.materials_at(torch.as_tensor(near, dtype=torch.float32, device=device), ids=False)
-        values = torch.cat([out["basecolor"], out["metallic"][:, None], out["roughness"][:, None]], 1)
+        values = torch.cat([out[i.name].reshape(-1, i.channels) for i in INPUTS], 1)
         pix, values = idx.cpu().numpy(), values.double().cpu().numpy()
         for c in range(values.shape[1]):  # bincount, not np.add.at: the same sums, far faster
             sums[:, c] += np.bincount(pix, values[:, c], minlength=n_pix)
         count += np.bincount(pix, minlength=n_pix)
         distances.append(dist)
     mean = sums / np.maximum(count, 1)[:, None]
-    return {"basecolor": mean[:, :3].reshape(h, w, 3), "metallic": mean[:, 3].reshape(h, w),
-            "roughness": mean[:, 4].reshape(h, w), "hits": count.reshape(h, w),
+    maps, at = {}, 0
+    for i in INPUTS:  # each input's columns of the sums, as an (h, w, 3) or (h, w) map
+        maps[i.name] = mean[:, at:at + i.channels].reshape((h, w, 3) if i.colour else (h, w))
+        at += i.channels
+    return {**maps, "hits": count.reshape(h, w),
             "distance": np.concatenate(distances) if distances else np.zeros(0)}
 
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.brdf import INPUTS, NAMES
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.config import setting
 from vq_mitsuba.errors import InputError
@@ -62,9 +63,9 @@ class TexelConfig:
     seed: int = setting(0, "seed of the view order and the Monte Carlo samples")
 
 
-TEXTURES = ("basecolor", "metallic", "roughness")
-_CHANNELS = {"basecolor": 3, "metallic": 1, "roughness": 1}
-_BSDF_KEY = {"basecolor": "base_color", "metallic": "metallic", "roughness": "roughness"}
+TEXTURES = NAMES
+_CHANNELS = {i.name: i.channels for i in INPUTS}
+_BSDF_KEY = {i.name: i.principled for i in INPUTS}
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,9 +264,8 @@ class TexelScene:
 
     def arrays(self, values) -> dict[str, np.ndarray]:
         """The snapshot's arrays for `values` (numpy)."""
-        out = {name: np.array(values[name], dtype=np.float32) for name in TEXTURES}
-        out["metallic"] = out["metallic"][..., 0]
-        out["roughness"] = out["roughness"][..., 0]
+        out = {i.name: np.array(values[i.name], dtype=np.float32)[..., slice(None) if i.colour else 0]
+               for i in INPUTS}
         out["envmap"] = np.exp(np.array(values["log_env"], dtype=np.float32)) if self.learn_env else self.env_init
         out.update(envmap_to_world=np.asarray(self.capture.envmap_to_world, dtype=np.float64),
                    vertices=self.vertices, faces=self.faces.astype(np.int32), uvs=self.uvs, normals=self.normals)
