@@ -55,3 +55,125 @@ def test_make_scene_replaces_its_own_dataset_whole(tmp_path, capsys):
     (data / "notes.txt").write_text("mine")  # a file make-scene did not write: refused, kept
     message = _refused(["make-scene", "demo", "--resolution", "8", *SMALL, "-o", str(data)], capsys, data)
     assert "notes.txt" in message and (data / "notes.txt").read_text() == "mine"
+
+
+# --- envmaps: one check wherever one is read; a file known by its bytes ----------------------
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """(sphere capture XML with a known envmap, a 4-step run of it)."""
+    from tiny_scene import write_sphere_capture
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.fit import fit
+
+    folder = tmp_path_factory.mktemp("tiny")
+    capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
+    fit(capture, folder / "run", load_config(None, ["train.iterations=4", "train.batch_rays=128",
+                                                    "vq.warmup_frac=0.3"]), progress=False)
+    return capture, folder / "run"
+
+
+def _envmaps(folder: Path) -> dict[str, Path]:
+    """Bad envmaps, each named for what is wrong with it."""
+    from vq_mitsuba.data.imageio import write_exr, write_png
+
+    folder.mkdir(exist_ok=True)
+    write_exr(folder / "one_texel.exr", np.ones((1, 1, 3), np.float32))
+    write_exr(folder / "too_bright.exr", np.full((4, 8, 3), 1.7e38, np.float32))
+    write_png(folder / "photo.png", np.full((4, 8, 3), 0.5, np.float32))
+    (folder / "photo.hdr").write_bytes((folder / "photo.png").read_bytes())  # a PNG renamed
+    header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n"
+    (folder / "negative.hdr").write_bytes(header + b"-Y -5 +X 10\n" + bytes(64))
+    (folder / "huge.hdr").write_bytes(header + b"-Y 2000000 +X 4000000\n" + bytes(64))
+    (folder / "garbled.hdr").write_bytes(header + b"-Y five +X ten\n" + bytes(64))
+    return {p.stem: p for p in folder.iterdir() if p.name != "photo.png"}
+
+
+ENVMAP_FAULTS = {"one_texel": "at least 4 x 2", "too_bright": "brightest texel", "photo": "not a Radiance HDR image",
+                 "negative": "size line", "huge": "size line", "garbled": "size line"}
+
+
+def test_every_envmap_reader_refuses_a_bad_file_by_name(tmp_path):
+    from vq_mitsuba.data.envmaps import load_envmap
+
+    for name, path in _envmaps(tmp_path).items():
+        with pytest.raises(InputError, match=ENVMAP_FAULTS[name]) as refused:
+            load_envmap(path)
+        assert refused.value.path == path
+
+
+def test_a_scene_xml_emitter_gets_the_same_envmap_check(tiny, tmp_path, capsys):
+    import shutil
+
+    from vq_mitsuba.data.captures import load_capture
+
+    capture, _ = tiny
+    bad = _envmaps(tmp_path / "envs")
+    for name in ("one_texel", "too_bright"):
+        cap = tmp_path / name
+        shutil.copytree(capture.parent, cap)
+        shutil.copy(bad[name], cap / "env.exr")
+        with pytest.raises(InputError, match=ENVMAP_FAULTS[name]) as refused:
+            load_capture(cap / capture.name)
+        assert refused.value.path == cap / "env.exr"
+    out = tmp_path / "run"
+    _refused(["fit", str(tmp_path / "one_texel" / capture.name), "-o", str(out), "--quiet"], capsys,
+             tmp_path / "one_texel" / "env.exr")
+    assert not out.exists()
+
+
+def test_export_and_render_refuse_the_same_envmaps_by_name(tiny, tmp_path, capsys):
+    capture, run = tiny
+    bad = _envmaps(tmp_path / "envs")
+    for name in ("too_bright", "one_texel", "photo"):
+        out = tmp_path / f"export_{name}"
+        message = _refused(["export", str(run), "--format", "obj", "--envmap", str(bad[name]), "-o", str(out)],
+                           capsys, bad[name])
+        assert ENVMAP_FAULTS[name] in message and not out.exists()
+        out = tmp_path / f"render_{name}"
+        message = _refused(["render", str(run), "--cameras", str(capture), "--envmap", str(bad[name]), "-o",
+                            str(out), "--quiet"], capsys, bad[name])
+        assert ENVMAP_FAULTS[name] in message and not out.exists()
+
+
+def test_too_bright_lighting_at_an_exposure_names_its_file(tiny, tmp_path, capsys):
+    from vq_mitsuba.data.imageio import write_exr
+
+    capture, run = tiny
+    bright = tmp_path / "bright.exr"
+    write_exr(bright, np.full((4, 8, 3), 1e20, np.float32))
+    out = tmp_path / "renders"
+    message = _refused(["render", str(run), "--cameras", str(capture), "--envmap", str(bright), "--exposure", "40",
+                        "-o", str(out), "--quiet"], capsys, bright)
+    assert "at exposure +40 EV" in message and not out.exists()
+
+
+def test_eval_refuses_a_dataset_envmap_before_any_work(tiny, tmp_path, capsys):
+    from vq_mitsuba.data.imageio import write_exr
+
+    _, run = tiny
+    data = tmp_path / "data"
+    assert cli.main(["make-scene", "demo", "--resolution", "16", *SMALL, "-o", str(data)]) == 0
+    env = next(p for p in (data / "envmaps").iterdir() if p.stem != "train")
+    write_exr(env, np.ones((1, 1, 3), np.float32))
+    capsys.readouterr()
+    metrics = tmp_path / "metrics.json"
+    message = _refused(["eval", str(run), "--gt", str(data), "-o", str(metrics), "--quiet"], capsys, env)
+    assert "at least 4 x 2" in message and not metrics.exists()
+
+
+@pytest.mark.parametrize("real, named", [("png", ".exr"), ("exr", ".png"), ("png", ".jpg"), ("exr", ".hdr")])
+def test_image_readers_know_a_file_by_its_bytes(tmp_path, real, named):
+    from vq_mitsuba.data.envmaps import read_envmap_file
+    from vq_mitsuba.data.imageio import image_size, read_image, read_mask, write_exr, write_png
+
+    source = tmp_path / f"source.{real}"
+    (write_exr if real == "exr" else write_png)(source, np.full((4, 8, 3), 0.5, np.float32))
+    renamed = tmp_path / f"renamed{named}"
+    renamed.write_bytes(source.read_bytes())
+    kind = {"png": "PNG", "exr": "OpenEXR"}[real]
+    readers = (read_envmap_file,) if named == ".hdr" else (read_image, read_mask, image_size)
+    for read in readers:
+        with pytest.raises(InputError, match=f"a {kind} file named {named}") as refused:
+            read(renamed)
+        assert refused.value.path == renamed
