@@ -117,7 +117,8 @@ def test_a_scene_xml_emitter_gets_the_same_envmap_check(tiny, tmp_path, capsys):
             load_capture(cap / capture.name)
         assert refused.value.path == cap / "env.exr"
     out = tmp_path / "run"
-    _refused(["fit", str(tmp_path / "one_texel" / capture.name), "-o", str(out), "--quiet"], capsys,
+    _refused(["fit", str(tmp_path / "one_texel" / capture.name), "-o", str(out), "--quiet", "--set",
+              "train.iterations=2"], capsys,
              tmp_path / "one_texel" / "env.exr")
     assert not out.exists()
 
@@ -177,3 +178,66 @@ def test_image_readers_know_a_file_by_its_bytes(tmp_path, real, named):
         with pytest.raises(InputError, match=f"a {kind} file named {named}") as refused:
             read(renamed)
         assert refused.value.path == renamed
+
+
+# --- a folder holding captures of two formats -------------------------------------------------
+
+@pytest.fixture(scope="module")
+def photographed(tmp_path_factory):
+    """A make-scene dataset with its training views as NeuS/IDR, COLMAP, nerfstudio and LLFF captures."""
+    data = tmp_path_factory.mktemp("photographed") / "data"
+    assert cli.main(["make-scene", "demo", "--resolution", "16", "--photo-formats", *SMALL, "-o", str(data)]) == 0
+    return data
+
+
+def _mixed(data: Path, folder: Path, first: str, second: str) -> Path:
+    import shutil
+
+    shutil.copytree(data / first, folder)
+    shutil.copytree(data / second, folder, dirs_exist_ok=True)
+    return folder
+
+
+@pytest.mark.parametrize("formats, read, other", [
+    (("colmap", "nerfstudio"), "transforms.json", "the COLMAP model (sparse/)"),
+    (("llff", "neus"), "cameras_sphere.npz", "poses_bounds.npy"),
+])
+def test_a_folder_of_two_formats_says_which_it_read(photographed, tmp_path, formats, read, other):
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.errors import Notice
+
+    folder = _mixed(photographed, tmp_path / "both", *formats)
+    with pytest.warns(Notice) as said:
+        capture = load_capture(folder)
+    assert capture.source == folder / read and len(capture.cameras) == 3
+    message = str(said[0].message)
+    assert f"reading {read}" in message and other in message and str(folder) in message
+
+
+def test_a_folder_of_two_disagreeing_formats_is_refused(photographed, tmp_path, capsys):
+    from vq_mitsuba.data.captures import load_capture
+
+    folder = _mixed(photographed, tmp_path / "both", "colmap", "nerfstudio")
+    transforms = json.loads((folder / "transforms.json").read_text())
+    transforms["frames"] = transforms["frames"][:2]
+    (folder / "transforms.json").write_text(json.dumps(transforms))
+    with pytest.raises(InputError, match=r"disagree: transforms.json \(2 views\), the COLMAP model \(sparse/\) "
+                                         r"\(3 views\)") as refused:
+        load_capture(folder)
+    assert refused.value.path == folder
+    # a dataset's transforms_train.json and scene.xml: the same views, no word; one view fewer: refused
+    import warnings
+
+    data = tmp_path / "data"
+    import shutil
+
+    shutil.copytree(photographed, data, ignore=shutil.ignore_patterns(*("neus", "colmap*", "nerfstudio", "llff")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_capture(data).source == data / "transforms_train.json"
+    train = json.loads((data / "transforms_train.json").read_text())
+    train["frames"] = train["frames"][1:]
+    (data / "transforms_train.json").write_text(json.dumps(train))
+    out = tmp_path / "run"
+    message = _refused(["fit", str(data), "-o", str(out), "--quiet", "--set", "train.iterations=2"], capsys, data)
+    assert "transforms_train.json (2 views), scene.xml (3 views)" in message and not out.exists()
