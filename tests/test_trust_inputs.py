@@ -241,3 +241,57 @@ def test_a_folder_of_two_disagreeing_formats_is_refused(photographed, tmp_path, 
     out = tmp_path / "run"
     message = _refused(["fit", str(data), "-o", str(out), "--quiet", "--set", "train.iterations=2"], capsys, data)
     assert "transforms_train.json (2 views), scene.xml (3 views)" in message and not out.exists()
+
+
+# --- cameras that all share one pose ------------------------------------------------------------
+
+def _one_pose_cameras(n=3, width=24, height=16):
+    from vq_mitsuba.data.cameras import Camera, look_at
+
+    pose = look_at([0.3, 0.5, 2.5], [0, 0, 0], [0, 1, 0])
+    return [Camera(f"v{i}", pose.copy(), 45.0, width, height) for i in range(n)]
+
+
+def _one_pose_llff(folder: Path) -> Path:
+    from vq_mitsuba.data.formats.llff import write_poses_bounds
+    from vq_mitsuba.data.imageio import write_png
+
+    write_poses_bounds(folder / "poses_bounds.npy", _one_pose_cameras(), [(0.5, 5.0)] * 3)
+    for i in range(3):
+        write_png(folder / "images" / f"{i:03d}.png", np.full((16, 24, 3), 0.2 + 0.2 * i))
+    return folder
+
+
+def _one_pose_colmap(folder: Path) -> Path:
+    from vq_mitsuba.data.formats.colmap import write_colmap
+    from vq_mitsuba.data.imageio import write_png
+
+    names = [f"{i:03d}.png" for i in range(3)]
+    for i, name in enumerate(names):
+        write_png(folder / "images" / name, np.full((16, 24, 3), 0.2 + 0.2 * i))
+    write_colmap(folder / "sparse" / "0", _one_pose_cameras(), names)
+    return folder
+
+
+@pytest.mark.parametrize("write, source", [(_one_pose_llff, "poses_bounds.npy"), (_one_pose_colmap, "")])
+def test_a_capture_whose_cameras_share_one_pose_is_refused(tmp_path, capsys, write, source):
+    from vq_mitsuba.data.captures import load_capture
+
+    folder = write(tmp_path / "cap")
+    with pytest.raises(InputError, match="all 3 cameras share one pose") as refused:
+        load_capture(folder)
+    assert refused.value.path == (folder / source if source else folder)
+    out = tmp_path / "run"
+    message = _refused(["fit", str(folder), "-o", str(out), "--quiet", "--set", "train.iterations=2"], capsys, folder)
+    assert "one viewpoint" in message and not out.exists()
+
+
+def test_cameras_at_one_point_looking_different_ways_are_not_one_pose():
+    from vq_mitsuba.data.cameras import Camera, look_at
+    from vq_mitsuba.data.checks import check_viewpoints
+
+    turning = [Camera(f"v{i}", look_at([0, 0, 0], [np.sin(i), 0, np.cos(i)], [0, 1, 0]), 45.0, 8, 8)
+               for i in range(3)]
+    check_viewpoints(Path("cap"), turning)  # a panorama: one centre, three directions
+    with pytest.raises(InputError, match="share one pose"):
+        check_viewpoints(Path("cap"), [turning[0]] * 2)

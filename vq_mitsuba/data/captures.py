@@ -23,6 +23,7 @@ import numpy as np
 
 from vq_mitsuba.config import CaptureConfig
 from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.checks import check_viewpoints
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import FORMATS, folder_files, format_of, known_suffix
 from vq_mitsuba.data.formats.common import Capture, load_mesh
@@ -50,6 +51,7 @@ def load_capture(path: str | Path, mesh: str | Path | None = None, options: Capt
     if not fmt.POSED:
         raise unposed_error(source)
     capture = fmt.load(source, mesh, shrink, cache_dir)
+    check_viewpoints(source, capture.cameras)
     capture.cameras = named_views(capture.cameras)
     return finish_capture(capture, options, split)
 
