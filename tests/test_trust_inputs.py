@@ -295,3 +295,69 @@ def test_cameras_at_one_point_looking_different_ways_are_not_one_pose():
     check_viewpoints(Path("cap"), turning)  # a panorama: one centre, three directions
     with pytest.raises(InputError, match="share one pose"):
         check_viewpoints(Path("cap"), [turning[0]] * 2)
+
+
+# --- messages that name the file at fault -------------------------------------------------------
+
+def test_a_missing_idr_or_llff_photo_is_named_not_its_mask(photographed, tmp_path):
+    import shutil
+
+    from vq_mitsuba.data.captures import load_capture
+
+    for fmt, images in (("neus", "image"), ("llff", "images")):
+        folder = tmp_path / fmt
+        shutil.copytree(photographed / fmt, folder)
+        first = sorted((folder / images).iterdir())[0]
+        first.unlink()
+        with pytest.raises(InputError, match="image missing") as refused:
+            load_capture(folder)
+        assert refused.value.path == first
+
+
+def test_an_odd_sized_idr_photo_is_blamed_not_the_others(photographed, tmp_path):
+    import shutil
+
+    from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.data.imageio import write_png
+
+    folder = tmp_path / "neus"
+    shutil.copytree(photographed / "neus", folder)
+    first = sorted((folder / "image").iterdir())[0]
+    write_png(first, np.full((20, 12, 3), 0.5))
+    with pytest.raises(InputError, match="image is 12x20, but 2 of the 3 photos are 16x16") as refused:
+        load_capture(folder)
+    assert refused.value.path == first
+
+
+@pytest.mark.parametrize("fmt, name", [("neus", "cameras_sphere.npz"), ("llff", "poses_bounds.npy")])
+def test_random_bytes_for_numpy_files_are_not_called_a_pickle(photographed, tmp_path, fmt, name):
+    import shutil
+
+    from vq_mitsuba.data.captures import load_capture
+
+    folder = tmp_path / fmt
+    shutil.copytree(photographed / fmt, folder)
+    (folder / name).write_bytes(np.random.default_rng(0).bytes(300))
+    with pytest.raises(InputError, match=rf"not a valid \.{name[-3:]} file") as refused:
+        load_capture(folder)
+    assert refused.value.path == folder / name and "pickle" not in refused.value.message
+
+
+def test_a_file_without_a_video_stream_is_refused_in_a_sentence(tmp_path):
+    import subprocess
+
+    import imageio_ffmpeg
+
+    from vq_mitsuba.data.formats.video import pick_frames
+
+    sound = tmp_path / "sound.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "lavfi", "-i", "sine=d=0.3",
+                    "-c:a", "aac", str(sound)], check=True)
+    with pytest.raises(InputError, match=r"holds no video stream \(only audio\)") as refused:
+        pick_frames(sound, tmp_path / "frames", 3, progress=False)
+    assert refused.value.path == sound
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(np.random.default_rng(1).bytes(200))
+    with pytest.raises(InputError, match="is not a video ffmpeg can read") as refused:
+        pick_frames(junk, tmp_path / "frames", 3, progress=False)
+    assert refused.value.path == junk and not (tmp_path / "frames").exists()
