@@ -358,6 +358,6 @@ def test_a_file_without_a_video_stream_is_refused_in_a_sentence(tmp_path):
     assert refused.value.path == sound
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(np.random.default_rng(1).bytes(200))
-    with pytest.raises(InputError, match="is not a video ffmpeg can read") as refused:
+    with pytest.raises(InputError, match="ffmpeg cannot read the video: it holds no streams") as refused:
         pick_frames(junk, tmp_path / "frames", 3, progress=False)
     assert refused.value.path == junk and not (tmp_path / "frames").exists()

@@ -119,7 +119,7 @@ def check_video_stream(video: Path) -> None:
         raise InputError(video, f"ffmpeg cannot read the file ({type(exc).__name__})") from None
     streams = re.findall(r"Stream #[^ ]*: (\w+):", probe.stderr)
     if not streams:
-        raise InputError(video, f"is not a video ffmpeg can read: no streams found (a damaged file, or another kind "
+        raise InputError(video, f"ffmpeg cannot read the video: it holds no streams (a damaged file, or another kind "
                                 f"of file named {video.suffix}?)")
     if "Video" not in streams:
         kinds = " and ".join(sorted({k.lower() for k in streams}))
