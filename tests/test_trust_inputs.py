@@ -172,10 +172,10 @@ def test_image_readers_know_a_file_by_its_bytes(tmp_path, real, named):
     (write_exr if real == "exr" else write_png)(source, np.full((4, 8, 3), 0.5, np.float32))
     renamed = tmp_path / f"renamed{named}"
     renamed.write_bytes(source.read_bytes())
-    kind = {"png": "PNG", "exr": "OpenEXR"}[real]
+    kind = {"png": "a PNG", "exr": "an OpenEXR"}[real]
     readers = (read_envmap_file,) if named == ".hdr" else (read_image, read_mask, image_size)
     for read in readers:
-        with pytest.raises(InputError, match=f"a {kind} file named {named}") as refused:
+        with pytest.raises(InputError, match=f"{kind} file named {named}") as refused:
             read(renamed)
         assert refused.value.path == renamed
 
@@ -361,3 +361,26 @@ def test_a_file_without_a_video_stream_is_refused_in_a_sentence(tmp_path):
     with pytest.raises(InputError, match="ffmpeg cannot read the video: it holds no streams") as refused:
         pick_frames(junk, tmp_path / "frames", 3, progress=False)
     assert refused.value.path == junk and not (tmp_path / "frames").exists()
+
+
+def test_evaluation_knows_its_ground_truth_files_by_their_bytes(tmp_path):
+    from vq_mitsuba.eval.evaluate import load_ground_truth
+    from vq_mitsuba.data.imageio import write_exr, write_png
+
+    for kind in ("basecolor", "metallic", "roughness"):
+        write_exr(tmp_path / "gt" / f"v_{kind}.exr", np.full((4, 4, 3), 0.5, np.float32))
+    write_exr(tmp_path / "images" / "v.exr", np.ones((4, 4, 4), np.float32))
+    write_png(tmp_path / "gt" / "v_alpha.png", np.ones((4, 4)), srgb=False)
+    assert load_ground_truth(tmp_path, "v")["mask"].all()
+    metallic = tmp_path / "gt" / "v_metallic.exr"
+    write_png(tmp_path / "photo.png", np.full((4, 4, 3), 0.5))
+    metallic.write_bytes((tmp_path / "photo.png").read_bytes())  # a PNG under the EXR's name
+    with pytest.raises(InputError, match="not an OpenEXR image.*a PNG file named .exr") as refused:
+        load_ground_truth(tmp_path, "v")
+    assert refused.value.path == metallic
+    write_exr(metallic, np.full((4, 4, 3), 0.5, np.float32))
+    alpha = tmp_path / "gt" / "v_alpha.png"
+    alpha.write_bytes(metallic.read_bytes())  # an EXR under the PNG's name
+    with pytest.raises(InputError, match="an OpenEXR file named .png") as refused:
+        load_ground_truth(tmp_path, "v")
+    assert refused.value.path == alpha

@@ -48,10 +48,16 @@ def checked_kind(path: str | Path) -> str:
         raise InputError(path, f"unsupported image format '{path.suffix}' (use .exr or .png)")
     found = file_kind(path)
     if found != named:
-        what = f"a {KIND_NAMES[found]} file" if found else "empty, truncated or another kind of file"
-        raise InputError(path, f"not a {KIND_NAMES[named]} image: the file does not start like one ({what} "
-                               f"named {path.suffix}?)")
+        raise _not_a(path, named, found)
     return named
+
+
+def _not_a(path: Path, named: str, found: str | None) -> InputError:
+    def a(kind: str) -> str:
+        return ("an " if kind == "exr" else "a ") + KIND_NAMES[kind]
+
+    what = f"{a(found)} file" if found else "empty, truncated or another kind of file"
+    return InputError(path, f"not {a(named)} image: the file does not start like one ({what} named {path.suffix}?)")
 
 
 def _read_8_or_16_bit(path: Path, reduce: int = 1) -> np.ndarray:
@@ -143,9 +149,13 @@ def clamp_tiny_negatives(rgb: np.ndarray, path) -> np.ndarray:
 
 
 def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR file as float32 (H, W, C) with channels R, G, B[, A] (or Y as grey)."""
+    """Read an EXR file as float32 (H, W, C) with channels R, G, B[, A] (or Y as grey); a file that
+    does not start like an EXR is an InputError naming it (`checked_kind`)."""
     import OpenEXR
 
+    found = file_kind(path)
+    if found != "exr":
+        raise _not_a(Path(path), "exr", found)
     with OpenEXR.File(str(path)) as f:
         channels = f.channels()
         if "RGBA" in channels:

@@ -39,7 +39,7 @@ import numpy as np
 
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.envmaps import load_envmap
-from vq_mitsuba.data.imageio import read_exr
+from vq_mitsuba.data.imageio import checked_kind, read_exr
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
@@ -102,6 +102,7 @@ def _read_mask(root: Path, name: str, image_alpha: np.ndarray | None) -> np.ndar
     if png.is_file():
         import imageio.v3 as iio
 
+        checked_kind(png)  # a file known by its bytes, not its name
         a = np.asarray(iio.imread(png)).astype(np.float64)
         a = a[..., 0] if a.ndim == 3 else a
         return a / (65535.0 if a.max() > 255 else 255.0) > MASK_THRESHOLD
@@ -126,6 +127,7 @@ def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
     if material_path.is_file():
         import imageio.v3 as iio
 
+        checked_kind(material_path)
         gt["material"] = np.asarray(iio.imread(material_path))
     return gt
 
