@@ -45,7 +45,7 @@ def checked_kind(path: str | Path) -> str:
     path = Path(path)
     named = KIND_OF_SUFFIX.get(path.suffix.lower())
     if named is None:
-        raise InputError(path, f"unsupported image format '{path.suffix}' (use .exr or .png)")
+        raise InputError(path, f"unsupported image format '{path.suffix}' (one of {', '.join(KIND_OF_SUFFIX)})")
     found = file_kind(path)
     if found != named:
         raise _not_a(path, named, found)
