@@ -123,7 +123,8 @@ def test_llff_masks_and_files_that_are_no_array_are_refused(tmp_path):
     from vq_mitsuba.data.captures import load_capture
 
     _llff(tmp_path / "a", masks=2)
-    _refused(lambda: load_capture(tmp_path / "a"), tmp_path / "a" / "masks", "holds 2 masks for 3 images")
+    _refused(lambda: load_capture(tmp_path / "a"), tmp_path / "a" / "masks" / "002.png", "mask missing",
+             "images/002.png has no mask")
     _llff(tmp_path / "b", masks=3)
     (tmp_path / "b" / "masks" / "002.png").rename(tmp_path / "b" / "masks" / "other.png")
     _refused(lambda: load_capture(tmp_path / "b"), tmp_path / "b" / "masks", "has no mask for 002.png")

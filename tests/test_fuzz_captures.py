@@ -124,7 +124,8 @@ def test_image_layouts_load_or_are_refused(folder, height, width, channels, dept
                    4: mi.Bitmap.PixelFormat.RGBA}[channels]
             mi.Bitmap(img, pixel_format=fmt).write(str(folder / f"{name}.png"))
             (folder / f"{name}.exr").unlink(missing_ok=True)
-        frames_json.append({"file_path": f"./{name}", "transform_matrix": good_matrix})
+        moved = [[1, 0, 0, 0.1 * i], *good_matrix[1:]]  # two viewpoints: one pose twice is refused
+        frames_json.append({"file_path": f"./{name}", "transform_matrix": moved})
     (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames_json}))
     outcome = _check(folder)
     assert outcome == ("refused" if second_size else "loaded")

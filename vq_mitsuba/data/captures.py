@@ -23,16 +23,18 @@ import numpy as np
 
 from vq_mitsuba.config import CaptureConfig
 from vq_mitsuba.data.cameras import Camera
+from vq_mitsuba.data.checks import check_viewpoints
+from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import FORMATS, folder_files, format_of, known_suffix
 from vq_mitsuba.data.formats.common import Capture, load_mesh
 from vq_mitsuba.data.names import view_names
 from vq_mitsuba.data.resize import Shrink
 from vq_mitsuba.data.unposed import unposed_error
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, warn
 
 # re-exported: the loaded capture and mesh (vq_mitsuba.data.formats.common)
 __all__ = ["Capture", "load_mesh", "load_capture", "load_cameras", "named_views", "capture_kind",
-           "capture_framing", "resolve_capture_path", "split_indices", "finish_capture"]
+           "capture_framing", "resolve_capture_path", "check_one_capture", "split_indices", "finish_capture"]
 
 
 def load_capture(path: str | Path, mesh: str | Path | None = None, options: CaptureConfig | None = None,
@@ -49,6 +51,7 @@ def load_capture(path: str | Path, mesh: str | Path | None = None, options: Capt
     if not fmt.POSED:
         raise unposed_error(source)
     capture = fmt.load(source, mesh, shrink, cache_dir)
+    check_viewpoints(source, capture.cameras)
     capture.cameras = named_views(capture.cameras)
     return finish_capture(capture, options, split)
 
@@ -97,13 +100,17 @@ def resolve_capture_path(path: str | Path) -> Path:
     """The capture for `path`: the file itself, a folder's transforms_train.json / transforms.json /
     scene.xml / cameras_sphere.npz / poses_bounds.npy (the formats' FOLDER_FILES), or the folder
     itself when it holds a COLMAP sparse model or, failing all these, photos (a capture without
-    poses, as a video file is)."""
+    poses, as a video file is). A folder holding several posed captures reads the first and says so,
+    or is refused when they disagree (`check_one_capture`)."""
     path = Path(path)
     if path.is_dir():
-        for name in folder_files():
-            if (path / name).is_file():
-                return path / name
-        if any(fmt.detect(path) for fmt in FORMATS):  # a COLMAP folder, or photos
+        found = [path / name for name in dict.fromkeys(folder_files()) if (path / name).is_file()]
+        found += [path] if any(fmt.POSED and fmt.detect(path) for fmt in FORMATS) else []  # a COLMAP model
+        if len(found) > 1:
+            check_one_capture(path, found)
+        if found:
+            return found[0]
+        if any(fmt.detect(path) for fmt in FORMATS):  # photos
             return path
         raise InputError(path, "capture folder holds no transforms_train.json, transforms.json (nerfstudio), "
                                "scene.xml, cameras_sphere.npz (NeuS/IDR), poses_bounds.npy (LLFF), COLMAP "
@@ -115,6 +122,36 @@ def resolve_capture_path(path: str | Path) -> Path:
                                "nerfstudio transforms.json, a NeuS/IDR cameras_sphere.npz, an LLFF poses_bounds.npy, "
                                "a COLMAP folder, a folder of photos or a video)")
     return path
+
+
+def check_one_capture(folder: Path, found: list[Path]) -> None:
+    """A folder that holds several posed captures (`found`, the first the one read): refused (an
+    InputError naming them) when they disagree on the number of views, else a warning naming the one
+    read and the others. A make-scene dataset's transforms_train.json and scene.xml that agree (the
+    same views in two worlds, as make-scene writes them) pass without a word."""
+
+    def described(source: Path) -> str:
+        return "the COLMAP model (sparse/)" if source == folder else source.name
+
+    counts, unread = {}, []
+    for source in found:
+        try:
+            counts[source] = len(format_of(source).cameras(source)[0])
+        except InputError as exc:
+            unread.append(f"{described(source)} ({exc.message})")
+    if found[0] not in counts:
+        return  # the capture read is itself unreadable: its own loader says why
+    views = {described(s): n for s, n in counts.items()}
+    if len(set(views.values())) > 1:
+        listed = ", ".join(f"{name} ({n} views)" for name, n in views.items())
+        raise InputError(folder, f"holds captures of several formats that disagree: {listed}; give the file (or "
+                                 "folder) of the one to read, or move the others away")
+    pair = {p.name for p in found} == {DatasetDir.TRANSFORMS_TRAIN, DatasetDir.SCENE_XML}
+    if pair and DatasetDir(folder).is_dataset() and not unread:
+        return
+    others = [described(s) for s in found[1:] if s in counts] + unread
+    warn(f"{folder}: reading {described(found[0])} ({counts[found[0]]} views); {' and '.join(others)} "
+         f"{'is' if len(others) == 1 else 'are'} also there, not read (give its path to read it instead)")
 
 
 def split_indices(count: int, holdout: int, split: str) -> list[int]:

@@ -87,6 +87,24 @@ def check_camera(path: Path, entry: str, camera) -> None:
     check_pose(path, entry, camera.to_world)
 
 
+def check_viewpoints(path: Path, cameras) -> None:
+    """Two or more cameras that all sit at one point and all look one way (within a millionth of
+    the capture's size and a thousandth of a radian) show the object from one viewpoint only:
+    nothing to fit a shape from. Refused, naming the capture (a broken pose export, most often)."""
+    if len(cameras) < 2:
+        return
+    centres = np.array([c.to_world[:3, 3] for c in cameras], dtype=np.float64)
+    forwards = np.array([c.to_world[:3, 2] / np.linalg.norm(c.to_world[:3, 2]) for c in cameras], dtype=np.float64)
+    size = 1.0 + float(np.abs(centres).max())
+    spread = float(np.abs(centres - centres[0]).max())
+    turn = float(np.arccos(np.clip((forwards @ forwards[0]).min(), -1.0, 1.0)))
+    if spread <= 1e-6 * size and turn <= 1e-3:
+        centre = ", ".join(f"{v:.4g}" for v in centres[0])
+        raise InputError(path, f"all {len(cameras)} cameras share one pose (centre {centre}, the same view "
+                               "direction): the capture shows the object from one viewpoint only, with nothing to "
+                               "fit a shape from; check how its poses were made")
+
+
 def check_unique(path: Path, what: str, values) -> None:
     """Entries that must be listed once (image names, camera ids)."""
     twice = [v for v, n in Counter(values).items() if n > 1]

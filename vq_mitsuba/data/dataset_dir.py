@@ -10,6 +10,8 @@ A dataset folder holds (both renderers, Mitsuba and Cycles, write the same layou
     gt/<id>_{basecolor,metallic,roughness,normal}.exr, gt/<id>_{material,alpha}.png   test views
     relit/<env>/<id>.exr, .png                    test views under each held-aside envmap
     envmaps/train.exr, envmaps/<env>.exr          lat-long maps, Blender convention
+    neus/, colmap/, colmap_opencv/, nerfstudio/, llff/   the training views as photographed captures
+                                                  (--photo-formats)
     scene.json                                    metadata, written last
     .make-scene-incomplete                        while make-scene writes the folder
     _cycles/job.json, _cycles/...                 the Cycles worker's job and raw renders (kept on request)
@@ -77,6 +79,10 @@ class DatasetDir:
     SUBDIRS = (IMAGES, GT, MESHES, ENVMAPS, RELIT)  # a dataset's folders, emptied by each make-scene
     GT_EXR = ("basecolor", "metallic", "roughness", "normal")  # gt/<id>_<kind>.exr
     GT_PNG = ("material", "alpha")  # gt/<id>_<kind>.png
+    PHOTO_FORMATS = ("neus", "colmap", "colmap_opencv", "nerfstudio", "llff")  # --photo-formats' folders
+    # Everything make-scene writes at the top of a dataset folder: an earlier dataset is replaced whole.
+    OWN_ENTRIES = (INFO, INCOMPLETE, TRANSFORMS_TRAIN, TRANSFORMS_TEST, MESH, SCENE_XML, SCENE_TEST_XML,
+                   *SUBDIRS, *PHOTO_FORMATS, CYCLES_WORK)
 
     def __init__(self, path: str | Path):
         self.dir = Path(path)
@@ -154,14 +160,45 @@ class DatasetDir:
     # --- writing -------------------------------------------------------------------------------
     def prepare(self, subdirs: tuple[str, ...] = SUBDIRS) -> Path:
         """The folder with its `subdirs` made; where it holds an earlier make-scene output
-        (scene.json, or the mark of an unfinished one), they are emptied first, so no stale view survives."""
+        (scene.json, or the mark of an unfinished one), that output is removed first, whole (every
+        entry of OWN_ENTRIES, the photographed captures too), so nothing of it survives beside the new one."""
         out = self.dir
-        if self.is_dataset() or (out / self.INCOMPLETE).is_file():  # an earlier output: drop its stale views
-            for sub in subdirs:
-                shutil.rmtree(out / sub, ignore_errors=True)
+        if self.is_dataset() or (out / self.INCOMPLETE).is_file():
+            for name in self.OWN_ENTRIES:
+                entry = out / name
+                if name in (self.INFO, self.INCOMPLETE):
+                    continue  # scene.json goes with mark_incomplete; the mark stays until the end
+                if entry.is_dir() and not entry.is_symlink():
+                    shutil.rmtree(entry, ignore_errors=True)
+                elif entry.exists() or entry.is_symlink():
+                    entry.unlink()
         for sub in subdirs:
             (out / sub).mkdir(parents=True, exist_ok=True)
         return out
+
+    def check_replaceable(self, command: str = "make-scene") -> None:
+        """Refuse (InputError naming the folder and what it holds) to write a dataset into this
+        existing, non-empty folder unless it is provably an earlier make-scene output: the mark of an
+        unfinished one or a readable scene.json of make-scene's, and nothing beside the entries a
+        dataset holds (OWN_ENTRIES). `prepare` then replaces it whole."""
+        entries = sorted(p.name + ("/" if p.is_dir() else "") for p in self.dir.iterdir())
+        shown = ", ".join(entries[:6]) + (f", ... {len(entries)} in all" if len(entries) > 6 else "")
+        if not (self.dir / self.INCOMPLETE).is_file():
+            try:
+                meta = json.loads(self.info_path.read_text())
+            except (OSError, ValueError) as exc:
+                meta = exc
+            if not isinstance(meta, dict) or not {"name", "resolution"} <= meta.keys():
+                why = f"cannot be read ({meta})" if isinstance(meta, Exception) else "is not make-scene's"
+                raise InputError(self.dir, f"holds {shown}, and its {self.INFO} {why}: {command} cannot tell this "
+                                           "is a dataset it made, and would mix its files with these; move the "
+                                           "folder away or choose a new one with -o")
+        other = sorted(name for name in entries if name.rstrip("/") not in self.OWN_ENTRIES)
+        if other:
+            listed = ", ".join(other[:3]) + (", ..." if len(other) > 3 else "")
+            raise InputError(self.dir, f"holds files {command} did not write ({listed}) beside an earlier dataset: "
+                                       f"{command} replaces that dataset whole; move them away or choose a new "
+                                       "folder with -o")
 
     def mark_incomplete(self) -> None:
         """Mark the folder as being written, and drop an earlier dataset's scene.json (written again last)."""

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
-from vq_mitsuba.data.imageio import clamp_tiny_negatives, read_image, write_exr
+from vq_mitsuba.data.imageio import checked_kind, clamp_tiny_negatives, read_image, write_exr
 from vq_mitsuba.errors import InputError
 
 PRESETS = ("sky", "sunset", "studio", "overcast")
@@ -271,13 +271,23 @@ def blender_probes() -> dict[str, Path]:
 # --------------------------------------------------------------------------------------------
 # Files and Mitsuba
 # --------------------------------------------------------------------------------------------
+ENV_PEAK_RANGE = (1e-30, 1e30)  # brightest texel an envmap may have (float32 sums of its light stay finite)
+HDR_MAX_TEXELS = 1 << 27  # the largest Radiance .hdr read (16384 x 8192 texels)
+
+
 def read_envmap_file(path: str | Path) -> np.ndarray:
-    """The linear radiance (H, W, 3) float32 of an envmap image file, as stored: EXR, PNG and JPEG
-    through read_image; Radiance .hdr, .pfm and the other formats Mitsuba reads through its Bitmap.
+    """The linear radiance (H, W, 3) float32 of an envmap image file, as stored, its format known by
+    its bytes (vq_mitsuba.data.imageio.checked_kind: they must agree with its suffix): EXR, PNG and JPEG
+    through read_image; Radiance .hdr (its header checked first) and .pfm through Mitsuba's Bitmap.
     Non-finite texels are refused, tiny negative ones clamped (vq_mitsuba.data.imageio)."""
     path = Path(path)
-    if path.suffix.lower() in (".exr", ".png", ".jpg", ".jpeg"):
+    if not path.is_file():
+        raise InputError(path, "environment map not found")
+    kind = checked_kind(path)
+    if kind in ("exr", "png", "jpeg"):
         return read_image(path)[0]
+    if kind == "hdr":
+        _check_hdr_header(path)
     import mitsuba as mi
 
     from vq_mitsuba.backend import init_mitsuba
@@ -293,25 +303,67 @@ def read_envmap_file(path: str | Path) -> np.ndarray:
     return clamp_tiny_negatives(rgb.reshape(rgb.shape[0], rgb.shape[1], 3), path)
 
 
-def load_envmap(path: str | Path) -> np.ndarray:
-    """Read a lat-long EXR/HDR as float32 (H, W, 3); raises InputError naming a bad file: not HDR,
-    not 2:1, smaller than 4 x 2 texels, negative or non-finite texels, or no light at all."""
-    path = Path(path)
-    if path.suffix.lower() not in (".exr", ".hdr"):
-        raise InputError(path, "an environment map holds HDR radiance: give an .exr or .hdr lat-long image "
-                               f"(not '{path.suffix}')")
-    if path.suffix.lower() == ".hdr" and not path.is_file():
-        raise InputError(path, "environment map not found")
-    rgb = read_envmap_file(path)
-    if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 4:
+def _check_hdr_header(path: Path) -> None:
+    """A Radiance .hdr's header: its lines up to a blank one, then a size line such as `-Y 256 +X 512`
+    with both sides whole numbers of at least 1 and at most HDR_MAX_TEXELS texels in all; an InputError
+    naming the file otherwise (Mitsuba's reader would try to allocate whatever the line says)."""
+    import re
+
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    blank = head.find(b"\n\n")
+    if blank < 0:
+        raise InputError(path, "not a valid Radiance .hdr: its header does not end (no blank line in its first 64 KiB)")
+    line = head[blank + 2:].split(b"\n", 1)[0].decode("latin-1").strip()
+    m = re.fullmatch(r"([-+])([XY]) +(-?\d+) +([-+])([XY]) +(-?\d+)", line)
+    if m is None or m.group(2) == m.group(5):
+        raise InputError(path, f"not a valid Radiance .hdr: its size line is {line[:40]!r}, not like '-Y 256 +X 512'")
+    sides = int(m.group(3)), int(m.group(6))
+    if min(sides) < 1 or sides[0] * sides[1] > HDR_MAX_TEXELS:
+        raise InputError(path, f"not a valid Radiance .hdr: its size line gives {sides[0]} x {sides[1]} texels "
+                               f"(each side at least 1, at most {HDR_MAX_TEXELS} texels in all)")
+
+
+def check_envmap(rgb: np.ndarray, path: str | Path, exposure_ev: float = 0.0) -> np.ndarray:
+    """The one check of every envmap read (`render --envmap`, `export --envmap`, a scene XML's
+    emitter, a dataset's envmaps): an (H, W, 3) lat-long map, twice as wide as high, of at least 4 x 2
+    texels, finite, with some light, and whose brightest texel (at this exposure) lies in
+    ENV_PEAK_RANGE; an InputError naming `path` otherwise. Returns the map as float32."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[0] < 2 or rgb.shape[1] < 4 or rgb.shape[2] != 3:
         raise InputError(path, f"environment map must be an (H, W, 3) image of at least 4 x 2 texels, got shape "
                                f"{rgb.shape}")
     if rgb.shape[1] != 2 * rgb.shape[0]:
         raise InputError(path, f"a lat-long environment map is twice as wide as high, got {rgb.shape[1]} x "
                                f"{rgb.shape[0]} texels")
+    if not np.all(np.isfinite(rgb)):
+        raise InputError(path, "environment map contains non-finite values")
     if not float(rgb.max()) > 0.0:
         raise InputError(path, "environment map is black everywhere: it gives no light")
+    check_peak(rgb, path, exposure_ev)
     return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def check_peak(rgb: np.ndarray, path: str | Path, exposure_ev: float = 0.0) -> None:
+    """Refuse (InputError naming `path`) lighting whose brightest texel, at this exposure, lies
+    outside ENV_PEAK_RANGE."""
+    peak = float(rgb.max()) * 2.0 ** exposure_ev
+    if not ENV_PEAK_RANGE[0] <= peak <= ENV_PEAK_RANGE[1]:
+        at = f" at exposure {exposure_ev:+g} EV" if exposure_ev else ""
+        raise InputError(path, f"the lighting's brightest texel would be {peak:.3g}{at}: outside "
+                               f"{ENV_PEAK_RANGE[0]:g}..{ENV_PEAK_RANGE[1]:g}, where the renders could not be "
+                               "finite; choose another envmap" + (" or --exposure" if exposure_ev else ""))
+
+
+def load_envmap(path: str | Path, exposure_ev: float = 0.0, hdr_only: bool = True) -> np.ndarray:
+    """Read a lat-long EXR/HDR as float32 (H, W, 3), checked (`check_envmap`, at this exposure);
+    raises InputError naming a bad file. `hdr_only` False also takes what a scene XML's emitter may
+    name (PNG, JPEG, PFM)."""
+    path = Path(path)
+    if hdr_only and path.suffix.lower() not in (".exr", ".hdr"):
+        raise InputError(path, "an environment map holds HDR radiance: give an .exr or .hdr lat-long image "
+                               f"(not '{path.suffix}')")
+    return check_envmap(read_envmap_file(path), path, exposure_ev)
 
 
 def save_envmap(path: str | Path, array: np.ndarray) -> None:

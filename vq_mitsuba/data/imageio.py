@@ -21,6 +21,45 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
+# What each image format's files start with: a file is known by these bytes, never by its name alone.
+MAGIC = {"exr": (b"\x76\x2f\x31\x01",), "png": (b"\x89PNG\r\n\x1a\n",), "jpeg": (b"\xff\xd8",),
+         "hdr": (b"#?",), "pfm": (b"PF\n", b"Pf\n", b"PF\r", b"Pf\r", b"PF ", b"Pf ")}
+KIND_OF_SUFFIX = {".exr": "exr", ".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".hdr": "hdr", ".pic": "hdr",
+                  ".pfm": "pfm"}
+KIND_NAMES = {"exr": "OpenEXR", "png": "PNG", "jpeg": "JPEG", "hdr": "Radiance HDR", "pfm": "PFM"}
+
+
+def file_kind(path: str | Path) -> str | None:
+    """The image format a file's first bytes show ("exr", "png", "jpeg", "hdr", "pfm"), or None."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as exc:
+        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    return next((kind for kind, starts in MAGIC.items() if head.startswith(starts)), None)
+
+
+def checked_kind(path: str | Path) -> str:
+    """The image format of `path`, which its bytes and its suffix must agree on: an InputError naming
+    the file when they do not (another kind of file renamed, or a truncated one) or the suffix is unknown."""
+    path = Path(path)
+    named = KIND_OF_SUFFIX.get(path.suffix.lower())
+    if named is None:
+        raise InputError(path, f"unsupported image format '{path.suffix}' (one of {', '.join(KIND_OF_SUFFIX)})")
+    found = file_kind(path)
+    if found != named:
+        raise _not_a(path, named, found)
+    return named
+
+
+def _not_a(path: Path, named: str, found: str | None) -> InputError:
+    def a(kind: str) -> str:
+        return ("an " if kind == "exr" else "a ") + KIND_NAMES[kind]
+
+    what = f"{a(found)} file" if found else "empty, truncated or another kind of file"
+    return InputError(path, f"not {a(named)} image: the file does not start like one ({what} named {path.suffix}?)")
+
+
 def _read_8_or_16_bit(path: Path, reduce: int = 1) -> np.ndarray:
     """PNG / JPEG pixels as stored: uint8, or uint16 for 16-bit PNGs (which Pillow would cut to 8 bits).
 
@@ -28,12 +67,9 @@ def _read_8_or_16_bit(path: Path, reduce: int = 1) -> np.ndarray:
     decoded at that scale by the JPEG decoder itself (each pixel the mean of a reduce x reduce block)."""
     import imageio.v3 as iio  # ships with scikit-image
 
+    png = checked_kind(path) == "png"
     with open(path, "rb") as f:
         head = f.read(26)
-    png = head[:8] == b"\x89PNG\r\n\x1a\n"
-    if path.suffix.lower() == ".png" and not png or path.suffix.lower() != ".png" and head[:2] != b"\xff\xd8":
-        raise InputError(path, f"not a {path.suffix[1:].upper()} image (the file does not start like one; "
-                               "truncated, or another kind of file renamed?)")
     if not png:
         from PIL import Image
 
@@ -74,9 +110,11 @@ def read_image(path: str | Path, reduce: int = 1) -> tuple[np.ndarray, np.ndarra
         raise InputError(path, "image file not found")
     suffix = path.suffix.lower()
     try:
-        if suffix == ".exr":
+        if suffix not in (".exr", ".png", ".jpg", ".jpeg"):
+            raise InputError(path, f"unsupported image format '{suffix}' (use .exr or .png)")
+        if checked_kind(path) == "exr":
             data = read_exr(path)
-        elif suffix in (".png", ".jpg", ".jpeg"):
+        else:
             raw = _read_8_or_16_bit(path, reduce)
             scale = 65535.0 if raw.dtype == np.uint16 else 255.0
             data = raw.astype(np.float32) / scale
@@ -85,8 +123,6 @@ def read_image(path: str | Path, reduce: int = 1) -> tuple[np.ndarray, np.ndarra
             if data.shape[-1] in (1, 2):  # grey or grey + alpha
                 data = np.concatenate([np.repeat(data[..., :1], 3, -1), data[..., 1:]], -1)
             data = np.concatenate([srgb_to_linear(data[..., :3]), data[..., 3:4]], -1)
-        else:
-            raise InputError(path, f"unsupported image format '{suffix}' (use .exr or .png)")
     except InputError:
         raise
     except Exception as exc:  # decoder errors differ per library
@@ -113,9 +149,13 @@ def clamp_tiny_negatives(rgb: np.ndarray, path) -> np.ndarray:
 
 
 def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR file as float32 (H, W, C) with channels R, G, B[, A] (or Y as grey)."""
+    """Read an EXR file as float32 (H, W, C) with channels R, G, B[, A] (or Y as grey); a file that
+    does not start like an EXR is an InputError naming it (`checked_kind`)."""
     import OpenEXR
 
+    found = file_kind(path)
+    if found != "exr":
+        raise _not_a(Path(path), "exr", found)
     with OpenEXR.File(str(path)) as f:
         channels = f.channels()
         if "RGBA" in channels:
@@ -180,11 +220,13 @@ def read_mask(path: str | Path, reduce: int = 1) -> np.ndarray:
     if not path.is_file():
         raise InputError(path, "mask file not found")
     try:
-        if path.suffix.lower() == ".exr":
+        if checked_kind(path) == "exr":
             data = read_exr(path)
         else:
             raw = _read_8_or_16_bit(path, reduce)
             data = raw.astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)
+    except InputError:
+        raise
     except Exception as exc:
         raise InputError(path, f"cannot read mask ({type(exc).__name__}: {exc})") from exc
     if data.ndim == 2:
@@ -202,13 +244,15 @@ def image_size(path: str | Path) -> tuple[int, int]:
     if not path.is_file():
         raise InputError(path, "image file not found")
     try:
-        if path.suffix.lower() == ".exr":
+        if checked_kind(path) == "exr":
             data = read_exr(path)
             return int(data.shape[1]), int(data.shape[0])
         from PIL import Image
 
         with Image.open(path) as im:
             return int(im.size[0]), int(im.size[1])
+    except InputError:
+        raise
     except Exception as exc:
         raise InputError(path, f"cannot read image ({type(exc).__name__}: {exc})") from exc
 

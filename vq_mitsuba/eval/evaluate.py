@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.dataset_dir import DatasetDir
-from vq_mitsuba.data.envmaps import read_envmap_file
-from vq_mitsuba.data.imageio import read_exr
+from vq_mitsuba.data.envmaps import load_envmap
+from vq_mitsuba.data.imageio import checked_kind, read_exr
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.eval import metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
@@ -102,6 +102,7 @@ def _read_mask(root: Path, name: str, image_alpha: np.ndarray | None) -> np.ndar
     if png.is_file():
         import imageio.v3 as iio
 
+        checked_kind(png)  # a file known by its bytes, not its name
         a = np.asarray(iio.imread(png)).astype(np.float64)
         a = a[..., 0] if a.ndim == 3 else a
         return a / (65535.0 if a.max() > 255 else 255.0) > MASK_THRESHOLD
@@ -126,6 +127,7 @@ def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
     if material_path.is_file():
         import imageio.v3 as iio
 
+        checked_kind(material_path)
         gt["material"] = np.asarray(iio.imread(material_path))
     return gt
 
@@ -236,8 +238,8 @@ class _TestViews:
 
 
 def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
-    """The test cameras, relighting envmaps and ground truth of a dataset, checked: every relit
-    view on disk, every image the size of its camera."""
+    """The test cameras, relighting envmaps and ground truth of a dataset, checked: every envmap
+    (vq_mitsuba.data.envmaps.check_envmap), every relit view on disk, every image the size of its camera."""
     from vq_mitsuba.data.captures import load_cameras
     from vq_mitsuba.data.cameras import convert_world
 
@@ -246,7 +248,8 @@ def _load_test_views(dataset_dir: str | Path, run_world: str) -> _TestViews:
     meta = dataset.info()
     cameras, cam_world, _ = load_cameras(dataset / DatasetDir.TRANSFORMS_TEST)
     envs = dataset.relight_envs(meta)
-    for env_name, _ in envs:
+    for env_name, env_path in envs:
+        load_envmap(env_path)  # checked before any work (and read again when the relit views are rendered)
         for cam in cameras:
             p = dataset.image(cam.name, env_name).with_suffix(".exr")
             if not p.is_file():
@@ -350,7 +353,7 @@ def _relighting_scores(predictor, data: _TestViews, per_view: list[dict], bc_sca
     """Relighting under each held-aside envmap, view by view (one pass per view renders all
     envmaps), in both alignment variants; adds each view's relit PSNRs to its per_view row."""
     envs = data.envs
-    renderers = [predictor.renderer(read_envmap_file(env_path)) for _, env_path in envs]  # finite radiance only
+    renderers = [predictor.renderer(load_envmap(env_path)) for _, env_path in envs]  # the one envmap check
     rows = {name: {"albedo_scale": [], "image_scale": []} for name, _ in envs}
     for i, (cam, view, gt) in enumerate(zip(data.cameras, data.views, data.gts)):
         m = gt["mask"]

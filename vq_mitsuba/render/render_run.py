@@ -12,7 +12,7 @@ from typing import Sequence
 
 from vq_mitsuba.config import CaptureConfig, load_config
 from vq_mitsuba.data.captures import load_cameras
-from vq_mitsuba.data.envmaps import load_envmap
+from vq_mitsuba.data.envmaps import check_peak, load_envmap
 from vq_mitsuba.data.names import safe_name
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.render import views
@@ -60,7 +60,9 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
     check_writable(out)
     fitted = run.load()
     cameras, world, _ = load_cameras(cameras_path, size)
-    envmaps = [load_envmap(p) for p in envmap_paths]
+    envmaps = [load_envmap(p, exposure_ev) for p in envmap_paths]  # each checked at this exposure, by name
+    if not envmap_paths:
+        check_peak(fitted.envmap, run.dir / RunDir.ENVMAP, exposure_ev)
     names = lighting_names(envmap_paths)
     with new_folder(out):
         views.render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,

@@ -16,6 +16,7 @@ from vq_mitsuba.backend import sized
 from vq_mitsuba.brdf import INPUTS
 from vq_mitsuba.config import CPU_RENDER_CHUNK
 from vq_mitsuba.data.cameras import Camera, camera_rays, convert_world, pixel_jitter, world_rotation
+from vq_mitsuba.data.envmaps import ENV_PEAK_RANGE
 from vq_mitsuba.data.imageio import linear_to_srgb, write_exr, write_png
 from vq_mitsuba.data.names import view_names
 from vq_mitsuba.errors import InputError, NumericalError
@@ -24,7 +25,6 @@ from vq_mitsuba.models.residual import add_residual
 from vq_mitsuba.render.shading import scene_for_mesh
 
 MAX_RAYS = 1 << 20  # primary rays traced at once by Renderer.render (bounds its memory)
-ENV_PEAK_RANGE = (1e-30, 1e30)  # brightest envmap texel a render accepts (float32 sums stay finite)
 
 
 def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:

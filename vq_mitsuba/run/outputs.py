@@ -7,7 +7,8 @@ before, known by that kind's marker file:
     render                     render.json
     export                     export.json naming the same format
     pose                       pose.json, readable and made from the same photos (geometry/poses.py)
-    scene     (make-scene)     scene.json (or the mark of an interrupted make-scene)
+    scene     (make-scene)     a readable scene.json (or the mark of an interrupted make-scene) and
+                               nothing a dataset does not hold: replaced whole
     batch                      batch.json
     edit                       none: an edit writes a new run
 
@@ -119,7 +120,11 @@ def check_output_folder(folder: str | Path, kind: str, command: str, fmt: str | 
         return
     if not folder.is_dir():
         raise InputError(folder, "is a file; -o names an output folder")
-    if is_empty(folder, (RunDir.LOCK,)) or is_own(folder, kind, fmt):
+    if is_empty(folder, (RunDir.LOCK,)):
+        return
+    if is_own(folder, kind, fmt):
+        if kind == "scene":  # replaced whole: only when provably make-scene's, with nothing else beside
+            DatasetDir(folder).check_replaceable(command)
         return
     what = describe(folder)
     if kind == "export" and (folder / EXPORT_MARKER).is_file() and not RunDir(folder).holds_run_files():

@@ -461,7 +461,7 @@ OUT_SUBDIRS = DatasetDir.SUBDIRS  # a dataset's folders, emptied by each make-sc
 
 def prepare_out_dir(out_dir, subdirs=OUT_SUBDIRS) -> Path:
     """out_dir with its `subdirs` made; where out_dir holds an earlier make-scene output
-    (scene.json), they are emptied first, so no stale view survives."""
+    (scene.json), it is removed first, whole, so no stale view or capture survives."""
     return DatasetDir(out_dir).prepare(subdirs)
 
 

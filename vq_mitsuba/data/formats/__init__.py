@@ -18,8 +18,9 @@ and, where the format has one, `write_capture(...)` (the writer the synthetic sc
 transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
 
 Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
-folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order, and a source
-is of the first format whose `detect` accepts it.
+folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order (a folder that
+holds several is checked: vq_mitsuba.data.captures.check_one_capture), and a source is of the first
+format whose `detect` accepts it.
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@ of photographed captures (photos and masks read, undistorted when their lens dis
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -12,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.data.imageio import read_image, read_mask
+from vq_mitsuba.data.imageio import image_size, read_image, read_mask
 from vq_mitsuba.data.lens import Lens, undistort_photo
 from vq_mitsuba.data.resize import Shrink
 from vq_mitsuba.errors import InputError, raise_all
@@ -128,6 +129,55 @@ def stack_images(entries: list[tuple[Path, np.ndarray, np.ndarray | None]]):
 
 def images_in(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_EXTS) if folder.is_dir() else []
+
+
+def numpy_file_kind(path: Path, expected: str) -> str:
+    """What a NumPy file (`expected`: "npy" or "npz") is by its first bytes: "npy", "npz" (a zip
+    archive) or "pickle" (never loaded); an InputError naming the file when it is none of them."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        return "npz"
+    if head.startswith(b"\x80"):
+        return "pickle"
+    what = "an .npz archive of arrays" if expected == "npz" else "a NumPy .npy array"
+    raise InputError(path, f"not a valid .{expected} file: it does not start like {what} (empty, truncated, or "
+                           "another kind of file?)")
+
+
+def common_image_size(images: list[Path]) -> tuple[int, int]:
+    """(width, height) that the photos of a capture share, read from each file's header; a photo of
+    another size than most of them is refused by name (the majority size wins, so one odd photo is
+    the one blamed, wherever it sorts)."""
+    sizes = [image_size(p) for p in images]
+    (width, height), count = Counter(sizes).most_common(1)[0]
+    odd = [InputError(p, f"image is {w}x{h}, but {count} of the {len(images)} photos are {width}x{height}: all "
+                         "views need one size") for p, (w, h) in zip(images, sizes) if (w, h) != (width, height)]
+    raise_all(odd, images[0].parent)
+    return width, height
+
+
+def paired_masks(image_dir: Path, images: list[Path], mask_dir: Path, masks: list[Path]) -> None:
+    """Masks paired with photos in sorted order: refused when the counts differ, naming the photo
+    (or mask) missing where the file names show which."""
+    if not masks or len(masks) == len(images):
+        return
+    image_stems, mask_stems = {p.stem for p in images}, {p.stem for p in masks}
+    no_image = [m for m in masks if m.stem not in image_stems]
+    no_mask = [p for p in images if p.stem not in mask_stems]
+    counts = f"{mask_dir.name}/ holds {len(masks)} masks for {len(images)} images in {image_dir.name}/"
+    if len(masks) > len(images) and no_image and len(no_image) < len(masks):
+        raise InputError(image_dir / no_image[0].name, f"image missing: {mask_dir.name}/{no_image[0].name} has no "
+                                                       f"photo of its name ({counts})")
+    if len(masks) < len(images) and no_mask and len(no_mask) < len(images):
+        raise InputError(mask_dir / no_mask[0].name, f"mask missing: {image_dir.name}/{no_mask[0].name} has no "
+                                                     f"mask of its name ({counts})")
+    raise InputError(mask_dir, f"holds {len(masks)} masks for {len(images)} images in {image_dir.name}/")
 
 
 def read_views(source: Path, cameras: list[Camera], paths: list[Path], masks: list[Path | None],

@@ -21,8 +21,9 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import OPENCV_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, collect
-from vq_mitsuba.data.formats.common import Capture, has_suffix, images_in, known_mesh, read_views, up_frame
-from vq_mitsuba.data.imageio import image_size, write_png
+from vq_mitsuba.data.formats.common import (Capture, common_image_size, has_suffix, images_in, known_mesh,
+                                            numpy_file_kind, paired_masks, read_views, up_frame)
+from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
 
 KIND = "idr"
@@ -65,10 +66,9 @@ def _idr_views(npz: Path) -> tuple[list[Camera], list[Path], list[Path] | None]:
         raise InputError(folder / "image", "no images (the NeuS/IDR layout keeps them in image/, e.g. 000.png)")
     mask_dir = next((folder / d for d in ("mask", "masks") if images_in(folder / d)), folder / "mask")
     masks = images_in(mask_dir)
-    if masks and len(masks) != len(images):
-        raise InputError(mask_dir, f"holds {len(masks)} masks for {len(images)} images in {image_dir.name}/")
+    paired_masks(image_dir, images, mask_dir, masks)
     views, _ = read_idr(npz, len(images))
-    w, h = image_size(images[0])
+    w, h = common_image_size(images)
     check_idr_views(npz, views, w, h)
     cameras = [idr_camera(p.stem, k, c2w, w, h) for p, (k, c2w) in zip(images, views)]
     return cameras, images, masks or None
@@ -106,6 +106,10 @@ def read_idr_sphere(path: Path) -> tuple[np.ndarray, float] | None:
 def _open_npz(path: Path):
     """The npz archive (no pickles: an object array is refused when read, not run). The file is
     opened here so that an archive numpy cannot parse is closed too."""
+    kind = numpy_file_kind(path, "npz")
+    if kind != "npz":
+        raise InputError(path, "is a Python pickle, which is never loaded" if kind == "pickle" else
+                               "is a single .npy array, not an .npz archive of named matrices (world_mat_0, ...)")
     try:
         f = open(path, "rb")
     except OSError as exc:

@@ -16,9 +16,9 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, check_size, collect, finite_number
-from vq_mitsuba.data.formats.common import (Capture, has_suffix, images_in, known_mesh, moved_camera, read_views,
-                                            up_frame)
-from vq_mitsuba.data.imageio import image_size, write_png
+from vq_mitsuba.data.formats.common import (Capture, common_image_size, has_suffix, images_in, known_mesh,
+                                            moved_camera, numpy_file_kind, paired_masks, read_views, up_frame)
+from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
 
 KIND = "llff"
@@ -64,9 +64,10 @@ def _llff_views(npy: Path) -> tuple[list[Camera], list[Path], list[Path | None]]
     folder = npy.parent
     image_dir, images = _llff_images(folder)
     poses, _ = read_poses_bounds(npy)
+    paired_masks(image_dir, images, folder / "masks", images_in(folder / "masks"))  # names a missing photo
     if len(poses) != len(images):
         raise InputError(npy, f"holds {len(poses)} poses for {len(images)} images in {image_dir.name}/")
-    width, height = image_size(images[0])
+    width, height = common_image_size(images)
     cameras, problems = [], []
     for i, (pose, path) in enumerate(zip(poses, images)):
         h, w, f = pose[:, 4]
@@ -109,6 +110,8 @@ def world_to_llff(to_world: np.ndarray, height: float, width: float, focal: floa
 
 def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(poses (N, 3, 5), bounds (N, 2)) of a poses_bounds.npy, every row checked (all problems at once)."""
+    if numpy_file_kind(path, "npy") == "pickle":
+        raise InputError(path, "is a Python pickle, which is never loaded: save the poses as an array of numbers")
     try:
         raw = np.load(path, allow_pickle=False)
     except ValueError as exc:

@@ -22,7 +22,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.checks import check_camera, finite_number
-from vq_mitsuba.data.envmaps import read_envmap_file
+from vq_mitsuba.data.envmaps import check_envmap, load_envmap
 from vq_mitsuba.data.formats.common import (Capture, ensure_variant, find_image, has_suffix, load_mesh,
                                             shrunk_entry, stack_images)
 from vq_mitsuba.data.imageio import read_image
@@ -59,8 +59,8 @@ def load(xml: Path, mesh_arg: str | Path | None, shrink: Shrink | None = None, c
     env_file = _xml_envmap_file(xml, env_elems, defaults)
     if env_file is not None:
         referenced.append(env_file)
-    # Read the envmap first: read_image gives clearer errors than Mitsuba's loader.
-    env_rgb = read_envmap_file(env_file) if env_file is not None else None
+    # Read and check the envmap first (the one envmap check): clearer errors than Mitsuba's loader.
+    env_rgb = load_envmap(env_file, hdr_only=False) if env_file is not None else None
 
     # Cameras and their reference images.
     scene = _load_mitsuba_scene(xml, referenced)
@@ -265,7 +265,7 @@ def _xml_envmap(xml: Path, scene, env_rgb: np.ndarray | None) -> tuple[np.ndarra
         params = mi.traverse(emitters[0])
         env_to_world = _matrix(params["to_world"])
         scale = float(np.ravel(np.array(params["scale"]))[0]) if "scale" in params else 1.0
-        envmap = (env_rgb * np.float32(scale)).astype(np.float32)
+        envmap = check_envmap(env_rgb * np.float32(scale), xml)  # times the emitter's scale: checked again
     return envmap, env_to_world
 
 

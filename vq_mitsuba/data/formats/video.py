@@ -55,6 +55,7 @@ def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
     from PIL import Image
     from tqdm.auto import tqdm
 
+    check_video_stream(video)
     try:
         reader = imageio_ffmpeg.read_frames(str(video))
         meta = next(reader)
@@ -101,6 +102,28 @@ def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
     return {"frames_decoded": decoded, "fps": fps, "duration_s": duration, "size": [int(width), int(height)],
             "kept": [{"frame": i, "time_s": round(i / fps, 4) if fps else None, "sharpness": round(s, 3)}
                      for s, i, _ in kept]}
+
+
+def check_video_stream(video: Path) -> None:
+    """Refuse, in a sentence naming the file, what ffmpeg cannot open or what holds no video stream
+    (a sound file named .mp4): ffmpeg's own text says neither plainly."""
+    import re
+    import subprocess
+
+    import imageio_ffmpeg
+
+    try:
+        probe = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(video)],
+                               capture_output=True, text=True, errors="replace", timeout=120)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise InputError(video, f"ffmpeg cannot read the file ({type(exc).__name__})") from None
+    streams = re.findall(r"Stream #[^ ]*: (\w+):", probe.stderr)
+    if not streams:
+        raise InputError(video, f"ffmpeg cannot read the video: it holds no streams (a damaged file, or another kind "
+                                f"of file named {video.suffix}?)")
+    if "Video" not in streams:
+        kinds = " and ".join(sorted({k.lower() for k in streams}))
+        raise InputError(video, f"holds no video stream (only {kinds}): there are no frames to pose")
 
 
 def _last_line(exc: Exception) -> str:
