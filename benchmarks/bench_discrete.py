@@ -22,7 +22,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from bench_scenes import _fmt, ensure_dataset, scene_config
+from bench_scenes import figure_text, ensure_dataset, scene_config
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
@@ -92,7 +92,7 @@ def markdown(result: dict) -> str:
              "|---|---|" + "---:|" * len(FIGURES)]
     for r in result["rows"]:
         lines.append(f"| {r['scene']} | {r['variant']} | "
-                     + " | ".join(_fmt(r["figures"].get(k), spec) for k, _, spec in FIGURES) + " |")
+                     + " | ".join(figure_text(r["figures"].get(k), spec) for k, _, spec in FIGURES) + " |")
     ms_rows = [r for r in result["rows"] if r.get("meanshift")]
     if ms_rows:
         lines += ["", "MeanShift baseline on each run's continuous maps:", "",

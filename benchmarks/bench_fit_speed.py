@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench_scenes import _fmt
+from bench_scenes import figure_text
 from bench_time_error import figures
 from provenance import command_line, write_result
 from vq_mitsuba.eval.evaluate import evaluate, json_safe
@@ -68,7 +68,7 @@ def run_variant(data: Path, name: str, overrides: list[str], args, out: Path) ->
     row = {"variant": name, "overrides": overrides, "wall_s": wall, "loop_s": summary["seconds"],
            "startup_s": summary.get("startup_s"), **figures(m, summary["seconds"], summary["iterations"])}
     row["per_material"] = m.get("per_material")
-    print(f"[{name}] " + "  ".join(f"{label} {_fmt(row.get(key), spec)}" for key, label, spec in COLUMNS), flush=True)
+    print(f"[{name}] " + "  ".join(f"{label} {figure_text(row.get(key), spec)}" for key, label, spec in COLUMNS), flush=True)
     return row
 
 
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
         rows = [r for p in args.plot for r in json.loads(p.read_text())["rows"]]
         plot(rows, args.out / "fit_speed.png")
         for r in rows:
-            print(f"[{r['variant']}] " + "  ".join(f"{label} {_fmt(r.get(key), spec)}" for key, label, spec in COLUMNS))
+            print(f"[{r['variant']}] " + "  ".join(f"{label} {figure_text(r.get(key), spec)}" for key, label, spec in COLUMNS))
         print(f"wrote {args.out / 'fit_speed.png'}")
         return 0
     if args.data is None:

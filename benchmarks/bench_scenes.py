@@ -122,7 +122,7 @@ def run_scenes(args, out: Path) -> list[dict]:
     return scenes
 
 
-def _fmt(x, spec: str = ".2f") -> str:
+def figure_text(x, spec: str = ".2f") -> str:
     if x is None or isinstance(x, str):
         return "-" if x is None else x
     if not math.isfinite(x):
@@ -140,7 +140,7 @@ def markdown(result: dict) -> str:
              "| scene | " + " | ".join(label for _, label, _ in FIGURES) + " |",
              "|---|" + "---:|" * len(FIGURES)]
     for s in scenes:
-        cells = [_fmt(s["figures"].get(k), spec) for k, _, spec in FIGURES]
+        cells = [figure_text(s["figures"].get(k), spec) for k, _, spec in FIGURES]
         lines.append(f"| {s['scene']} | " + " | ".join(cells) + " |")
     lines += ["", "Relighting PSNR per envmap (albedo scale / image scale):", "",
               "| scene | env | albedo scale | image scale |", "|---|---|---:|---:|"]
@@ -149,8 +149,8 @@ def markdown(result: dict) -> str:
         envs = [k[len("relit_"):-len("_albedo_scale_psnr")] for k in f
                 if k.endswith("_albedo_scale_psnr") and k != "relit_albedo_scale_psnr"]
         for env in envs:
-            lines.append(f"| {s['scene']} | {env} | {_fmt(f[f'relit_{env}_albedo_scale_psnr'])} | "
-                         f"{_fmt(f[f'relit_{env}_image_scale_psnr'])} |")
+            lines.append(f"| {s['scene']} | {env} | {figure_text(f[f'relit_{env}_albedo_scale_psnr'])} | "
+                         f"{figure_text(f[f'relit_{env}_image_scale_psnr'])} |")
     lines += ["", "Machine: " + describe(result), "",
               f"Command: `{result['command']}`", ""]
     return "\n".join(lines)

@@ -39,7 +39,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench_scenes import _fmt, scene_config
+from bench_scenes import figure_text, scene_config
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe
 from vq_mitsuba.engine.fit import fit
@@ -209,7 +209,7 @@ def markdown(result: dict) -> str:
              "| scene | method | " + " | ".join(label for _, label, _ in FIGURES) + " |",
              "|---|---|" + "---:|" * len(FIGURES)]
     for r in result["rows"]:
-        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(_fmt(r.get(k), f) for k, _, f in FIGURES) + " |")
+        lines.append(f"| {r['scene']} | {r['method']} | " + " | ".join(figure_text(r.get(k), f) for k, _, f in FIGURES) + " |")
     lines += ["", "At equal fit time (the states kept at the same budget):", "",
               "| scene | budget s | " + " | ".join(f"{m} albedo / relit" for m in result["methods"]) + " |",
               "|---|---:|" + "---:|" * len(result["methods"])]
@@ -218,7 +218,7 @@ def markdown(result: dict) -> str:
             cells = []
             for meth in result["methods"]:
                 r = _at_budget(result["rows"], scene, meth, b)
-                cells.append(f"{_fmt(r.get('basecolor_psnr'))} / {_fmt(r.get('relit_psnr'))}" if r else "-")
+                cells.append(f"{figure_text(r.get('basecolor_psnr'))} / {figure_text(r.get('relit_psnr'))}" if r else "-")
             lines.append(f"| {scene} | {b:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

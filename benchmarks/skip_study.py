@@ -49,7 +49,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench_scenes import _fmt
+from bench_scenes import figure_text
 from bench_time_error import figures
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.config import presets
@@ -155,7 +155,7 @@ def score_one(name: str, data: Path, variant: str, seed: int, fitted: dict, args
            **figures(m, summary["seconds"], summary["iterations"]),
            "decisions": {k: {"choice": v.get("choice"), "reason": v.get("reason")} for k, v in decisions.items()},
            "curve": training_curve(run_dir)}
-    print(f"[{name}/{variant}/s{seed}] " + "  ".join(f"{label} {_fmt(row.get(key), spec)}"
+    print(f"[{name}/{variant}/s{seed}] " + "  ".join(f"{label} {figure_text(row.get(key), spec)}"
                                                     for key, label, spec in COLUMNS), flush=True)
     for rule, d in row["decisions"].items():
         print(f"    {rule}: {d['choice']}: {d['reason']}", flush=True)
@@ -183,7 +183,7 @@ def markdown(rows: list[dict]) -> str:
              "|---|---|---:|" + "---:|" * len(COLUMNS) + "---:|---:|---:|---:|---:|"]
     for (scene, variant), m in table.items():
         old = table.get((scene, "old"))
-        cells = [_fmt(m[key], spec) for key, _, spec in COLUMNS]
+        cells = [figure_text(m[key], spec) for key, _, spec in COLUMNS]
         if old and variant != "old" and old["wall_s"] and m["wall_s"]:
             delta = [f"{old['wall_s'] / m['wall_s']:.2f}x"] + [
                 "" if m[k] is None or old[k] is None else f"{m[k] - old[k]:+.2f}" if k != "seg_micro_f1"
