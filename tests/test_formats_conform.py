@@ -29,6 +29,7 @@ def test_each_format_declares_the_contract(fmt):
     if fmt.POSED:
         assert isinstance(fmt, PosedFormat)
         assert len(inspect.signature(fmt.cameras).parameters) == 1
+        assert list(inspect.signature(fmt.has_geometry).parameters) in (["source"], ["xml"])
         assert list(inspect.signature(fmt.load).parameters)[1:] == ["mesh_arg", "shrink", "cache_dir"]
         assert all(f is None or len(inspect.signature(f).parameters) == 1 for f in (fmt.points, fmt.sphere))
     else:
@@ -57,6 +58,9 @@ def test_each_posed_format_reads_its_own_capture(fmt, dataset):
         if other is not fmt and other.POSED:
             other_source = resolve_capture_path(dataset / FOLDERS[_name(other)])
             assert not fmt.detect(other_source) or format_of(other_source) is not fmt
+    # The scene XML has its shapes; another capture has geometry when its folder holds the mesh.
+    folder = source if source.is_dir() else source.parent
+    assert fmt.has_geometry(source) == (fmt.KIND == "xml" or (folder / "mesh.ply").is_file())
     cameras, world = fmt.cameras(source)
     assert len(cameras) == 5 and isinstance(world, str)
     capture = fmt.load(source, None, None, None)

@@ -538,7 +538,7 @@ def test_cli_fit_geometry_given_without_mesh_is_refused(tmp_path, capsys):
 
 
 def test_capture_has_geometry_reads_no_images(tmp_path):
-    from vq_mitsuba.geometry.pipeline import capture_has_geometry
+    from vq_mitsuba.data.captures import capture_has_geometry
 
     capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
     assert capture_has_geometry(capture) is False

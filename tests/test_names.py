@@ -312,7 +312,7 @@ def test_mesh_ply_counts_beside_every_capture_but_a_scene_xml(tmp_path):
     import trimesh
 
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.pipeline import capture_has_geometry
+    from vq_mitsuba.data.captures import capture_has_geometry
 
     box = trimesh.creation.box()
     colmap = tmp_path / "colmap"

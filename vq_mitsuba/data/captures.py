@@ -84,6 +84,14 @@ def capture_kind(source: Path) -> str:
     return format_of(source).KIND
 
 
+def capture_has_geometry(path: str | Path) -> bool:
+    """True when a capture brings its own geometry (a scene XML's shapes, a mesh.ply in its
+    folder: its format's `has_geometry`). Cheap: reads no images."""
+    source = resolve_capture_path(path)
+    fmt = format_of(source)
+    return fmt.POSED and fmt.has_geometry(source)
+
+
 def capture_framing(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | None,
                                                tuple[np.ndarray, float] | None]:
     """What a capture's own files say of where the object is: (its sparse points (N, 3) and each

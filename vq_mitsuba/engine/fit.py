@@ -17,13 +17,12 @@ import torch
 
 from vq_mitsuba.backend import device_record, init_mitsuba, torch_device
 from vq_mitsuba.config import Config, PoseConfig
-from vq_mitsuba.data.captures import Capture, load_capture
+from vq_mitsuba.data.captures import Capture, capture_has_geometry, load_capture
 from vq_mitsuba.engine.mesh_scale import mesh_scale_warning
 from vq_mitsuba.engine.products import write_products
 from vq_mitsuba.engine.trainer import Trainer, parse_snapshot_times
 from vq_mitsuba.errors import InputError, warn
-from vq_mitsuba.geometry.pipeline import (capture_has_geometry, ensure_geometry, masked_by_mesh, neus_psnr_line,
-                                          run_geometry)
+from vq_mitsuba.geometry.pipeline import ensure_geometry, masked_by_mesh, neus_psnr_line, run_geometry
 from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
 from vq_mitsuba.models.fitted import material_networks
 from vq_mitsuba.run.outputs import check_output_folder, removed_on_refusal

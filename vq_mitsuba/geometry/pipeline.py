@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -12,21 +11,6 @@ from vq_mitsuba.config import CaptureConfig, NeuSConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
-
-
-def capture_has_geometry(path: str | Path) -> bool:
-    """True when a capture brings its own geometry: <shape> elements in a scene XML, or a
-    mesh.ply beside a transforms json. Cheap: reads no images."""
-    from vq_mitsuba.data.captures import resolve_capture_path
-
-    source = resolve_capture_path(path)
-    if source.suffix.lower() == ".xml":
-        try:
-            root = ET.parse(source).getroot()
-        except (ET.ParseError, OSError):
-            return True  # let the capture loader report the problem
-        return any(True for _ in root.iter("shape"))
-    return ((source if source.is_dir() else source.parent) / "mesh.ply").exists()
 
 
 def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, np.ndarray | None]:

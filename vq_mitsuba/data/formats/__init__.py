@@ -14,8 +14,11 @@ POSED); `tests/test_capture_formats.py` checks every registered one. It defines:
                                is None where the format has none)
     sphere(source)             the region of interest as (centre, radius) (likewise)
 
-and, where the format has one, `write_capture(...)` (the writer the synthetic scenes use: `vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the
-transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
+    has_geometry(source)       whether the capture brings its own geometry, reading no image
+                               (posed formats)
+
+and, where the format has one, `write_capture(...)` (the writer the synthetic scenes use:
+`vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
 
 Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
 folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order (a folder that
@@ -53,6 +56,8 @@ class PosedFormat(CaptureFormat, Protocol):
     sphere: Optional[Callable]
 
     def cameras(self, source: Path) -> tuple[list, str]: ...
+
+    def has_geometry(self, source: Path) -> bool: ...
 
     def load(self, source: Path, mesh_arg, shrink=None, cache_dir=None): ...
 

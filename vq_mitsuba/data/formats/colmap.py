@@ -27,7 +27,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import OPENCV_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_pose, check_unique, collect
-from vq_mitsuba.data.formats.common import Capture, known_mesh, moved_camera, read_views, up_frame
+from vq_mitsuba.data.formats.common import Capture, mesh_beside, known_mesh, moved_camera, read_views, up_frame
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.data.lens import MODEL_IDS, MODELS, Lens, check_lens, distort_rgba
 from vq_mitsuba.errors import InputError, raise_all
@@ -37,6 +37,7 @@ SUFFIXES = ()  # a folder
 FOLDER_FILES = ()
 POSED = True
 sphere = None  # no region of interest (points: the sparse model's)
+has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 # COLMAP's models we do not read, named when refused
 OTHER_MODELS = {6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE",
                 10: "THIN_PRISM_FISHEYE"}

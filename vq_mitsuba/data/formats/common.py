@@ -74,10 +74,18 @@ def has_suffix(source: Path, suffixes: tuple[str, ...]) -> bool:
     return source.suffix.lower() in suffixes and not source.is_dir()
 
 
+MESH_FILE = "mesh.ply"  # the known geometry a capture's folder may hold beside its cameras
+
+
+def mesh_beside(source: Path) -> bool:
+    """Whether a capture brings its own geometry as a mesh.ply in its folder (reads nothing)."""
+    return ((source if source.is_dir() else source.parent) / MESH_FILE).exists()
+
+
 def known_mesh(mesh_arg: str | Path | None, folder: Path):
     """The known geometry of a photographed capture: the `mesh=` argument, else the folder's
     mesh.ply, else None."""
-    mesh_file = mesh_arg if mesh_arg is not None else (folder / "mesh.ply" if (folder / "mesh.ply").is_file() else None)
+    mesh_file = mesh_arg if mesh_arg is not None else (folder / MESH_FILE if (folder / MESH_FILE).is_file() else None)
     return load_mesh(mesh_file) if mesh_file else None
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import OPENCV_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, collect
-from vq_mitsuba.data.formats.common import (Capture, common_image_size, has_suffix, images_in, known_mesh,
+from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
                                             numpy_file_kind, paired_masks, read_views, up_frame)
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
@@ -31,6 +31,7 @@ SUFFIXES = (".npz",)
 FOLDER_FILES = ("cameras_sphere.npz",)
 POSED = True
 points = None  # no sparse points (sphere: scale_mat_0's region of interest)
+has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 
 
 def detect(source: Path) -> bool:

@@ -16,7 +16,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, check_size, collect, finite_number
-from vq_mitsuba.data.formats.common import (Capture, common_image_size, has_suffix, images_in, known_mesh,
+from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
                                             moved_camera, numpy_file_kind, paired_masks, read_views, up_frame)
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
@@ -26,6 +26,7 @@ SUFFIXES = (".npy",)
 FOLDER_FILES = ("poses_bounds.npy",)
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
+has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 COLUMNS = 17  # 3x5 pose [R | t | hwf] row by row, near, far
 
 

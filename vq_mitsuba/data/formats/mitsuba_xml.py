@@ -42,6 +42,15 @@ def detect(source: Path) -> bool:
     return has_suffix(source, SUFFIXES)
 
 
+def has_geometry(xml: Path) -> bool:
+    """Whether the scene brings its own geometry (<shape> elements); reads no mesh or image."""
+    try:
+        root = ET.parse(xml).getroot()
+    except (ET.ParseError, OSError):
+        return True  # the loader reports the problem
+    return any(True for _ in root.iter("shape"))
+
+
 def cameras(xml: Path) -> tuple[list[Camera], str]:
     """(the sensors' cameras, "mitsuba"), without loading meshes or bitmaps."""
     root, defaults = _parse_xml(xml)

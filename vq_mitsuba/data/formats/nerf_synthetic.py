@@ -20,7 +20,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, camera_to_nerf, nerf_to_camera
 from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check_size, finite_number
-from vq_mitsuba.data.formats.common import Capture, has_suffix, shrunk_entry, stack_images
+from vq_mitsuba.data.formats.common import Capture, mesh_beside, has_suffix, shrunk_entry, stack_images
 from vq_mitsuba.data.formats.transforms_json import (frame_image, frame_image_candidates, frame_matrices, frame_names,
                                                      json_frames, json_mesh, nerfstudio_style, read_json)
 from vq_mitsuba.data.imageio import read_image
@@ -32,6 +32,7 @@ SUFFIXES = (".json",)
 FOLDER_FILES = ("transforms_train.json", "transforms.json")  # the file a capture folder holds, in this order
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
+has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 
 
 def detect(source: Path) -> bool:

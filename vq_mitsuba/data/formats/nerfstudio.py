@@ -29,7 +29,7 @@ import numpy as np
 
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, OPENGL_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_size, finite_number
-from vq_mitsuba.data.formats.common import Capture, has_suffix, moved_camera, read_views, up_frame
+from vq_mitsuba.data.formats.common import Capture, mesh_beside, has_suffix, moved_camera, read_views, up_frame
 from vq_mitsuba.data.formats.transforms_json import (frame_image, frame_matrices, frame_names, json_frames,
                                                      json_mesh, nerfstudio_style, read_json)
 from vq_mitsuba.data.imageio import write_png
@@ -41,6 +41,7 @@ SUFFIXES = (".json",)
 FOLDER_FILES = ("transforms.json",)
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
+has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 CAMERA_MODELS = ("PINHOLE", "OPENCV", FISHEYE)
 UP_COS = math.cos(math.radians(45.0))  # mean camera up within this of +Z: Blender's envmap frame
 
