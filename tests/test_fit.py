@@ -338,9 +338,12 @@ def test_resume_with_more_iterations_follows_the_resumed_schedule(five_step_run,
 def test_resume_with_fewer_iterations_leaves_the_run_unchanged(five_step_run, capsys):
     capture, run, base = five_step_run
     files = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
-    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=3", "--resume"]) == 0
+    loud = [a for a in base if a != "--quiet"]  # the note is what is checked
+    assert main(["fit", str(capture), "-o", str(run), *loud, "--set", "train.iterations=3", "--resume"]) == 0
     out = capsys.readouterr().out
     assert "already fitted (5 iterations; train.iterations=3" in out and "nothing to do" in out
+    assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=3", "--resume"]) == 0
+    assert "already fitted" not in capsys.readouterr().out  # --quiet: no note (the command's result remains)
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == files
     assert _config_iterations(run) == torch.load(run / "checkpoint.pt", weights_only=False)["config"]["train"][
         "iterations"] == 5

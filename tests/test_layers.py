@@ -9,8 +9,8 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
 # Each layer may import its own and the lower ones. `run` (the run folder and the loop skeleton) sits
 # below every stage that writes a run, the geometry stage included; synthetic (the make-scene
-# datasets) and cli sit on top. Base modules (config, errors, backend, compiled, brdf) are below all.
-LAYERS = [{"config", "errors", "backend", "compiled", "brdf"}, {"data"}, {"models"}, {"run"}, {"geometry"}, {"render"}, {"engine"},
+# datasets) and cli sit on top. Base modules (config, errors, backend, compiled, brdf, messages) are below all.
+LAYERS = [{"config", "errors", "backend", "compiled", "brdf", "messages"}, {"data"}, {"models"}, {"run"}, {"geometry"}, {"render"}, {"engine"},
           {"eval", "edit", "export"}, {"ui"}, {"synthetic"}, {"batch"}, {"cli"}]
 
 

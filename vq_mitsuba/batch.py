@@ -163,11 +163,11 @@ def write_preview(run: RunDir, png: Path) -> None:
 def write_previews(out: Path, specs: list[RunSpec], status: dict, progress: bool) -> None:
     """OUT/views/<run>.png of every finished run that has none yet; a run that cannot be shown gets
     its reason in the summary's message instead."""
-    from tqdm import tqdm
+    from vq_mitsuba import messages
 
     todo = [s for s in specs if status.get(s.name, {}).get("status") == "done"
             and not (out / VIEWS / f"{s.name}.png").is_file()]
-    for spec in tqdm(todo, desc="views", unit="run", disable=not progress or not todo):
+    for spec in messages.progress(todo, desc="views", unit="run", disable=not progress or not todo):
         try:
             write_preview(RunDir(out / spec.name), out / VIEWS / f"{spec.name}.png")
         except UserError as exc:
@@ -283,9 +283,9 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
 
 
 def _gather(ray, pending: dict, out: Path, specs: list[RunSpec], status: dict, progress: bool, skipped: int) -> None:
-    from tqdm import tqdm
+    from vq_mitsuba import messages
 
-    bar = tqdm(total=len(specs), initial=skipped, desc="batch", unit="run", disable=not progress)
+    bar = messages.progress(total=len(specs), initial=skipped, desc="batch", unit="run", disable=not progress)
     failed = 0
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)

@@ -105,10 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
         from vq_mitsuba.backend import choose_device, set_threads
+        from vq_mitsuba.messages import quiet
         from vq_mitsuba.run.loop import interrupt_signals
 
-        # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock
-        with _warnings_as_messages(), interrupt_signals():
+        # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock.
+        # --quiet silences every note and progress bar here, in one place (warnings and errors remain).
+        with _warnings_as_messages(), interrupt_signals(), quiet(getattr(args, "quiet", False)):
             set_threads(args.threads)
             if getattr(args, "device", None):  # the commands that compute: one device for the process
                 choose_device(args.device)

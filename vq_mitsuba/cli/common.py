@@ -56,7 +56,7 @@ def shared_parents() -> dict[str, argparse.ArgumentParser]:
     device.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                         help="where every stage runs: auto (a GPU when Mitsuba and torch both have CUDA), cpu or cuda")
     quiet = _parent()
-    quiet.add_argument("--quiet", action="store_true", help="no progress bar")
+    quiet.add_argument("--quiet", action="store_true", help="no progress bars or notes (warnings and errors remain)")
     config = _parent()  # the config file system: docs/configuration.md
     config.add_argument("--preset", metavar="NAME", help="apply the named bundled preset (see --help-config)")
     config.add_argument("--config", metavar="FILE", help="apply a YAML config file, after --preset")

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from vq_mitsuba import messages
 from vq_mitsuba.backend import device_record, init_mitsuba, torch_device
 from vq_mitsuba.config import Config, PoseConfig
 from vq_mitsuba.data.captures import Capture, capture_has_geometry, load_capture
@@ -53,7 +54,7 @@ def check_fit_target(run: RunDir, resume: bool) -> None:
 
 
 def posed_capture(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
-                  log: Callable[[str], None] = print) -> str | Path:
+                  log: Callable[[str], None] = messages.note) -> str | Path:
     """The capture to fit or reconstruct: photos or a video without poses posed into RUN/pose
     (`ensure_poses`, reused while the inputs are the same), any other capture as it is."""
     return ensure_poses(capture, run, cfg, progress=progress, log=log) if is_unposed(capture) else capture
@@ -61,7 +62,7 @@ def posed_capture(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: b
 
 def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry: str = "auto",
                 mesh: str | Path | None = None, resume: bool = False, progress: bool = True,
-                log: Callable[[str], None] = print) -> dict:
+                log: Callable[[str], None] = messages.note) -> dict:
     """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
     without `resume` before any work; pose photos or a video without poses (RUN_DIR/pose/, a COLMAP
     capture, reused while the inputs are the same) and fit that capture; reconstruct the mesh with
@@ -124,7 +125,7 @@ def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path:
     if resume and not run.has_checkpoint():
         # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
         # material fit from the beginning, keeping what the folder already holds (mesh.ply).
-        print(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
+        messages.note(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
         resume = False
     capture = load_training_capture(capture_path, mesh_path, run, cfg)  # every input check happens here, first
     state = None
@@ -193,10 +194,10 @@ def _resume_point(run: RunDir, capture: Capture, cfg: Config) -> tuple[dict | No
     # nothing to train: config.yaml keeps matching the checkpoint
     if run.fit_summary().get("iterations") == done:
         if cfg.residual.iterations > 0 and run.residual_state(done) is None:
-            print(f"{run.dir}: already fitted ({done} iterations); its residual is missing or of an earlier "
+            messages.note(f"{run.dir}: already fitted ({done} iterations); its residual is missing or of an earlier "
                   "version: fitting it again")
         else:
-            print(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
+            messages.note(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
                   "asks for no more): nothing to do, the run is unchanged")
             return None, cfg
     discrete = state.get("discrete")
@@ -218,7 +219,7 @@ def _resume_trainer(trainer: Trainer, state: dict, run: RunDir) -> None:
                                               f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); resume "
                                               "with the run's own settings, or choose another -o") from None
     if trainer.step >= trainer.cfg.train.iterations or trainer.pace.finished:
-        print(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
+        messages.note(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
 
 
 def _warn_about_inputs(capture: Capture, stats: dict) -> None:

@@ -35,6 +35,7 @@ import time
 
 import torch
 
+from vq_mitsuba import messages
 from vq_mitsuba.backend import device_scale, sized
 from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import CPU_RENDER_CHUNK, Config
@@ -167,6 +168,6 @@ def residual_stage(run: RunDir, scene, model, pool: PixelPool, env: torch.Tensor
     run.save_residual(field.state_dict(), step)
     info["seconds"] = time.perf_counter() - t0  # the prediction's render included
     if math.isfinite(info["psnr_check_hits_before"]) and math.isfinite(info["psnr_check_hits_after"]):
-        print(f"residual: training hits {info['psnr_check_hits_before']:.2f} -> {info['psnr_check_hits_after']:.2f} "
+        messages.note(f"residual: training hits {info['psnr_check_hits_before']:.2f} -> {info['psnr_check_hits_after']:.2f} "
               f"dB PSNR (physically based -> with the residual), {info['seconds']:.1f} s")
     return info

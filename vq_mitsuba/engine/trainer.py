@@ -17,6 +17,7 @@ import math
 import numpy as np
 import torch
 
+from vq_mitsuba import messages
 from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, shading_threads, torch_device
 from vq_mitsuba.config import Config, to_dict
@@ -103,7 +104,7 @@ class Trainer:
                                                            cfg.train.pixel_jitter, cfg.train.seed, cfg.train.max_hits)
         stats = self.pool_stats
         if stats["hits_per_pixel"] < max(cfg.train.pixel_jitter, 1) or stats["pixel_share"] < 1.0:
-            print(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} hit(s) each "
+            messages.note(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} hit(s) each "
                   f"instead of {max(cfg.train.pixel_jitter, 1)}"
                   + (f", {100 * stats['pixel_share']:.0f} % of them" if stats["pixel_share"] < 1.0 else "")
                   + f" (train.max_hits {cfg.train.max_hits:,})")
@@ -390,9 +391,7 @@ class Trainer:
         return min(want, self.env_cap)
 
     def _say(self, text: str) -> None:
-        from tqdm import tqdm
-
-        tqdm.write(text)
+        messages.note(text)
 
     def train_step(self, s: StepSchedule) -> tuple[bool, float, float]:
         """One optimisation step; (finite, loss, sRGB MSE of the continuous branch). A step whose
@@ -471,9 +470,9 @@ class Trainer:
         with shading_threads():
             result = loop.run()
         if result.stopped_by_time:
-            print(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
+            messages.note(f"time limit of {cfg.train.time_limit_s:.0f} s reached at step {self.step}")
         elif result.stopped_early:
-            print(f"schedule done at step {self.step} of {cfg.train.iterations} (train.stop = {cfg.train.stop})")
+            messages.note(f"schedule done at step {self.step} of {cfg.train.iterations} (train.stop = {cfg.train.stop})")
         return {"iterations": self.step, "seconds": result.seconds,
                 "iterations_per_s": self.step / result.seconds if result.seconds > 0 else math.nan,
                 "final_psnr_train_batch": self.history[-1]["psnr"] if self.history else None,

@@ -190,14 +190,14 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     an object whose `render(camera, spp=, aa=, seed=)` gives the maps of `render.views.Renderer.render`
     (`render.views.Renderer`s of one run render all relighting envmaps of a view in one pass, see
     `relit_views`). Writes `output` when given."""
-    from tqdm import tqdm
+    from vq_mitsuba import messages
 
     if scale_method not in M.SCALE_METHODS:
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
     t0 = time.perf_counter()
     data = _load_test_views(dataset_dir, predictor.world)
     spp = int(spp or predictor.default_spp)
-    bar = tqdm(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view", disable=not progress,
+    bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view", disable=not progress,
                dynamic_ncols=True)
     preds = _render_fitted_lighting(predictor, data, spp, aa, bar)
     per_view, bc_scales = _image_scores(data, preds, scale_method)

@@ -50,7 +50,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     without ground-truth maps; writes RUN_DIR/metrics.json (or `output`). A run whose mesh NeuS
     made without masks is scored inside the mesh's coverage, as it was fitted (its coverage_iou is
     then 1 by construction)."""
-    from tqdm import tqdm
+    from vq_mitsuba import messages
 
     from vq_mitsuba.render.views import Renderer, check_finite
 
@@ -61,7 +61,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp
     rows = []
-    for cam, image, alpha in tqdm(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
+    for cam, image, alpha in messages.progress(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
                                   disable=not progress, dynamic_ncols=True):
         out = renderer.render(cam, spp=spp)
         check_finite(out, cam.name)

@@ -29,6 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
+from vq_mitsuba import messages
 from vq_mitsuba.config import PoseConfig
 from vq_mitsuba.data.formats.photos import copy_upright, photo_files
 from vq_mitsuba.data.formats.video import pick_frames
@@ -53,7 +54,7 @@ def is_unposed(capture: str | Path) -> bool:
 
 
 def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
-                 log: Callable[[str], None] = print) -> Path:
+                 log: Callable[[str], None] = messages.note) -> Path:
     """The run's posed COLMAP capture RUN/pose of an unposed capture (made, or reused when it was
     made from the same inputs); returns its folder."""
     pose_capture(capture, run / RunDir.POSE, cfg, progress=progress, log=log)
@@ -61,7 +62,7 @@ def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bo
 
 
 def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = None, progress: bool = True,
-                 log: Callable[[str], None] = print) -> dict:
+                 log: Callable[[str], None] = messages.note) -> dict:
     """Find the camera poses of a folder of photos or a video and write the COLMAP capture OUT
     (images/, sparse/0/, pose.json); returns pose.json's content (with "reused" true when OUT
     already held the result for the same inputs and settings)."""
@@ -242,11 +243,10 @@ def _quiet_colmap():
 def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callable[[str], None]):
     """COLMAP on work/images: (the model placing the most images or None, seconds per step)."""
     import pycolmap
-    from tqdm.auto import tqdm
 
     threads, db, images = _threads(), work / "database.db", work / "images"
     seconds = {}
-    bar = tqdm(total=3, desc="pose", unit="step", disable=not progress)
+    bar = messages.progress(total=3, desc="pose", unit="step", disable=not progress)
     with _quiet_colmap(), bar:
         t = time.perf_counter()
         bar.set_postfix_str(f"SIFT features of {len(names)} images")

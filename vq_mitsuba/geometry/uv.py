@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import messages
 from vq_mitsuba.errors import InputError
 
 
@@ -27,7 +28,7 @@ def uv_unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding:
         if proc.returncode == 0 and dst.is_file():
             out = np.load(dst)
             return out["vmapping"].astype(np.int64), out["faces"].astype(np.int64), out["uvs"].astype(np.float32)
-    print(f"xatlas failed on this mesh (exit code {proc.returncode}); using MeshLab's Voronoi atlas instead")
+    messages.note(f"xatlas failed on this mesh (exit code {proc.returncode}); using MeshLab's Voronoi atlas instead")
     return _voronoi_atlas(vertices, faces)
 
 

@@ -272,7 +272,7 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     OUT_DIR and those under each further lighting to OUT_DIR/NAME, the same files; one pass per
     view traces the rays and evaluates the material field for all of them, and each lighting's
     images are those a render under it alone gives (same seed)."""
-    from tqdm import tqdm
+    from vq_mitsuba import messages
 
     for name, _ in more_envmaps:  # each lighting's folder lies inside OUT_DIR
         if name in ("", ".", "..") or "/" in name or "\\" in name:
@@ -282,7 +282,7 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     files = view_names([cam.name for cam in cameras])
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
     others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
-    for cam, file_name in zip(tqdm(cameras, desc="render", disable=not progress, dynamic_ncols=True), files):
+    for cam, file_name in zip(messages.progress(cameras, desc="render", disable=not progress, dynamic_ncols=True), files):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
         relit = images.pop("relit", [])
         check_finite(images, cam.name)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from vq_mitsuba import messages
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.write_errors import as_write_error
 
@@ -48,7 +49,7 @@ class RunLock:
     The folder is made when missing, and removed again on release when the command left it empty
     (a refused command leaves no empty output folder behind)."""
 
-    def __init__(self, path: str | Path, command: str, log: Callable[[str], None] = print):
+    def __init__(self, path: str | Path, command: str, log: Callable[[str], None] = messages.note):
         self.path, self.command, self.log = Path(path), command, log
         self.key = os.path.abspath(self.path)
         self.made_folder = False

@@ -161,9 +161,9 @@ class Loop:
                 self.next_periodic = (p.seconds // self.every_s + 1) * self.every_s
 
     def run(self) -> LoopResult:
-        from tqdm import tqdm
+        from vq_mitsuba import messages
 
-        bar = tqdm(total=self.budget.steps or None, initial=self.step, desc=self.name,
+        bar = messages.progress(total=self.budget.steps or None, initial=self.step, desc=self.name,
                    disable=not self.progress_bar, dynamic_ncols=True)
         stopped_by_time = stopped_early = False
         try:

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 import yaml
 
+from vq_mitsuba import messages
 from vq_mitsuba.config import Config, load_config, save_config
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models.material_edits import Edit
@@ -291,7 +292,7 @@ class RunDir:
         """Any file that only a run writes is there (a run, or one interrupted early)."""
         return any((self.dir / name).is_file() for name in self.MARKERS)
 
-    def lock(self, command: str, log: Callable[[str], None] = print) -> RunLock:
+    def lock(self, command: str, log: Callable[[str], None] = messages.note) -> RunLock:
         """`with run.lock("fit"):` this process alone writes into the run (the folder is made if
         missing, and removed again if the command leaves it empty); another process holding it is
         an InputError naming it, a lock left by a dead process is taken over with a note."""

@@ -316,7 +316,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     None takes the scene's default for resolution and view counts; spp defaults to DEFAULT_SPP
     (Cycles' samples, denoiser off unless denoise=True). probes=False leaves out Blender's eight
     studio-light relighting probes."""
-    from tqdm.auto import tqdm
+    from vq_mitsuba import messages
 
     synthetic.check_seed(seed)
     python = check_environment()
@@ -344,7 +344,7 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     renders = _render_list(out, work, cams, relights)
     job = build_job(spec, geometry.shapes, cams.train + cams.test, renders, spp, seed=seed, denoise=denoise,
                     threads=threads)
-    bar = tqdm(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view", disable=not progress)
+    bar = messages.progress(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view", disable=not progress)
     t_render = time.time()
     try:
         run_worker(job, work / DatasetDir.CYCLES_JOB, progress=bar.update, python=python)

@@ -622,11 +622,11 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
     """images/ (train and test views under the training envmap), gt/ (test views) and relit/
     (test views under each held-aside envmap, whose "array" is taken from its relights entry)."""
     import mitsuba as mi
-    from tqdm.auto import tqdm
+    from vq_mitsuba import messages
 
     train_mi, test_mi = cams.train_mi, cams.test_mi
     total = len(train_mi) + len(test_mi) + len(test_mi) * len(relights)
-    bar = tqdm(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
+    bar = messages.progress(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
     counter = [seed * 1_000_003]
 
     dataset = DatasetDir(out)

@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from vq_mitsuba import messages
 from vq_mitsuba.errors import InputError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
@@ -47,13 +48,12 @@ def sharpness(rgb: np.ndarray) -> float:
 
 
 def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
-                log: Callable[[str], None] = print) -> dict:
+                log: Callable[[str], None] = messages.note) -> dict:
     """Decode `video` once, keep the sharpest frame of each of `count` equal time windows and write
     them to folder/frame_NNNNNN.jpg (NNNNNN the frame's index in the video). Returns what was done:
     frames decoded, fps, duration, the kept frames' indices, times and sharpness."""
     import imageio_ffmpeg
     from PIL import Image
-    from tqdm.auto import tqdm
 
     check_video_stream(video)
     try:
@@ -77,7 +77,7 @@ def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
             best[window] = (score, index, None)
 
     try:
-        with tqdm(total=total, desc="video frames", unit="frame", disable=not progress) as bar:
+        with messages.progress(total=total, desc="video frames", unit="frame", disable=not progress) as bar:
             for raw in reader:
                 frame = np.frombuffer(raw, np.uint8).reshape(height, width, 3)
                 window = min(count - 1, decoded * count // max(total, 1))
