@@ -150,3 +150,20 @@ class shading_threads:
     def __exit__(self, *exc):
         torch.set_num_threads(self.old)
         return False
+
+
+def import_pycolmap():
+    """pycolmap, imported without letting it take the process's SIGINT and SIGTERM: its glog
+    installs a failure handler that prints a stack dump and kills the process, in place of the
+    handlers a command set (which checkpoint, release the run's lock and exit 130 / 143)."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    import pycolmap
+
+    for sig, handler in before.items():
+        if handler is not None:
+            signal.signal(sig, handler)
+    return pycolmap

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable
 
 from vq_mitsuba import messages
+from vq_mitsuba.backend import import_pycolmap
 from vq_mitsuba.config import PoseConfig
 from vq_mitsuba.data.formats.photos import copy_upright, photo_files
 from vq_mitsuba.data.formats.video import pick_frames
@@ -230,7 +231,7 @@ def _threads() -> int:
 @contextmanager
 def _quiet_colmap():
     """COLMAP's log lines (thousands of them) only when they are errors."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2
@@ -242,7 +243,7 @@ def _quiet_colmap():
 
 def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callable[[str], None]):
     """COLMAP on work/images: (the model placing the most images or None, seconds per step)."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     threads, db, images = _threads(), work / "database.db", work / "images"
     seconds = {}

@@ -17,6 +17,7 @@ import warnings
 
 import numpy as np
 
+from vq_mitsuba.backend import import_pycolmap
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import linear_to_srgb
 
@@ -38,7 +39,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
 def features(images: np.ndarray, alpha: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Each view's SIFT keypoints (K, 2) in pixels (centres at +0.5) and descriptors (K, 128), only
     those inside the view's mask when `alpha` is given."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     options = pycolmap.FeatureExtractionOptions()
     options.sift.max_num_features = MAX_FEATURES

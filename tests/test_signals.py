@@ -1,0 +1,51 @@
+"""A stop by signal during the geometry stage keeps its work: NeuS writes its checkpoint, the run's
+lock is released, the command exits 128 + the signal without a stack dump (pycolmap's glog, which
+the stage imports for its sparse points, must not take the signal), and `--resume` continues."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tiny_scene import write_sphere_capture
+from vq_mitsuba import cli
+from vq_mitsuba.run.run_dir import RunDir
+
+NEUS = ["--set", "neus.iterations=100000", "--set", "neus.time_limit_s=0", "--set", "neus.checkpoint_every=20",
+        "--set", "neus.mesh_resolution=32", "--set", "neus.hull_resolution=32", "--set", "neus.normal_smoothing=0"]
+
+
+@pytest.mark.parametrize("command", ["geometry", "fit"])
+def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path, command):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=6, spp=8)
+    run = tmp_path / "run"
+    extra = ["--geometry", "neus", "--set", "train.iterations=3", "--set", "train.batch_rays=64",
+             "--set", "vq.enabled=false", "--set", "residual.iterations=0"] if command == "fit" else []
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", command, str(capture), "-o", str(run), "--quiet",
+                             *NEUS, *extra], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / RunDir.NEUS_CHECKPOINT).is_file():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.1)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err[-2000:]
+    assert b"SIGTERM" not in err and b"stack trace" not in err and b"Traceback" not in err
+    assert b"interrupted; the last checkpoint is kept" in err
+    assert not (run / RunDir.LOCK).exists()
+    step = torch.load(run / RunDir.NEUS_CHECKPOINT, weights_only=False)["step"]
+    assert step >= 20
+    resumed = [a.replace("100000", str(step + 10)) for a in NEUS]
+    assert cli.main([command, str(capture), "-o", str(run), "--resume", "--quiet", *resumed, *extra]) == 0
+    assert torch.load(run / RunDir.NEUS_CHECKPOINT, weights_only=False)["step"] == step + 10
+    assert (run / RunDir.MESH).is_file() and (run / RunDir.GEOMETRY).is_file()
