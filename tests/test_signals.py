@@ -49,3 +49,57 @@ def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path,
     assert cli.main([command, str(capture), "-o", str(run), "--resume", "--quiet", *resumed, *extra]) == 0
     assert torch.load(run / RunDir.NEUS_CHECKPOINT, weights_only=False)["step"] == step + 10
     assert (run / RunDir.MESH).is_file() and (run / RunDir.GEOMETRY).is_file()
+
+
+def _ray_processes() -> set[str]:
+    found = subprocess.run(["pgrep", "-f", "raylet|gcs_server|ray::"], capture_output=True, text=True).stdout
+    return set(found.split())
+
+
+def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    out = tmp_path / "batch"
+    before = _ray_processes()
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "batch", str(capture), "-o", str(out), "--quiet",
+                             "--set", "train.iterations=100000", "--set", "train.batch_rays=64",
+                             "--set", "train.checkpoint_every=5", "--set", "vq.enabled=false"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 180
+        while not any(out.glob("*/checkpoint.pt")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err[-2000:]
+    assert b"Traceback" not in err and b"stack trace" not in err and b"interrupted; finished runs" in err
+    time.sleep(2)  # Ray's processes end with the batch
+    assert _ray_processes() <= before
+    assert (out / "batch.json").is_file()  # stopped before its first run finished, and still a batch
+    run = RunDir(next(out.glob("*-s0")))
+    stopped_at = run.load_state()["step"]
+    assert cli.main(["batch", str(capture), "-o", str(out), "--quiet", "--set", "train.iterations=12",
+                     "--set", "train.batch_rays=64", "--set", "vq.enabled=false"]) == 0
+    assert run.fit_summary()["iterations"] == max(stopped_at, 12)  # resumed from its checkpoint, finished
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--threads-per-run", "4096"], "no run could ever start"),
+    (["--address", "ray://127.0.0.1:1"], "Ray could not start or connect"),
+    (["--address", "garbage!!"], "Ray could not start or connect"),
+    (["--seeds", "0,99999999999999"], "seeds from 0 to"),
+])
+def test_a_batch_that_cannot_start_says_why_and_leaves_no_folder(tmp_path, capsys, args, message):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    out = tmp_path / "batch"
+    assert cli.main(["batch", str(capture), "-o", str(out), "--quiet", *args]) == 2
+    assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_geometry_resume_of_a_missing_folder_is_refused(tmp_path, capsys):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    assert cli.main(["geometry", str(capture), "-o", str(tmp_path / "nothing"), "--resume", "--quiet"]) == 2
+    assert "no run to resume" in capsys.readouterr().err and not (tmp_path / "nothing").exists()

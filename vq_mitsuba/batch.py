@@ -22,6 +22,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -36,6 +37,7 @@ LOGS = "logs"  # OUT/logs/<run>.log: what each run's commands printed
 VIEWS = "views"  # OUT/views/<run>.png: one novel view of each finished run, for the summary
 VIEW_SIZE, VIEW_SPP = 256, 16  # the long side and samples per pixel of those views
 RETRIES = 3  # tries of a run whose process died by a signal
+MAX_SEED = 2 ** 32 - 1  # the seeds numpy, torch and Mitsuba all take
 
 
 class RunLost(Exception):
@@ -242,16 +244,35 @@ def check_output(out: Path) -> dict:
     return {}
 
 
-def _start_ray(address: str | None, cpus: int | None):
+def _start_ray(address: str | None, cpus: int | None, threads: int):
+    """Ray, joined at `address` or started on this machine's cores; the command's SIGINT and SIGTERM
+    handlers are kept (ray.init installs its own, which end the process with a stack dump)."""
+    import signal
+
     import ray
 
     if ray.is_initialized():
         return ray, False
-    if address:
-        ray.init(address=address, log_to_driver=False)
-    else:
-        ray.init(num_cpus=cpus or os.cpu_count(), include_dashboard=False, log_to_driver=False,
-                 object_store_memory=80 * 1024 ** 2)
+    cores = cpus or os.cpu_count() or 1
+    if not address and threads > cores:
+        raise InputError(None, f"--threads-per-run {threads}: this machine has {cores} cores, so no run could "
+                               f"ever start; use at most {cores} (or --address to join a cluster)")
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} \
+        if threading.current_thread() is threading.main_thread() else {}
+    try:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=cores, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 ** 2)
+    except (ConnectionError, ValueError, RuntimeError, TimeoutError) as exc:
+        ray.shutdown()
+        what = f"--address {address}" if address else "Ray on this machine"
+        first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else type(exc).__name__
+        raise InputError(None, f"{what}: Ray could not start or connect ({first})") from None
+    finally:
+        for sig, handler in before.items():
+            if handler is not None:
+                signal.signal(sig, handler)
     return ray, True
 
 
@@ -265,11 +286,12 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     out = Path(out)
     specs = plan(list(captures), list(seeds), list(presets), capture_args)
     status = check_output(out)
-    out.mkdir(parents=True, exist_ok=True)
     todo = [s for s in specs
             if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
-    ray, started = _start_ray(address, cpus)
+    ray, started = _start_ray(address, cpus, threads)  # before OUT exists: a failed start leaves nothing
     try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / STATUS, {"runs": status})  # the folder is the batch's from here: a rerun resumes it
         task = ray.remote(run_one).options(num_cpus=threads, max_retries=RETRIES, retry_exceptions=[RunLost])
         pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate, list(eval_args)): s
                    for s in todo}
@@ -308,6 +330,6 @@ def parse_seeds(text: str) -> list[int]:
         seeds = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise InputError(None, f"--seeds {text}: expected whole numbers separated by commas, e.g. 0,1,2") from None
-    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) < len(seeds):
-        raise InputError(None, f"--seeds {text}: expected distinct seeds >= 0, e.g. 0,1,2")
+    if not seeds or any(s < 0 or s > MAX_SEED for s in seeds) or len(set(seeds)) < len(seeds):
+        raise InputError(None, f"--seeds {text}: expected distinct seeds from 0 to {MAX_SEED}, e.g. 0,1,2")
     return seeds

@@ -397,13 +397,32 @@ def _apply(cfg, data: dict, source, prefix: str = "") -> None:
             setattr(cfg, key, _coerce(value, hints[key], name, source))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"'{key}' is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_config_file(path: str | Path) -> dict:
     """A YAML config file as a mapping of sections; InputError naming the file otherwise."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder: --config takes a YAML file")
     if not path.is_file():
         raise InputError(path, "config file not found")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader) or {}
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"is not UTF-8 text (byte {exc.start}): a config file is YAML text") from None
     except yaml.YAMLError as exc:
         raise InputError(path, f"invalid YAML: {exc}") from None
     if not isinstance(data, dict):
@@ -476,6 +495,8 @@ def parse_overrides(overrides: list[str] | None) -> dict:
         if "=" not in item:
             raise InputError(None, f"--set expects key=value, got '{item}'")
         key, value = item.split("=", 1)
+        if not value.strip():
+            raise InputError(None, f"--set {item}: the value is empty (give one after '=')")
         parts = key.strip().split(".")
         cur = nested
         for part in parts[:-1]:

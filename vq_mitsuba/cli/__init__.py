@@ -8,6 +8,7 @@ code."""
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import warnings
 from contextlib import contextmanager
@@ -70,11 +71,13 @@ def manual() -> str:
 
 
 def _join_negative_lists(argv: list[str]) -> list[str]:
-    """`--box -1,0,-1,1,1,1` as `--box=-1,0,...`: argparse would take a value starting with '-' for an option."""
+    """`--box -1,0,-1,1,1,1` as `--box=-1,0,...` (and so for every option given a list of numbers that
+    starts negative): argparse would take a value starting with '-' for an option."""
     out, i = [], 0
     while i < len(argv):
-        if argv[i] == "--box" and i + 1 < len(argv) and argv[i + 1].startswith("-") and "," in argv[i + 1]:
-            out.append(f"--box={argv[i + 1]}")
+        value = argv[i + 1] if i + 1 < len(argv) else ""
+        if argv[i].startswith("--") and "=" not in argv[i] and re.match(r"^-[\d.]", value) and "," in value:
+            out.append(f"{argv[i]}={value}")
             i += 2
         else:
             out.append(argv[i])
@@ -127,7 +130,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt as exc:
-        resumable = args.command in ("fit", "geometry")
-        print("interrupted" + (f"; the last checkpoint is kept (continue with `vq-mitsuba {args.command} ... --resume`)"
-                               if resumable else ""), file=sys.stderr)
-        return 128 + getattr(exc, "signum", 2)  # 130 for SIGINT, 143 for SIGTERM
+        resume = {"fit": "; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)",
+                  "geometry": "; the last checkpoint is kept (continue with `vq-mitsuba geometry ... --resume`)",
+                  "batch": "; finished runs and checkpoints are kept (run the same command again to resume)"}
+        print("interrupted" + resume.get(args.command, ""), file=sys.stderr)
+        from vq_mitsuba.run.loop import stop_status
+
+        return stop_status(exc)  # 130 for SIGINT, 143 for SIGTERM

@@ -111,6 +111,8 @@ def geometry_capture(capture: str | Path, run_dir: str | Path, cfg: Config, resu
     """`vq-mitsuba geometry`: NeuS and the mesh into RUN_DIR under the run's lock, photos or a video
     posed first (`posed_capture`); returns the `Reconstruction`."""
     run = RunDir(run_dir)
+    if resume and not run.dir.is_dir():
+        raise InputError(run.dir, "no run to resume (the folder does not exist)")
     with run.lock("geometry"), removed_on_refusal(run.dir):
         capture = posed_capture(capture, run, cfg.pose, progress=progress)
         return run_geometry(capture, run, cfg.neus, resume=resume, progress=progress, gt_mesh=gt_mesh,

@@ -30,6 +30,16 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+RECEIVED: list[int] = []  # the signals `interrupt_signals` turned into Interrupted, in order
+
+
+def stop_status(exc: KeyboardInterrupt) -> int:
+    """The exit status of a command stopped by `exc`: 128 + its signal. A library that caught the
+    Interrupted and raised a KeyboardInterrupt of its own (Ray's wait) is told by RECEIVED."""
+    signum = getattr(exc, "signum", None) or (RECEIVED[-1] if RECEIVED else signal.SIGINT)
+    return 128 + int(signum)
+
+
 @contextmanager
 def interrupt_signals():
     """While inside, SIGINT and SIGTERM raise `Interrupted` in the main thread (SIGINT too when the
@@ -40,6 +50,7 @@ def interrupt_signals():
         return
 
     def interrupt(signum, frame):
+        RECEIVED.append(signum)
         raise Interrupted(signum)
 
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -1,0 +1,45 @@
+"""Config files and command-line values a user gets wrong are refused with a message naming the
+file or the option, before any work."""
+
+import pytest
+
+from vq_mitsuba import cli
+from vq_mitsuba.config import load_config
+from vq_mitsuba.errors import InputError
+
+
+def test_a_config_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(b"train:\n  lr: 0.01\n  \xff\xfe: 1\n")
+    with pytest.raises(InputError, match="is not UTF-8 text") as err:
+        load_config(path)
+    assert err.value.path == path
+
+
+def test_a_folder_given_as_config_is_called_a_folder(tmp_path):
+    with pytest.raises(InputError, match="is a folder: --config takes a YAML file"):
+        load_config(tmp_path)
+
+
+def test_a_key_given_twice_in_a_config_file_is_refused_with_its_lines(tmp_path):
+    path = tmp_path / "twice.yaml"
+    path.write_text("train:\n  lr: 0.01\n  iterations: 10\n  lr: 0.02\n")
+    with pytest.raises(InputError, match=r"'lr' is given twice \(lines 2 and 4\)"):
+        load_config(path)
+    path.write_text("train:\n  lr: 0.01\ntrain:\n  iterations: 10\n")  # a section twice too
+    with pytest.raises(InputError, match=r"'train' is given twice \(lines 1 and 3\)"):
+        load_config(path)
+
+
+def test_an_empty_set_value_is_called_empty(tmp_path, capsys):
+    with pytest.raises(InputError, match="the value is empty"):
+        load_config(None, ["train.lr="])
+    assert cli.main(["fit", str(tmp_path), "--set", "train.lr=", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the value is empty" in err and "None" not in err
+
+
+def test_an_option_given_a_list_that_starts_negative_reaches_its_check(tmp_path, capsys):
+    assert cli.main(["fit", str(tmp_path), "--background-color", "-0.5,0,0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "expected one argument" not in err and "background_color" in err
