@@ -6,6 +6,8 @@ intrinsics (cached) or distorting a pinhole image (for test data).
 from __future__ import annotations
 
 import hashlib
+import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -197,7 +199,7 @@ def undistort_photo(path: Path, rgb: np.ndarray, alpha: np.ndarray, lens: Lens, 
     out_rgb, out_alpha = both[..., :3], both[..., 3]
     if cached is not None:
         cache.mkdir(parents=True, exist_ok=True)
-        tmp = cached.with_name(f".{cached.stem}.tmp.npz")
+        tmp = cached.with_name(f".{cached.stem}.{os.getpid()}-{secrets.token_hex(4)}.tmp.npz")  # one per writer
         np.savez(tmp, rgb=out_rgb.astype(np.float16), alpha=out_alpha.astype(np.float16))
         tmp.replace(cached)
     return out_rgb, out_alpha

@@ -56,14 +56,28 @@ def _earlier_files(out: Path) -> list[str]:
         if isinstance(files, list) else []
 
 
+TEXTURE_SIZES = (16, 8192)  # the texture sizes an export takes, in texels a side
+
+
+def check_texture_size(texture_size) -> int:
+    """The texture size as a whole number in TEXTURE_SIZES; InputError otherwise."""
+    low, high = TEXTURE_SIZES
+    try:
+        ok = not isinstance(texture_size, bool) and float(texture_size).is_integer() and low <= texture_size <= high
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(None, f"the texture size must be a whole number of texels in {low}..{high}, got {texture_size}")
+    return int(texture_size)
+
+
 def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size: int = 1024,
                branch: str = "continuous", envmap_path: str | Path | None = None,
                progress: bool = True) -> dict:
     """Write the export into OUT_DIR and return its summary (also OUT_DIR/export.json)."""
     if fmt not in FORMATS:
         raise InputError(None, f"unknown export format '{fmt}' (one of {', '.join(FORMATS)})")
-    if not 16 <= int(texture_size) <= 8192:
-        raise InputError(None, f"--texture-size must lie in 16..8192 texels, got {texture_size}")
+    check_texture_size(texture_size)
     out = Path(out_dir)
     check_export_target(out, fmt)
     run = RunDir(run_dir)

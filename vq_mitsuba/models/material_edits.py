@@ -27,6 +27,8 @@ from vq_mitsuba.errors import InputError
 LIBRARY_PATH = Path(__file__).with_name("material_library.json")
 KEYS = ("basecolor", "metallic", "roughness")
 OPS = ("set", "scale", "hue_shift")
+MAX_SCALE = 1e3  # beyond, every value is clamped to its range's end anyway
+MAX_HUE_SHIFT = 1e6  # degrees (the command line's bound); a hue turns every 360
 
 
 def material_library() -> dict[str, dict]:
@@ -76,8 +78,10 @@ def check_change(change: Change) -> Change:
             raise ValueError(f"{op} {key}: value must be finite, got {v}")
         if op == "set" and not 0.0 <= v <= 1.0:
             raise ValueError(f"{key} must lie in [0, 1], got {v}")
-        if op == "scale" and v < 0.0:
-            raise ValueError(f"scale {key}: factor must be >= 0, got {v}")
+        if op == "scale" and not 0.0 <= v <= MAX_SCALE:
+            raise ValueError(f"scale {key}: factor must lie in [0, {MAX_SCALE:g}], got {v:g}")
+        if op == "hue_shift" and abs(v) > MAX_HUE_SHIFT:
+            raise ValueError(f"hue_shift: degrees must lie in [-{MAX_HUE_SHIFT:g}, {MAX_HUE_SHIFT:g}], got {v:g}")
     return Change(op, key, v)
 
 

@@ -37,6 +37,8 @@ import copy
 import json
 import math
 import os
+import secrets
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -61,7 +63,9 @@ def write_atomic(path: str | Path, write: Callable[[Path], None]) -> Path:
     leaves the old file or the new one, never half of one. The temporary name keeps the suffix,
     so writers that choose the format from it (PLY, NPZ, EXR) still can."""
     path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    # One temporary name per writer: two writers of one file (the editor's concurrent saves) must not
+    # write into, or move away, each other's.
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{threading.get_ident()}-{secrets.token_hex(4)}.tmp{path.suffix}")
     try:
         write(tmp)
         os.replace(tmp, path)

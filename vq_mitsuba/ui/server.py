@@ -12,6 +12,7 @@ same-origin scripts only), in the `X-VQM-Token` header.
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import json
@@ -235,8 +236,10 @@ class _Handler(BaseHTTPRequestHandler):
             result = handler(self.session, body)
         except UserError as exc:
             return self._json({"error": str(exc)}, 400)
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            return self._json({"error": f"bad request: {exc}"}, 400)
+        except KeyError as exc:
+            return self._json({"error": f"the request has no {exc}"}, 400)
+        except (TypeError, ValueError, OverflowError) as exc:  # the edits' checks say what is wrong
+            return self._json({"error": f"cannot do that: {exc}"}, 400)
         self._json({"ok": True, **(result or {}), "state": self.session.state()})
 
 
@@ -247,22 +250,40 @@ def _select(s: EditorSession, b: dict) -> dict:
     return {"selection": sel.to_dict()}
 
 
+def _text(body: dict, key: str) -> str:
+    if key not in body:
+        raise InputError(None, f"the request has no '{key}'")
+    return str(body[key])
+
+
+def _number(body: dict, key: str, default: float) -> float:
+    """A finite number of the request; InputError naming the field otherwise."""
+    value = body.get(key, default)
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number):
+        raise InputError(None, f"'{key}' must be a finite number, got {value!r}")
+    return number
+
+
 def _save(s: EditorSession, b: dict) -> dict:
     return {"path": str(s.save(str(b.get("name", ""))).dir)}
 
 
 ACTIONS = {
-    "view": lambda s, b: s.set_view(str(b["name"])),
-    "orbit": lambda s, b: s.orbit_view(float(b.get("yaw", 0)), float(b.get("pitch", 0)), float(b.get("zoom", 1))),
-    "mode": lambda s, b: s.set_mode(str(b["mode"])),
-    "lighting": lambda s, b: s.set_lighting(str(b.get("envmap", "fitted")), float(b.get("rotate", 0)),
-                                            float(b.get("exposure", 0))),
+    "view": lambda s, b: s.set_view(_text(b, "name")),
+    "orbit": lambda s, b: s.orbit_view(_number(b, "yaw", 0), _number(b, "pitch", 0), _number(b, "zoom", 1)),
+    "mode": lambda s, b: s.set_mode(_text(b, "mode")),
+    "lighting": lambda s, b: s.set_lighting(str(b.get("envmap", "fitted")), _number(b, "rotate", 0),
+                                            _number(b, "exposure", 0)),
     "select": _select,
     "edit": lambda s, b: {"label": s.edit(b.get("changes"), b.get("preset"), bool(b.get("live", False))).label},
     "undo": lambda s, b: s.undo(),
     "redo": lambda s, b: s.redo(),
     "save": _save,
-    "export": lambda s, b: s.export(str(b.get("name", "")), str(b.get("format", "")), int(b.get("texture_size", 1024))),
+    "export": lambda s, b: s.export(str(b.get("name", "")), str(b.get("format", "")), b.get("texture_size", 1024)),
 }
 
 
@@ -276,7 +297,7 @@ def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 80
     try:
         server = ThreadingHTTPServer((host, int(port)), handler)
     except OSError as exc:
-        raise InputError(None, f"cannot listen on {host}:{port} ({exc.strerror or exc}); choose another --port") from None
+        raise InputError(None, _listen_error(host, int(port), exc)) from None
     server.daemon_threads = True
     bound_port = server.server_address[1]
     handler.token = server.token = secrets.token_urlsafe(32)
@@ -284,6 +305,29 @@ def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 80
     handler.any_ip = host in WILDCARD
     handler.port = bound_port
     return server
+
+
+def _listen_error(host: str, port: int, exc: OSError) -> str:
+    """Why the editor cannot listen on host:port, and which option to change."""
+    if isinstance(exc, socket.gaierror):
+        return f"--host {host}: no such host name or address ({exc.strerror or exc})"
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return f"--host {host}: not an address of this machine; choose one it has (e.g. 127.0.0.1)"
+    if exc.errno == errno.EADDRINUSE:
+        return f"port {port} is in use on {host}; choose another --port"
+    if exc.errno == errno.EACCES:
+        return f"port {port} needs privileges this process lacks; choose another --port (above 1023)"
+    return f"cannot listen on {host}:{port} ({exc.strerror or exc}); check --host and --port"
+
+
+def _loopback(host: str) -> bool:
+    """Whether only this machine can reach `host` (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envmap_dir: str | Path | None = None,
@@ -297,7 +341,7 @@ def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envma
     session.start()
     bound_host, bound_port = server.server_address[:2]
     print(f"vq-mitsuba editor for {session.run.dir} at http://{bound_host}:{bound_port}/  (Ctrl-C stops)", flush=True)
-    if bound_host not in ("127.0.0.1", "localhost", "::1"):
+    if not _loopback(bound_host):
         print(f"listening on {bound_host}: anyone who can reach this machine can open the editor", flush=True)
     try:
         server.serve_forever()

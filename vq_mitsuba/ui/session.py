@@ -116,6 +116,7 @@ class EditorSession:
         self.run = RunDir(run_dir)
         self.fitted = self.run.load()
         self._saved: set[Path] = set()  # the edited runs this editor saved (Save may replace them)
+        self._save_lock = threading.Lock()
         self.num_materials = self.fitted.num_materials
         self.materials = self._materials()  # the ranked materials as the page lists them
         self.size = int(size)
@@ -473,10 +474,12 @@ class EditorSession:
                 if isinstance(value, str) and c.get("key") == "basecolor":  # "#RRGGBB" from a colour picker
                     as_typed["basecolor"] = value.strip()
                     value = parse_basecolor(value)
-                value = tuple(float(v) for v in value) if isinstance(value, (list, tuple)) else float(value)
+                value = _numbers(c.get("key"), value)
                 parsed.append(check_change(Change(str(c.get("op", "set")), str(c["key"]), value)))
-            except (KeyError, TypeError, ValueError) as exc:
-                raise InputError(None, f"change {c}: {exc}") from None
+            except KeyError as exc:
+                raise InputError(None, f"a change without {exc}: give 'key' and 'value'") from None
+            except (TypeError, ValueError) as exc:
+                raise InputError(None, str(exc)) from None
         if not parsed:
             raise InputError(None, "no change given")
         with self._cond:
@@ -522,6 +525,8 @@ class EditorSession:
         if not NAME.match(name or "") or name in (".", ".."):
             raise InputError(None, f"'{name}' is not a folder name (letters, digits, '.', '_', '-')")
         target = RunDir(self.run.dir.resolve().parent / name)
+        if target.dir.exists() and not target.dir.is_dir():
+            raise InputError(target.dir, "is a file, not a folder: save under another name")
         if target.dir.resolve() in (self.run.dir.resolve(), self.run.source().dir.resolve()):
             raise InputError(target.dir, "is the run being edited: save under another name")
         if (target / RunDir.INFO).is_file() and not target.is_edit():
@@ -534,19 +539,21 @@ class EditorSession:
 
     def save(self, name: str) -> RunDir:
         """Write the edit list as an edited run NAME beside the run (what `vq-mitsuba edit` writes)."""
-        target = self._target(name)
-        target.write_edit(self.run, self.edits())
-        self._saved.add(target.dir.resolve())
+        with self._save_lock:  # one save at a time: a concurrent one of the same name sees this one's
+            target = self._target(name)
+            target.write_edit(self.run, self.edits())
+            self._saved.add(target.dir.resolve())
         with self._cond:
             self.message = f"saved {target.dir}"
         return target
 
     def export(self, name: str, fmt: str, texture_size: int = 1024) -> None:
         """Save as NAME, then export it as FORMAT into NAME/export-FORMAT (on the render thread)."""
-        from vq_mitsuba.export.formats import FORMATS, export_run
+        from vq_mitsuba.export.formats import FORMATS, check_texture_size, export_run
 
         if fmt not in FORMATS:
             raise InputError(None, f"unknown export format '{fmt}' (one of {', '.join(FORMATS)})")
+        check_texture_size(texture_size)  # before the save: a refused export writes nothing
         target = self.save(name)
         out = target.dir / f"export-{fmt}"
 
@@ -559,6 +566,14 @@ class EditorSession:
             self.message = f"exporting {fmt} to {out} ..."
             self._jobs.append(("export", job))
             self._cond.notify_all()
+
+
+def _numbers(key, value):
+    """A change's value as a float, or three for a colour; ValueError naming the key otherwise."""
+    try:
+        return tuple(float(v) for v in value) if isinstance(value, (list, tuple)) else float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"the value of '{key}' must be a number (three for a colour), got {value!r}") from None
 
 
 def _fmt(v: float) -> str:

@@ -1,0 +1,128 @@
+"""The editor against a hostile page: concurrent saves of one name each get a right answer and leave
+one whole edited run, names and values it cannot use are refused with a sentence (never Python's
+own text), an export it would refuse saves nothing, and its host messages say what is wrong."""
+
+import threading
+
+import pytest
+
+from test_ui import _post
+from vq_mitsuba.errors import InputError
+from vq_mitsuba.run.run_dir import RunDir, write_atomic
+
+
+@pytest.fixture(scope="module")
+def editor(three_materials):
+    from vq_mitsuba.ui.browser import start_editor, stop_editor
+
+    _, run = three_materials
+    session, server = start_editor(run.dir, size=32, max_spp=8)
+    yield session, server, run
+    stop_editor(session, server)
+
+
+def test_concurrent_saves_of_one_name_all_answer_and_leave_one_whole_run(editor):
+    session, server, run = editor
+    assert _post(server, "select", {"materials": [1]})[0] == 200
+    assert _post(server, "edit", {"changes": [{"key": "roughness", "value": 0.4}]})[0] == 200
+    answers = []
+
+    def save():
+        answers.append(_post(server, "save", {"name": "twice_saved"}))
+
+    threads = [threading.Thread(target=save) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert len(answers) == 8 and all(status == 200 for status, _ in answers), answers
+    saved = RunDir(run.dir.parent / "twice_saved")
+    assert saved.is_edit() and len(saved.edits()) == 1
+    assert not [p for p in saved.dir.iterdir() if ".tmp" in p.name]  # no writer's leftovers
+
+
+def test_a_name_that_is_a_file_is_refused_with_a_message(editor):
+    _, server, run = editor
+    (run.dir.parent / "a_file").write_text("mine")
+    status, answer = _post(server, "save", {"name": "a_file"})
+    assert status == 400 and "is a file, not a folder" in answer["error"]
+    assert (run.dir.parent / "a_file").read_text() == "mine"
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"op": "scale", "key": "roughness", "value": 1e308}, "factor must lie in [0, 1000]"),
+    ({"op": "hue_shift", "key": "basecolor", "value": 1e308}, "degrees must lie in"),
+    ({"key": "metallic", "value": "x"}, "the value of 'metallic' must be a number"),
+    ({"value": 0.3}, "a change without 'key'"),
+])
+def test_edit_values_out_of_range_are_refused(editor, change, words):
+    _, server, _ = editor
+    assert _post(server, "select", {"materials": [1]})[0] == 200
+    status, answer = _post(server, "edit", {"changes": [change]})
+    assert status == 400 and words in answer["error"] and "float()" not in answer["error"]
+
+
+@pytest.mark.parametrize("body, words", [
+    ({"yaw": "left"}, "'yaw' must be a finite number, got 'left'"),
+    ({"yaw": 1, "zoom": None}, "'zoom' must be a finite number, got None"),
+])
+def test_request_values_are_named_not_shown_as_python_text(editor, body, words):
+    _, server, _ = editor
+    status, answer = _post(server, "orbit", body)
+    assert status == 400 and answer["error"].endswith(words) and "float()" not in answer["error"]
+
+
+def test_a_request_without_a_field_names_it(editor):
+    _, server, _ = editor
+    status, answer = _post(server, "view", {})
+    assert status == 400 and answer["error"] == "the request has no 'name'"
+
+
+@pytest.mark.parametrize("size", [1e8, -4, 1.5, "big"])
+def test_an_export_it_would_refuse_saves_nothing(editor, size):
+    _, server, run = editor
+    name = "never_saved"
+    status, answer = _post(server, "export", {"name": name, "format": "obj", "texture_size": size})
+    assert status == 400 and "texture size" in answer["error"]
+    assert not (run.dir.parent / name).exists()
+
+
+def test_concurrent_atomic_writes_of_one_file_never_collide(tmp_path):
+    """Every writer has its own temporary file: eight writers of one path all finish, and the file
+    is one of theirs, whole."""
+    path = tmp_path / "f.txt"
+    errors = []
+
+    def write(i):
+        try:
+            for _ in range(20):
+                write_atomic(path, lambda tmp: tmp.write_text(str(i) * 1000))
+        except Exception as exc:  # noqa: BLE001 - any failure is the finding
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(set(path.read_text())) == 1 and len(path.read_text()) == 1000
+    assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+
+
+@pytest.mark.parametrize("host, words", [
+    ("no-such-host.invalid", "--host no-such-host.invalid: no such host name"),
+    ("10.255.255.1", "--host 10.255.255.1: not an address of this machine"),
+])
+def test_a_bad_host_is_named(editor, host, words):
+    from vq_mitsuba.ui.server import make_server
+
+    session, _, _ = editor
+    with pytest.raises(InputError, match=words):
+        make_server(session, host, 0)
+
+
+def test_any_loopback_address_is_loopback():
+    from vq_mitsuba.ui.server import _loopback
+
+    assert _loopback("127.0.0.2") and _loopback("::1") and _loopback("localhost")
+    assert not _loopback("0.0.0.0") and not _loopback("192.168.1.4")
