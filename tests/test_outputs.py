@@ -280,7 +280,7 @@ def test_a_fit_refused_on_a_mesh_that_misses_every_pixel_leaves_no_config_or_mes
 
 
 def test_an_edit_that_fails_writing_run_json_leaves_no_edits_json(tiny, tmp_path, monkeypatch, capsys):
-    from vq_mitsuba.run.write_errors import WriteError
+    from vq_mitsuba.errors import WriteError
 
     _, run, _ = tiny
 

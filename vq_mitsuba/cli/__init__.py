@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
     except OSError as exc:  # a write the machine refused outside RunDir's writers (images of render, make-scene)
-        from vq_mitsuba.run.write_errors import as_write_error
+        from vq_mitsuba.errors import as_write_error
 
         error = as_write_error(exc)
         if error is None:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, WriteError, as_write_error
 
 
 def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
@@ -172,6 +172,28 @@ def read_exr(path: str | Path) -> np.ndarray:
         raise ValueError(f"no RGB channels (found {names})")
 
 
+def written(path: str | Path, write) -> None:
+    """Run `write()` to make `path` (its folder made first). A write the machine refuses (a full or
+    read-only disk, no permission) is a WriteError naming the file, and its partial file is removed."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write()
+        return
+    except OSError as exc:
+        error = as_write_error(exc, path)
+        if error is None:
+            raise
+    except RuntimeError as exc:  # OpenEXR says why in words ('... "FILE". No space left on device.'), no errno
+        reason = str(exc).strip().split('". ')[-1].rstrip(".") or type(exc).__name__
+        error = WriteError(path, f"cannot be written: {reason} (files written before are kept)")
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+    raise error from None
+
+
 def write_exr(path: str | Path, image: np.ndarray) -> None:
     """Write float32 (H, W), (H, W, 3) or (H, W, 4) as a linear EXR (half floats are not used)."""
     import OpenEXR
@@ -188,9 +210,12 @@ def write_exr(path: str | Path, image: np.ndarray) -> None:
     else:
         raise ValueError(f"cannot write an image of shape {image.shape} as EXR")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with OpenEXR.File(header, channels) as f:
-        f.write(str(path))
+
+    def write():
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(path))
+
+    written(path, write)
 
 
 def write_png(path: str | Path, image: np.ndarray, alpha: np.ndarray | None = None, srgb: bool = True) -> None:
@@ -208,8 +233,8 @@ def write_png(path: str | Path, image: np.ndarray, alpha: np.ndarray | None = No
         if out.ndim == 2:
             out = np.repeat(out[..., None], 3, -1)
         out = np.concatenate([out, a[..., None]], -1)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, out)
+    encoded = iio.imwrite("<bytes>", out, extension=Path(path).suffix.lower() or ".png")
+    written(path, lambda: Path(path).write_bytes(encoded))
 
 
 def read_mask(path: str | Path, reduce: int = 1) -> np.ndarray:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.brdf import NAMES
+from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.run.outputs import EXPORT_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, write_json
 from vq_mitsuba.errors import InputError
@@ -121,9 +122,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
 
             files += write_envmap(out / "envmap", blender_envmap(fitted, envmap, axes))
         if baked.material is not None:
-            import imageio.v3 as iio
-
-            iio.imwrite(out / f"{name}_material_id.png", baked.material)
+            write_png(out / f"{name}_material_id.png", baked.material)
             files.append(out / f"{name}_material_id.png")
         summary = {
             "run": str(run.dir.resolve()), "format": fmt, "branch": branch, "texture_size": int(texture_size),

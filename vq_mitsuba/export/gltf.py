@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.data.imageio import written
 from vq_mitsuba.export.bake import BakedMesh
 from vq_mitsuba.export.files import png_bytes, texture_images
 
@@ -74,8 +75,7 @@ def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
     }
     js = _pad4(json.dumps(doc, separators=(",", ":")).encode(), b" ")
     total = 12 + 8 + len(js) + 8 + len(body)
-    with open(path, "wb") as f:
-        f.write(struct.pack("<III", 0x46546C67, 2, total))
-        f.write(struct.pack("<II", len(js), 0x4E4F534A) + js)
-        f.write(struct.pack("<II", len(body), 0x004E4942) + body)
+    data = (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(body), 0x004E4942) + body)
+    written(path, lambda: Path(path).write_bytes(data))
     return path

@@ -13,7 +13,7 @@ import numpy as np
 
 from vq_mitsuba.brdf import FIXED, INPUTS
 from vq_mitsuba.data.cameras import Camera, principal_xml
-from vq_mitsuba.data.imageio import write_exr
+from vq_mitsuba.data.imageio import write_exr, written
 from vq_mitsuba.data.names import unique_names
 from vq_mitsuba.export.bake import BakedMesh
 
@@ -32,10 +32,7 @@ def write_ply(path: Path, vertices: np.ndarray, normals: np.ndarray, uvs: np.nda
     header = (f"ply\nformat binary_little_endian 1.0\ncomment vq-mitsuba export\nelement vertex {n}\n"
               + "".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz", "u", "v"))
               + f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vert.tobytes())
-        f.write(face.tobytes())
+    written(path, lambda: Path(path).write_bytes(header.encode("ascii") + vert.tobytes() + face.tobytes()))
     return path
 
 
@@ -64,11 +61,11 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
     `mi.render(mi.load_file(...), sensor=i)`; `-Dspp=N` sets the samples per pixel."""
     from vq_mitsuba.export.files import write_envmap
 
-    written = [write_ply(out / f"{name}.ply", baked.vertices, baked.normals, baked.uvs, baked.faces)]
+    files = [write_ply(out / f"{name}.ply", baked.vertices, baked.normals, baked.uvs, baked.faces)]
     for i in INPUTS:
         write_exr(out / f"{name}_{i.name}.exr", getattr(baked, i.name))
-        written.append(out / f"{name}_{i.name}.exr")
-    written += write_envmap(out / "envmap", envmap)
+        files.append(out / f"{name}_{i.name}.exr")
+    files += write_envmap(out / "envmap", envmap)
 
     def texture(i) -> str:
         return (f'<texture type="bitmap" name="{i.principled}">'
@@ -93,5 +90,5 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
         "  </emitter>",
         "</scene>",
     ]) + "\n"
-    (out / "scene.xml").write_text(xml, encoding="utf-8")
-    return [out / "scene.xml"] + written
+    written(out / "scene.xml", lambda: (out / "scene.xml").write_text(xml, encoding="utf-8"))
+    return [out / "scene.xml"] + files

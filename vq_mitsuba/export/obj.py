@@ -9,28 +9,28 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.brdf import NAMES
+from vq_mitsuba.data.imageio import write_png, written
 from vq_mitsuba.export.bake import BakedMesh
 from vq_mitsuba.export.files import texture_images
 
 
 def write_obj(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "object") -> list[Path]:
     """`path`, its .mtl and textures: the baked mesh turned by `axes` (3, 3), run world -> the file's axes."""
-    import imageio.v3 as iio
-
     out = path.parent
     rot = np.asarray(axes, np.float64)
     v = baked.vertices.astype(np.float64) @ rot.T
     n = baked.normals.astype(np.float64) @ rot.T
     images = texture_images(baked)
-    written = []
+    textures = []
     for key in NAMES:
-        iio.imwrite(out / f"{name}_{key}.png", images[key])
-        written.append(out / f"{name}_{key}.png")
+        write_png(out / f"{name}_{key}.png", images[key])
+        textures.append(out / f"{name}_{key}.png")
     mtl = path.with_suffix(".mtl")
-    mtl.write_text(
+    text = (
         f"# vq-mitsuba: PBR material (basecolor sRGB; roughness and metallic linear)\n"
         f"newmtl {name}_material\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 2\n"
         f"map_Kd {name}_basecolor.png\nPr 1\nmap_Pr {name}_roughness.png\nPm 1\nmap_Pm {name}_metallic.png\n")
+    written(mtl, lambda: mtl.write_text(text))
     # OBJ's v runs up the image (OpenGL); our texture row 0 is v = 0 of glTF / Mitsuba.
     lines = [f"# vq-mitsuba export: {len(v)} vertices, {len(baked.faces)} faces", f"mtllib {mtl.name}",
              f"o {name}"]
@@ -40,5 +40,5 @@ def write_obj(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
     lines += [f"usemtl {name}_material", "s 1"]
     f1 = baked.faces + 1
     lines += [f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in f1]
-    path.write_text("\n".join(lines) + "\n")
-    return [path, mtl] + written
+    written(path, lambda: path.write_text("\n".join(lines) + "\n"))
+    return [path, mtl] + textures

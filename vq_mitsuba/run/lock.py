@@ -19,7 +19,7 @@ from typing import Callable
 
 from vq_mitsuba import messages
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.run.write_errors import as_write_error
+from vq_mitsuba.errors import as_write_error
 
 try:
     import fcntl

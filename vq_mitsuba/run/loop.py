@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterable
 
 from vq_mitsuba.errors import warn
-from vq_mitsuba.run.write_errors import WriteError
+from vq_mitsuba.errors import WriteError
 
 
 class Interrupted(KeyboardInterrupt):

@@ -53,7 +53,7 @@ from vq_mitsuba.models.material_edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock
-from vq_mitsuba.run.write_errors import WriteError, as_write_error  # WriteError: re-exported
+from vq_mitsuba.errors import WriteError, as_write_error  # WriteError: re-exported
 
 FORMAT_VERSION = 1
 

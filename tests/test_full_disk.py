@@ -1,0 +1,62 @@
+"""A disk that refuses a write mid-command (full, read-only) stops it with one message naming the
+file, exit status 3, no traceback; the partial file is removed and what was written before kept."""
+
+import errno
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vq_mitsuba import cli
+from vq_mitsuba.data.imageio import write_exr, write_png
+from vq_mitsuba.errors import WriteError
+
+
+@pytest.fixture
+def full_exr(monkeypatch):
+    """OpenEXR's writer as it fails on a full disk: a RuntimeError in words, after a partial file."""
+    import OpenEXR
+
+    def write(self, path):
+        Path(path).write_bytes(b"partial")
+        raise RuntimeError(f'Failed to write pixel data to image file "{path}". No space left on device.')
+
+    monkeypatch.setattr(OpenEXR.File, "write", write)
+
+
+def test_image_writers_name_the_file_a_full_disk_refused(tmp_path, full_exr, monkeypatch):
+    with pytest.raises(WriteError, match="a.exr: cannot be written: No space left on device"):
+        write_exr(tmp_path / "a.exr", np.ones((4, 4, 3), np.float32))
+    assert not (tmp_path / "a.exr").exists()
+
+    def refused(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", refused)
+    with pytest.raises(WriteError, match="b.png: cannot be written: no space left on the device"):
+        write_png(tmp_path / "b.png", np.ones((4, 4, 3), np.float32))
+
+
+def test_render_on_a_full_disk_names_the_file(three_materials, tmp_path, full_exr, capsys):
+    capture, run = three_materials
+    out = tmp_path / "renders"
+    code = cli.main(["render", str(run.dir), "--cameras", str(capture), "-o", str(out), "--spp", "1", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 3 and "Traceback" not in err
+    assert "cannot be written: No space left on device" in err and str(out) in err
+
+
+def test_export_on_a_full_disk_names_the_file(three_materials, tmp_path, monkeypatch, capsys):
+    _, run = three_materials
+    real = Path.write_text
+
+    def full(self, *args, **kwargs):
+        if self.suffix == ".obj":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    out = tmp_path / "export"
+    assert cli.main(["export", str(run.dir), "-o", str(out), "--format", "obj", "--texture-size", "16", "--quiet"]) == 3
+    err = capsys.readouterr().err
+    assert ".obj: cannot be written: no space left on the device" in err and "Traceback" not in err
