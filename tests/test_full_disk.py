@@ -60,3 +60,18 @@ def test_export_on_a_full_disk_names_the_file(three_materials, tmp_path, monkeyp
     assert cli.main(["export", str(run.dir), "-o", str(out), "--format", "obj", "--texture-size", "16", "--quiet"]) == 3
     err = capsys.readouterr().err
     assert ".obj: cannot be written: no space left on the device" in err and "Traceback" not in err
+
+
+def test_a_lock_that_cannot_be_written_is_not_left_behind(three_materials, tmp_path, monkeypatch, capsys):
+    import os
+
+    _, run = three_materials
+
+    def full(fd, data, offset):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    out = tmp_path / "edited"
+    assert cli.main(["edit", str(run.dir), "--material", "1", "--set", "roughness=0.5", "-o", str(out)]) == 3
+    assert "no space left on the device" in capsys.readouterr().err
+    assert not out.exists()  # neither an empty run.lock nor the folder made for it

@@ -122,7 +122,10 @@ class RunLock:
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, json.dumps(owner).encode(), 0)
-        except BaseException:
-            os.close(fd)
+        except BaseException:  # a full disk: the file (ours, locked) goes, not left empty
+            try:
+                self.path.unlink(missing_ok=True)
+            finally:
+                os.close(fd)
             raise
         return fd
