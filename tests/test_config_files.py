@@ -43,3 +43,17 @@ def test_an_option_given_a_list_that_starts_negative_reaches_its_check(tmp_path,
     assert cli.main(["fit", str(tmp_path), "--background-color", "-0.5,0,0", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "expected one argument" not in err and "background_color" in err
+
+
+def test_neus_settings_whose_step_would_not_fit_in_memory_are_refused(tmp_path, capsys):
+    from tiny_scene import write_sphere_capture
+    from vq_mitsuba.geometry.neus import renderer
+
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    out = tmp_path / "run"
+    assert cli.main(["geometry", str(capture), "-o", str(out), "--quiet", "--set", "neus.n_samples=100000"]) == 2
+    err = capsys.readouterr().err
+    assert "GiB are available: lower neus.n_samples or neus.batch_rays" in err and not out.exists()
+    renderer.check_step_memory(load_config(None, ["neus.batch_rays=512"]).neus, 2 ** 30)  # the defaults fit 1 GiB
+    with pytest.raises(InputError, match="need about 2.6 GiB"):
+        renderer.check_step_memory(load_config(None, ["neus.batch_rays=512", "neus.n_samples=2000"]).neus, 2 ** 30)

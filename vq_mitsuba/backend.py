@@ -167,3 +167,19 @@ def import_pycolmap():
         if handler is not None:
             signal.signal(sig, handler)
     return pycolmap
+
+
+def available_memory() -> int:
+    """Bytes a computation may still take: the GPU's free memory when torch runs on one, else the
+    machine's available memory (/proc/meminfo's MemAvailable; 0 where unknown)."""
+    device = torch_device()
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
