@@ -126,3 +126,25 @@ def test_any_loopback_address_is_loopback():
 
     assert _loopback("127.0.0.2") and _loopback("::1") and _loopback("localhost")
     assert not _loopback("0.0.0.0") and not _loopback("192.168.1.4")
+
+
+def test_a_truncated_materials_json_is_read_alike_by_the_editor_render_and_export(three_materials, tmp_path):
+    """materials.json is a product for people: render and export never needed it, and the editor
+    opens without it too (a warning, a material list without values) instead of refusing the run."""
+    import shutil
+
+    from vq_mitsuba.ui.session import EditorSession
+
+    capture, run = three_materials
+    copy = tmp_path / "run"
+    shutil.copytree(run.dir, copy)
+    text = (copy / RunDir.MATERIALS).read_text()
+    (copy / RunDir.MATERIALS).write_text(text[: len(text) // 2])
+    with pytest.warns(UserWarning, match="materials.json"):
+        session = EditorSession(copy, size=16)
+        listed = session._materials()
+    assert listed and all(m["roughness"] is None for m in listed)
+    from vq_mitsuba import cli
+
+    assert cli.main(["render", str(copy), "--cameras", str(capture), "-o", str(tmp_path / "views"), "--spp", "1",
+                     "--quiet"]) == 0

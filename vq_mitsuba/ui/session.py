@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
 from vq_mitsuba.run.run_dir import RunDir
-from vq_mitsuba.errors import InputError, UserError
+from vq_mitsuba.errors import InputError, UserError, warn
 from vq_mitsuba.models.material_edits import Change, Edit, Selection, apply_edits, check_change, material_library, \
     preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
@@ -117,6 +118,7 @@ class EditorSession:
         self.fitted = self.run.load()
         self._saved: set[Path] = set()  # the edited runs this editor saved (Save may replace them)
         self._save_lock = threading.Lock()
+        self._materials_warned = False
         self.num_materials = self.fitted.num_materials
         self.materials = self._materials()  # the ranked materials as the page lists them
         self.size = int(size)
@@ -350,14 +352,20 @@ class EditorSession:
     def _materials(self) -> list[dict]:
         if not self.num_materials:
             return []
-        info = self.run.source().materials() or {}
+        try:
+            info = self.run.source().materials() or {}
+        except InputError as exc:  # a product for people: render and export do without it, and so does the panel
+            if not self._materials_warned:
+                warn(f"{exc}; the material list shows no values")
+                self._materials_warned = True
+            info = {}
         listed = {int(m.get("id", i + 1)): m for i, m in enumerate(info.get("materials", []))}
         colours = material_colours(np.arange(1, self.num_materials + 1))
         out = []
         for k in range(1, self.num_materials + 1):
             c = colours[k - 1]
             out.append({"id": k, "colour": "#%02x%02x%02x" % tuple(int(round(x * 255)) for x in c),
-                        **{key: listed.get(k, {}).get(key) for key in ("basecolor", "metallic", "roughness")}})
+                        **{key: listed.get(k, {}).get(key) for key in NAMES}})
         return out
 
     def _materials_now(self, materials: list[dict], edits: list[Edit], selection: Selection) -> list[dict]:
