@@ -103,3 +103,27 @@ def test_geometry_resume_of_a_missing_folder_is_refused(tmp_path, capsys):
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
     assert cli.main(["geometry", str(capture), "-o", str(tmp_path / "nothing"), "--resume", "--quiet"]) == 2
     assert "no run to resume" in capsys.readouterr().err and not (tmp_path / "nothing").exists()
+
+
+def test_a_killed_batch_leaves_no_ray_process(tmp_path):
+    """kill -9 gives the batch no time to stop Ray: a watchdog ends the Ray processes it started."""
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    out = tmp_path / "batch"
+    before = _ray_processes()
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "batch", str(capture), "-o", str(out), "--quiet",
+                             "--set", "train.iterations=100000", "--set", "train.batch_rays=64",
+                             "--set", "vq.enabled=false"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 180
+        while not any(out.glob("*/checkpoint.pt")):
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.2)
+        assert _ray_processes() - before  # Ray runs
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 30
+    while _ray_processes() - before and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not _ray_processes() - before

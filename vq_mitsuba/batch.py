@@ -276,6 +276,48 @@ def _start_ray(address: str | None, cpus: int | None, threads: int):
     return ray, True
 
 
+# Run apart from the batch: when the batch's process is gone (kill -9 gives it no time to stop Ray),
+# end the Ray processes it started on this machine.
+_WATCHDOG = """
+import os, sys, time
+parent, pids = int(sys.argv[1]), [int(p) for p in sys.argv[2:]]
+while os.getppid() == parent:
+    time.sleep(1)
+for pid in pids:
+    try:
+        os.kill(pid, 9)
+    except OSError:
+        pass
+"""
+
+
+def _descendants(pid: int) -> list[int]:
+    """The processes started by `pid`, their children and so on (Linux /proc; none elsewhere)."""
+    parent_of = {}
+    for entry in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                parent_of[int(entry)] = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            pass
+    found, frontier = [], [pid]
+    while frontier:
+        children = [p for p, parent in parent_of.items() if parent in frontier]
+        found += children
+        frontier = children
+    return found
+
+
+def _watch_ray():
+    """A watchdog process that ends the Ray processes this batch started (its children now) once the
+    batch's process is gone; None where processes cannot be listed."""
+    pids = _descendants(os.getpid())
+    if not pids:
+        return None
+    return subprocess.Popen([sys.executable, "-c", _WATCHDOG, str(os.getpid()), *map(str, pids)],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
 def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), presets: list[str | None] = (None,),
               fit_args: list[str] = (), threads: int = 1, evaluate: bool = False, address: str | None = None,
               cpus: int | None = None, progress: bool = True, capture_args: dict[str, list[str]] | None = None,
@@ -289,6 +331,7 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     todo = [s for s in specs
             if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
     ray, started = _start_ray(address, cpus, threads)  # before OUT exists: a failed start leaves nothing
+    watchdog = _watch_ray() if started and not address else None
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / STATUS, {"runs": status})  # the folder is the batch's from here: a rerun resumes it
@@ -299,6 +342,9 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     finally:
         if started:
             ray.shutdown()
+        if watchdog is not None:
+            watchdog.kill()
+            watchdog.wait()
     write_previews(out, specs, status, progress)
     write_summary(out, specs, status)
     return [{"run": s.name, **status.get(s.name, {})} for s in specs]
