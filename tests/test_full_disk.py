@@ -76,18 +76,3 @@ def test_a_lock_that_cannot_be_written_is_not_left_behind(three_materials, tmp_p
     assert "no space left on the device" in capsys.readouterr().err
     assert not out.exists()  # neither an empty run.lock nor the folder made for it
 
-
-def test_a_read_only_output_is_refused_before_the_bake(three_materials, tmp_path, monkeypatch, capsys):
-    import os
-
-
-    _, run = three_materials
-    locked = tmp_path / "locked"
-    locked.mkdir()
-    real = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == locked else real(p, mode))
-    import vq_mitsuba.export.bake as bake
-
-    monkeypatch.setattr(bake, "bake", lambda *a, **k: pytest.fail("baked before the output was checked"))
-    code = cli.main(["export", str(run.dir), "-o", str(locked / "out"), "--format", "obj", "--quiet"])
-    assert code == 2 and "is read-only or not writable" in capsys.readouterr().err

@@ -354,10 +354,11 @@ def _command(name: str, capture, run, out) -> list[str]:
             "render": ["render", str(run), "--cameras", str(capture), "-o", str(out / "views"), "--quiet"],
             "edit": ["edit", str(run), "--material", "1", "--set", "roughness=0.5", "-o", str(out / "edited")],
             "eval": ["eval", str(run), "--gt", str(out.parent / "no_dataset"), "-o", str(out / "metrics.json")],
-            "make-scene": ["make-scene", "demo", "-o", str(out / "demo"), "--resolution", "8"]}[name]
+            "make-scene": ["make-scene", "demo", "-o", str(out / "demo"), "--resolution", "8"],
+            "export": ["export", str(run), "-o", str(out / "export"), "--format", "obj", "--quiet"]}[name]
 
 
-COMMANDS_WRITING = ("fit", "render", "edit", "eval", "make-scene")
+COMMANDS_WRITING = ("fit", "render", "edit", "eval", "make-scene", "export")
 
 
 @pytest.mark.parametrize("command", COMMANDS_WRITING)

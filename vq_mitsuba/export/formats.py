@@ -20,7 +20,7 @@ import numpy as np
 from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.run.outputs import EXPORT_MARKER, check_output_folder
-from vq_mitsuba.run.run_dir import RunDir, write_json
+from vq_mitsuba.run.run_dir import RunDir, check_writable, write_json
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.export.files import export_axes
 
@@ -81,6 +81,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
     check_texture_size(texture_size)
     out = Path(out_dir)
     check_export_target(out, fmt)
+    check_writable(out)  # before the bake, not after it
     run = RunDir(run_dir)
     fitted = run.load()
     envmap = None

@@ -115,24 +115,8 @@ def is_own(folder: Path, kind: str, fmt: str | None = None) -> bool:
 
 def check_output_folder(folder: str | Path, kind: str, command: str, fmt: str | None = None) -> None:
     """Refuse, before any work, an output folder that is not new, empty, or `kind`'s own (for an
-    export, of the format `fmt`), or that cannot be written: an InputError naming it, what it holds
-    (or why it cannot be written) and what to do."""
-    _check_contents(Path(folder), kind, command, fmt)
-    check_writable(Path(folder))
-
-
-def check_writable(folder: Path) -> None:
-    """Refuse a folder this process cannot write into (a read-only disk, no permission), or, when it
-    does not exist yet, whose nearest existing parent it cannot make it in."""
-    where = folder
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    if where.is_dir() and not os.access(where, os.W_OK | os.X_OK):
-        raise InputError(folder, f"cannot be written ({where} is read-only or not writable by this user); "
-                                 "choose another -o")
-
-
-def _check_contents(folder: Path, kind: str, command: str, fmt: str | None) -> None:
+    export, of the format `fmt`): an InputError naming it, what it holds and what to do."""
+    folder = Path(folder)
     if not folder.exists():
         return
     if not folder.is_dir():
