@@ -223,7 +223,7 @@ def test_the_held_aside_loss_scores_each_pixels_mean(small_sphere, tmp_path, mon
     pool, shaded = trainer.pool, []
     key = pool.view * capture.width * capture.height + pool.pixel
 
-    def shade(position, normal, wi, basecolor, metallic, roughness, env, spp, **kw):
+    def shade(position, normal, wi, material, env, spp, **kw):
         hit = torch.cat([torch.nonzero((pool.position == p).all(1))[:1, 0] for p in position])
         shaded.append(hit)
         return pool.rgb[hit] * scale.repeat(len(hit) // 4)[:, None]
