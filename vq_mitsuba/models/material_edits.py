@@ -22,10 +22,11 @@ from pathlib import Path
 
 import torch
 
+from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.errors import InputError
 
 LIBRARY_PATH = Path(__file__).with_name("material_library.json")
-KEYS = ("basecolor", "metallic", "roughness")
+KEYS = NAMES  # the BRDF inputs an edit may change
 OPS = ("set", "scale", "hue_shift")
 MAX_SCALE = 1e3  # beyond, every value is clamped to its range's end anyway
 MAX_HUE_SHIFT = 1e6  # degrees (the command line's bound); a hue turns every 360
