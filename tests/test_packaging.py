@@ -35,14 +35,20 @@ def venv(dist, tmp_path_factory):
                                   check=True, capture_output=True, text=True).stdout.strip())
     (purelib / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     wheel = next(dist.glob("*.whl"))
+    # --ignore-installed: the checkout's own install (editable, or its egg-info on a PYTHONPATH) is
+    # not the package under test
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps", "--no-index",
-                    str(wheel)], check=True, capture_output=True, text=True)
+                    "--ignore-installed", str(wheel)], check=True, capture_output=True, text=True, env=_clean_env())
     return env
 
 
+def _clean_env() -> dict:
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+
+
 def _run(env: Path, cwd: Path, *args: str) -> str:
-    clean = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    done = subprocess.run([str(env / "bin" / "vq-mitsuba"), *args], cwd=cwd, env=clean, capture_output=True, text=True)
+    done = subprocess.run([str(env / "bin" / "vq-mitsuba"), *args], cwd=cwd, env=_clean_env(), capture_output=True,
+                          text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     return done.stdout
 
@@ -61,7 +67,7 @@ def test_wheel_and_sdist_hold_the_presets_and_scenes(dist):
 def test_the_installed_wheel_runs_outside_the_checkout(venv, tmp_path):
     code = "import vq_mitsuba; print(vq_mitsuba.__file__)"
     where = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=tmp_path, capture_output=True, text=True,
-                           env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"}).stdout
+                           env=_clean_env()).stdout
     assert Path(where).resolve().is_relative_to(venv.resolve()), where
     assert _run(venv, tmp_path, "--version").split() == ["vq-mitsuba", "0.1.0"]
     listed = _run(venv, tmp_path, "make-scene", "--list")
