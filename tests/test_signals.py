@@ -56,20 +56,28 @@ def _ray_processes() -> set[str]:
     return set(found.split())
 
 
-def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path):
-    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
-    out = tmp_path / "batch"
-    before = _ray_processes()
+def _batch_with_a_checkpoint(capture, out: Path) -> subprocess.Popen:
+    """A batch of one long fit, in its own process, once that fit has written a checkpoint."""
     env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
     proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "batch", str(capture), "-o", str(out), "--quiet",
                              "--set", "train.iterations=100000", "--set", "train.batch_rays=64",
                              "--set", "train.checkpoint_every=5", "--set", "vq.enabled=false"],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 180
+    while not any(out.glob("*/checkpoint.pt")):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"the batch did not reach a checkpoint: {proc.communicate()}")
+        time.sleep(0.2)
+    return proc
+
+
+def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path):
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    out = tmp_path / "batch"
+    before = _ray_processes()
+    proc = _batch_with_a_checkpoint(capture, out)
     try:
-        deadline = time.monotonic() + 180
-        while not any(out.glob("*/checkpoint.pt")):
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-            time.sleep(0.2)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
@@ -110,15 +118,8 @@ def test_a_killed_batch_leaves_no_ray_process(tmp_path):
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
     out = tmp_path / "batch"
     before = _ray_processes()
-    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
-    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "batch", str(capture), "-o", str(out), "--quiet",
-                             "--set", "train.iterations=100000", "--set", "train.batch_rays=64",
-                             "--set", "vq.enabled=false"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = _batch_with_a_checkpoint(capture, out)
     try:
-        deadline = time.monotonic() + 180
-        while not any(out.glob("*/checkpoint.pt")):
-            assert proc.poll() is None and time.monotonic() < deadline
-            time.sleep(0.2)
         assert _ray_processes() - before  # Ray runs
     finally:
         proc.kill()
