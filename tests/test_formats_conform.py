@@ -3,12 +3,13 @@ declared members, and on a capture its own writer made: the folder resolves to i
 takes its own capture and no other format's, its cameras and its loaded capture agree."""
 
 import inspect
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from vq_mitsuba.data.captures import resolve_capture_path
-from vq_mitsuba.data.formats import FORMATS, CaptureFormat, PosedFormat, format_of
+from vq_mitsuba.data.formats import FORMATS, CaptureFormat, PosedFormat, UnposedFormat, format_of
 
 # Where make-scene --photo-formats puts each posed format's copy of the training views.
 FOLDERS = {"nerf_synthetic": "", "mitsuba_xml": "scene.xml", "idr": "neus", "colmap": "colmap",
@@ -33,7 +34,8 @@ def test_each_format_declares_the_contract(fmt):
         assert list(inspect.signature(fmt.load).parameters)[1:] == ["mesh_arg", "shrink", "cache_dir"]
         assert all(f is None or len(inspect.signature(f).parameters) == 1 for f in (fmt.points, fmt.sphere))
     else:
-        assert not hasattr(fmt, "load")
+        assert isinstance(fmt, UnposedFormat) and not hasattr(fmt, "load")
+        assert isinstance(fmt.NOUN, str) and isinstance(fmt.SEQUENTIAL, bool)
 
 
 def test_the_registry_names_each_format_once():
@@ -72,3 +74,24 @@ def test_each_posed_format_reads_its_own_capture(fmt, dataset):
     if fmt.sphere is not None:
         centre, radius = fmt.sphere(source)
         assert np.shape(centre) == (3,) and radius > 0
+
+
+def test_no_module_outside_the_formats_branches_on_a_format():
+    """Code outside data/formats/ never compares a capture's KIND with a format's name: what a
+    format means is asked of its module (POSED, NOUN, has_geometry, ...)."""
+    import ast
+
+    package = Path(__file__).resolve().parents[1] / "vq_mitsuba"
+    kinds = {fmt.KIND for fmt in FORMATS}
+    found = []
+    for path in package.rglob("*.py"):
+        if "formats" in path.relative_to(package).parts[:2]:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                consts = [c for c in ast.walk(node) if isinstance(c, ast.Constant) and c.value in kinds]
+                names = [n for n in ast.walk(node) if isinstance(n, (ast.Name, ast.Attribute))
+                         and "kind" in (n.id if isinstance(n, ast.Name) else n.attr).lower()]
+                if consts and names:
+                    found.append(f"{path.relative_to(package)}:{node.lineno}")
+    assert not found, found

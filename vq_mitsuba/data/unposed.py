@@ -8,11 +8,8 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from vq_mitsuba.data.formats import photos, video
 from vq_mitsuba.data.formats.video import is_video
 from vq_mitsuba.errors import InputError
-
-UNPOSED_KINDS = (photos.KIND, video.KIND)
 
 
 def capture_name(capture: str | Path) -> str:

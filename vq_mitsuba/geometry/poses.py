@@ -32,14 +32,12 @@ from typing import Callable
 from vq_mitsuba import messages
 from vq_mitsuba.backend import import_pycolmap
 from vq_mitsuba.config import PoseConfig
-from vq_mitsuba.data.formats.photos import copy_upright, photo_files
-from vq_mitsuba.data.formats.video import pick_frames
-from vq_mitsuba.data.unposed import UNPOSED_KINDS, fingerprint
+from vq_mitsuba.data.formats.photos import MIN_IMAGES
+from vq_mitsuba.data.unposed import fingerprint
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_json
 
 SUMMARY = "pose.json"
-MIN_IMAGES = 3  # SfM needs three images to place any of them with confidence
 EXHAUSTIVE_MAX = 100  # photos up to which `auto` matches every pair (4950 pairs); over it, neighbours in name order
 SIFT_MAX_SIDE = 2000  # SIFT runs on images scaled down to this long side (phone photos: 4032 px, 4x the time)
 SIFT_MAX_FEATURES = 4096  # per image; matching a pair costs the product of two images' counts
@@ -49,9 +47,10 @@ SUMMARY_VERSION = 1
 
 def is_unposed(capture: str | Path) -> bool:
     """True when `capture` is a folder of photos or a video (no camera poses)."""
-    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
+    from vq_mitsuba.data.captures import resolve_capture_path
+    from vq_mitsuba.data.formats import format_of
 
-    return capture_kind(resolve_capture_path(capture)) in UNPOSED_KINDS
+    return not format_of(resolve_capture_path(capture)).POSED
 
 
 def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
@@ -67,19 +66,20 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
     """Find the camera poses of a folder of photos or a video and write the COLMAP capture OUT
     (images/, sparse/0/, pose.json); returns pose.json's content (with "reused" true when OUT
     already held the result for the same inputs and settings)."""
-    from vq_mitsuba.data.captures import capture_kind, resolve_capture_path
+    from vq_mitsuba.data.captures import resolve_capture_path
+    from vq_mitsuba.data.formats import format_of
 
     cfg = cfg or PoseConfig()
     source = resolve_capture_path(source)
-    kind = capture_kind(source)
-    if kind not in UNPOSED_KINDS:
-        raise InputError(source, f"already has camera poses ({kind} capture): fit it as it is")
+    fmt = format_of(source)
+    if fmt.POSED:
+        raise InputError(source, f"already has camera poses ({fmt.KIND} capture): fit it as it is")
     out = Path(out)
-    inputs = _inputs(source, kind, cfg)
+    inputs = _inputs(source, fmt, cfg)
     previous = _previous(out, source)
     if previous is not None and previous.get("inputs") == inputs:
-        _check_registered(out, previous["registered"], previous["images"], cfg, kind)
-        log(f"pose: reusing {out} ({previous['registered']} of {previous['images']} {_noun(kind)} placed)")
+        _check_registered(out, previous["registered"], previous["images"], cfg, fmt.NOUN)
+        log(f"pose: reusing {out} ({previous['registered']} of {previous['images']} {fmt.NOUN} placed)")
         return dict(previous, reused=True)
     if previous is not None:
         _check_replaceable(out)
@@ -88,17 +88,16 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
         t0 = time.perf_counter()
         images = work / "images"
         images.mkdir()
-        video = pick_frames(source, images, cfg.frames, progress=progress, log=log) if kind == "video" else None
-        names = _photos(source, images) if kind == "photos" else sorted(p.name for p in images.iterdir())
+        names, video = fmt.views_into(source, images, cfg.frames, progress, log)
         t_images = time.perf_counter() - t0
         matcher = inputs["matcher"]
         model, seconds = _sfm(work, names, matcher, progress, log)
         registered = model.num_reg_images() if model is not None else 0
-        _check_registered(source, registered, len(names), cfg, kind)
+        _check_registered(source, registered, len(names), cfg, fmt.NOUN)
         model.write(str(_mkdir(work / "sparse" / "0")))
         placed = {model.image(i).name for i in model.reg_image_ids()}
         summary = {
-            "version": SUMMARY_VERSION, "source": str(source.resolve()), "kind": kind, "inputs": inputs,
+            "version": SUMMARY_VERSION, "source": str(source.resolve()), "kind": fmt.KIND, "inputs": inputs,
             "matcher": matcher, "camera_model": CAMERA_MODEL, "images": len(names), "registered": registered,
             "unregistered": [n for n in names if n not in placed],
             "mean_reprojection_error_px": round(float(model.compute_mean_reprojection_error()), 4),
@@ -112,32 +111,22 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
         if out.exists():
             shutil.rmtree(out)
         os.replace(work, out)
-    log(f"pose: placed {registered} of {len(names)} {_noun(kind)}, mean reprojection error "
+    log(f"pose: placed {registered} of {len(names)} {fmt.NOUN}, mean reprojection error "
         f"{summary['mean_reprojection_error_px']:.2f} px, {summary['points3D']} points ({matcher} matching, "
         f"{summary['seconds']['total']:.1f} s): {out}")
     return dict(summary, reused=False)
 
 
-def _noun(kind: str) -> str:
-    return "video frames" if kind == "video" else "photos"
-
-
-def _inputs(source: Path, kind: str, cfg: PoseConfig) -> dict:
+def _inputs(source: Path, fmt, cfg: PoseConfig) -> dict:
     """What the result depends on: the files (names and content keys) and the settings that change it."""
-    if kind == "video":
-        files = [[source.name, fingerprint(source)]]
-        return {"files": files, "frames": cfg.frames, "matcher": _matcher(cfg.matcher, kind, cfg.frames)}
-    photos = photo_files(source)
-    if len(photos) < MIN_IMAGES:
-        raise InputError(source, f"holds {len(photos)} photo{'s' * (len(photos) != 1)} (JPEG / PNG): structure from "
-                                 f"motion needs at least {MIN_IMAGES}, and 20 or more around the object work best")
-    return {"files": [[p.name, fingerprint(p)] for p in photos], "matcher": _matcher(cfg.matcher, kind, len(photos))}
+    inputs, views = fmt.pose_inputs(source, cfg.frames, fingerprint)
+    return {**inputs, "matcher": _matcher(cfg.matcher, fmt.SEQUENTIAL, views)}
 
 
-def _matcher(choice: str, kind: str, count: int) -> str:
+def _matcher(choice: str, sequential: bool, count: int) -> str:
     if choice != "auto":
         return choice
-    return "sequential" if kind == "video" or count > EXHAUSTIVE_MAX else "exhaustive"
+    return "sequential" if sequential or count > EXHAUSTIVE_MAX else "exhaustive"
 
 
 OWN_ENTRIES = ("images", "sparse", SUMMARY)  # what a posed capture holds: pose replaces only these
@@ -179,10 +168,10 @@ def _check_replaceable(out: Path) -> None:
                               "again replaces the folder; move them away or choose a new folder with -o")
 
 
-def _check_registered(source: Path, registered: int, total: int, cfg: PoseConfig, kind: str) -> None:
+def _check_registered(source: Path, registered: int, total: int, cfg: PoseConfig, noun: str) -> None:
     need = max(MIN_IMAGES, math.ceil(cfg.min_registered * total - 1e-9))
     if registered < need:
-        raise InputError(source, f"structure from motion placed {registered} of {total} {_noun(kind)} (at least "
+        raise InputError(source, f"structure from motion placed {registered} of {total} {noun} (at least "
                                  f"{need} needed, pose.min_registered {cfg.min_registered:g}): the images need "
                                  "texture, sharp focus and overlap (each part of the object in three or more, "
                                  "taken a few steps apart around it)")
@@ -204,19 +193,6 @@ def _scratch(folder: Path):
 def _mkdir(folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     return folder
-
-
-def _photos(source: Path, images: Path) -> list[str]:
-    """Copy the photos upright into `images`; all must share one size (one camera)."""
-    sizes: dict[tuple[int, int], list[str]] = {}
-    for photo in photo_files(source):
-        sizes.setdefault(copy_upright(photo, images / photo.name), []).append(photo.name)
-    if len(sizes) > 1:
-        listed = "; ".join(f"{w}x{h}: {len(n)} ({', '.join(n[:3])}{', ...' if len(n) > 3 else ''})"
-                           for (w, h), n in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
-        raise InputError(source, f"the photos differ in size ({listed}): vq-mitsuba needs one size and one camera "
-                                 "for all views (turn them alike, or leave the odd ones out)")
-    return sorted(n for names in sizes.values() for n in names)
 
 
 def _threads() -> int:

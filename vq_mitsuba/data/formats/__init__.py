@@ -1,7 +1,8 @@
 """Capture formats, one module each, and the registry that `vq_mitsuba.data.captures` walks.
 
-A format module names its layout in its docstring and is a `CaptureFormat` (a `PosedFormat` when
-POSED); `tests/test_capture_formats.py` checks every registered one. It defines:
+A format module names its layout in its docstring and is a `CaptureFormat`: a `PosedFormat` when
+POSED, else an `UnposedFormat` (its NOUN, SEQUENTIAL, `pose_inputs` and `views_into` give the pose
+stage what it needs); `tests/test_formats_conform.py` checks every registered one. It defines:
 
     KIND           the name `capture_kind` gives it ("xml", "json", "idr", "llff", "colmap", ...)
     SUFFIXES       the file suffixes it reads (empty for a folder)
@@ -60,6 +61,18 @@ class PosedFormat(CaptureFormat, Protocol):
     def has_geometry(self, source: Path) -> bool: ...
 
     def load(self, source: Path, mesh_arg, shrink=None, cache_dir=None): ...
+
+
+@runtime_checkable
+class UnposedFormat(CaptureFormat, Protocol):
+    """What a format without camera poses defines for the pose stage (structure from motion)."""
+
+    NOUN: str  # what its views are called ("photos")
+    SEQUENTIAL: bool  # its views come in order (a video's frames): SfM matches neighbours
+
+    def pose_inputs(self, source: Path, frames: int, fingerprint) -> tuple[dict, int]: ...
+
+    def views_into(self, source: Path, images: Path, frames: int, progress: bool, log) -> tuple[list, dict | None]: ...
 
 
 FORMATS: tuple[ModuleType, ...] = (nerf_synthetic, nerfstudio, mitsuba_xml, idr, llff, colmap, photos, video)

@@ -20,12 +20,38 @@ KIND = "photos"
 SUFFIXES = ()  # a folder
 FOLDER_FILES = ()
 POSED = False  # loading refuses it (vq_mitsuba.data.unposed.unposed_error)
+NOUN = "photos"  # what its views are called
+SEQUENTIAL = False  # views in no order: SfM matches every pair while they are few
+MIN_IMAGES = 3  # SfM needs three images to place any of them with confidence
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 EXIF_ORIENTATION = 0x0112
 
 
 def detect(source: Path) -> bool:
     return source.is_dir() and bool(photo_files(source))
+
+
+def pose_inputs(source: Path, frames: int, fingerprint) -> tuple[dict, int]:
+    """(what posing the photos depends on: each file's name and content key; how many views they give)."""
+    photos = photo_files(source)
+    if len(photos) < MIN_IMAGES:
+        raise InputError(source, f"holds {len(photos)} photo{'s' * (len(photos) != 1)} (JPEG / PNG): structure from "
+                                 f"motion needs at least {MIN_IMAGES}, and 20 or more around the object work best")
+    return {"files": [[p.name, fingerprint(p)] for p in photos]}, len(photos)
+
+
+def views_into(source: Path, images: Path, frames: int, progress: bool, log) -> tuple[list[str], dict | None]:
+    """Copy the photos upright into `images`; all must share one size (one camera). Returns (their
+    names, None)."""
+    sizes: dict[tuple[int, int], list[str]] = {}
+    for photo in photo_files(source):
+        sizes.setdefault(copy_upright(photo, images / photo.name), []).append(photo.name)
+    if len(sizes) > 1:
+        listed = "; ".join(f"{w}x{h}: {len(n)} ({', '.join(n[:3])}{', ...' if len(n) > 3 else ''})"
+                           for (w, h), n in sorted(sizes.items(), key=lambda kv: -len(kv[1])))
+        raise InputError(source, f"the photos differ in size ({listed}): vq-mitsuba needs one size and one camera "
+                                 "for all views (turn them alike, or leave the odd ones out)")
+    return sorted(n for names in sizes.values() for n in names), None
 
 
 def photo_files(folder: Path) -> list[Path]:

@@ -23,6 +23,8 @@ KIND = "video"
 SUFFIXES = VIDEO_SUFFIXES
 FOLDER_FILES = ()
 POSED = False  # loading refuses it (vq_mitsuba.data.unposed.unposed_error)
+NOUN = "video frames"  # what its views are called
+SEQUENTIAL = True  # views in time order: SfM matches neighbours
 SHARPNESS_SIDE = 640  # sharpness is measured on frames block-averaged to about this long side
 
 
@@ -45,6 +47,19 @@ def sharpness(rgb: np.ndarray) -> float:
         h, w = grey.shape[0] // f * f, grey.shape[1] // f * f
         grey = grey[:h, :w].reshape(h // f, f, w // f, f).mean((1, 3))
     return float(laplace(grey).var())
+
+
+def pose_inputs(source: Path, frames: int, fingerprint) -> tuple[dict, int]:
+    """(what posing the video depends on: the file's name and content key, the frames kept; how many
+    views that gives)."""
+    return {"files": [[source.name, fingerprint(source)]], "frames": frames}, frames
+
+
+def views_into(source: Path, images: Path, frames: int, progress: bool, log) -> tuple[list[str], dict]:
+    """The sharpest frame of each of `frames` time windows into `images`: (their names, what
+    `pick_frames` did)."""
+    done = pick_frames(source, images, frames, progress=progress, log=log)
+    return sorted(p.name for p in images.iterdir()), done
 
 
 def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
