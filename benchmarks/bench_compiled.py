@@ -8,7 +8,7 @@
 - residual: the residual's step (`vq_mitsuba.engine.residual_fit`: forward, gamma-space L2, backward,
   fused Adam) at its batch of 8192 hits, on random hits of a 2^17-hit pool, as `fit` compiles it
   (`vq_mitsuba.compiled.Compiled`), with the first call's compile time.
-- neus: a NeuS training step (`geometry/neus/fit.py: _NeuSFit.loop_step`) on --neus-capture (its auto
+- neus: a NeuS training step (`geometry/neus/training.py: NeuSTraining.loop_step`) on --neus-capture (its auto
   grid, the occupancy opened at half-way) with the SDF network's closed-form head (the layers after
   the grid lookup, and the gradient through them) and the compositing weights compiled with dynamic
   shapes (a ray batch's valid rays and samples vary), against the eager step. The grid lookup stays
@@ -109,7 +109,7 @@ def neus_loop(args) -> dict:
     torch.set_num_threads(2)
     capture = load_capture(args.neus_capture, options=CaptureConfig(downscale=args.downscale))
     neus = module.NeuS(capture, load_config(None).neus)
-    fit = module.fit._NeuSFit(neus, None)
+    fit = module.NeuSTraining(neus, None)
     fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
     neus.refresh_occupancy(neus.level_weights(0.5))
     sdf = neus.model.sdf

@@ -161,7 +161,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.engine.schedule import schedule_at
     from vq_mitsuba.engine.trainer import Trainer
-    from vq_mitsuba.geometry.neus.fit import _NeuSFit
+    from vq_mitsuba.geometry.neus.training import NeuSTraining
     from vq_mitsuba.geometry.neus.renderer import NeuS
     from vq_mitsuba.run.loop import Progress
     from vq_mitsuba.run.run_dir import RunDir
@@ -179,7 +179,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
     capture = load_capture(scene / "transforms_train.json", split="train")
     for batch in neus_batches:
         neus = NeuS(capture, replace(cfg.neus, batch_rays=batch))
-        fit = _NeuSFit(neus, None)
+        fit = NeuSTraining(neus, None)
         fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
         neus.refresh_occupancy(neus.level_weights(0.5))
         step = iter(range(10 ** 9))

@@ -29,14 +29,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def run(variant: str, data: Path, out: Path, overrides: list[str], gt) -> dict:
     cfg = load_config(None, overrides).neus
-    original = neus_module._lr_factor
+    original = neus_module.lr_factor
     if variant == "step_share":
-        neus_module._lr_factor = lambda c, step, share: original(c, step, min(step / c.iterations, 1.0))
+        neus_module.lr_factor = lambda c, step, share: original(c, step, min(step / c.iterations, 1.0))
     try:
         result = neus_module.reconstruct(load_capture(data / "transforms_train.json"), out / variant, cfg,
                                          progress=False)
     finally:
-        neus_module._lr_factor = original
+        neus_module.lr_factor = original
     s = result.summary
     result.mesh.export(out / variant / "mesh.ply")
     normals = score(out / variant / "mesh.ply", data, "test", gt=gt)

@@ -57,14 +57,15 @@ def main() -> None:
 
     # An earlier checkout (PYTHONPATH=ITS_FOLDER) may have NeuS as one module, without the kernel.
     NeuS = module.NeuS
-    _NeuSFit = module._NeuSFit if hasattr(module, "_NeuSFit") else module.fit._NeuSFit
+    # the training loop's class in this or an earlier layout (one module; fit.py; training.py)
+    training_class = getattr(module, "NeuSTraining", None) or getattr(module, "_NeuSFit", None) or module.fit._NeuSFit
     lookup = module.grid_kernel.status() if hasattr(module, "grid_kernel") else "torch lookup"
 
     torch.set_num_threads(args.threads)
     cfg = load_config(None, args.set).neus
     capture = load_capture(args.capture, options=CaptureConfig(downscale=args.downscale))
     neus = NeuS(capture, cfg)
-    fit = _NeuSFit(neus, None)
+    fit = training_class(neus, None)
     fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
     neus.refresh_occupancy(neus.level_weights(0.5))
 

@@ -73,17 +73,18 @@ def main() -> None:
 
     from vq_mitsuba.config import CaptureConfig, load_config
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus import fit as current_fit, renderer as current_renderer
+    from vq_mitsuba.geometry.neus import training as current_fit, renderer as current_renderer
     from vq_mitsuba.run.loop import Progress
 
     torch.set_num_threads(args.threads)
     cfg = load_config(None, args.set).neus
     capture = load_capture(args.capture, options=CaptureConfig(downscale=args.downscale))
     fits = {}
-    current = type("Current", (), {"NeuS": current_renderer.NeuS, "_NeuSFit": current_fit._NeuSFit})
+    current = type("Current", (), {"NeuS": current_renderer.NeuS, "NeuSTraining": current_fit.NeuSTraining})
     for name, module in (("reference", load_reference(args.ref)), ("current", current)):
         neus = module.NeuS(capture, cfg)
-        fit_class = module._NeuSFit if hasattr(module, "_NeuSFit") else module.fit._NeuSFit  # a package: fit.py
+        # the training loop's class in this or an earlier layout (one module; fit.py; training.py)
+        fit_class = getattr(module, "NeuSTraining", None) or getattr(module, "_NeuSFit", None) or module.fit._NeuSFit
         fit = fit_class(neus, None)
         fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
         neus.refresh_occupancy(neus.level_weights(0.5))

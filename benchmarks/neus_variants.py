@@ -37,7 +37,7 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
     from vq_mitsuba.config import CaptureConfig, NeuSConfig
     from vq_mitsuba.data.captures import load_capture, split_indices
     from vq_mitsuba.geometry.neus import NeuS
-    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
+    from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
 
     options = CaptureConfig(downscale=downscale, holdout=holdout)
     train = load_capture(capture_path, options=options, split="train")

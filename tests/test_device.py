@@ -11,7 +11,7 @@ import torch
 from vq_mitsuba import backend
 from vq_mitsuba.backend import choose_device, torch_device
 from vq_mitsuba.geometry.neus import NeuS, reconstruct, train
-from vq_mitsuba.geometry.neus import fit as neus_fit
+from vq_mitsuba.geometry.neus import training as neus_fit
 
 from test_geometry import small_cfg, sphere_capture
 
@@ -47,8 +47,8 @@ def test_every_tensor_neus_creates_names_its_device():
 def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_steps(cpu_device, monkeypatch):
     assert cpu_device == "cpu" and torch_device() == torch.device("cpu")
     reads = []
-    read = neus_fit._NeuSFit.read_history
-    monkeypatch.setattr(neus_fit._NeuSFit, "read_history",
+    read = neus_fit.NeuSTraining.read_history
+    monkeypatch.setattr(neus_fit.NeuSTraining, "read_history",
                         lambda self: (reads.append(len(self.pending)), read(self))[1])
     neus = NeuS(sphere_capture(n_views=6, size=20), small_cfg(iterations=23))
     assert neus.device == torch.device("cpu")

@@ -439,7 +439,7 @@ def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
 
 
 def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them():
-    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
+    from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
     from vq_mitsuba.geometry.pipeline import neus_psnr_line
 
     capture = sphere_capture(n_views=8, size=24)

@@ -86,3 +86,9 @@ def test_only_run_dir_names_run_files():
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names:
                 found.append((str(path.relative_to(PACKAGE)), node.lineno, node.value))
     assert not found, found
+
+
+def test_one_basename_per_concept():
+    """Outside cli/ (one module per command, named after it), no two modules share a file name."""
+    names = [p.name for p in PACKAGE.rglob("*.py") if p.name != "__init__.py" and "cli" not in p.relative_to(PACKAGE).parts]
+    assert sorted({n for n in names if names.count(n) > 1}) == []

@@ -332,7 +332,7 @@ def test_mesh_ply_counts_beside_every_capture_but_a_scene_xml(tmp_path):
 
 def test_exported_scene_xml_is_well_formed_and_holds_the_names(tmp_path):
     from vq_mitsuba.export.bake import BakedMesh
-    from vq_mitsuba.export.mitsuba_xml import write_mitsuba
+    from vq_mitsuba.export.mitsuba_scene import write_mitsuba
 
     names = ['a"b', "c<d>&e", "it's", 'a"b']  # the last twice: a train and a test view may share a name
     cams = [Camera(n, c.to_world, 42.0, 20, 14) for n, c in zip(names, _cameras(4))]

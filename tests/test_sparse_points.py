@@ -102,7 +102,7 @@ def _sphere_points(n: int, radius: float, seed: int = 0) -> np.ndarray:
 def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_them():
     from test_geometry import RADIUS as TRUE_RADIUS, sdf_world, small_cfg, sphere_capture
     from vq_mitsuba.geometry.neus import NeuS, train
-    from vq_mitsuba.geometry.neus.fit import points_report
+    from vq_mitsuba.geometry.neus.training import points_report
 
     capture = sphere_capture()
     on_surface = _sphere_points(300, TRUE_RADIUS)

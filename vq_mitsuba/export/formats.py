@@ -113,7 +113,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
 
             files = write_obj(out / f"{name}.obj", baked, axes, name)
         else:
-            from vq_mitsuba.export.mitsuba_xml import write_mitsuba
+            from vq_mitsuba.export.mitsuba_scene import write_mitsuba
 
             env = fitted.envmap if envmap is None else envmap
             files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,

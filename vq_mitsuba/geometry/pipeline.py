@@ -140,7 +140,7 @@ def neus_psnr(neus, capture, capture_path, capture_cfg: CaptureConfig | None, ru
     `capture.holdout`, the views kept out of training: mean and per-view sRGB PSNR (inside the masks
     where there are masks), for geometry.json."""
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus.fit import sample_views, view_psnr
+    from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
 
     train = view_psnr(neus, capture, sample_views(len(capture.cameras), TRAIN_VIEWS_SCORED))
     held = {}

@@ -35,17 +35,18 @@ grid and the networks; `grid_kernel` its CPU lookup), `renderer` (the model boun
 rays, occupancy, volume rendering, mesh export), `fit` (training and the geometry stage).
 """
 
-from vq_mitsuba.geometry.neus.fields import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, HASH_PRIMES, MASKED_GRID,
+from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, HASH_PRIMES, MASKED_GRID,
                                              BackgroundNetwork, ColorNetwork, DenseGrid, NeuSModel, SDFNetwork,
                                              choose_grid, trilinear)
-from vq_mitsuba.geometry.neus.fit import Reconstruction, _check_architecture, rate_spread, reconstruct, train
+from vq_mitsuba.geometry.neus.training import (NeuSTraining, Reconstruction, _check_architecture, rate_spread,
+                                               reconstruct, train)
 from vq_mitsuba.geometry.neus.framing import (bounding_sphere, box_footprint_px, support_from_points,
                                               uses_background_model, well_seen)
 from vq_mitsuba.geometry.neus.hull import _hull_box, carve, hull_sdf
 from vq_mitsuba.geometry.neus.renderer import NeuS, camera_rays, encode_srgb
 
 __all__ = ['COARSE_GRID', 'FINE_GRID', 'FINE_GRID_FROM_PX', 'HASH_PRIMES', 'MASKED_GRID', 'BackgroundNetwork',
-           'ColorNetwork', 'DenseGrid', 'NeuSModel', 'SDFNetwork', 'choose_grid', 'trilinear', 'Reconstruction',
-           '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere', 'box_footprint_px',
+           'ColorNetwork', 'DenseGrid', 'NeuSModel', 'SDFNetwork', 'choose_grid', 'trilinear', 'NeuSTraining',
+           'Reconstruction', '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere', 'box_footprint_px',
            'support_from_points', 'uses_background_model', 'well_seen', '_hull_box', 'carve', 'hull_sdf', 'NeuS',
            'camera_rays', 'encode_srgb']

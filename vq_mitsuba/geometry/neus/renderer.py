@@ -16,7 +16,7 @@ from vq_mitsuba.config import CPU_NEUS_BATCH, NeuSConfig
 from vq_mitsuba.config import check as validate
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.geometry.neus.fields import NeuSModel, choose_grid, trilinear
+from vq_mitsuba.geometry.neus.networks import NeuSModel, choose_grid, trilinear
 from vq_mitsuba.geometry.neus.framing import bounding_sphere, uses_background_model
 from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
 

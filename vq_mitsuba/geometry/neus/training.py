@@ -29,7 +29,7 @@ POINTS_SCALE, POINTS_FAR = 0.05, 0.02
 HISTORY_EVERY = 10  # steps between reads of the losses from the device (and progress-bar updates)
 
 
-def _lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
+def lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
     warm = min(1.0, (step + 1) / max(cfg.warmup, 1))
     cos = 0.5 * (1.0 + math.cos(math.pi * prog))
     return warm * (cfg.lr_end_cosine + (1.0 - cfg.lr_end_cosine) * cos)
@@ -59,10 +59,10 @@ def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress:
     every `callback_every_s` seconds of training (its own time is not counted)."""
 
     with _threads(neus.cfg.threads):
-        return _NeuSFit(neus, run).run(resume, progress, callback, callback_every_s)
+        return NeuSTraining(neus, run).run(resume, progress, callback, callback_every_s)
 
 
-class _NeuSFit:
+class NeuSTraining:
     """NeuS's step, optimiser and checkpoint for the loop skeleton (`vq_mitsuba.run.loop`). The
     finer grid levels fade in with the share of whichever budget runs out first, so a clock-stopped
     run has opened them all; the learning rate follows the step share alone, so a run that the
@@ -146,7 +146,7 @@ class _NeuSFit:
         cfg, neus = self.cfg, self.neus
         lw = neus.level_weights(p.share)
         for group in self.optim.param_groups:
-            group["lr"] = group["base_lr"] * _lr_factor(cfg, p.step, p.step_share)
+            group["lr"] = group["base_lr"] * lr_factor(cfg, p.step, p.step_share)
         idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen, device=self.device)
         o, d = neus.rays_o[idx], neus.rays_d[idx]
         near, far = neus.intervals(o, d)
