@@ -34,8 +34,8 @@ from pathlib import Path
 from provenance import command_line, provenance, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
-GPU_TESTS = ["tests/test_geometry.py", "tests/test_fit.py", "tests/test_rendering.py"]
-QUICK_TESTS = ["tests/test_device.py"]
+GPU_TESTS = ["tests/geometry/test_geometry.py", "tests/engine/test_fit.py", "tests/render/test_rendering.py"]
+QUICK_TESTS = ["tests/geometry/test_device.py"]
 # (make-scene options, fit settings, eval options) of a full check and of --quick
 FULL = (["--n-train", "100", "--n-test", "8"], [], [])
 QUICK = (["--n-train", "8", "--n-test", "2", "--spp", "8"],

@@ -1,5 +1,5 @@
 """The stress suite: kill -9 at random points of fits followed by --resume, lighting and exposure
-extremes on a fitted run, and the capture-loader fuzz (tests/test_fuzz_captures.py: NeRF json,
+extremes on a fitted run, and the capture-loader fuzz (tests/data/test_fuzz_captures.py: NeRF json,
 Mitsuba XML, image layouts, COLMAP text and binary, NeuS/IDR) with many examples per loader.
 Prints what was tried, NaN/Inf found, tracebacks, and how the resumes went; writes JSON.
 

@@ -1,5 +1,5 @@
 """Import an exported .glb into Blender and render one view with Cycles under the exported
-envmap (run with .venv-cycles/bin/python by tests/test_export.py, not imported by pytest).
+envmap (run with .venv-cycles/bin/python by tests/export/test_export.py, not imported by pytest).
 
     blender_glb.py JOB.json    JOB: glb, envmap, camera {name, transform_matrix, camera_angle_x,
                                width, height} (Blender world, OpenGL axes), samples, max_bounces, output

@@ -1,7 +1,10 @@
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))  # tests import their helpers (tiny_scene) directly
+# Tests import their helpers (tiny_scene) and, across the package folders that mirror vq_mitsuba's,
+# each other's (test_ui's requests) directly.
+sys.path[:0] = [str(Path(__file__).parent)] + sorted(str(d) for d in Path(__file__).parent.iterdir()
+                                                     if d.is_dir() and not d.name.startswith((".", "_")))
 
 
 import pytest  # noqa: E402

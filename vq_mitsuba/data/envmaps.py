@@ -12,7 +12,7 @@ A unit direction d = (x, y, z) in Blender world has
 so the image centre (u, v) = (0.5, 0.5) looks along +X, u = 0.25 along +Y, u = 0.75 along -Y and
 the left/right edges along -X. This is Cycles' `direction_to_equirectangular` (whose v counts from
 the bottom) and it is what Mitsuba's `envmap` emitter does with
-`to_world = BLENDER_ENV_TO_WORLD` (checked numerically in tests/test_envmaps.py).
+`to_world = BLENDER_ENV_TO_WORLD` (checked numerically in tests/data/test_envmaps.py).
 
 Texel positions. Mitsuba interpolates a W x H map bilinearly with texel column j centred at
 u = (j + 0.5) / W (wrapping around), but texel row i centred at v = i / (H - 1): the top row sits

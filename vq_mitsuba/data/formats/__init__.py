@@ -2,7 +2,7 @@
 
 A format module names its layout in its docstring and is a `CaptureFormat`: a `PosedFormat` when
 POSED, else an `UnposedFormat` (its NOUN, SEQUENTIAL, `pose_inputs` and `views_into` give the pose
-stage what it needs); `tests/test_formats_conform.py` checks every registered one. It defines:
+stage what it needs); `tests/data/test_formats_conform.py` checks every registered one. It defines:
 
     KIND           the name `capture_kind` gives it ("xml", "json", "idr", "llff", "colmap", ...)
     SUFFIXES       the file suffixes it reads (empty for a folder)

@@ -9,7 +9,7 @@ pass, and its backward adds straight into the table's gradient.
 It is compiled on first use with the system's C compiler into the user's cache folder
 (`$XDG_CACHE_HOME/vq-mitsuba`, keyed by the source's hash) and loaded with ctypes. Where that cannot
 be done (no compiler), on other devices or dtypes, and when the points need a gradient, the torch
-lookup runs instead: the same arithmetic (tests/test_geometry.py compares the two).
+lookup runs instead: the same arithmetic (tests/geometry/test_geometry.py compares the two).
 """
 
 from __future__ import annotations

@@ -219,7 +219,7 @@ class SDFNetwork(nn.Module):
         """(SDF, features, SDF gradient in p) at data points p, the gradient in closed form (the
         MLP's chain rule and the grid's Jacobian) as a graph in the parameters: its eikonal loss
         back-propagates with first derivatives only, faster than autograd's double backward and the
-        same to rounding (tests/test_geometry.py)."""
+        same to rounding (tests/geometry/test_geometry.py)."""
         enc, jac = self.encoding(p, level_weights, jacobian=True)
         a1 = self.l1(torch.cat([p, enc], -1))
         beta = self.act.beta  # softplus(beta x)' = sigmoid(beta x), 1 to rounding past its threshold

@@ -20,7 +20,7 @@ from vq_mitsuba.export.files import Y_UP_TO_BLENDER, envmap_for_blender, export_
 from vq_mitsuba.export.formats import _planned_files, export_run
 from vq_mitsuba.render.views import Renderer
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 VALIDATOR = ROOT / ".node" / "node_modules" / "gltf-validator"
 
 # Renders the first sensor named NAME of an exported scene with Mitsuba alone: no vq_mitsuba.

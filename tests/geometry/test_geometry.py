@@ -512,7 +512,7 @@ def test_cli_geometry_reports_bad_input(tmp_path, capsys):
     from vq_mitsuba.cli import main
 
     no_alpha = _write_json_capture(tmp_path / "rgb", with_alpha=False)
-    # (neus.background auto would reconstruct it without masks: tests/test_maskfree.py)
+    # (neus.background auto would reconstruct it without masks: tests/geometry/test_maskfree.py)
     assert main(["geometry", str(no_alpha), "-o", str(tmp_path / "run"), "--quiet",
                  "--set", "neus.background=masks"]) == 2
     err = capsys.readouterr().err

@@ -109,7 +109,7 @@ def test_describe_and_markdown_list_every_key_with_its_range():
 
 def test_the_configuration_doc_is_markdown():
     """docs/configuration.md is `python -m vq_mitsuba.config > docs/configuration.md`: regenerate it."""
-    doc = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
+    doc = Path(__file__).resolve().parents[2] / "docs" / "configuration.md"
     assert doc.read_text() == markdown()
 
 

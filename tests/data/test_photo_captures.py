@@ -291,7 +291,7 @@ def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
 
 
 def test_reconstruction_refused_without_masks_says_what_is_needed(tmp_path, capsys):
-    """With neus.background masks (auto reconstructs without them: tests/test_maskfree.py)."""
+    """With neus.background masks (auto reconstructs without them: tests/geometry/test_maskfree.py)."""
     from vq_mitsuba.cli import main
     from vq_mitsuba.data.imageio import write_png
     from vq_mitsuba.data.formats.idr import write_idr

@@ -15,7 +15,7 @@ from vq_mitsuba.geometry.neus import training as neus_fit
 
 from test_geometry import small_cfg, sphere_capture
 
-NEUS = Path(__file__).resolve().parent.parent / "vq_mitsuba" / "geometry" / "neus"
+NEUS = Path(__file__).resolve().parents[2] / "vq_mitsuba" / "geometry" / "neus"
 FACTORIES = {"rand", "randn", "randint", "zeros", "ones", "empty", "full", "arange", "tensor", "linspace"}
 
 

@@ -70,7 +70,7 @@ def test_configuration_doc_is_generated_from_the_config():
 
     from vq_mitsuba.config import describe, markdown
 
-    doc = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
+    doc = Path(__file__).resolve().parents[2] / "docs" / "configuration.md"
     assert doc.read_text() == markdown()
     keys = [line for line in describe() if line.startswith("  ")]
     assert all(line.split(": ", 1)[1].strip() for line in keys)  # every key says what it does, on one line

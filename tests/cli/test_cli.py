@@ -280,7 +280,7 @@ def test_the_tools_own_warnings_go_to_stderr(monkeypatch, capsys):
 
 def test_the_command_line_manual_is_current():
     """docs/cli.md is `python -m vq_mitsuba.cli --manual > docs/cli.md`: regenerate it."""
-    doc = Path(__file__).resolve().parent.parent / "docs" / "cli.md"
+    doc = Path(__file__).resolve().parents[2] / "docs" / "cli.md"
     assert doc.read_text() == cli.manual()
     assert all(f"## `vq-mitsuba {name}`" in doc.read_text() for name in _subparsers())
 

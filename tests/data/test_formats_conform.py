@@ -81,7 +81,7 @@ def test_no_module_outside_the_formats_branches_on_a_format():
     format means is asked of its module (POSED, NOUN, has_geometry, ...)."""
     import ast
 
-    package = Path(__file__).resolve().parents[1] / "vq_mitsuba"
+    package = Path(__file__).resolve().parents[2] / "vq_mitsuba"
     kinds = {fmt.KIND for fmt in FORMATS}
     found = []
     for path in package.rglob("*.py"):

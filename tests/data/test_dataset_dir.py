@@ -9,7 +9,7 @@ import pytest
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.errors import InputError
 
-PACKAGE = Path(__file__).resolve().parent.parent / "vq_mitsuba"
+PACKAGE = Path(__file__).resolve().parents[2] / "vq_mitsuba"
 # Names a dataset shares with other layouts, which their own modules spell: the capture formats'
 # files (transforms_train.json, scene.xml, mesh.ply, images/), glTF's "meshes", the renderer's
 # "relit" maps, the UI's "envmaps", a split called "train" and the Cycles worker's job.json.

@@ -1,6 +1,6 @@
 """The prose docs against the code: every command line they show uses options its command has,
 every `section.key` they name is a config key, and every default their key tables give is the
-config's. (docs/cli.md and docs/configuration.md are generated; tests/test_cli.py holds them.)"""
+config's. (docs/cli.md and docs/configuration.md are generated; tests/cli/test_cli.py holds them.)"""
 
 import argparse
 import re
@@ -11,7 +11,7 @@ import pytest
 from vq_mitsuba.cli import build_parser
 from vq_mitsuba.config import load_config, to_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PROSE = [ROOT / "README.md"] + [p for p in sorted((ROOT / "docs").glob("*.md"))
                                 if p.name not in ("cli.md", "configuration.md")]
 FILE_SUFFIXES = (".pt", ".json", ".exr", ".png", ".hdr", ".py", ".ply", ".yaml", ".jpg")
