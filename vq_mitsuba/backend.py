@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 
 import mitsuba as mi
 import torch
@@ -152,20 +153,29 @@ class shading_threads:
         return False
 
 
-def import_pycolmap():
-    """pycolmap, imported without letting it take the process's SIGINT and SIGTERM: its glog
-    installs a failure handler that prints a stack dump and kills the process, in place of the
-    handlers a command set (which checkpoint, release the run's lock and exit 130 / 143)."""
+@contextmanager
+def own_signal_handlers():
+    """The process's SIGINT and SIGTERM handlers as they were before the block, whatever a library
+    installed inside it: pycolmap's glog and ray.init put in handlers that print a stack dump and
+    kill the process, in place of a command's (which checkpoint, release the run's lock and exit
+    130 / 143). Only the main thread sets handlers; elsewhere nothing changes."""
     import signal
     import threading
 
     main = threading.current_thread() is threading.main_thread()
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
-    import pycolmap
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
-    for sig, handler in before.items():
-        if handler is not None:
-            signal.signal(sig, handler)
+
+def import_pycolmap():
+    """pycolmap, imported without letting its glog take the process's signals (`own_signal_handlers`)."""
+    with own_signal_handlers():
+        import pycolmap
     return pycolmap
 
 

@@ -22,7 +22,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -247,9 +246,9 @@ def check_output(out: Path) -> dict:
 def _start_ray(address: str | None, cpus: int | None, threads: int):
     """Ray, joined at `address` or started on this machine's cores; the command's SIGINT and SIGTERM
     handlers are kept (ray.init installs its own, which end the process with a stack dump)."""
-    import signal
-
     import ray
+
+    from vq_mitsuba.backend import own_signal_handlers
 
     if ray.is_initialized():
         return ray, False
@@ -257,22 +256,18 @@ def _start_ray(address: str | None, cpus: int | None, threads: int):
     if not address and threads > cores:
         raise InputError(None, f"--threads-per-run {threads}: this machine has {cores} cores, so no run could "
                                f"ever start; use at most {cores} (or --address to join a cluster)")
-    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} \
-        if threading.current_thread() is threading.main_thread() else {}
     try:
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=cores, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 ** 2)
+        with own_signal_handlers():
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                ray.init(num_cpus=cores, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=80 * 1024 ** 2)
     except (ConnectionError, ValueError, RuntimeError, TimeoutError) as exc:
         ray.shutdown()
         what = f"--address {address}" if address else "Ray on this machine"
         first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else type(exc).__name__
         raise InputError(None, f"{what}: Ray could not start or connect ({first})") from None
-    finally:
-        for sig, handler in before.items():
-            if handler is not None:
-                signal.signal(sig, handler)
     return ray, True
 
 

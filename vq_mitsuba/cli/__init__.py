@@ -130,10 +130,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt as exc:
-        resume = {"fit": "; the last checkpoint is kept (continue with `vq-mitsuba fit ... --resume`)",
-                  "geometry": "; the last checkpoint is kept (continue with `vq-mitsuba geometry ... --resume`)",
-                  "batch": "; finished runs and checkpoints are kept (run the same command again to resume)"}
-        print("interrupted" + resume.get(args.command, ""), file=sys.stderr)
+        kept = {"batch": "; finished runs and checkpoints are kept (run the same command again to resume)"}
+        kept.update({c: f"; the last checkpoint is kept (continue with `vq-mitsuba {c} ... --resume`)"
+                     for c in ("fit", "geometry")})
+        print("interrupted" + kept.get(args.command, ""), file=sys.stderr)
         from vq_mitsuba.run.loop import stop_status
 
         return stop_status(exc)  # 130 for SIGINT, 143 for SIGTERM

@@ -196,11 +196,11 @@ def _resume_point(run: RunDir, capture: Capture, cfg: Config) -> tuple[dict | No
     # nothing to train: config.yaml keeps matching the checkpoint
     if run.fit_summary().get("iterations") == done:
         if cfg.residual.iterations > 0 and run.residual_state(done) is None:
-            messages.note(f"{run.dir}: already fitted ({done} iterations); its residual is missing or of an earlier "
-                  "version: fitting it again")
+            messages.note(f"{run.dir}: already fitted ({done} iterations); its residual is missing or of an "
+                          "earlier version: fitting it again")
         else:
-            messages.note(f"{run.dir}: already fitted ({done} iterations; train.iterations={cfg.train.iterations} "
-                  "asks for no more): nothing to do, the run is unchanged")
+            messages.note(f"{run.dir}: already fitted ({done} iterations; train.iterations="
+                          f"{cfg.train.iterations} asks for no more): nothing to do, the run is unchanged")
             return None, cfg
     discrete = state.get("discrete")
     if cfg.vq.enabled and not (isinstance(discrete, dict) and bool(discrete.get("initialised", False))):

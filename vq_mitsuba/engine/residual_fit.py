@@ -168,6 +168,7 @@ def residual_stage(run: RunDir, scene, model, pool: PixelPool, env: torch.Tensor
     run.save_residual(field.state_dict(), step)
     info["seconds"] = time.perf_counter() - t0  # the prediction's render included
     if math.isfinite(info["psnr_check_hits_before"]) and math.isfinite(info["psnr_check_hits_after"]):
-        messages.note(f"residual: training hits {info['psnr_check_hits_before']:.2f} -> {info['psnr_check_hits_after']:.2f} "
-              f"dB PSNR (physically based -> with the residual), {info['seconds']:.1f} s")
+        messages.note(f"residual: training hits {info['psnr_check_hits_before']:.2f} -> "
+                      f"{info['psnr_check_hits_after']:.2f} dB PSNR (physically based -> with the residual), "
+                      f"{info['seconds']:.1f} s")
     return info

@@ -104,10 +104,10 @@ class Trainer:
                                                            cfg.train.pixel_jitter, cfg.train.seed, cfg.train.max_hits)
         stats = self.pool_stats
         if stats["hits_per_pixel"] < max(cfg.train.pixel_jitter, 1) or stats["pixel_share"] < 1.0:
-            messages.note(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} hit(s) each "
-                  f"instead of {max(cfg.train.pixel_jitter, 1)}"
-                  + (f", {100 * stats['pixel_share']:.0f} % of them" if stats["pixel_share"] < 1.0 else "")
-                  + f" (train.max_hits {cfg.train.max_hits:,})")
+            messages.note(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} "
+                          f"hit(s) each instead of {max(cfg.train.pixel_jitter, 1)}"
+                          + (f", {100 * stats['pixel_share']:.0f} % of them" if stats["pixel_share"] < 1.0 else "")
+                          + f" (train.max_hits {cfg.train.max_hits:,})")
         if len(self.pool) == 0:
             raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh "
                                              "and the alpha masks")
@@ -387,11 +387,8 @@ class Trainer:
             if reached or grows:
                 self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
                                          "reason": why})
-                self._say(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
+                messages.note(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
         return min(want, self.env_cap)
-
-    def _say(self, text: str) -> None:
-        messages.note(text)
 
     def train_step(self, s: StepSchedule) -> tuple[bool, float, float]:
         """One optimisation step; (finite, loss, sRGB MSE of the continuous branch). A step whose
@@ -466,7 +463,7 @@ class Trainer:
         self._clock = loop.clock
         self._phase = self._stage()
         for name in ("bounce",):
-            self._say(f"{name} {self.decisions[name]['choice']}: {self.decisions[name]['reason']}")
+            messages.note(f"{name} {self.decisions[name]['choice']}: {self.decisions[name]['reason']}")
         with shading_threads():
             result = loop.run()
         if result.stopped_by_time:
@@ -532,7 +529,7 @@ class Trainer:
             self.pace.new_phase()
         if finite and self.pace.due(self.step):
             if self.pace.observe(self.step, self.held_loss()):
-                self._say(f"step {self.step}: the held-aside loss of the last {skips.STOP_WINDOW} measurements is "
+                messages.note(f"step {self.step}: the held-aside loss of the last {skips.STOP_WINDOW} measurements is "
                           f"not {100 * skips.STOP_TOLERANCE:g} % below the {skips.STOP_WINDOW} before; the schedule "
                           f"runs {self.pace.rate}x from here")
         if not finite:

@@ -197,8 +197,8 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     t0 = time.perf_counter()
     data = _load_test_views(dataset_dir, predictor.world)
     spp = int(spp or predictor.default_spp)
-    bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view", disable=not progress,
-               dynamic_ncols=True)
+    bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view",
+                            disable=not progress)
     preds = _render_fitted_lighting(predictor, data, spp, aa, bar)
     per_view, bc_scales = _image_scores(data, preds, scale_method)
     discrete = _discrete_branch_scores(preds, data.gts, scale_method)

@@ -62,7 +62,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     spp = spp or cfg.render.spp
     rows = []
     for cam, image, alpha in messages.progress(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
-                                  disable=not progress, dynamic_ncols=True):
+                                               disable=not progress):
         out = renderer.render(cam, spp=spp)
         check_finite(out, cam.name)
         mask = alpha > 0.5

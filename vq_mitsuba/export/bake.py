@@ -161,7 +161,7 @@ def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous", prog
     n = len(points)
     values = {i.name: np.zeros((n, i.channels), np.float32) for i in INPUTS}
     ids = np.zeros(n, np.uint8) if fitted.discrete is not None else None
-    for s in messages.progress(range(0, n, CHUNK), desc=f"bake {size}x{size}", disable=not progress, dynamic_ncols=True):
+    for s in messages.progress(range(0, n, CHUNK), desc=f"bake {size}x{size}", disable=not progress):
         pts = torch.as_tensor(points[s:s + CHUNK], device=dev)
         out = fitted.materials_at(pts, discrete=branch == "discrete")
         src = out["discrete"] if branch == "discrete" else out

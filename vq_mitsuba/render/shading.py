@@ -386,9 +386,10 @@ class ShadingScene:
         they go is found by the same rays that shading traces.
         `groups` independent stratified sample sets per point (see `stratified_samples`).
 
-        The material's inputs and env_linear (H, W, 3) may carry torch gradients; the result is differentiable with respect to all of them, except that points
-        where `fixed_light` (N,) is true pass no gradient to the envmap (several materials are
-        shaded in one call, some of them lit by a light they do not train). The bounce light
+        The material's inputs and env_linear (H, W, 3) may carry torch gradients; the result is
+        differentiable with respect to all of them, except that points where `fixed_light` (N,) is
+        true pass no gradient to the envmap (several materials are shaded in one call, some of them
+        lit by a light they do not train). The bounce light
         carries no gradient: neither into `material_fn` nor into the envmap through it.
         """
         n = hits_position.shape[0]

@@ -282,7 +282,7 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     files = view_names([cam.name for cam in cameras])
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
     others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
-    for cam, file_name in zip(messages.progress(cameras, desc="render", disable=not progress, dynamic_ncols=True), files):
+    for cam, file_name in zip(messages.progress(cameras, desc="render", disable=not progress), files):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
         relit = images.pop("relit", [])
         check_finite(images, cam.name)

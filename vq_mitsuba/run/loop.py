@@ -30,13 +30,13 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
-RECEIVED: list[int] = []  # the signals `interrupt_signals` turned into Interrupted, in order
+_last_signal: int | None = None  # the last signal `interrupt_signals` turned into Interrupted
 
 
 def stop_status(exc: KeyboardInterrupt) -> int:
     """The exit status of a command stopped by `exc`: 128 + its signal. A library that caught the
-    Interrupted and raised a KeyboardInterrupt of its own (Ray's wait) is told by RECEIVED."""
-    signum = getattr(exc, "signum", None) or (RECEIVED[-1] if RECEIVED else signal.SIGINT)
+    Interrupted and raised a KeyboardInterrupt of its own (Ray's wait) is told by the last signal."""
+    signum = getattr(exc, "signum", None) or _last_signal or signal.SIGINT
     return 128 + int(signum)
 
 
@@ -50,7 +50,8 @@ def interrupt_signals():
         return
 
     def interrupt(signum, frame):
-        RECEIVED.append(signum)
+        global _last_signal
+        _last_signal = signum
         raise Interrupted(signum)
 
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -175,7 +176,7 @@ class Loop:
         from vq_mitsuba import messages
 
         bar = messages.progress(total=self.budget.steps or None, initial=self.step, desc=self.name,
-                   disable=not self.progress_bar, dynamic_ncols=True)
+                                disable=not self.progress_bar)
         stopped_by_time = stopped_early = False
         try:
             while self._steps_left():

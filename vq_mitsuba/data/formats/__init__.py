@@ -14,12 +14,12 @@ stage what it needs); `tests/data/test_formats_conform.py` checks every register
     points(source)             sparse points and their track lengths (posed formats; the attribute
                                is None where the format has none)
     sphere(source)             the region of interest as (centre, radius) (likewise)
-
     has_geometry(source)       whether the capture brings its own geometry, reading no image
                                (posed formats)
 
 and, where the format has one, `write_capture(...)` (the writer the synthetic scenes use:
-`vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the transforms json, `vq_mitsuba.data.formats.copies` for the photographed formats' copies).
+`vq_mitsuba.synthetic.mitsuba_scenes` for the scene XML and the transforms json,
+`vq_mitsuba.data.formats.copies` for the photographed formats' copies).
 
 Adding a format is one new module and one line in FORMATS. The order matters twice: a capture
 folder resolves to the first FOLDER_FILES entry it holds, walking FORMATS in order (a folder that

@@ -47,6 +47,6 @@ from vq_mitsuba.geometry.neus.renderer import NeuS, camera_rays, encode_srgb
 
 __all__ = ['COARSE_GRID', 'FINE_GRID', 'FINE_GRID_FROM_PX', 'HASH_PRIMES', 'MASKED_GRID', 'BackgroundNetwork',
            'ColorNetwork', 'DenseGrid', 'NeuSModel', 'SDFNetwork', 'choose_grid', 'trilinear', 'NeuSTraining',
-           'Reconstruction', '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere', 'box_footprint_px',
-           'support_from_points', 'uses_background_model', 'well_seen', '_hull_box', 'carve', 'hull_sdf', 'NeuS',
+           'Reconstruction', '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere',
+           'box_footprint_px', 'support_from_points', 'uses_background_model', 'well_seen', '_hull_box', 'carve', 'hull_sdf', 'NeuS',
            'camera_rays', 'encode_srgb']
