@@ -9,10 +9,10 @@
   fused Adam) at its batch of 8192 hits, on random hits of a 2^17-hit pool, as `fit` compiles it
   (`vq_mitsuba.compiled.Compiled`), with the first call's compile time.
 - neus: a NeuS training step (`geometry/neus/training.py: NeuSTraining.loop_step`) on --neus-capture (its auto
-  grid, the occupancy opened at half-way) with the SDF network's closed-form head (the layers after
-  the grid lookup, and the gradient through them) and the compositing weights compiled with dynamic
-  shapes (a ray batch's valid rays and samples vary), against the eager step. The grid lookup stays
-  the C kernel (its ctypes call cannot be traced).
+  grid, the occupancy opened at half-way): the eager step (the rays that meet the hull gathered, the
+  colour network at the samples that count) against `NeuS.training_step` compiled (fixed shapes
+  but the colour network's samples: every ray of the batch, the grid lookup's C kernel a torch
+  operator inside the graph), with the process's CPU time over wall time (cores busy).
 - material: a material step on --material-capture (`Trainer.train_step` in the discrete branch's
   phase) with the continuous material network compiled (static shapes: the step's batch), against
   the eager step.
@@ -98,9 +98,11 @@ def residual_loop(args) -> dict:
 
 
 def neus_loop(args) -> dict:
-    import torch
-    import torch.nn.functional as F
+    import resource
 
+    import torch
+
+    from vq_mitsuba.compiled import Compiled
     from vq_mitsuba.config import CaptureConfig, load_config
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.geometry import neus as module
@@ -112,40 +114,29 @@ def neus_loop(args) -> dict:
     fit = module.NeuSTraining(neus, None)
     fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
     neus.refresh_occupancy(neus.level_weights(0.5))
-    sdf = neus.model.sdf
-    eager_head = sdf.forward_with_gradient
+    compiled = Compiled(neus.training_step, "NeuS's step", data_dependent_shapes=True)
+    cores = {"eager": [], "compiled": []}
 
-    def head(p, enc, jac, base, base_grad, l1w, l1b, ow, ob, beta: float):
-        a1 = F.linear(torch.cat([p, enc], -1), l1w, l1b)
-        o = F.linear(F.softplus(a1, beta=beta), ow, ob)
-        g = (ow[0] * torch.sigmoid(beta * a1)) @ l1w
-        grad = g[:, :3] + (g[:, 3:, None] * jac).sum(1) + base_grad
-        return base + o[:, 0], o[:, 1:], grad
-
-    compiled_head = torch.compile(head, dynamic=True)
-
-    def with_compiled_head(p, level_weights):
-        enc, jac = sdf.encoding(p, level_weights, jacobian=True)
-        base, base_grad = sdf.base(p, gradient=True)
-        return compiled_head(p, enc, jac, base, base_grad, sdf.l1.weight, sdf.l1.bias, sdf.out.weight, sdf.out.bias,
-                             float(sdf.act.beta))
-
-    if sdf.l2 is not None:
-        raise SystemExit("the compiled NeuS head covers one hidden SDF layer (the fine grid's); this capture has two")
-
-    def run(head_fn):
+    def run(name, step_fn):
         def step(i):
-            sdf.forward_with_gradient = head_fn
+            neus.compiled_step = step_fn
+            r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
             fit.loop_step(Progress(step=1000 + i, seconds=0.0, step_share=0.5, time_share=0.5))
+            r1, t1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+            cores[name].append((r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / (t1 - t0))
         return step
 
     t0 = time.perf_counter()
-    run(with_compiled_head)(0)
+    run("compiled", compiled)(0)
     first = time.perf_counter() - t0
-    out = alternate({"eager": run(eager_head), "compiled": run(with_compiled_head)}, args.rounds, args.steps)
-    sdf.forward_with_gradient = eager_head
-    return {"capture": args.neus_capture, "downscale": args.downscale, "grid": neus.grid,
-            "first_compiled_call_s": first, "kept": "eager (the compiled head was slower)", **out}
+    out = alternate({"eager": run("eager", None), "compiled": run("compiled", compiled)}, args.rounds, args.steps)
+    points = neus.cfg.batch_rays * neus.cfg.n_samples
+    for name in out:
+        out[name]["sample_points_per_s"] = points / (out[name]["median_ms"] / 1000)
+        out[name]["cores_busy"] = statistics.median(cores[name])
+    return {"capture": args.neus_capture, "downscale": args.downscale, "grid": neus.grid, "batch_rays": neus.cfg.batch_rays,
+            "first_compiled_call_s": first, "state": compiled.state,
+            "kept": f"compiled (the default with {module.training.COMPILE_FROM} steps or more to go)", **out}
 
 
 def demo_trainer(capture: str):

@@ -88,7 +88,7 @@ def main() -> None:
         groups[group_of(name)] += ms
     top = sorted(ops.items(), key=lambda kv: -kv[1])[:15]
     floor = groups["matrix products"] + groups["grid lookup"]
-    points = cfg.batch_rays * cfg.n_samples
+    points = neus.cfg.batch_rays * neus.cfg.n_samples  # the batch auto chose
     profiled = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(module.__file__).parent,
                               capture_output=True, text=True).stdout.strip()
     result = {"profiled_commit": profiled, "capture": args.capture, "downscale": args.downscale, "threads": args.threads, "steps": args.steps,

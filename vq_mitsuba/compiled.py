@@ -35,8 +35,11 @@ class Compiled:
     again), or `fn` itself once compiling or a compiled call has failed (warned once).
     `state`: 'pending' before the first call, then 'compiled' or 'eager'."""
 
-    def __init__(self, fn: Callable, name: str):
+    def __init__(self, fn: Callable, name: str, data_dependent_shapes: bool = False):
         self.fn, self.name = fn, name
+        # with data_dependent_shapes, an operation whose output's size depends on values
+        # (`nonzero`) stays inside the graph, its size symbolic, instead of breaking it in two
+        self.data_dependent_shapes = data_dependent_shapes
         self.state, self.reason = "pending", ""
         self._compiled: Callable | None = None
 
@@ -49,7 +52,13 @@ class Compiled:
 
                 _use_cache_dir()
                 self._compiled = torch.compile(self.fn, dynamic=False)
-            out = self._compiled(*args, **kwargs)
+            if self.data_dependent_shapes:
+                import torch._dynamo
+
+                with torch._dynamo.config.patch(capture_dynamic_output_shape_ops=True):
+                    out = self._compiled(*args, **kwargs)
+            else:
+                out = self._compiled(*args, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any compiler failure: the eager function is the answer
             self.fallback(exc)
             return self.fn(*args, **kwargs)

@@ -15,6 +15,7 @@ enough for two CPU cores:
   2^neus.hash_log2 points), with finer levels faded in coarse-to-fine; its SDF gradient is
   computed in closed form, so the eikonal loss back-propagates without a second derivative; on the
   CPU one compiled kernel looks the grid up with its Jacobian and adds its table gradient;
+- a long stage's step runs under `torch.compile` in a fixed-shape form (`NeuS.training_step`);
 - the masks give a visual hull; the object lives in the hull's bounding box (normalised to
   [-1, 1]^3), the SDF starts as the hull's smoothed signed distance (or a sphere), and samples are
   only placed where the ray crosses the occupancy grid: from its entry into the (dilated) hull to

@@ -31,9 +31,9 @@ typedef struct {
     int64_t hash_mask;
     const float *level_weights;
     float *feats;       /* forward: (n, levels * features) */
-    float *jac;         /* forward: (n, levels * features, 3) or NULL */
+    float *jac;         /* forward: (n, 3, levels * features) or NULL */
     const float *grad_feats; /* backward: (n, levels * features) */
-    const float *grad_jac;   /* backward: (n, levels * features, 3) or NULL */
+    const float *grad_jac;   /* backward: (n, 3, levels * features) or NULL */
     float *grad_table;  /* backward: (rows, features), zeroed and accumulated into */
     int64_t rows;       /* the table's row count */
     int64_t begin, end; /* forward: this thread's points [begin, end); backward: its levels begin, begin + end, ... */
@@ -113,11 +113,11 @@ static void *forward_job(void *arg) {
                 float *out = job->feats + (n * L + l) * F;
                 for (int64_t k = 0; k < F; ++k) out[k] = acc[k][0];
                 if (job->jac) {
-                    float *j = job->jac + (n * L + l) * F * 3;
+                    float *j = job->jac + n * 3 * L * F + l * F;
                     for (int64_t k = 0; k < F; ++k) {
-                        j[3 * k] = acc[k][1];
-                        j[3 * k + 1] = acc[k][2];
-                        j[3 * k + 2] = acc[k][3];
+                        j[k] = acc[k][1];
+                        j[L * F + k] = acc[k][2];
+                        j[2 * L * F + k] = acc[k][3];
                     }
                 }
             }
@@ -147,12 +147,12 @@ static void *backward_job(void *arg) {
             for (int64_t b = 0; b < m; ++b) {
                 const int64_t n = n0 + b;
                 const float *gf = job->grad_feats + (n * L + l) * F;
-                const float *gj = job->grad_jac ? job->grad_jac + (n * L + l) * F * 3 : NULL;
+                const float *gj = job->grad_jac ? job->grad_jac + n * 3 * L * F + l * F : NULL;
                 for (int c = 0; c < 8; ++c) {
                     float *g = job->grad_table + rows[b][c] * F;
                     for (int64_t k = 0; k < F; ++k) {
                         float s = w[b][c][0] * gf[k];
-                        if (gj) s += w[b][c][1] * gj[3 * k] + w[b][c][2] * gj[3 * k + 1] + w[b][c][3] * gj[3 * k + 2];
+                        if (gj) s += w[b][c][1] * gj[k] + w[b][c][2] * gj[L * F + k] + w[b][c][3] * gj[2 * L * F + k];
                         g[k] += s;
                     }
                 }

@@ -100,7 +100,7 @@ def usable(table: torch.Tensor, points: torch.Tensor, features: int) -> bool:
     """Whether the kernel can do this lookup: float32 CPU tensors, points that need no gradient."""
     return (table.device.type == "cpu" and points.device.type == "cpu" and table.dtype == torch.float32
             and points.dtype == torch.float32 and not points.requires_grad and features <= MAX_FEATURES
-            and _load() is not None)
+            and (_lib if _tried else _load()) is not None)  # no lock once loaded: torch.compile traces this
 
 
 class Layout:
@@ -118,58 +118,80 @@ def _ptr(t: torch.Tensor | None) -> int | None:
     return None if t is None else t.data_ptr()
 
 
-def _forward(table, points, layout: Layout, level_weights, jacobian: bool):
-    n, features = len(points), table.shape[1]
-    feats = torch.empty(n, layout.levels * features, device="cpu")
-    jac = torch.empty(n, layout.levels * features, 3, device="cpu") if jacobian else None
-    code = _lib.grid_forward(_ptr(table), features, _ptr(points), n, layout.levels, _ptr(layout.res),
-                             _ptr(layout.offsets), _ptr(layout.hashed), layout.hash_mask, _ptr(level_weights),
-                             _ptr(feats), _ptr(jac), torch.get_num_threads())
+def _forward(table, points, res, offsets, hashed, hash_mask: int, level_weights, jacobian: bool):
+    n, features, levels = len(points), table.shape[1], len(res)
+    feats = torch.empty(n, levels * features, device="cpu")
+    jac = torch.empty(n, 3, levels * features, device="cpu") if jacobian else None
+    code = _lib.grid_forward(_ptr(table), features, _ptr(points), n, levels, _ptr(res), _ptr(offsets), _ptr(hashed),
+                             hash_mask, _ptr(level_weights), _ptr(feats), _ptr(jac), torch.get_num_threads())
     if code:
         raise RuntimeError(f"grid_forward failed ({code})")
     return feats, jac
 
 
-class _Lookup(torch.autograd.Function):
-    """Features (and their Jacobian in the points) of a grid table at data points; the gradient
-    flows to the table only."""
+# The lookup is a torch operator (torch.library), so that `torch.compile` keeps a step that calls it
+# in one graph: the kernel is opaque to the compiler, its output shapes are declared by `_shapes`.
+@torch.library.custom_op("vq_mitsuba::grid_lookup", mutates_args=(), device_types="cpu")
+def _lookup_op(table: torch.Tensor, points: torch.Tensor, res: torch.Tensor, offsets: torch.Tensor,
+               hashed: torch.Tensor, hash_mask: int, level_weights: torch.Tensor,
+               jacobian: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    feats, jac = _forward(table.contiguous(), points.contiguous(), res, offsets, hashed, hash_mask,
+                          level_weights.contiguous(), jacobian)
+    return feats, jac if jacobian else feats.new_empty(0)
 
-    @staticmethod
-    def forward(ctx, table, points, layout, level_weights, jacobian):
-        feats, jac = _forward(table, points, layout, level_weights, jacobian)
-        ctx.save_for_backward(points, level_weights)
-        ctx.layout, ctx.shape = layout, table.shape
-        if jacobian:
-            return feats, jac
-        return feats
 
-    @staticmethod
-    def backward(ctx, grad_feats, grad_jac=None):
-        points, level_weights = ctx.saved_tensors
-        layout = ctx.layout
-        grad_table = torch.empty(ctx.shape, device="cpu")  # the kernel zeroes it
-        gf = (torch.zeros(len(points), layout.levels * ctx.shape[1], device="cpu") if grad_feats is None
-              else grad_feats.contiguous())
-        gj = None if grad_jac is None else grad_jac.contiguous()
-        code = _lib.grid_backward(ctx.shape[0], ctx.shape[1], _ptr(points), len(points), layout.levels, _ptr(layout.res),
-                                  _ptr(layout.offsets), _ptr(layout.hashed), layout.hash_mask, _ptr(level_weights),
-                                  _ptr(gf), _ptr(gj), _ptr(grad_table), torch.get_num_threads())
-        if code:
-            raise RuntimeError(f"grid_backward failed ({code})")
-        return grad_table, None, None, None, None
+@_lookup_op.register_fake
+def _shapes(table, points, res, offsets, hashed, hash_mask, level_weights, jacobian):
+    k = res.shape[0] * table.shape[1]
+    return points.new_empty(points.shape[0], k), points.new_empty((points.shape[0], 3, k) if jacobian else (0,))
+
+
+@torch.library.custom_op("vq_mitsuba::grid_lookup_backward", mutates_args=(), device_types="cpu")
+def _backward_op(rows: int, features: int, points: torch.Tensor, res: torch.Tensor, offsets: torch.Tensor,
+                 hashed: torch.Tensor, hash_mask: int, level_weights: torch.Tensor, grad_feats: torch.Tensor,
+                 grad_jac: torch.Tensor) -> torch.Tensor:
+    grad_table = torch.empty(rows, features, device="cpu")  # the kernel zeroes it
+    gf, gj = grad_feats.contiguous(), (grad_jac.contiguous() if grad_jac.numel() else None)
+    code = _lib.grid_backward(rows, features, _ptr(points), len(points), len(res), _ptr(res), _ptr(offsets),
+                              _ptr(hashed), hash_mask, _ptr(level_weights), _ptr(gf), _ptr(gj), _ptr(grad_table),
+                              torch.get_num_threads())
+    if code:
+        raise RuntimeError(f"grid_backward failed ({code})")
+    return grad_table
+
+
+@_backward_op.register_fake
+def _backward_shape(rows, features, points, res, offsets, hashed, hash_mask, level_weights, grad_feats, grad_jac):
+    return grad_feats.new_empty(rows, features)
+
+
+def _save(ctx, inputs, output):
+    table, points, res, offsets, hashed, hash_mask, level_weights, jacobian = inputs
+    ctx.save_for_backward(points, res, offsets, hashed, level_weights)
+    ctx.hash_mask, ctx.rows, ctx.features, ctx.jacobian = hash_mask, table.shape[0], table.shape[1], jacobian
+
+
+def _table_gradient(ctx, grad_feats, grad_jac):
+    """The gradient flows to the table only (the points are data)."""
+    points, res, offsets, hashed, level_weights = ctx.saved_tensors
+    if grad_feats is None:
+        grad_feats = points.new_zeros(len(points), len(res) * ctx.features)
+    if grad_jac is None or not ctx.jacobian:
+        grad_jac = points.new_empty(0)
+    grad = _backward_op(ctx.rows, ctx.features, points, res, offsets, hashed, ctx.hash_mask, level_weights,
+                        grad_feats, grad_jac)
+    return grad, None, None, None, None, None, None, None
+
+
+_lookup_op.register_autograd(_table_gradient, setup_context=_save)
 
 
 def lookup(table: torch.Tensor, points: torch.Tensor, layout: Layout, level_weights: torch.Tensor,
            jacobian: bool = False):
     """Features (N, L * F) of `table` (rows, F) at points (N, 3) in [-1, 1]^3, each level scaled by
-    its weight, and with `jacobian` their derivatives in the points (N, L * F, 3). Call only where
+    its weight, and with `jacobian` their derivatives in the points (N, 3, L * F). Call only where
     `usable` says so."""
-    points = points.contiguous()
-    level_weights = level_weights.to(torch.float32).contiguous()
-    if not table.is_contiguous():
-        table = table.contiguous()
-    if table.requires_grad and torch.is_grad_enabled():
-        return _Lookup.apply(table, points, layout, level_weights, jacobian)
-    with torch.no_grad():
-        feats, jac = _forward(table.detach(), points, layout, level_weights, jacobian)
+    level_weights = level_weights.to(torch.float32)
+    feats, jac = _lookup_op(table, points, layout.res, layout.offsets, layout.hashed, layout.hash_mask,
+                            level_weights, jacobian)
     return (feats, jac) if jacobian else feats

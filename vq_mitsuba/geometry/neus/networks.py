@@ -146,30 +146,32 @@ class DenseGrid(nn.Module):
             dense = torch.where(self.hashed_l[None, :, None], h & self.hash_mask, dense)
         return self.offsets[None, :, None] + dense
 
-    def forward(self, p: torch.Tensor, level_weights: list[float], jacobian: bool = False):
-        """Features (N, L * F) at points (N, 3), each level scaled by its weight; with `jacobian`
-        also their derivatives in the points (N, L * F, 3), computed in closed form: the points
+    def forward(self, p: torch.Tensor, level_weights, jacobian: bool = False):
+        """Features (N, L * F) at points (N, 3), each level scaled by its weight (a list or a
+        tensor); with `jacobian` also their derivatives in the points (N, 3, L * F), computed in closed form: the points
         are data, so the features and the Jacobian are both linear in the table and the eikonal
         loss needs no second derivative through the lookup. On the CPU the compiled kernel does it
         (`grid_kernel`), elsewhere `forward_torch`."""
         if grid_kernel.usable(self.table, p, self.features):
-            weights = torch.tensor(level_weights, device=p.device)
+            weights = torch.as_tensor(level_weights, dtype=torch.float32, device=p.device)
             return grid_kernel.lookup(self.table, p, self.layout, weights, jacobian)
         return self.forward_torch(p, level_weights, jacobian)
 
-    def forward_torch(self, p: torch.Tensor, level_weights: list[float], jacobian: bool = False):
+    def forward_torch(self, p: torch.Tensor, level_weights, jacobian: bool = False):
         """`forward` in torch operations (any device and dtype, differentiable in the points)."""
         n, levels = len(p), len(self.res)
         res = self.res_l.to(p.dtype)[None, :, None]  # (1, L, 1)
         i0, f, du_dp = _cell(p[:, None, :], res)  # (N, L, 3)
         vals = self.table.index_select(0, self._indices(i0).reshape(-1)).view(n, levels, 8, self.features)
         w = corner_weights(f, du_dp if jacobian else None)  # (N, L, 8, 4 or 1)
-        lw = torch.tensor(level_weights, dtype=p.dtype, device=p.device).view(1, levels, 1, 1)
+        lw = torch.as_tensor(level_weights, dtype=p.dtype, device=p.device).view(1, levels, 1, 1)
         k = w.shape[-1]
         out = torch.bmm(vals.view(n * levels, 8, self.features).transpose(1, 2),
                         (w * lw).view(n * levels, 8, k)).view(n, levels, self.features, k)
         feats = out[..., 0].reshape(n, levels * self.features)
-        return (feats, out[..., 1:].reshape(n, levels * self.features, 3)) if jacobian else feats
+        if not jacobian:
+            return feats
+        return feats, out[..., 1:].reshape(n, levels * self.features, 3).transpose(1, 2)
 
 
 class SDFNetwork(nn.Module):
@@ -201,13 +203,13 @@ class SDFNetwork(nn.Module):
             return (r - self.init_radius, p / r.clamp(min=1e-12)[:, None]) if gradient else r - self.init_radius
         if grid_kernel.usable(self.base_grid, p, 1):
             out = grid_kernel.lookup(self.base_grid, p, self.base_layout, torch.ones(1, device=p.device), gradient)
-            return (out[0][:, 0], out[1][:, 0]) if gradient else out[:, 0]
+            return (out[0][:, 0], out[1][:, :, 0]) if gradient else out[:, 0]
         if not gradient:
             return trilinear(self.base_grid, self.base_res, p)[:, 0]
         value, grad = trilinear(self.base_grid, self.base_res, p, gradient=True)
         return value[:, 0], grad[:, 0]
 
-    def forward(self, p: torch.Tensor, level_weights: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, p: torch.Tensor, level_weights) -> tuple[torch.Tensor, torch.Tensor]:
         h = torch.cat([p, self.encoding(p, level_weights)], -1)
         h = self.act(self.l1(h))
         if self.l2 is not None:
@@ -215,7 +217,7 @@ class SDFNetwork(nn.Module):
         o = self.out(h)
         return self.base(p) + o[:, 0], o[:, 1:]
 
-    def forward_with_gradient(self, p: torch.Tensor, level_weights: list[float]):
+    def forward_with_gradient(self, p: torch.Tensor, level_weights):
         """(SDF, features, SDF gradient in p) at data points p, the gradient in closed form (the
         MLP's chain rule and the grid's Jacobian) as a graph in the parameters: its eikonal loss
         back-propagates with first derivatives only, faster than autograd's double backward and the
@@ -233,7 +235,7 @@ class SDFNetwork(nn.Module):
             g = g * torch.sigmoid(beta * a1)
         g = g @ self.l1.weight  # d sdf / d (p, features)
         base, base_grad = self.base(p, gradient=True)
-        grad = g[:, :3] + (g[:, 3:, None] * jac).sum(1) + base_grad
+        grad = g[:, :3] + (jac * g[:, None, 3:]).sum(-1) + base_grad
         return base + o[:, 0], o[:, 1:], grad
 
 

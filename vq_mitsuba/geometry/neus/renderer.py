@@ -122,6 +122,9 @@ class NeuS:
                 self.sphere_source = None
                 self._setup(capture, cfg, alpha)
         self.surface_points = self._surface_points(cfg)
+        # the training step's fixed-shape form compiled (`training_step` under `vq_mitsuba.compiled`),
+        # or None: every step runs `_foreground` eagerly (NeuSTraining decides)
+        self.compiled_step = None
 
     def _surface_points(self, cfg: NeuSConfig) -> torch.Tensor | None:
         """The sparse points the SDF-is-zero term uses (neus.w_points), in box units on the device:
@@ -346,24 +349,49 @@ class NeuS:
                     cos_anneal: float = 1.0, near=None, far=None) -> dict:
         if near is None or far is None:
             near, far = self.intervals(o, d)
-        valid = far > near + 1e-6
         b = len(o)
+        jitter = (torch.rand(b, n_samples, device=o.device) if perturb
+                  else torch.full((b, n_samples), 0.5, device=o.device))
+        lw = torch.as_tensor(level_weights, dtype=torch.float32, device=o.device)
+        if create_graph and self.compiled_step is not None:  # a training step of fixed shapes
+            rgb, acc, eikonal = self.compiled_step(o, d, near, far, jitter, lw, cos_anneal)
+            return {"rgb": rgb, "acc": acc, "eikonal": eikonal}
+        valid = far > near + 1e-6
         out = {"rgb": o.new_zeros(b, 3), "acc": o.new_zeros(b), "eikonal": o.new_zeros(()),
-               "n_points": 0, "depth": o.new_zeros(b), "normal": o.new_zeros(b, 3)}
+               "depth": o.new_zeros(b), "normal": o.new_zeros(b, 3)}
         if not bool(valid.any()):
             return out
-        ov, dv, nv, fv = o[valid], d[valid], near[valid], far[valid]
-        m = len(ov)
-        jitter = (torch.rand(m, n_samples, device=o.device) if perturb
-                  else torch.full((m, n_samples), 0.5, device=o.device))
+        r = self._samples(o[valid], d[valid], near[valid], far[valid], jitter[valid], lw, cos_anneal, create_graph)
+        out["eikonal"] = r["eikonal"]
+        for key in ("rgb", "acc") if create_graph else ("rgb", "acc", "depth", "normal"):
+            full = torch.zeros_like(out[key])
+            full[valid] = r[key]
+            out[key] = full
+        return out
+
+    def training_step(self, o, d, near, far, jitter, lw, cos_anneal: float = 1.0):
+        """(colour, opacity, eikonal term) of a training batch, every ray kept (fixed shapes but
+        the colour network's samples, no host reads: the form `torch.compile` fuses): a ray that
+        misses the hull weighs nothing and its samples stay out of the eikonal mean; the same
+        values as `_foreground`'s."""
+        valid = (far > near + 1e-6).to(o.dtype)
+        r = self._samples(o, d, near, far, jitter, lw, cos_anneal, True, valid)
+        return r["rgb"], r["acc"], r["eikonal"]
+
+    def _samples(self, o, d, near, far, jitter, lw, cos_anneal, create_graph: bool, valid=None) -> dict:
+        """Stratified samples (jitter (m, n) in [0, 1)) of each ray's interval through the SDF and
+        colour networks, composited: rgb, acc, eikonal and, without create_graph, depth and normal.
+        `valid` (m,) 0 / 1: rays of weight 0 and out of the eikonal mean (fixed shapes); None: every
+        ray counts."""
+        m, n_samples = jitter.shape
         steps = (torch.arange(n_samples, dtype=torch.float32, device=o.device) + jitter) / n_samples
-        z = nv[:, None] + (fv - nv)[:, None] * steps
-        dists = ((fv - nv) / n_samples)[:, None].expand(m, n_samples)
-        pts = (ov[:, None] + dv[:, None] * z[..., None]).reshape(-1, 3)
-        sdf, feat, grad = self.model.sdf_grad(pts, level_weights, create_graph)
+        z = near[:, None] + (far - near)[:, None] * steps
+        dists = ((far - near) / n_samples)[:, None].expand(m, n_samples)
+        pts = (o[:, None] + d[:, None] * z[..., None]).reshape(-1, 3)
+        sdf, feat, grad = self.model.sdf_grad(pts, lw, create_graph)
         sdf = sdf.view(m, n_samples)
         g = grad.view(m, n_samples, 3)
-        true_cos = (dv[:, None] * g).sum(-1)
+        true_cos = (d[:, None] * g).sum(-1)
         iter_cos = -(F.relu(-true_cos * 0.5 + 0.5) * (1.0 - cos_anneal) + F.relu(-true_cos) * cos_anneal)
         inv_s = self.model.inv_s()
         prev_cdf = torch.sigmoid((sdf - iter_cos * dists * 0.5) * inv_s)
@@ -371,21 +399,20 @@ class NeuS:
         alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
         trans = torch.cumprod(torch.cat([alpha.new_ones(m, 1), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
         w = alpha * trans
+        if valid is not None:
+            w = w * valid[:, None]
         normal = F.normalize(g, dim=-1)
-        color = self._sample_colors(w, feat, normal.reshape(-1, 3), dv[:, None].expand(m, n_samples, 3).reshape(-1, 3))
-        rgb = torch.zeros_like(out["rgb"])
-        acc = torch.zeros_like(out["acc"])
-        rgb[valid] = (w[..., None] * color).sum(1)
-        acc[valid] = w.sum(1)
-        out["rgb"], out["acc"] = rgb, acc
-        out["eikonal"] = ((grad.norm(dim=-1) - 1.0) ** 2).mean()
-        out["n_points"] = m * n_samples
+        view = d[:, None].expand(m, n_samples, 3).reshape(-1, 3)
+        color = self._sample_colors(w, feat, normal.reshape(-1, 3), view)
+        eik = (grad.norm(dim=-1) - 1.0) ** 2
+        if valid is None:
+            eikonal = eik.mean()
+        else:
+            eikonal = (eik.view(m, n_samples) * valid[:, None]).sum() / (valid.sum() * n_samples).clamp(min=1.0)
+        out = {"rgb": (w[..., None] * color).sum(1), "acc": w.sum(1), "eikonal": eikonal}
         if not create_graph:
-            depth = torch.zeros_like(out["depth"])
-            depth[valid] = (w * z).sum(1)
-            nrm = torch.zeros_like(out["normal"])
-            nrm[valid] = (w[..., None] * normal).sum(1)
-            out["depth"], out["normal"] = depth, nrm
+            out["depth"] = (w * z).sum(1)
+            out["normal"] = (w[..., None] * normal).sum(1)
         return out
 
     def _sample_colors(self, w: torch.Tensor, feat: torch.Tensor, normal: torch.Tensor,
@@ -393,10 +420,8 @@ class NeuS:
         """The colour network at the samples (m, n) whose compositing weight exceeds COLOR_MIN_WEIGHT
         (black elsewhere): (m, n, 3)."""
         keep = (w.detach() > COLOR_MIN_WEIGHT).reshape(-1).nonzero()[:, 0]
-        color = w.new_zeros(w.numel(), 3)
-        if len(keep):
-            color = color.index_copy(0, keep, self.model.color(feat[keep], normal[keep], view[keep]))
-        return color.view(*w.shape, 3)
+        color = self.model.color(feat[keep], normal[keep], view[keep])
+        return w.new_zeros(w.numel(), 3).index_copy(0, keep, color).view(*w.shape, 3)
 
     @torch.no_grad()
     def render_camera(self, cam, chunk: int = 4096, composite: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from vq_mitsuba.backend import device_record
+from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus import grid_kernel
@@ -27,6 +28,10 @@ from vq_mitsuba.run.run_dir import RunDir, save_torch
 # from its zero set is reported as not taken by the surface.
 POINTS_SCALE, POINTS_FAR = 0.05, 0.02
 HISTORY_EVERY = 10  # steps between reads of the losses from the device (and progress-bar updates)
+# The step runs compiled (`NeuS.training_step` under torch.compile) when at least COMPILE_FROM steps
+# are left: compiling costs about 20 s the first time on 2 cores (a second or two from the cache),
+# a compiled step saves a sixth of the step (benchmarks/results/compiled/).
+COMPILE_FROM = 2000
 
 
 def lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
@@ -88,6 +93,7 @@ class NeuSTraining:
         # HISTORY_EVERY steps, so that a step never waits for the device
         self.pending: list[tuple[int, float, torch.Tensor]] = []
         self.ckpt = run.neus_checkpoint_path if run is not None else None
+        self.compiled: Compiled | None = None
 
     def resume(self) -> None:
         if self.ckpt is None or not self.ckpt.is_file():
@@ -109,6 +115,12 @@ class NeuSTraining:
         torch.set_rng_state(state["torch_rng"].cpu())
         if self.device.type == "cuda" and state.get("cuda_rng") is not None:
             torch.cuda.set_rng_state(state["cuda_rng"].cpu(), self.device)
+
+    def plan_compile(self) -> None:
+        """Run the steps compiled when COMPILE_FROM or more are left."""
+        if self.cfg.iterations - self.step >= COMPILE_FROM:
+            self.compiled = Compiled(self.neus.training_step, "NeuS's step", data_dependent_shapes=True)
+            self.neus.compiled_step = self.compiled
 
     def save(self, p: Progress) -> None:
         self.read_history()
@@ -181,6 +193,7 @@ class NeuSTraining:
         cfg = self.cfg
         if resume:
             self.resume()
+        self.plan_compile()
         budget = Budget(cfg.iterations, cfg.time_limit_s)
         periodic = callback is not None and callback_every_s > 0
         self.loop = Loop("neus", budget, self.loop_step, start_step=self.step, start_seconds=self.elapsed,
@@ -196,7 +209,8 @@ class NeuSTraining:
         finally:
             self.read_history()
         return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
-                "stopped_by_time": result.stopped_by_time}
+                "stopped_by_time": result.stopped_by_time,
+                "step": self.compiled.state if self.compiled is not None else "eager"}
 
 
 def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
@@ -360,6 +374,7 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "config": asdict(neus.cfg),
         "torch_threads": torch.get_num_threads(),
         "grid_lookup": grid_kernel.status(),
+        "training_step": summary["step"],
         "device": device_record(),
     }
     return Reconstruction(mesh, neus, info)
