@@ -29,9 +29,10 @@ from vq_mitsuba.run.run_dir import RunDir, save_torch
 POINTS_SCALE, POINTS_FAR = 0.05, 0.02
 HISTORY_EVERY = 10  # steps between reads of the losses from the device (and progress-bar updates)
 # The step runs compiled (`NeuS.training_step` under torch.compile) when at least COMPILE_FROM steps
-# are left: compiling costs about 20 s the first time on 2 cores (a second or two from the cache),
-# a compiled step saves a sixth of the step (benchmarks/results/compiled/).
-COMPILE_FROM = 2000
+# are left: compiling costs about 15 s the first time on 2 cores (3 s from the cache) and a compiled
+# step saves about a tenth of a 25 ms step, so a shorter stage would not earn back a first compile
+# (benchmarks/results/compiled/).
+COMPILE_FROM = 6000
 
 
 def lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
