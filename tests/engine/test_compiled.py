@@ -83,7 +83,6 @@ def test_a_missing_cxx_compiler_falls_back_to_eager(tmp_path, monkeypatch):
     empty cache (nothing to load instead of compiling)."""
     inductor_config = pytest.importorskip("torch._inductor.config")
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
-    monkeypatch.setattr(inductor_config.cpp, "cxx", (None, str(tmp_path / "no-such-c++")))
     torch._dynamo.reset()
 
     def f(x):
@@ -91,7 +90,9 @@ def test_a_missing_cxx_compiler_falls_back_to_eager(tmp_path, monkeypatch):
 
     x = torch.linspace(-1.0, 1.0, 17)
     step = Compiled(f, "test function")
-    with pytest.warns(Notice, match="test function: torch.compile failed"):
-        out = step(x)
+    # the config's own patch: monkeypatch's undo would delete the key rather than restore it
+    with inductor_config.patch({"cpp.cxx": (None, str(tmp_path / "no-such-c++"))}):
+        with pytest.warns(Notice, match="test function: torch.compile failed"):
+            out = step(x)
     assert step.state == "eager" and torch.equal(out, f(x))
     torch._dynamo.reset()
