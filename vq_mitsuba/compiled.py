@@ -11,6 +11,7 @@ Inductor), the function runs eagerly from then on, after one warning: the same a
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 from typing import Callable
@@ -52,12 +53,10 @@ class Compiled:
 
                 _use_cache_dir()
                 self._compiled = torch.compile(self.fn, dynamic=False)
-            if self.data_dependent_shapes:
-                import torch._dynamo
+            import torch._dynamo
 
-                with torch._dynamo.config.patch(capture_dynamic_output_shape_ops=True):
-                    out = self._compiled(*args, **kwargs)
-            else:
+            with (torch._dynamo.config.patch(capture_dynamic_output_shape_ops=True) if self.data_dependent_shapes
+                  else contextlib.nullcontext()):
                 out = self._compiled(*args, **kwargs)
         except Exception as exc:  # noqa: BLE001 - any compiler failure: the eager function is the answer
             self.fallback(exc)

@@ -20,9 +20,16 @@ DEVICE = {"fit", "geometry", "render", "eval", "export", "ui", "batch"}  # the c
 CONFIG = {"fit", "geometry", "batch"}  # --preset, --config, --set, --help-config of the config system
 
 
-def _subparsers() -> dict[str, argparse.ArgumentParser]:
-    parser = cli.build_parser()
+def _subparsers(parser: argparse.ArgumentParser | None = None) -> dict[str, argparse.ArgumentParser]:
+    parser = parser or cli.build_parser()
     return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _replace_command(monkeypatch, command: str, func) -> None:
+    """`cli.main` runs `func` for `command`, the parser otherwise as built."""
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    _subparsers(parser)[command].set_defaults(func=func)
 
 
 def _option(parser: argparse.ArgumentParser, flag: str):
@@ -188,10 +195,7 @@ def test_library_warnings_are_one_line_each(monkeypatch, capsys):
         KMeans(n_clusters=3, n_init=1).fit(np.zeros((10, 2)))
         return 0
 
-    parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
-    next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["make-scene"].set_defaults(
-        func=command)
+    _replace_command(monkeypatch, "make-scene", command)
     assert cli.main(["make-scene", "demo"]) == 0
     lines = capsys.readouterr().err.splitlines()
     assert lines == ["warning: Palette images with Transparency expressed in bytes should be converted to RGBA images"]
@@ -247,10 +251,7 @@ def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys
     def interrupted(args):
         raise KeyboardInterrupt
 
-    parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
-    _subparsers_of = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-    _subparsers_of[command].set_defaults(func=interrupted)
+    _replace_command(monkeypatch, command, interrupted)
     argv = {"fit": ["fit", "cap"], "geometry": ["geometry", "cap"], "render": ["render", "run", "--cameras", "c"],
             "eval": ["eval", "run"]}[command]
     assert cli.main(argv) == 130
@@ -269,10 +270,7 @@ def test_the_tools_own_warnings_go_to_stderr(monkeypatch, capsys):
         print("result")
         return 0
 
-    parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
-    next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["eval"].set_defaults(
-        func=warns)
+    _replace_command(monkeypatch, "eval", warns)
     assert cli.main(["eval", "run"]) == 0
     captured = capsys.readouterr()
     assert captured.out == "result\n" and captured.err == "warning: the mesh is tiny\n"

@@ -94,7 +94,6 @@ class NeuSTraining:
         # HISTORY_EVERY steps, so that a step never waits for the device
         self.pending: list[tuple[int, float, torch.Tensor]] = []
         self.ckpt = run.neus_checkpoint_path if run is not None else None
-        self.compiled: Compiled | None = None
 
     def resume(self) -> None:
         if self.ckpt is None or not self.ckpt.is_file():
@@ -120,8 +119,7 @@ class NeuSTraining:
     def plan_compile(self) -> None:
         """Run the steps compiled when COMPILE_FROM or more are left."""
         if self.cfg.iterations - self.step >= COMPILE_FROM:
-            self.compiled = Compiled(self.neus.training_step, "NeuS's step", data_dependent_shapes=True)
-            self.neus.compiled_step = self.compiled
+            self.neus.compiled_step = Compiled(self.neus.training_step, "NeuS's step", data_dependent_shapes=True)
 
     def save(self, p: Progress) -> None:
         self.read_history()
@@ -211,7 +209,7 @@ class NeuSTraining:
             self.read_history()
         return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
                 "stopped_by_time": result.stopped_by_time,
-                "step": self.compiled.state if self.compiled is not None else "eager"}
+                "step": "eager" if self.neus.compiled_step is None else self.neus.compiled_step.state}
 
 
 def rate_spread(history: list[dict], window_s: float = 30.0) -> dict | None:
