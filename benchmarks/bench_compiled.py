@@ -110,7 +110,7 @@ def neus_loop(args) -> dict:
 
     torch.set_num_threads(2)
     capture = load_capture(args.neus_capture, options=CaptureConfig(downscale=args.downscale))
-    neus = module.NeuS(capture, load_config(None).neus)
+    neus = module.neus_for(capture, load_config(None).neus)
     fit = module.NeuSTraining(neus, None)
     fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
     neus.refresh_occupancy(neus.level_weights(0.5))
@@ -145,7 +145,8 @@ def demo_trainer(capture: str):
     import tempfile
 
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import load_training_capture
+    from vq_mitsuba.data.captures import open_capture
+    from vq_mitsuba.engine.pipeline import load_training_capture
     from vq_mitsuba.engine.schedule import schedule_at
     from vq_mitsuba.engine.trainer import Trainer
     from vq_mitsuba.run.loop import Progress
@@ -155,7 +156,7 @@ def demo_trainer(capture: str):
     folder = Path(tempfile.mkdtemp())
     run = RunDir(folder / "run")
     run.create()
-    trainer = Trainer(load_training_capture(capture, None, run, cfg), run, cfg)
+    trainer = Trainer(load_training_capture(open_capture(capture, options=cfg.capture), run), run, cfg)
 
     def take_step(progress: float) -> None:
         trainer.train_step(schedule_at(cfg, Progress(trainer.step, 0.0, progress, 0.0)))

@@ -26,7 +26,7 @@ from bench_scenes import figure_text, ensure_dataset, scene_config
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
-from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.pipeline import fit
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -76,12 +76,12 @@ def novel_view_psnr(neus, data: Path, n_views: int) -> dict:
     import torch
 
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus import encode_srgb
+    from vq_mitsuba.geometry.neus import encode_srgb, render_view
 
     test = load_capture(data / "transforms_test.json", mesh=data / "mesh.ply")
     full, masked = [], []
     for k in range(min(n_views, len(test.cameras))):
-        rgb, _ = neus.render_camera(test.cameras[k])
+        rgb, _ = render_view(neus, test.cameras[k])
         gt = encode_srgb(torch.from_numpy(test.images[k])).numpy()
         full.append(psnr(rgb, gt))
         fg = test.alpha[k] > 0.5
@@ -99,7 +99,7 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
 
     from bench_scenes import scene_config
     from vq_mitsuba.eval.evaluate import evaluate
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     earlier = true_mesh_rows(name, args.true_from) if args.true_from else {}
     rows = []
@@ -157,7 +157,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
     from normal_errors import score
     from vq_mitsuba.data.captures import load_capture, load_mesh
     from vq_mitsuba.geometry.mesh import mesh_metrics
-    from vq_mitsuba.geometry.neus import reconstruct
+    from vq_mitsuba.geometry.neus import extract_mesh, reconstruct
     from vq_mitsuba.config import load_config
 
     if args.reuse:  # the earlier run names its dataset
@@ -179,7 +179,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
 
     def checkpoint(neus, step, seconds):
         t = time.perf_counter()
-        m = mesh_metrics(neus.extract_mesh(128), gt, n_points=50000)
+        m = mesh_metrics(extract_mesh(neus, 128)[0], gt, n_points=50000)
         curve.append({"step": step, "train_seconds": round(seconds, 1), "chamfer_rel": m["chamfer_rel"],
                       "normal_consistency": m["normal_consistency"]})
         print(f"[{name}] step {step} at {seconds:.0f} s: Chamfer {100 * m['chamfer_rel']:.3f}% "

@@ -39,7 +39,11 @@ def child(args) -> int:
     the worktree on PYTHONPATH, ahead of the installed package: its vq_mitsuba is imported (checked)."""
     import vq_mitsuba
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import fit
+
+    try:
+        from vq_mitsuba.engine.pipeline import fit
+    except ImportError:  # revisions before the pipeline module's name
+        from vq_mitsuba.engine.fit import fit
 
     if not Path(vq_mitsuba.__file__).resolve().is_relative_to(Path(args.src).resolve()):
         raise SystemExit(f"imported {vq_mitsuba.__file__}, not the revision's copy in {args.src}")

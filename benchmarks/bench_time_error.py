@@ -42,7 +42,7 @@ from pathlib import Path
 from bench_scenes import figure_text, scene_config
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe
-from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.pipeline import fit
 
 REPO = Path(__file__).resolve().parent.parent
 

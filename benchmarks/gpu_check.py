@@ -162,7 +162,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
     from vq_mitsuba.engine.schedule import schedule_at
     from vq_mitsuba.engine.trainer import Trainer
     from vq_mitsuba.geometry.neus.training import NeuSTraining
-    from vq_mitsuba.geometry.neus.renderer import NeuS
+    from vq_mitsuba.geometry.neus.rays import neus_for
     from vq_mitsuba.run.loop import Progress
     from vq_mitsuba.run.run_dir import RunDir
 
@@ -178,7 +178,7 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
            "warmup": warmup, "steps": steps, "neus": [], "fit": []}
     capture = load_capture(scene / "transforms_train.json", split="train")
     for batch in neus_batches:
-        neus = NeuS(capture, replace(cfg.neus, batch_rays=batch))
+        neus = neus_for(capture, replace(cfg.neus, batch_rays=batch))
         fit = NeuSTraining(neus, None)
         fit.loop = type("Clock", (), {"clock": staticmethod(time.perf_counter)})
         neus.refresh_occupancy(neus.level_weights(0.5))

@@ -56,7 +56,7 @@ def main() -> None:
     from vq_mitsuba.run.loop import Progress
 
     # An earlier checkout (PYTHONPATH=ITS_FOLDER) may have NeuS as one module, without the kernel.
-    NeuS = module.NeuS
+    NeuS = getattr(module, "neus_for", None) or module.NeuS  # NeuS took a capture before `neus_for`
     # the training loop's class in this or an earlier layout (one module; fit.py; training.py)
     training_class = getattr(module, "NeuSTraining", None) or getattr(module, "_NeuSFit", None) or module.fit._NeuSFit
     lookup = module.grid_kernel.status() if hasattr(module, "grid_kernel") else "torch lookup"

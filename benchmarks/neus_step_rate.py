@@ -73,16 +73,17 @@ def main() -> None:
 
     from vq_mitsuba.config import CaptureConfig, load_config
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.geometry.neus import training as current_fit, renderer as current_renderer
+    from vq_mitsuba.geometry.neus import rays as current_rays, training as current_fit
     from vq_mitsuba.run.loop import Progress
 
     torch.set_num_threads(args.threads)
     cfg = load_config(None, args.set).neus
     capture = load_capture(args.capture, options=CaptureConfig(downscale=args.downscale))
     fits = {}
-    current = type("Current", (), {"NeuS": current_renderer.NeuS, "NeuSTraining": current_fit.NeuSTraining})
+    current = type("Current", (), {"neus_for": staticmethod(current_rays.neus_for),
+                                   "NeuSTraining": current_fit.NeuSTraining})
     for name, module in (("reference", load_reference(args.ref)), ("current", current)):
-        neus = module.NeuS(capture, cfg)
+        neus = (getattr(module, "neus_for", None) or module.NeuS)(capture, cfg)  # NeuS took a capture before
         # the training loop's class in this or an earlier layout (one module; fit.py; training.py)
         fit_class = getattr(module, "NeuSTraining", None) or getattr(module, "_NeuSFit", None) or module.fit._NeuSFit
         fit = fit_class(neus, None)

@@ -36,7 +36,7 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
 
     from vq_mitsuba.config import CaptureConfig, NeuSConfig
     from vq_mitsuba.data.captures import load_capture, split_indices
-    from vq_mitsuba.geometry.neus import NeuS
+    from vq_mitsuba.geometry.neus import neus_for, render_view
     from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
 
     options = CaptureConfig(downscale=downscale, holdout=holdout)
@@ -45,7 +45,7 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
     state = torch.load(run / "neus.pt", map_location="cpu", weights_only=False)
     names = {f.name for f in dataclasses.fields(NeuSConfig)}
     cfg = NeuSConfig(**{k: v for k, v in state["config"].items() if k in names})
-    neus = NeuS(train, cfg)  # the same box and hull as training: the training views
+    neus = neus_for(train, cfg)  # the same box and hull as training: the training views
     neus.model.load_state_dict(state["model"])
     neus.refresh_occupancy([1.0] * cfg.levels)
     kept = split_indices(len(every.cameras), holdout, "train")
@@ -54,7 +54,7 @@ def score(capture_path: str, run: Path, downscale: int, holdout: int, train_view
     out = {"train_views": view_psnr(neus, every, sample), "holdout_views": view_psnr(neus, every, held),
            "holdout_rendered_share": {}}
     for v in held:
-        _, acc = neus.render_camera(every.cameras[v])
+        _, acc = render_view(neus, every.cameras[v])
         out["holdout_rendered_share"][every.cameras[v].name] = float((acc[every.alpha[v] > 0.5] > 0.5).mean())
     return out
 

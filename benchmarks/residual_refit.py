@@ -30,7 +30,8 @@ def main(argv: list[str] | None = None) -> int:
     record = provenance()
 
     from vq_mitsuba.cli import main as cli_main
-    from vq_mitsuba.engine.fit import load_training_capture
+    from vq_mitsuba.data.captures import open_capture
+    from vq_mitsuba.engine.pipeline import load_training_capture
     from vq_mitsuba.engine.residual_fit import residual_stage
     from vq_mitsuba.engine.trainer import Trainer
     from vq_mitsuba.run.run_dir import RunDir
@@ -39,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = run.config()
     if args.iterations is not None:
         cfg.residual.iterations = args.iterations
-    capture = load_training_capture(run.info()["capture"], run.dir / RunDir.MESH, run, cfg)
+    source = open_capture(run.info()["capture"], run.dir / RunDir.MESH, cfg.capture, run.undistorted_dir)
+    capture = load_training_capture(source, run)
     trainer = Trainer(capture, run, cfg)
     trainer.resume(run.load_state(run.checkpoint_path))
     t0 = time.perf_counter()

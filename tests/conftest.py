@@ -30,7 +30,7 @@ def three_materials(tmp_path_factory):
     from tiny_scene import write_three_material_capture
     from vq_mitsuba.config import load_config
     from vq_mitsuba.run.run_dir import RunDir
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     out = tmp_path_factory.mktemp("three")
     capture = write_three_material_capture(out)

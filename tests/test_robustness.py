@@ -266,7 +266,7 @@ def test_fit_of_a_colmap_capture_with_a_nan_focal_length_writes_nothing(tmp_path
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """(capture XML, run folder) of a 6-step fit of a small sphere, with both branches."""
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     folder = tmp_path_factory.mktemp("tiny")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
@@ -375,9 +375,9 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tiny
     real_access = os.access
     monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == locked else real_access(p, mode, **kw))
     monkeypatch.setattr(RunDir, "load", lambda *a, **kw: pytest.fail("the run was loaded"))
-    import vq_mitsuba.engine.fit as fit_module
+    from vq_mitsuba.data.captures import CaptureSource
 
-    monkeypatch.setattr(fit_module, "load_capture", lambda *a, **kw: pytest.fail("the capture was loaded"))
+    monkeypatch.setattr(CaptureSource, "load", lambda *a, **kw: pytest.fail("the capture was loaded"))
     assert cli.main(_command(command, capture, run, locked)) == 2
     assert f"error: {locked}: cannot be written: permission denied" in capsys.readouterr().err
     assert list(locked.iterdir()) == []

@@ -115,8 +115,8 @@ def _capture_without_geometry(folder: Path) -> Path:
 @pytest.fixture
 def no_geometry_stage(monkeypatch):
     """The geometry stage fails the test if it is reached."""
-    import vq_mitsuba.engine.fit as pipeline
-    import vq_mitsuba.geometry.pipeline as geometry
+    import vq_mitsuba.engine.pipeline as pipeline
+    import vq_mitsuba.geometry.stage as geometry
 
     def fail(*args, **kwargs):
         raise AssertionError("the geometry stage ran")
@@ -127,11 +127,12 @@ def no_geometry_stage(monkeypatch):
 
 def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stage, capsys):
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import fit_capture, needs_reconstruction
+    from vq_mitsuba.data.captures import open_capture
+    from vq_mitsuba.engine.pipeline import fit_capture, needs_reconstruction
     from vq_mitsuba.run.run_dir import RunDir
 
     capture = _capture_without_geometry(tmp_path / "cap")
-    assert needs_reconstruction(capture)
+    assert needs_reconstruction(open_capture(capture))
     run = RunDir(tmp_path / "run")
     run.create()
     (run / RunDir.CHECKPOINT).write_bytes(b"a fitted run")
@@ -146,7 +147,7 @@ def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stag
 
 def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path, no_geometry_stage):
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import fit_capture
+    from vq_mitsuba.engine.pipeline import fit_capture
     from vq_mitsuba.run.run_dir import RunDir
 
     capture = _capture_without_geometry(tmp_path / "cap")
@@ -284,17 +285,18 @@ def test_the_command_line_manual_is_current():
 
 
 def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
-    """`fit` runs in one module (engine/fit.py): the run folder is checked once and an unposed
+    """`fit` runs in one module (engine/pipeline.py): the run folder is checked once and an unposed
     capture is posed once per fit, and no other module calls either step."""
-    import vq_mitsuba.engine.fit as fit_module
+    import vq_mitsuba.engine.pipeline as fit_module
     from vq_mitsuba.config import load_config
     from vq_mitsuba.run.run_dir import RunDir
 
     calls = []
     check = fit_module.check_fit_target
     monkeypatch.setattr(fit_module, "check_fit_target", lambda *a: calls.append("check") or check(*a))
-    monkeypatch.setattr(fit_module, "is_unposed", lambda capture: True)
-    monkeypatch.setattr(fit_module, "ensure_poses", lambda capture, run, *a, **k: calls.append("poses") or capture)
+    monkeypatch.setattr(fit_module.CaptureSource, "posed", property(lambda capture: False))  # photos, say
+    monkeypatch.setattr(fit_module, "ensure_poses", lambda capture, run, *a, **k: calls.append("poses") or
+                        capture.source)
     monkeypatch.setattr(fit_module, "ensure_geometry", lambda capture, run, *a, **k: run / RunDir.MESH)
     monkeypatch.setattr(fit_module, "fit_materials", lambda *a, **k: {"iterations": 1})
     capture = _capture_without_geometry(tmp_path / "cap")
@@ -304,7 +306,7 @@ def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
     callers = {str(path.relative_to(package)) for path in package.rglob("*.py") for node in ast.walk(ast.parse(
         path.read_text())) if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("ensure_poses",
                                                                                                 "check_fit_target")}
-    assert callers == {"engine/fit.py"}, callers
+    assert callers == {"engine/pipeline.py"}, callers
 
 
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="a GPU machine has CUDA")

@@ -2,6 +2,7 @@
 declared members, and on a capture its own writer made: the folder resolves to it, its `detect`
 takes its own capture and no other format's, its cameras and its loaded capture agree."""
 
+import ast
 import inspect
 from pathlib import Path
 
@@ -72,7 +73,7 @@ def test_each_posed_format_reads_its_own_capture(fmt, dataset):
         points = fmt.points(source)
         assert points is None or (points[0].ndim == 2 and points[0].shape[1] == 3)
     if fmt.sphere is not None:
-        centre, radius = fmt.sphere(source)
+        centre, radius, given_by = fmt.sphere(source)
         assert np.shape(centre) == (3,) and radius > 0
 
 
@@ -94,4 +95,32 @@ def test_no_module_outside_the_formats_branches_on_a_format():
                          and "kind" in (n.id if isinstance(n, ast.Name) else n.attr).lower()]
                 if consts and names:
                     found.append(f"{path.relative_to(package)}:{node.lineno}")
+    assert not found, found
+
+
+def _strings_outside_docstrings(tree):
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                  and node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    return [node for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings]
+
+
+def test_no_module_outside_the_formats_spells_a_format_layout():
+    """The files that make a capture (each format's FOLDER_FILES, a NeRF-synthetic split's file, a
+    COLMAP model's layout) are spelled in data/formats/ alone, docstrings aside: other modules take
+    them from the format modules. The exports write files of formats of their own (export/)."""
+    from vq_mitsuba.data.formats import colmap, nerf_synthetic
+
+    layout = {name for fmt in FORMATS for name in fmt.FOLDER_FILES}
+    layout |= {nerf_synthetic.SPLIT_FILE.split("{")[0], f"{colmap.MODEL.parts[0]}/", "points3D.bin", "cameras.bin",
+               "images.bin"}
+    package = Path(__file__).resolve().parents[2] / "vq_mitsuba"
+    found = []
+    for path in package.rglob("*.py"):
+        where = path.relative_to(package).parts
+        if where[:2] == ("data", "formats") or where[0] == "export":
+            continue
+        for node in _strings_outside_docstrings(ast.parse(path.read_text())):
+            found += [f"{path.relative_to(package)}:{node.lineno}: {name}" for name in layout if name in node.value]
     assert not found, found

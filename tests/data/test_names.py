@@ -311,8 +311,10 @@ def test_a_cmyk_jpeg_is_read_as_its_rgb_without_alpha(tmp_path):
 def test_mesh_ply_counts_beside_every_capture_but_a_scene_xml(tmp_path):
     import trimesh
 
-    from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.data.captures import capture_has_geometry
+    from vq_mitsuba.data.captures import load_capture, open_capture
+
+    def capture_has_geometry(path):
+        return open_capture(path).has_geometry()
 
     box = trimesh.creation.box()
     colmap = tmp_path / "colmap"

@@ -64,7 +64,7 @@ def tiny(tmp_path_factory):
     """(sphere capture XML with a known envmap, a 4-step run of it)."""
     from tiny_scene import write_sphere_capture
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     folder = tmp_path_factory.mktemp("tiny")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
@@ -199,7 +199,7 @@ def _mixed(data: Path, folder: Path, first: str, second: str) -> Path:
 
 
 @pytest.mark.parametrize("formats, read, other", [
-    (("colmap", "nerfstudio"), "transforms.json", "the COLMAP model (sparse/)"),
+    (("colmap", "nerfstudio"), "transforms.json", "the COLMAP model (in sparse/0/"),
     (("llff", "neus"), "cameras_sphere.npz", "poses_bounds.npy"),
 ])
 def test_a_folder_of_two_formats_says_which_it_read(photographed, tmp_path, formats, read, other):
@@ -221,7 +221,7 @@ def test_a_folder_of_two_disagreeing_formats_is_refused(photographed, tmp_path, 
     transforms = json.loads((folder / "transforms.json").read_text())
     transforms["frames"] = transforms["frames"][:2]
     (folder / "transforms.json").write_text(json.dumps(transforms))
-    with pytest.raises(InputError, match=r"disagree: transforms.json \(2 views\), the COLMAP model \(sparse/\) "
+    with pytest.raises(InputError, match=r"disagree: transforms.json \(2 views\), the COLMAP model \(in sparse/0/, sparse/ or the folder\) "
                                          r"\(3 views\)") as refused:
         load_capture(folder)
     assert refused.value.path == folder

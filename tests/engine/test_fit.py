@@ -11,7 +11,7 @@ from tiny_scene import write_sphere_capture
 from vq_mitsuba.cli import main
 from vq_mitsuba.config import load_config
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.pipeline import fit
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +120,7 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     (every encoding frequency open), while its learning rate decayed with the iterations only."""
     import itertools
 
-    import vq_mitsuba.engine.fit as fit_module
+    import vq_mitsuba.engine.pipeline as fit_module
 
     # The fit's clock advances 10 ms per reading, so the test does not depend on how fast (or how
     # evenly: a kernel compiled mid-fit makes one step long) this machine runs the steps.

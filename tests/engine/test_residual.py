@@ -67,7 +67,7 @@ def view_dependent_run(tmp_path_factory):
     from vq_mitsuba.config import load_config
     from vq_mitsuba.data.captures import load_capture
     from vq_mitsuba.data.imageio import read_exr, write_exr
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     out = tmp_path_factory.mktemp("residual")
     xml = write_sphere_capture(out, size=24, n_views=10, spp=32)
@@ -182,7 +182,7 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
     """`fit --resume` on a finished run whose residual.pt is of the earlier field (or missing)
     fits the residual again on the frozen materials; with a current one it leaves the run alone."""
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
     from vq_mitsuba.errors import Notice
     from vq_mitsuba.run.run_dir import RunDir
 

@@ -12,7 +12,7 @@ import torch
 from tiny_scene import write_sphere_capture
 from vq_mitsuba.config import load_config
 from vq_mitsuba.engine import skips
-from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.pipeline import fit
 from vq_mitsuba.engine.trainer import Trainer
 from vq_mitsuba.models import losses
 

@@ -10,7 +10,8 @@ import torch
 
 from vq_mitsuba import backend
 from vq_mitsuba.backend import choose_device, torch_device
-from vq_mitsuba.geometry.neus import NeuS, reconstruct, train
+from vq_mitsuba.geometry.neus import neus_for
+from vq_mitsuba.geometry.neus import reconstruct, train
 from vq_mitsuba.geometry.neus import training as neus_fit
 
 from test_geometry import small_cfg, sphere_capture
@@ -50,7 +51,7 @@ def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_ste
     read = neus_fit.NeuSTraining.read_history
     monkeypatch.setattr(neus_fit.NeuSTraining, "read_history",
                         lambda self: (reads.append(len(self.pending)), read(self))[1])
-    neus = NeuS(sphere_capture(n_views=6, size=20), small_cfg(iterations=23))
+    neus = neus_for(sphere_capture(n_views=6, size=20), small_cfg(iterations=23))
     assert neus.device == torch.device("cpu")
     tensors = [neus.rays_o, neus.rays_d, neus.rays_rgb, neus.rays_alpha, neus.hull, neus.hull_dilated, neus.hull_sdf]
     assert all(t.device == neus.device for t in tensors)

@@ -19,8 +19,10 @@ from vq_mitsuba.errors import InputError
 from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
-from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid, NeuS,
-                                      NeuSModel, _hull_box, camera_rays, choose_grid, rate_spread, reconstruct, train)
+from vq_mitsuba.data.cameras import camera_rays
+from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid,
+                                      NeuSModel, _hull_box, choose_grid, rate_spread, reconstruct, train)
+from vq_mitsuba.geometry.neus import NeuS, neus_for
 
 RADIUS = 0.5
 
@@ -400,7 +402,7 @@ def test_mesh_metrics_measure_distance_and_normals():
 def test_neus_moves_a_wrong_sphere_to_the_true_surface():
     capture = sphere_capture()
     cfg = small_cfg(init="sphere", init_radius=0.5, iterations=150, seed=1)
-    neus = NeuS(capture, cfg)
+    neus = neus_for(capture, cfg)
     d = np.random.default_rng(0).normal(size=(500, 3))
     on_surface = RADIUS * d / np.linalg.norm(d, axis=1, keepdims=True)
     before = np.abs(sdf_world(neus, on_surface)).mean()
@@ -420,7 +422,7 @@ def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
     assert len(result.mesh.faces) == info["mesh"]["faces"] and result.neus.cfg.iterations == 4
     for name in ("geometry_loss.png", "neus.pt"):
         assert (tmp_path / name).is_file(), name
-    # mesh.ply and geometry.json are the geometry stage's (geometry/pipeline.py), not the model's.
+    # mesh.ply and geometry.json are the geometry stage's (geometry/stage.py), not the model's.
     assert not (tmp_path / "mesh.ply").exists() and not (tmp_path / "geometry.json").exists()
     mesh = result.mesh
     radii = np.linalg.norm(mesh.vertices, axis=1)
@@ -440,10 +442,10 @@ def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
 
 def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them():
     from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
-    from vq_mitsuba.geometry.pipeline import neus_psnr_line
+    from vq_mitsuba.geometry.stage import neus_psnr_line
 
     capture = sphere_capture(n_views=8, size=24)
-    neus = NeuS(capture, small_cfg(iterations=80))
+    neus = neus_for(capture, small_cfg(iterations=80))
     views = sample_views(len(capture.cameras), 3)
     assert views == [0, 4, 7] and sample_views(2, 4) == [0, 1] and sample_views(0, 4) == []
     neus.refresh_occupancy(neus.level_weights(1.0))
@@ -469,17 +471,17 @@ def test_neus_takes_two_passes_over_its_training_rays_within_its_bounds_unless_t
         assert cfg.iterations == info["iterations"] == steps and info["training_rays"] == rays
     cfg, info = choose_iterations(replace(auto, iterations=123), 3_443_727)
     assert cfg.iterations == 123 and info["reason"] == "neus.iterations given"
-    neus = NeuS(sphere_capture(n_views=6, size=16), small_cfg(iterations=0, batch_rays=64))
+    neus = neus_for(sphere_capture(n_views=6, size=16), small_cfg(iterations=0, batch_rays=64))
     assert neus.cfg.iterations == neus.steps["iterations"] == 4000 and neus.steps["training_rays"] == len(neus.rays_o)
 
 
 def test_neus_needs_masks_and_foreground():
     with pytest.raises(InputError, match="alpha"):  # without masks only when neus.background allows it
-        NeuS(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))
+        neus_for(sphere_capture(n_views=4, size=16, with_alpha=False), small_cfg(background="masks"))
     empty = sphere_capture(n_views=4, size=16)
     empty.alpha[:] = 0.0
     with pytest.raises(InputError, match="empty"):
-        NeuS(empty, small_cfg())
+        neus_for(empty, small_cfg())
 
 
 def test_config_overrides_are_checked():
@@ -538,7 +540,10 @@ def test_cli_fit_geometry_given_without_mesh_is_refused(tmp_path, capsys):
 
 
 def test_capture_has_geometry_reads_no_images(tmp_path):
-    from vq_mitsuba.data.captures import capture_has_geometry
+    from vq_mitsuba.data.captures import open_capture
+
+    def capture_has_geometry(path):
+        return open_capture(path).has_geometry()
 
     capture = _write_json_capture(tmp_path / "cap", with_alpha=True)
     assert capture_has_geometry(capture) is False
@@ -630,7 +635,7 @@ def test_train_callback_at_the_start_and_every_interval_outside_the_training_clo
         calls.append((step, seconds))
         time.sleep(0.2)
 
-    neus = NeuS(capture, small_cfg(iterations=30))
+    neus = neus_for(capture, small_cfg(iterations=30))
     t0 = time.perf_counter()
     summary = train(neus, progress=False, callback=callback, callback_every_s=0.05)
     wall = time.perf_counter() - t0
@@ -648,7 +653,7 @@ def test_the_colour_network_skips_samples_of_negligible_weight_and_the_colour_ha
     from vq_mitsuba.geometry.neus import renderer
 
     capture = sphere_capture(n_views=8, size=24)
-    neus = NeuS(capture, small_cfg(iterations=120, seed=2))
+    neus = neus_for(capture, small_cfg(iterations=120, seed=2))
     train(neus, None, progress=False)
     lw = [1.0] * neus.cfg.levels
     neus.refresh_occupancy(lw)

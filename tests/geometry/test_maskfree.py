@@ -16,7 +16,9 @@ from vq_mitsuba.data.cameras import Camera, look_at
 from vq_mitsuba.data.captures import Capture, finish_capture
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.mesh import marching_cubes, mesh_coverage, support_plane
-from vq_mitsuba.geometry.neus import NeuS, bounding_sphere, support_from_points, train, uses_background_model
+from vq_mitsuba.geometry.neus import bounding_sphere, mesh_export, support_from_points, train, uses_background_model
+from vq_mitsuba.geometry.neus import extract_mesh, render_view
+from vq_mitsuba.geometry.neus import neus_for
 
 
 def orbit(n: int, dist: float, size: int = 40, center=(0.0, 0.0, 0.0), fov: float = 40.0, y_range=(0.85, -0.85),
@@ -125,9 +127,9 @@ def test_background_model_switches_on_exactly_without_masks_and_background_colou
         assert uses_background_model(capture, tiny_cfg()) is auto
         assert uses_background_model(capture, tiny_cfg(background="model")) is True
         assert uses_background_model(capture, tiny_cfg(background="masks")) is False
-    assert NeuS(bare, tiny_cfg()).mask_free and not NeuS(masked, tiny_cfg()).mask_free
+    assert neus_for(bare, tiny_cfg()).mask_free and not neus_for(masked, tiny_cfg()).mask_free
     with pytest.raises(InputError, match="neus.background is masks"):
-        NeuS(bare, tiny_cfg(background="masks"))
+        neus_for(bare, tiny_cfg(background="masks"))
     with pytest.raises(InputError, match="expects one of|must be one of|background"):
         tiny_cfg(background="sometimes")
 
@@ -209,7 +211,11 @@ def test_the_wide_flat_top_of_an_object_is_no_support():
 def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
     from vq_mitsuba.data.formats.colmap import read_colmap_points, write_colmap
     from vq_mitsuba.data.formats.idr import write_idr
-    from vq_mitsuba.geometry.pipeline import framing
+    from vq_mitsuba.data.captures import open_capture
+    from vq_mitsuba.geometry.stage import framing as framing_of
+
+    def framing(path, cams):
+        return framing_of(open_capture(path), cams)
 
     cams = orbit(10, 3.0, 32)
     rng = np.random.default_rng(1)
@@ -245,7 +251,7 @@ def test_a_known_support_bounds_the_foreground_and_starts_the_background():
 
     cams = orbit(6, 2.5, 16, y_range=(0.85, 0.2))
     capture = unmasked(np.full((6, 16, 16, 3), 0.5, np.float32), cams)
-    neus = NeuS(capture, tiny_cfg(), sphere=(np.array([0.0, 0.1, 0.0]), 0.5, "test"),
+    neus = neus_for(capture, tiny_cfg(), sphere=(np.array([0.0, 0.1, 0.0]), 0.5, "test"),
                 support=(np.array([0.0, 2.0, 0.0]), -0.1))  # the plane y = -0.05, its normal unnormalised
     n, c = neus.plane
     assert torch.allclose(n, torch.tensor([0.0, 1.0, 0.0])) and c == pytest.approx(-0.3)  # box units
@@ -328,12 +334,12 @@ def test_mask_free_export_keeps_the_object_without_its_table(monkeypatch):
                                                     [0, 1, 0])) for c, a in zip(orbit(8, 2.0, 16),
                                                                                  np.linspace(0, 6.2, 8))]
     capture = unmasked(np.full((8, 16, 16, 3), 0.5, np.float32), cams)
-    neus = NeuS(capture, tiny_cfg(mesh_resolution=64, normal_smoothing=0), sphere=(np.zeros(3), 1.0, "test"))
+    neus = neus_for(capture, tiny_cfg(mesh_resolution=64, normal_smoothing=0), sphere=(np.zeros(3), 1.0, "test"))
     vol, _ = _slab_and_ball(64)
     vol = np.transpose(vol, (0, 2, 1))[:, :, ::-1].copy()  # the table's up is +Y here (the cameras' up)
-    monkeypatch.setattr(neus, "sdf_volume", lambda res: vol)
-    mesh = neus.extract_mesh()
-    assert neus.support is not None and neus.support["normal"][1] > 0.99
+    monkeypatch.setattr(mesh_export, "sdf_volume", lambda neus, res: vol)
+    mesh, support = extract_mesh(neus)
+    assert support is not None and support["normal"][1] > 0.99
     radii = np.linalg.norm(np.asarray(mesh.vertices) - [0, 0.05, 0], axis=1)
     assert mesh.is_watertight and np.percentile(radii, 95) < 0.4  # the ball alone, cut flat at its foot
     assert np.asarray(mesh.vertices)[:, 1].min() > -0.3
@@ -345,12 +351,12 @@ def test_mask_free_export_keeps_the_object_without_its_table(monkeypatch):
 
 def _mask_free_run(images, true_alpha, cams, iterations: int):
     capture = unmasked(images, cams)
-    neus = NeuS(capture, tiny_cfg(iterations=iterations, seed=0))
+    neus = neus_for(capture, tiny_cfg(iterations=iterations, seed=0))
     assert neus.mask_free and neus.sphere_source == "cameras"
     summary = train(neus, None, progress=False)
-    mesh = neus.extract_mesh()
+    mesh, _ = extract_mesh(neus)
     derived = mesh_coverage(mesh, cams) > 0.5
-    fg_opacity = np.stack([neus.render_camera(c)[1] for c in cams])
+    fg_opacity = np.stack([render_view(neus, c)[1] for c in cams])
     return summary, derived, fg_opacity
 
 
@@ -399,11 +405,15 @@ def write_unmasked_xml_capture(out: Path, images: np.ndarray, cams: list[Camera]
     return out / "scene.xml"
 
 
-def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tmp_path):
+def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tmp_path, monkeypatch):
     """fit on a capture with neither masks nor geometry: NeuS without masks, then the material fit
-    on the views masked by the mesh's coverage (has_alpha), also after --resume."""
+    on the views masked by the mesh's coverage (has_alpha), also after --resume. The capture is
+    resolved once and its images read once for the geometry stage, its held-out scores and the
+    material fit."""
+    from vq_mitsuba.data import captures
     from vq_mitsuba.data.captures import load_capture
-    from vq_mitsuba.engine.fit import fit_capture
+    from vq_mitsuba.data.formats import mitsuba_xml
+    from vq_mitsuba.engine.pipeline import fit_capture
     from vq_mitsuba.run.run_dir import RunDir
 
     images, true_alpha, cams, _ = backdrop_views
@@ -416,7 +426,16 @@ def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tm
         "capture.holdout=4", "render.spp=4"]
     cfg = load_config(None, settings)
     run = RunDir(tmp_path / "run")
+    calls = []
+
+    def counted(module, name):
+        inner = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, **k: calls.append(name) or inner(*a, **k))
+    for module, name in ((captures, "resolve_capture_path"), (captures, "format_of"), (mitsuba_xml, "detect"),
+                         (mitsuba_xml, "has_geometry"), (mitsuba_xml, "cameras"), (mitsuba_xml, "load")):
+        counted(module, name)
     fit_capture(xml, run.dir, cfg, progress=False, log=lambda _: None)
+    assert sorted(calls) == ["detect", "format_of", "has_geometry", "load", "resolve_capture_path"], calls
     geometry = json.loads((run.dir / RunDir.GEOMETRY).read_text())
     assert geometry["background"] == "model" and geometry["bounding_sphere"]["from"] == "cameras"
     assert run.masks_from_mesh()
@@ -475,10 +494,10 @@ def test_mask_free_neus_on_a_table_with_the_table_known(tmp_path):
     mask IoU 0.78 (0.75 without the plane, when the objects' blob bulges into the table; 0.79 and
     0.69 after 1500 steps)."""
     images, true_alpha, cams = table_scene(tmp_path)
-    neus = NeuS(unmasked(images, cams), tiny_cfg(iterations=600), support=(np.array([0.0, 1.0, 0.0]), -0.275))
+    neus = neus_for(unmasked(images, cams), tiny_cfg(iterations=600), support=(np.array([0.0, 1.0, 0.0]), -0.275))
     train(neus, None, progress=False)
-    mesh = neus.extract_mesh()
-    assert neus.support is not None and neus.support["from"] == "sparse points"
+    mesh, support = extract_mesh(neus)
+    assert support is not None and support["from"] == "sparse points"
     assert np.asarray(mesh.vertices)[:, 1].min() > -0.275
     assert iou(mesh_coverage(mesh, cams) > 0.5, true_alpha > 0.5) > 0.72
 

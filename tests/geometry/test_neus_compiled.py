@@ -7,12 +7,13 @@ import torch
 
 from test_geometry import small_cfg, sphere_capture
 from vq_mitsuba.compiled import Compiled
-from vq_mitsuba.geometry.neus import NeuS, NeuSTraining, training
+from vq_mitsuba.geometry.neus import neus_for
+from vq_mitsuba.geometry.neus import NeuSTraining, training
 
 
 @pytest.fixture(scope="module")
 def neus():
-    model = NeuS(sphere_capture(n_views=6, size=16), small_cfg(iterations=1, batch_rays=96))
+    model = neus_for(sphere_capture(n_views=6, size=16), small_cfg(iterations=1, batch_rays=96))
     with torch.no_grad():  # a model away from its start, so that every parameter gets a gradient
         gen = torch.Generator().manual_seed(3)
         for p in model.model.parameters():
@@ -76,7 +77,41 @@ def test_a_long_stage_compiles_its_step_and_a_short_one_does_not(monkeypatch):
     seen = []
     monkeypatch.setattr(training, "Compiled", lambda fn, name, **kw: seen.append(name) or None)
     for steps in (training.COMPILE_FROM - 1, training.COMPILE_FROM):
-        fit = NeuSTraining(NeuS(sphere_capture(n_views=4, size=12), small_cfg(iterations=steps)), None)
+        fit = NeuSTraining(neus_for(sphere_capture(n_views=4, size=12), small_cfg(iterations=steps)), None)
         fit.plan_compile()
         seen.append(steps)
     assert seen == [training.COMPILE_FROM - 1, "NeuS's step", training.COMPILE_FROM]
+
+
+def test_the_neus_model_imports_no_capture_code():
+    """The model's module (renderer: box, occupancy, volume rendering of rays) and everything it
+    imports from the package, at any depth, import nothing from vq_mitsuba.data: a capture reaches
+    NeuS only through `rays.neus_for`."""
+    import ast
+    from pathlib import Path
+
+    package = Path(training.__file__).resolve().parents[2]
+
+    def imports(module: str) -> set[str]:
+        path = package.parent / (module.replace(".", "/") + ".py")
+        if not path.is_file():
+            path = path.with_suffix("") / "__init__.py"
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("vq_mitsuba"):
+                found |= {f"{node.module}.{a.name}" if (package.parent / node.module.replace(".", "/")).is_dir()
+                          and (package.parent / node.module.replace(".", "/") / f"{a.name}.py").is_file()
+                          else node.module for a in node.names}
+            elif isinstance(node, ast.Import):
+                found |= {a.name for a in node.names if a.name.startswith("vq_mitsuba")}
+        return found
+
+    seen, todo = set(), ["vq_mitsuba.geometry.neus.renderer"]
+    while todo:
+        module = todo.pop()
+        if module not in seen:
+            seen.add(module)
+            todo += sorted(imports(module) - seen)
+    assert "vq_mitsuba.geometry.neus.networks" in seen and "vq_mitsuba.config" in seen
+    assert not [m for m in seen if m.startswith("vq_mitsuba.data")], sorted(seen)
+    assert "vq_mitsuba.data.cameras" in imports("vq_mitsuba.geometry.neus.rays")  # the check can fail

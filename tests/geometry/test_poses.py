@@ -122,7 +122,7 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
 
     import vq_mitsuba.geometry.poses as poses
     from vq_mitsuba.cli import _run_dir
-    from vq_mitsuba.data.captures import capture_kind, load_cameras, load_capture, resolve_capture_path
+    from vq_mitsuba.data.captures import capture_kind, load_cameras, load_capture, open_capture, resolve_capture_path
     from vq_mitsuba.data.imageio import write_png
 
     monkeypatch.setattr(poses, "_sfm", _fails)
@@ -134,7 +134,7 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
     video.write_bytes(b"")
     assert resolve_capture_path(photos) == photos and capture_kind(photos) == "photos"
     assert resolve_capture_path(video) == video and capture_kind(video) == "video"
-    assert poses.is_unposed(photos) and poses.is_unposed(video)
+    assert not open_capture(photos).posed and not open_capture(video).posed
     assert _run_dir(Namespace(capture=str(photos), output=None), "fit") == Path("runs") / "photos"
     assert _run_dir(Namespace(capture=str(video), output=None), "fit") == Path("runs") / "clip"
     for source in (photos, video):
@@ -181,7 +181,7 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
     """`fit PHOTOS` poses them into RUN/pose and hands that COLMAP capture to the geometry stage and
     the fit; a resumed fit reuses the poses. (The stages after SfM are stand-ins here; the slow
     test below runs them.)"""
-    import vq_mitsuba.engine.fit as pipeline
+    import vq_mitsuba.engine.pipeline as pipeline
     import vq_mitsuba.geometry.poses as poses
     from vq_mitsuba.config import load_config
     from vq_mitsuba.run.run_dir import RunDir
@@ -194,11 +194,11 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
     run = RunDir(tmp_path / "run")
     cfg = load_config(None, [])
     pipeline.fit_capture(photos, run.dir, cfg, progress=False, log=lambda line: None)
-    assert seen == [run / RunDir.POSE] * 2 and (run / RunDir.POSE_SUMMARY).is_file()
+    assert [c.source for c in seen] == [run / RunDir.POSE] * 2 and (run / RunDir.POSE_SUMMARY).is_file()
     assert run.holds_run_files()
     monkeypatch.setattr(poses, "_sfm", _fails)
     pipeline.fit_capture(photos, run.dir, cfg, resume=True, progress=False, log=lambda line: None)
-    assert seen[2:] == [run / RunDir.POSE] * 2
+    assert [c.source for c in seen[2:]] == [run / RunDir.POSE] * 2
     with pytest.raises(InputError, match="known geometry cannot be used"):
         pipeline.fit_capture(photos, tmp_path / "other", cfg, mesh=tmp_path / "m.ply", progress=False)
     with pytest.raises(InputError, match="--geometry given"):

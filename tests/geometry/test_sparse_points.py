@@ -101,7 +101,7 @@ def _sphere_points(n: int, radius: float, seed: int = 0) -> np.ndarray:
 
 def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_them():
     from test_geometry import RADIUS as TRUE_RADIUS, sdf_world, small_cfg, sphere_capture
-    from vq_mitsuba.geometry.neus import NeuS, train
+    from vq_mitsuba.geometry.neus import neus_for, train
     from vq_mitsuba.geometry.neus.training import points_report
 
     capture = sphere_capture()
@@ -110,7 +110,7 @@ def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_the
     errors = {}
     for w in (0.0, 50.0):
         cfg = small_cfg(init="sphere", init_radius=0.5, iterations=60, seed=1, w_points=w)
-        neus = NeuS(capture, cfg, points=np.concatenate([on_surface, stray]))
+        neus = neus_for(capture, cfg, points=np.concatenate([on_surface, stray]))
         if w > 0:
             assert len(neus.surface_points) == len(on_surface)
         else:
@@ -124,17 +124,18 @@ def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_the
 
 
 def test_triangulated_points_are_used_where_they_are_dense_enough(monkeypatch):
-    from vq_mitsuba.config import NeuSConfig
-    from vq_mitsuba.data import captures
-    from vq_mitsuba.geometry import pipeline
+    from types import SimpleNamespace
 
-    monkeypatch.setattr(captures, "capture_framing", lambda path: (None, None))  # no points of its own
+    from vq_mitsuba.config import NeuSConfig
+    from vq_mitsuba.geometry import stage as pipeline
+
+    source = SimpleNamespace(framing=lambda: (None, None))  # a capture without points of its own
     cap = textured_sphere()
-    points, info = pipeline.surface_points("textured_sphere.json", cap, NeuSConfig())
+    points, info = pipeline.surface_points(source, cap, NeuSConfig())
     n = info["given"]
     assert info["source"] == "triangulated" and n < pipeline.MIN_POINTS_PER_VIEW * len(cap.cameras)
     assert points is None and info["used"] == 0 and f"{n} points over 16 views" in info["skipped"]
     monkeypatch.setattr(pipeline, "MIN_POINTS_PER_VIEW", 2)
-    points, info = pipeline.surface_points("textured_sphere.json", cap, NeuSConfig())
+    points, info = pipeline.surface_points(source, cap, NeuSConfig())
     assert len(points) == n and "skipped" not in info and info["seconds"] > 0
-    assert pipeline.surface_points("textured_sphere.json", cap, NeuSConfig(w_points=0.0)) == (None, None)
+    assert pipeline.surface_points(source, cap, NeuSConfig(w_points=0.0)) == (None, None)

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from vq_mitsuba.config import load_config
-from vq_mitsuba.engine.fit import fit
+from vq_mitsuba.engine.pipeline import fit
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ FIT_TINY = ["--set", "train.iterations=6", "--set", "train.batch_rays=128", "--s
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """(capture XML, fitted run folder, folder for the module's own outputs)."""
-    from vq_mitsuba.engine.fit import fit
+    from vq_mitsuba.engine.pipeline import fit
 
     folder = tmp_path_factory.mktemp("outputs")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
@@ -148,7 +148,7 @@ def test_geometry_never_replaces_the_mesh_of_a_fitted_run(tiny, capsys, resume):
 
 
 def test_geometry_writes_into_a_geometry_only_run(tmp_path):
-    from vq_mitsuba.geometry.pipeline import check_geometry_target
+    from vq_mitsuba.geometry.stage import check_geometry_target
 
     run = RunDir(tmp_path / "geometry_only")
     run.create()

@@ -70,8 +70,8 @@ def shared_parents() -> dict[str, argparse.ArgumentParser]:
                       help="shrink each photo as it is read to at most N pixels a side (capture.max_size)")
     # the capture, and how its images are read (config section capture)
     capture = argparse.ArgumentParser(add_help=False, parents=[size])
-    capture.add_argument("capture", nargs="?", help="a scene XML, transforms json, cameras_sphere.npz, COLMAP "
-                                                    "folder (or their folder), photos, a video")
+    capture.add_argument("capture", nargs="?", help="the capture: a file or folder of a format docs/captures.md "
+                                                    "lists, a folder of photos or a video")
     capture.add_argument("--background-color", metavar="R,G,B",
                          help="key out a plain backdrop of this sRGB colour (0..1) as the mask")
     capture.add_argument("--holdout", type=positive_int, metavar="K",

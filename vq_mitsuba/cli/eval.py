@@ -27,11 +27,11 @@ def add_parser(sub, shared) -> None:
         "eval", parents=[shared["threads"], shared["device"], output_option("metrics JSON path (default: RUN_DIR/metrics.json)"),
                          shared["quiet"], shared["size"]],
         help="score a fitted run: its held-out views, or a synthetic dataset's ground truth (--gt)",
-        description="Render the dataset's test views (transforms_test.json) and compare inside the ground-truth "
+        description="Render the dataset's test views and compare inside the ground-truth "
                     "foreground: novel-view PSNR/SSIM, basecolor PSNR/SSIM after per-channel scale alignment, "
                     "metallic/roughness PSNR, and relighting PSNR/SSIM under each held-aside envmap (albedo-scale "
                     "and image-scale variants). DATASET is a folder written by `vq-mitsuba make-scene` "
-                    "(scene.json, transforms_test.json, images/, gt/, relit/, envmaps/); without --gt, the run's "
+                    "(its test cameras, gt/, relit/ and envmaps/); without --gt, the run's "
                     "held-out views (fit --holdout K) are scored, at the fit's size unless --downscale / "
                     "--max-size say otherwise. The MeanShift baseline segments the continuous branch's BRDF maps "
                     "(it needs ground-truth material ids).")

@@ -1,4 +1,4 @@
-"""`vq-mitsuba fit`: the whole fit is `vq_mitsuba.engine.fit.fit_capture`."""
+"""`vq-mitsuba fit`: the whole fit is `vq_mitsuba.engine.pipeline.fit_capture`."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def add_parser(sub, shared) -> None:
 
 
 def run(args) -> int:
-    from vq_mitsuba.engine.fit import fit_capture
+    from vq_mitsuba.engine.pipeline import fit_capture
     from vq_mitsuba.run.run_dir import RunDir, check_writable
 
     if args.help_config:

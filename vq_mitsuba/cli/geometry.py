@@ -1,4 +1,4 @@
-"""`vq-mitsuba geometry`: NeuS and mesh export into a run (`vq_mitsuba.engine.fit.geometry_capture`)."""
+"""`vq-mitsuba geometry`: NeuS and mesh export into a run (`vq_mitsuba.engine.pipeline.geometry_capture`)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ def add_parser(sub, shared) -> None:
 
 
 def run(args) -> int:
-    from vq_mitsuba.engine.fit import geometry_capture
-    from vq_mitsuba.geometry.pipeline import check_geometry_target, neus_psnr_line
+    from vq_mitsuba.engine.pipeline import geometry_capture
+    from vq_mitsuba.geometry.stage import check_geometry_target, neus_psnr_line
     from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:

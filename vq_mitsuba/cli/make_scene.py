@@ -46,6 +46,7 @@ def add_parser(sub, shared) -> None:
 
 
 def run(args) -> int:
+    from vq_mitsuba.data.dataset_dir import DatasetDir
     from vq_mitsuba.run.outputs import check_output_folder
     from vq_mitsuba.run.run_dir import check_writable
     from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
@@ -69,6 +70,7 @@ def run(args) -> int:
         cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
     else:
         synthetic.make_scene(args.name, out, seed=args.seed, photo_formats=args.photo_formats, **kwargs)
-    print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ "
-          "(scene.xml, transforms_train.json, transforms_test.json, gt/, relit/)")
+    files = (DatasetDir.SCENE_XML, DatasetDir.TRANSFORMS_TRAIN, DatasetDir.TRANSFORMS_TEST, DatasetDir.GT + "/",
+             DatasetDir.RELIT + "/")
+    print(f"scene '{args.name}' rendered with {args.renderer} to {out}/ ({', '.join(files)})")
     return 0

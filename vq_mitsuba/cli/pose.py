@@ -14,8 +14,8 @@ def add_parser(sub, shared) -> None:
         description="Structure from motion with COLMAP (pycolmap): SIFT features, matching, incremental mapping "
                     "with one camera for all images. SOURCE is a folder of photos (JPEG / PNG, one size; EXIF "
                     "orientation applied) or a video (.mp4 .mov .avi .mkv .webm: the sharpest frame of each of "
-                    "pose.frames equal time windows). Writes OUT/images/, OUT/sparse/0/ (the model that places the "
-                    "most images) and OUT/pose.json (images placed, mean reprojection error, timings); refused "
+                    "pose.frames equal time windows). Writes OUT as a COLMAP capture (the images and the model that "
+                    "places the most of them) and OUT/pose.json (images placed, mean reprojection error, timings); refused "
                     "when fewer than pose.min_registered of the images (and at least 3) are placed. Run again on "
                     "the same inputs, OUT is reused. `fit` does this on its own for photos or a video (RUN_DIR/pose/).")
     p.add_argument("source", nargs="?", help="a folder of photos or a video file")
@@ -37,6 +37,6 @@ def run(args) -> int:
     cfg = command_config(args)
     summary = pose_capture(args.source, args.output, cfg.pose, progress=not args.quiet)
     print(f"{summary['registered']} of {summary['images']} images posed, mean reprojection error "
-          f"{summary['mean_reprojection_error_px']:.2f} px: {args.output}/ (images/, sparse/0/, pose.json); "
+          f"{summary['mean_reprojection_error_px']:.2f} px: {args.output}/ (a COLMAP capture and pose.json); "
           f"fit it with: vq-mitsuba fit {args.output}")
     return 0

@@ -5,8 +5,11 @@ the folder layout it reads: a Mitsuba scene XML (`mitsuba_xml`; Mitsuba world), 
 `transforms_*.json` (`nerf_synthetic`; OpenGL camera axes, Blender world with Z up), a nerfstudio
 `transforms.json` (`nerfstudio`: pixel intrinsics, lens distortion, masks), a photographed
 capture (`colmap`, `idr` for NeuS/IDR, `llff`), or photos or a video without poses (`photos`,
-`video`, which the loaders refuse: vq_mitsuba.geometry.poses finds their poses). `load_capture`
-and `load_cameras` resolve the path, find its format in the registry (`FORMATS`) and call it.
+`video`, which the loaders refuse: vq_mitsuba.geometry.poses finds their poses). `open_capture`
+resolves a path once into a `CaptureSource`, the one value the pose, geometry and material stages
+take: its format (found in the registry `FORMATS`), what it says of its geometry and framing, and
+its images, read once and kept for every split; `load_capture` and `load_cameras` are the one-call
+forms.
 Known geometry besides an XML's shapes: a `mesh=` argument, else a `mesh.ply` in the capture's
 folder, in the capture's world. Images are shrunk as they are read (capture.downscale,
 capture.max_size: vq_mitsuba.data.resize). Views are named by vq_mitsuba.data.names (file-safe,
@@ -16,8 +19,9 @@ offending file.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -25,7 +29,7 @@ from vq_mitsuba.config import CaptureConfig
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.checks import check_viewpoints
 from vq_mitsuba.data.dataset_dir import DatasetDir
-from vq_mitsuba.data.formats import FORMATS, folder_files, format_of, known_suffix
+from vq_mitsuba.data.formats import FORMATS, described, folder_files, format_of, known_suffix
 from vq_mitsuba.data.formats.common import Capture, load_mesh
 from vq_mitsuba.data.names import view_names
 from vq_mitsuba.data.resize import Shrink
@@ -33,41 +37,109 @@ from vq_mitsuba.data.unposed import unposed_error
 from vq_mitsuba.errors import InputError, warn
 
 # re-exported: the loaded capture and mesh (vq_mitsuba.data.formats.common)
-__all__ = ["Capture", "load_mesh", "load_capture", "load_cameras", "named_views", "capture_kind",
-           "capture_framing", "resolve_capture_path", "check_one_capture", "split_indices", "finish_capture"]
+__all__ = ["Capture", "CaptureSource", "open_capture", "load_mesh", "load_capture", "load_cameras", "named_views", "capture_kind",
+           "resolve_capture_path", "check_one_capture", "split_indices", "finish_capture"]
+
+
+@dataclass(frozen=True)
+class CaptureSource:
+    """A capture resolved once (`open_capture`): the path as given, the file or folder it resolved
+    to, its format module, the known geometry given with it (`mesh`, None: the capture's own), the
+    options it is read with (size, background keying, held-out views) and where undistorted photos
+    are cached. The stages ask it, never the path: `posed`, `has_geometry`, `framing`, `cameras`
+    and `load` (the images read once on the first `load`, then every split and `with_mesh` copy
+    taken from that read)."""
+
+    given: Path
+    source: Path
+    format: ModuleType
+    options: CaptureConfig
+    mesh: Path | None = None
+    cache_dir: Path | None = None
+    _read: dict = field(default_factory=dict, repr=False, compare=False)  # shared by with_mesh copies
+
+    @property
+    def posed(self) -> bool:
+        """False for photos or a video without camera poses (the pose stage poses them)."""
+        return bool(self.format.POSED)
+
+    @property
+    def kind(self) -> str:
+        """The format's KIND ("xml", "json", "idr", "llff", "colmap", "photos", "video", ...)."""
+        return self.format.KIND
+
+    def _posed_format(self) -> ModuleType:
+        if not self.posed:
+            raise unposed_error(self.source)
+        return self.format
+
+    def has_geometry(self) -> bool:
+        """Whether the fit has geometry without reconstructing it: a `mesh` given, or the capture's own
+        (a scene XML's shapes, a mesh.ply in its folder). Reads no image."""
+        return self.mesh is not None or (self.posed and self.format.has_geometry(self.source))
+
+    def framing(self) -> tuple[tuple[np.ndarray, np.ndarray] | None, tuple[np.ndarray, float, str] | None]:
+        """What the capture's own files say of where the object is: (its sparse points (N, 3) and each
+        one's track length, or None; the region of interest (centre, radius, what gives it), or None)."""
+        if "framing" not in self._read:
+            fmt = self.format
+            points = fmt.points(self.source) if self.posed and fmt.points is not None else None
+            sphere = fmt.sphere(self.source) if self.posed and fmt.sphere is not None else None
+            self._read["framing"] = (points, sphere)
+        return self._read["framing"]
+
+    def cameras(self, split: str = "all") -> tuple[list[Camera], str]:
+        """The cameras of a split at the size they are read, without reading images: (cameras, world)."""
+        cameras, world = self._posed_format().cameras(self.source)
+        shrink = Shrink.of(self.options)
+        cameras = [shrink.camera(c, self.source) for c in named_views(cameras)]
+        return [cameras[i] for i in split_indices(len(cameras), self.options.holdout, split)], world
+
+    def load(self, split: str = "all") -> Capture:
+        """The validated capture of a split ("all", "train" without the held-out views, "holdout"):
+        the images are read on the first call, each view checked and named."""
+        if "capture" not in self._read:
+            fmt = self._posed_format()
+            capture = fmt.load(self.source, self.mesh, Shrink.of(self.options), self.cache_dir)
+            check_viewpoints(self.source, capture.cameras)
+            capture.cameras = named_views(capture.cameras)
+            self._read["capture"], self._read["mesh"] = capture, self.mesh
+        capture = self._read["capture"]
+        if self.mesh != self._read["mesh"]:
+            capture = replace(capture, mesh=load_mesh(self.mesh))
+        return finish_capture(capture, self.options, split)
+
+    def with_mesh(self, mesh: str | Path | None) -> CaptureSource:
+        """The same capture with other known geometry (e.g. the mesh NeuS made), its images not read again."""
+        return replace(self, mesh=None if mesh is None else Path(mesh), _read=self._read)
+
+
+def open_capture(path: str | Path | CaptureSource, mesh: str | Path | None = None,
+                 options: CaptureConfig | None = None, cache_dir: str | Path | None = None) -> CaptureSource:
+    """Resolve a capture once (a scene XML, transforms json, NeuS/IDR cameras_sphere.npz, LLFF
+    poses_bounds.npy, a COLMAP folder, photos or a video, or a folder holding one) into the value the
+    stages take. `options` (config section `capture`) sets the downscale and maximum size (applied to
+    each image as it is read), the background keying and the held-out views; undistorted photos are
+    cached in `cache_dir` when given. A CaptureSource is returned as it is."""
+    if isinstance(path, CaptureSource):
+        return path
+    source = resolve_capture_path(path)
+    return CaptureSource(Path(path), source, format_of(source), options or CaptureConfig(),
+                         None if mesh is None else Path(mesh), None if cache_dir is None else Path(cache_dir))
 
 
 def load_capture(path: str | Path, mesh: str | Path | None = None, options: CaptureConfig | None = None,
                  split: str = "all", cache_dir: str | Path | None = None) -> Capture:
-    """Load and validate a capture (scene XML, transforms json, NeuS/IDR cameras_sphere.npz, LLFF
-    poses_bounds.npy, a COLMAP folder, or a folder holding one). `options` (config section `capture`)
-    sets the downscale and maximum size (applied to each image as it is read), the background keying
-    and the held-out views; `split` is "all", "train" (without the held-out views) or "holdout".
-    Undistorted photos are cached in `cache_dir` when given."""
-    options = options or CaptureConfig()
-    shrink = Shrink.of(options)
-    source = resolve_capture_path(path)
-    fmt = format_of(source)
-    if not fmt.POSED:
-        raise unposed_error(source)
-    capture = fmt.load(source, mesh, shrink, cache_dir)
-    check_viewpoints(source, capture.cameras)
-    capture.cameras = named_views(capture.cameras)
-    return finish_capture(capture, options, split)
+    """Load and validate a capture's split in one call (`open_capture(...).load(split)`)."""
+    return open_capture(path, mesh, options, cache_dir).load(split)
 
 
 def load_cameras(path: str | Path, options: CaptureConfig | None = None,
                  split: str = "all") -> tuple[list[Camera], str, Path]:
     """Cameras only (no images needed), for rendering novel views: (cameras, world, source)."""
-    options = options or CaptureConfig()
-    source = resolve_capture_path(path)
-    fmt = format_of(source)
-    if not fmt.POSED:
-        raise unposed_error(source)
-    cameras, world = fmt.cameras(source)
-    shrink = Shrink.of(options)
-    cameras = [shrink.camera(c, source) for c in named_views(cameras)]
-    return [cameras[i] for i in split_indices(len(cameras), options.holdout, split)], world, source
+    capture = open_capture(path, options=options)
+    cameras, world = capture.cameras(split)
+    return cameras, world, capture.source
 
 
 def named_views(cameras: list[Camera]) -> list[Camera]:
@@ -82,26 +154,6 @@ def capture_kind(source: Path) -> str:
     (poses_bounds.npy) or "colmap" (a folder with a sparse model); "photos" (a folder of photos
     without poses) or "video" (no poses either)."""
     return format_of(source).KIND
-
-
-def capture_has_geometry(path: str | Path) -> bool:
-    """True when a capture brings its own geometry (a scene XML's shapes, a mesh.ply in its
-    folder: its format's `has_geometry`). Cheap: reads no images."""
-    source = resolve_capture_path(path)
-    fmt = format_of(source)
-    return fmt.POSED and fmt.has_geometry(source)
-
-
-def capture_framing(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | None,
-                                               tuple[np.ndarray, float] | None]:
-    """What a capture's own files say of where the object is: (its sparse points (N, 3) and each
-    one's track length, as COLMAP's points3D gives them, or None; the region of interest
-    (centre, radius), as an IDR capture's scale_mat_0 gives it, or None)."""
-    source = resolve_capture_path(path)
-    fmt = format_of(source)
-    points = fmt.points(source) if fmt.POSED and fmt.points is not None else None
-    sphere = fmt.sphere(source) if fmt.POSED and fmt.sphere is not None else None
-    return points, sphere
 
 
 def resolve_capture_path(path: str | Path) -> Path:
@@ -120,15 +172,11 @@ def resolve_capture_path(path: str | Path) -> Path:
             return found[0]
         if any(fmt.detect(path) for fmt in FORMATS):  # photos
             return path
-        raise InputError(path, "capture folder holds no transforms_train.json, transforms.json (nerfstudio), "
-                               "scene.xml, cameras_sphere.npz (NeuS/IDR), poses_bounds.npy (LLFF), COLMAP "
-                               "model (sparse/0/cameras.bin or .txt) or photos (JPEG / PNG)")
+        raise InputError(path, f"capture folder holds no capture of a known format (expected {described()})")
     if not path.exists():
         raise InputError(path, "capture file not found")
     if not known_suffix(path):
-        raise InputError(path, "unknown capture format (expected a Mitsuba scene .xml, a transforms_*.json or "
-                               "nerfstudio transforms.json, a NeuS/IDR cameras_sphere.npz, an LLFF poses_bounds.npy, "
-                               "a COLMAP folder, a folder of photos or a video)")
+        raise InputError(path, f"unknown capture format (expected {described()})")
     return path
 
 
@@ -139,7 +187,7 @@ def check_one_capture(folder: Path, found: list[Path]) -> None:
     same views in two worlds, as make-scene writes them) pass without a word."""
 
     def described(source: Path) -> str:
-        return "the COLMAP model (sparse/)" if source == folder else source.name
+        return f"the {format_of(source).DESCRIPTION.removeprefix('a ')}" if source == folder else source.name
 
     counts, unread = {}, []
     for source in found:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
 from vq_mitsuba.data.imageio import write_exr, write_png
 from vq_mitsuba.errors import InputError
 
@@ -62,10 +63,10 @@ def _plain_name(value) -> bool:
 
 class DatasetDir:
     INFO = "scene.json"
-    TRANSFORMS_TRAIN = "transforms_train.json"
-    TRANSFORMS_TEST = "transforms_test.json"
+    TRANSFORMS_TRAIN = nerf_synthetic.SPLIT_FILE.format("train")  # the two captures of a dataset: NeRF-synthetic
+    TRANSFORMS_TEST = nerf_synthetic.SPLIT_FILE.format("test")
     MESH = "mesh.ply"
-    SCENE_XML = "scene.xml"
+    SCENE_XML = mitsuba_xml.FOLDER_FILES[0]  # and a Mitsuba scene
     SCENE_TEST_XML = "scene_test.xml"
     MESHES = "meshes"
     IMAGES = "images"

@@ -5,7 +5,7 @@ Primary hits of every training pixel are traced once (`vq_mitsuba.data.pixels`);
 draws a random batch of foreground pixels across all views, evaluates the material field once
 per hit and shades through Mitsuba (`vq_mitsuba.render.shading`). After `vq.warmup_frac` of
 training the discrete branch starts from k-means of the latents and trains beside the
-continuous one. The fit around the loop (checks, loading, resuming) is `vq_mitsuba.engine.fit`;
+continuous one. The fit around the loop (checks, loading, resuming) is `vq_mitsuba.engine.pipeline`;
 what is written at its end (ranked materials, residual, plots) is `vq_mitsuba.engine.products`.
 Every file is written through `RunDir`; a run resumes from its last checkpoint.
 """

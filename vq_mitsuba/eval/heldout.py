@@ -27,7 +27,7 @@ def held_out_capture(run: RunDir, downscale: int | None = None, max_size: int | 
     held = load_capture(run.source().info()["capture"], options=replace(cfg.capture, **sizes), split="holdout",
                         cache_dir=run.undistorted_dir)
     if not held.has_alpha and run.source().masks_from_mesh():
-        from vq_mitsuba.geometry.pipeline import masked_by_mesh
+        from vq_mitsuba.geometry.stage import masked_by_mesh
 
         held = masked_by_mesh(held, run.mesh())
     return held

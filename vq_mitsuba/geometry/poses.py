@@ -32,6 +32,8 @@ from typing import Callable
 from vq_mitsuba import messages
 from vq_mitsuba.backend import import_pycolmap
 from vq_mitsuba.config import PoseConfig
+from vq_mitsuba.data.captures import CaptureSource, open_capture
+from vq_mitsuba.data.formats import colmap
 from vq_mitsuba.data.formats.photos import MIN_IMAGES
 from vq_mitsuba.data.unposed import fingerprint
 from vq_mitsuba.errors import InputError
@@ -45,15 +47,7 @@ CAMERA_MODEL = "SIMPLE_RADIAL"  # focal length, principal point, one radial term
 SUMMARY_VERSION = 1
 
 
-def is_unposed(capture: str | Path) -> bool:
-    """True when `capture` is a folder of photos or a video (no camera poses)."""
-    from vq_mitsuba.data.captures import resolve_capture_path
-    from vq_mitsuba.data.formats import format_of
-
-    return not format_of(resolve_capture_path(capture)).POSED
-
-
-def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
+def ensure_poses(capture: CaptureSource, run: RunDir, cfg: PoseConfig, progress: bool = True,
                  log: Callable[[str], None] = messages.note) -> Path:
     """The run's posed COLMAP capture RUN/pose of an unposed capture (made, or reused when it was
     made from the same inputs); returns its folder."""
@@ -61,18 +55,15 @@ def ensure_poses(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bo
     return run / RunDir.POSE
 
 
-def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = None, progress: bool = True,
-                 log: Callable[[str], None] = messages.note) -> dict:
+def pose_capture(capture: str | Path | CaptureSource, out: str | Path, cfg: PoseConfig | None = None,
+                 progress: bool = True, log: Callable[[str], None] = messages.note) -> dict:
     """Find the camera poses of a folder of photos or a video and write the COLMAP capture OUT
     (images/, sparse/0/, pose.json); returns pose.json's content (with "reused" true when OUT
     already held the result for the same inputs and settings)."""
-    from vq_mitsuba.data.captures import resolve_capture_path
-    from vq_mitsuba.data.formats import format_of
-
     cfg = cfg or PoseConfig()
-    source = resolve_capture_path(source)
-    fmt = format_of(source)
-    if fmt.POSED:
+    capture = open_capture(capture)
+    source, fmt = capture.source, capture.format
+    if capture.posed:
         raise InputError(source, f"already has camera poses ({fmt.KIND} capture): fit it as it is")
     out = Path(out)
     inputs = _inputs(source, fmt, cfg)
@@ -86,7 +77,7 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
     work = out.parent / f".{out.name}.pose-tmp"
     with _scratch(work):
         t0 = time.perf_counter()
-        images = work / "images"
+        images = work / colmap.IMAGES
         images.mkdir()
         names, video = fmt.views_into(source, images, cfg.frames, progress, log)
         t_images = time.perf_counter() - t0
@@ -94,7 +85,7 @@ def pose_capture(source: str | Path, out: str | Path, cfg: PoseConfig | None = N
         model, seconds = _sfm(work, names, matcher, progress, log)
         registered = model.num_reg_images() if model is not None else 0
         _check_registered(source, registered, len(names), cfg, fmt.NOUN)
-        model.write(str(_mkdir(work / "sparse" / "0")))
+        model.write(str(_mkdir(work / colmap.MODEL)))
         placed = {model.image(i).name for i in model.reg_image_ids()}
         summary = {
             "version": SUMMARY_VERSION, "source": str(source.resolve()), "kind": fmt.KIND, "inputs": inputs,
@@ -129,7 +120,7 @@ def _matcher(choice: str, sequential: bool, count: int) -> str:
     return "sequential" if sequential or count > EXHAUSTIVE_MAX else "exhaustive"
 
 
-OWN_ENTRIES = ("images", "sparse", SUMMARY)  # what a posed capture holds: pose replaces only these
+OWN_ENTRIES = (*colmap.OWN_ENTRIES, SUMMARY)  # what a posed capture holds: pose replaces only these
 
 
 def _previous(out: Path, source: Path) -> dict | None:
@@ -153,8 +144,7 @@ def _previous(out: Path, source: Path) -> dict | None:
     if summary.get("source") != str(source.resolve()):
         raise InputError(out, f"holds the poses of other photos ({summary.get('source', 'a source not named')}, in "
                               f"{SUMMARY}): pose {source} into a new or empty folder with -o")
-    model = out / "sparse" / "0"
-    if summary.get("version") != SUMMARY_VERSION or not any((model / f"cameras.{e}").is_file() for e in ("bin", "txt")):
+    if summary.get("version") != SUMMARY_VERSION or not colmap.has_model(out):
         return {}  # an older or incomplete result: made again
     return summary
 
@@ -221,7 +211,7 @@ def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callab
     """COLMAP on work/images: (the model placing the most images or None, seconds per step)."""
     pycolmap = import_pycolmap()
 
-    threads, db, images = _threads(), work / "database.db", work / "images"
+    threads, db, images = _threads(), work / "database.db", work / colmap.IMAGES
     seconds = {}
     bar = messages.progress(total=3, desc="pose", unit="step", disable=not progress)
     with _quiet_colmap(), bar:

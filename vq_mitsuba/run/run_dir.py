@@ -386,6 +386,7 @@ class RunDir:
 
         from vq_mitsuba.data.cameras import convert_world
         from vq_mitsuba.data.captures import load_cameras
+        from vq_mitsuba.data.formats.nerf_synthetic import SPLIT_FILE
         from vq_mitsuba.data.names import unique_names
 
         info = self.source().info()
@@ -393,7 +394,7 @@ class RunDir:
         options = self.source().config().capture
         splits = {"train": capture}
         if not capture.is_dir():
-            splits.update({s: capture.parent / f"transforms_{s}.json" for s in ("test", "val")})
+            splits.update({s: capture.parent / SPLIT_FILE.format(s) for s in ("test", "val")})
         out = {}
         for split, path in splits.items():
             if path.exists() and (split == "train" or path != capture):

@@ -5,6 +5,7 @@ POSED, else an `UnposedFormat` (its NOUN, SEQUENTIAL, `pose_inputs` and `views_i
 stage what it needs); `tests/data/test_formats_conform.py` checks every registered one. It defines:
 
     KIND           the name `capture_kind` gives it ("xml", "json", "idr", "llff", "colmap", ...)
+    DESCRIPTION    what a person gives, as messages and help name it ("a NeuS/IDR cameras_sphere.npz")
     SUFFIXES       the file suffixes it reads (empty for a folder)
     FOLDER_FILES   the files that make a folder a capture of this format, in the order looked for
     POSED          False for captures without camera poses (loading them is refused)
@@ -13,7 +14,7 @@ stage what it needs); `tests/data/test_formats_conform.py` checks every register
     load(source, mesh_arg, shrink, cache_dir)   the validated `Capture` (posed formats)
     points(source)             sparse points and their track lengths (posed formats; the attribute
                                is None where the format has none)
-    sphere(source)             the region of interest as (centre, radius) (likewise)
+    sphere(source)             the region of interest as (centre, radius, what gives it) (likewise)
     has_geometry(source)       whether the capture brings its own geometry, reading no image
                                (posed formats)
 
@@ -41,6 +42,7 @@ class CaptureFormat(Protocol):
     """What every format module defines."""
 
     KIND: str
+    DESCRIPTION: str
     SUFFIXES: tuple[str, ...]
     FOLDER_FILES: tuple[str, ...]
     POSED: bool
@@ -89,6 +91,12 @@ def format_of(source: Path) -> ModuleType:
 def folder_files() -> list[str]:
     """The file names that make a folder a capture, in the order they are looked for."""
     return [name for fmt in FORMATS for name in fmt.FOLDER_FILES]
+
+
+def described() -> str:
+    """Every format as a person gives it, in one phrase: "a Mitsuba scene .xml, ..., or a video"."""
+    phrases = [fmt.DESCRIPTION for fmt in FORMATS]
+    return ", ".join(phrases[:-1]) + " or " + phrases[-1]
 
 
 def known_suffix(path: Path) -> bool:

@@ -35,6 +35,7 @@ from vq_mitsuba.errors import InputError, raise_all
 KIND = "colmap"
 SUFFIXES = ()  # a folder
 FOLDER_FILES = ()
+DESCRIPTION = "a COLMAP model (in sparse/0/, sparse/ or the folder)"  # what a person gives, in messages and help
 POSED = True
 sphere = None  # no region of interest (points: the sparse model's)
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
@@ -114,6 +115,16 @@ def matrix_to_qvec(r: np.ndarray) -> np.ndarray:
     x, y, z, w = Rotation.from_matrix(r).as_quat()
     q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q
+
+
+# What the pose stage writes, a capture this module reads: the photos in IMAGES, the model in MODEL.
+IMAGES, MODEL = "images", Path("sparse") / "0"
+OWN_ENTRIES = (IMAGES, MODEL.parts[0])  # the layout's top-level entries
+
+
+def has_model(folder: Path) -> bool:
+    """Whether FOLDER/MODEL holds a model's cameras (the layout the pose stage writes)."""
+    return any((folder / MODEL / f"cameras.{e}").is_file() for e in ("bin", "txt"))
 
 
 def colmap_model_dir(folder: Path) -> Path | None:

@@ -29,6 +29,7 @@ from vq_mitsuba.errors import InputError, raise_all
 KIND = "idr"
 SUFFIXES = (".npz",)
 FOLDER_FILES = ("cameras_sphere.npz",)
+DESCRIPTION = "a NeuS/IDR cameras_sphere.npz"  # what a person gives, in messages and help
 POSED = True
 points = None  # no sparse points (sphere: scale_mat_0's region of interest)
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
@@ -53,9 +54,10 @@ def load(npz: Path, mesh_arg, shrink=None, cache_dir=None) -> Capture:
                    "mitsuba")
 
 
-def sphere(npz: Path) -> tuple[np.ndarray, float] | None:
-    """The region of interest (`read_idr_sphere`), None without scale_mat_0."""
-    return read_idr_sphere(npz)
+def sphere(npz: Path) -> tuple[np.ndarray, float, str] | None:
+    """The region of interest (`read_idr_sphere`) and what gives it, None without scale_mat_0."""
+    found = read_idr_sphere(npz)
+    return None if found is None else (*found, "scale_mat_0")
 
 
 def _idr_views(npz: Path) -> tuple[list[Camera], list[Path], list[Path] | None]:

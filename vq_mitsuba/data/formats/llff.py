@@ -24,6 +24,7 @@ from vq_mitsuba.errors import InputError, raise_all
 KIND = "llff"
 SUFFIXES = (".npy",)
 FOLDER_FILES = ("poses_bounds.npy",)
+DESCRIPTION = "an LLFF poses_bounds.npy"  # what a person gives, in messages and help
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder

@@ -32,6 +32,7 @@ from vq_mitsuba.errors import InputError, raise_all
 KIND = "xml"
 SUFFIXES = (".xml",)
 FOLDER_FILES = ("scene.xml",)  # the file a capture folder holds
+DESCRIPTION = "a Mitsuba scene .xml (scene.xml in a folder)"  # what a person gives, in messages and help
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
 MESH_SHAPES = ("ply", "obj", "serialized", "cube")  # loaded by Mitsuba as triangle meshes

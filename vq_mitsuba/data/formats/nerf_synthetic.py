@@ -29,7 +29,9 @@ from vq_mitsuba.errors import InputError, raise_all
 
 KIND = "json"
 SUFFIXES = (".json",)
-FOLDER_FILES = ("transforms_train.json", "transforms.json")  # the file a capture folder holds, in this order
+SPLIT_FILE = "transforms_{}.json"  # a split's cameras: transforms_train.json, transforms_test.json
+FOLDER_FILES = (SPLIT_FILE.format("train"), "transforms.json")  # the file a capture folder holds, in this order
+DESCRIPTION = "a NeRF-synthetic transforms_train.json (or transforms_*.json)"  # what a person gives, in messages and help
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder

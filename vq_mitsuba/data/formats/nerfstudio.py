@@ -39,6 +39,7 @@ from vq_mitsuba.errors import InputError, raise_all
 KIND = "json"
 SUFFIXES = (".json",)
 FOLDER_FILES = ("transforms.json",)
+DESCRIPTION = "a nerfstudio transforms.json"  # what a person gives, in messages and help
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder

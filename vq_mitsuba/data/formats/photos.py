@@ -19,6 +19,7 @@ from vq_mitsuba.errors import InputError
 KIND = "photos"
 SUFFIXES = ()  # a folder
 FOLDER_FILES = ()
+DESCRIPTION = "a folder of photos (JPEG / PNG)"  # what a person gives, in messages and help
 POSED = False  # loading refuses it (vq_mitsuba.data.unposed.unposed_error)
 NOUN = "photos"  # what its views are called
 SEQUENTIAL = False  # views in no order: SfM matches every pair while they are few

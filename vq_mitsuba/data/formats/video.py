@@ -22,6 +22,7 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
 KIND = "video"
 SUFFIXES = VIDEO_SUFFIXES
 FOLDER_FILES = ()
+DESCRIPTION = "a video"  # what a person gives, in messages and help
 POSED = False  # loading refuses it (vq_mitsuba.data.unposed.unposed_error)
 NOUN = "video frames"  # what its views are called
 SEQUENTIAL = True  # views in time order: SfM matches neighbours

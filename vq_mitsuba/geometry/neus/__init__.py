@@ -31,23 +31,27 @@ of points outside the sphere from their inverted-sphere coordinates (x/r, 1/r) a
 direction); the colour loss is on every pixel and there is no mask loss. The exported mesh keeps
 the largest piece inside the sphere, without a supporting plane (`support_plane`).
 
-The rooms: `framing` (where the object is without masks), `hull` (the visual hull), `fields` (the
-grid and the networks; `grid_kernel` its CPU lookup), `renderer` (the model bound to a capture:
-rays, occupancy, volume rendering, mesh export), `fit` (training and the geometry stage).
+The rooms: `framing` (where the object is without masks), `hull` (the visual hull), `networks` (the
+grid and the networks; `grid_kernel` its CPU lookup), `renderer` (the model: its box, occupancy and
+volume rendering of rays; it takes rays, not a capture), `rays` (a capture's box, training rays and
+camera renders: `neus_for` builds the model), `mesh_export` (the surface as a mesh) and `training`
+(the training loop and `reconstruct`; the geometry stage around it is `vq_mitsuba.geometry.stage`).
 """
 
 from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, HASH_PRIMES, MASKED_GRID,
                                              BackgroundNetwork, ColorNetwork, DenseGrid, NeuSModel, SDFNetwork,
-                                             choose_grid, trilinear)
+                                             trilinear)
 from vq_mitsuba.geometry.neus.training import (NeuSTraining, Reconstruction, _check_architecture, rate_spread,
                                                reconstruct, train)
 from vq_mitsuba.geometry.neus.framing import (bounding_sphere, box_footprint_px, support_from_points,
                                               uses_background_model, well_seen)
 from vq_mitsuba.geometry.neus.hull import _hull_box, carve, hull_sdf
-from vq_mitsuba.geometry.neus.renderer import NeuS, camera_rays, encode_srgb
+from vq_mitsuba.geometry.neus.mesh_export import extract_mesh
+from vq_mitsuba.geometry.neus.rays import choose_grid, neus_for, render_view
+from vq_mitsuba.geometry.neus.renderer import Box, NeuS, TrainingRays, encode_srgb
 
 __all__ = ['COARSE_GRID', 'FINE_GRID', 'FINE_GRID_FROM_PX', 'HASH_PRIMES', 'MASKED_GRID', 'BackgroundNetwork',
            'ColorNetwork', 'DenseGrid', 'NeuSModel', 'SDFNetwork', 'choose_grid', 'trilinear', 'NeuSTraining',
            'Reconstruction', '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere',
            'box_footprint_px', 'support_from_points', 'uses_background_model', 'well_seen', '_hull_box', 'carve', 'hull_sdf', 'NeuS',
-           'camera_rays', 'encode_srgb']
+           'Box', 'TrainingRays', 'neus_for', 'render_view', 'extract_mesh', 'encode_srgb']

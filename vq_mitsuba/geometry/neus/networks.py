@@ -1,10 +1,9 @@
 """What NeuS is: the multi-resolution feature grid, the SDF network (with its gradient in closed form),
-the colour and background networks, and the grid a capture gets."""
+the colour and background networks, and the grid sizes a capture chooses from (`rays.choose_grid`)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import torch
@@ -13,7 +12,6 @@ import torch.nn.functional as F
 
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.geometry.neus import grid_kernel
-from vq_mitsuba.geometry.neus.framing import box_footprint_px
 
 
 INIT_RADIUS, INIT_RADIUS_WITHOUT_MASKS = 0.6, 0.3  # the sphere initialisation when neus.init_radius is 0
@@ -37,26 +35,6 @@ FINE_GRID_FROM_PX = 256
 # over: on tabletop one layer gave worse normals at equal steps and equal ones at equal time;
 # benchmarks/results/neus_step/).
 SDF_LAYERS_FINE, SDF_LAYERS = 1, 2
-
-
-def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
-                masks: bool = True) -> tuple[NeuSConfig, dict]:
-    """The config with neus.levels and neus.max_res decided (when 0), and what decided them;
-    `masks` False: NeuS trains without masks (the coarse grid whatever the size)."""
-    footprint = box_footprint_px(cameras, center, half)
-    fine = masks and footprint > FINE_GRID_FROM_PX
-    levels, max_res = FINE_GRID if fine else MASKED_GRID if masks else COARSE_GRID
-    chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res,
-                     sdf_layers=cfg.sdf_layers or (SDF_LAYERS_FINE if fine else SDF_LAYERS))
-    if cfg.levels and cfg.max_res:
-        reason = "neus.levels and neus.max_res given"
-    elif not masks:
-        reason = f"without masks (the box spans {footprint:.0f} px in the median view)"
-    else:
-        reason = (f"the box spans {footprint:.0f} px in the median view ({'over' if fine else 'at most'} "
-                  f"{FINE_GRID_FROM_PX})")
-    return chosen, {"levels": chosen.levels, "max_res": chosen.max_res, "hash_log2": chosen.hash_log2,
-                    "sdf_layers": chosen.sdf_layers, "box_footprint_px": footprint, "reason": reason}
 
 
 def corner_weights(f: torch.Tensor, du_dp: torch.Tensor | None = None) -> torch.Tensor:

@@ -1,11 +1,11 @@
-"""A NeuS model bound to a capture: its box, training rays, occupancy, volume rendering and mesh
-export."""
+"""The NeuS model: its networks in the normalised box, the occupancy that bounds each ray's samples,
+and volume rendering of rays given in box units. It takes rays, not a capture: `rays.neus_for`
+frames a capture's views into a `Box` and its `TrainingRays`, and `mesh_export` extracts the surface."""
 
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -13,12 +13,8 @@ import torch.nn.functional as F
 
 from vq_mitsuba.backend import available_memory, sized, torch_device
 from vq_mitsuba.config import CPU_NEUS_BATCH, NeuSConfig
-from vq_mitsuba.config import check as validate
-from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.geometry.neus.networks import NeuSModel, choose_grid, trilinear
-from vq_mitsuba.geometry.neus.framing import bounding_sphere, uses_background_model
-from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
+from vq_mitsuba.geometry.neus.networks import NeuSModel
 
 BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
 COLOR_MIN_WEIGHT = 1e-3  # samples of smaller compositing weight are shaded black (the colour network skips them)
@@ -84,44 +80,66 @@ def encode_srgb(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=1e-8) ** (1 / 2.4) - 0.055)
 
 
-class NeuS:
-    """A NeuS model bound to a capture's cameras, in the normalised box around the visual hull, or
-    without masks (`uses_background_model`) in the box around the bounding sphere (`sphere`:
-    (centre, radius, what framed it); default `bounding_sphere` of the cameras). `support`: a
-    known supporting plane without masks ((unit normal towards the cameras, offset) in the world,
-    e.g. `support_from_points`): the foreground is what lies inside the sphere above it, and the
-    background model takes the plane and what lies below. `points`: the capture's sparse points
-    (N, 3) in the world, which the mesh export's search for a support checks its planes against."""
+@dataclass
+class Box:
+    """Where NeuS works: the normalised box [-1, 1]^3 around the visual hull (with masks) or around the
+    bounding sphere, its unit sphere (without masks: `mask_free`), and its occupancy grids at
+    neus.hull_resolution on the model's device."""
 
-    def __init__(self, capture, cfg: NeuSConfig, sphere: tuple | None = None, support: tuple | None = None,
-                 points: np.ndarray | None = None):
-        validate(cfg)
-        self.cfg = cfg
+    center: np.ndarray  # the box's centre in the world
+    half: float  # its half-size in world units
+    hull: torch.Tensor  # (R, R, R) bool: the visual hull (without masks the sphere above the support)
+    hull_sdf: torch.Tensor  # (R, R, R) its smoothed signed distance, box units
+    hull_dilated: torch.Tensor  # (R, R, R) bool: the hull dilated by two cells
+    mask_free: bool  # trained without masks: a background model takes what lies outside the sphere
+    plane: tuple | None = None  # a known supporting plane in box units: (unit normal tensor, offset)
+    sphere_source: str | None = None  # what framed the bounding sphere (without masks)
+    seconds: float = 0.0  # the time its hull took
+
+    def to_box(self, x_world: torch.Tensor) -> torch.Tensor:
+        center = torch.from_numpy(self.center).to(x_world.device)
+        return ((x_world.double() - center) / self.half).float()
+
+    def to_world(self, p_box: np.ndarray) -> np.ndarray:
+        return np.asarray(p_box, dtype=np.float64) * self.half + self.center
+
+
+@dataclass
+class TrainingRays:
+    """The rays a step draws from, on the model's device: origins in box units, unit directions,
+    sRGB target colours and, with masks, each ray's alpha (None without masks)."""
+
+    origins: torch.Tensor  # (N, 3)
+    dirs: torch.Tensor  # (N, 3)
+    rgb: torch.Tensor  # (N, 3)
+    alpha: torch.Tensor | None  # (N,)
+
+
+class NeuS:
+    """The NeuS model in a `Box` (`rays.neus_for` builds one from a capture's views): its networks
+    (with a background model when the box is `mask_free`), trained on `rays`. `grid`: how its feature
+    grid was sized (for geometry.json); `views`: the cameras' centres (N, 3) in the world, which the
+    mesh export's search for a support looks from; `points`: sparse points (N, 3) in the world, for
+    the SDF-is-zero term and that search; `source`: the capture file, for messages."""
+
+    def __init__(self, cfg: NeuSConfig, box: Box, rays: TrainingRays, grid: dict | None = None,
+                 views: np.ndarray | None = None, points: np.ndarray | None = None, source=None):
+        self.cfg, self.grid, self.box, self.source = cfg, grid, box, source
         self.device = torch_device()  # the model, its training rays and its grids live there
         self.points = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
-        self.capture = capture
-        self.source = capture.source
-        self.mask_free = uses_background_model(capture, cfg)
-        self.support = None  # the supporting plane the mesh export cut away (without masks)
-        self.plane = None  # a known supporting plane in box units: (normal, offset)
-        if len(capture.cameras) == 0:
-            raise InputError(capture.source, "the capture has no images")
-        if not capture.has_alpha and not self.mask_free:
-            raise InputError(capture.source, "neus.background is masks, but the images have no alpha channel and "
-                                             "there is no mask folder (give RGBA PNG/EXR images, masks/ for COLMAP or "
-                                             "mask/ for NeuS/IDR, --background-color R,G,B for a plain backdrop, or "
-                                             "leave neus.background at auto to reconstruct without masks)")
-        alpha = torch.from_numpy(np.ascontiguousarray(capture.alpha))
-        if not self.mask_free and float(alpha.max()) <= cfg.hull_threshold:
-            raise InputError(capture.source, "the alpha masks are empty: no foreground pixel in any image")
+        self.views = np.zeros((0, 3)) if views is None else np.asarray(views, np.float64).reshape(-1, 3)
+        self.center, self.half, self.mask_free = box.center, box.half, box.mask_free
+        self.hull, self.hull_sdf, self.hull_dilated = box.hull, box.hull_sdf, box.hull_dilated
+        self.plane, self.sphere_source, self.hull_seconds = box.plane, box.sphere_source, box.seconds
         torch.manual_seed(cfg.seed)
-        with _threads(cfg.threads):
-            if self.mask_free:
-                self._setup_sphere(capture, cfg, sphere or bounding_sphere(capture.cameras), support)
-            else:
-                self.sphere_source = None
-                self._setup(capture, cfg, alpha)
-        self.surface_points = self._surface_points(cfg)
+        # built on the CPU (the same initial weights on every device), then moved
+        init = self.hull_sdf.cpu() if not self.mask_free and cfg.init == "hull" else None
+        self.model = NeuSModel(cfg, init, background=self.mask_free).to(self.device)
+        self.deep = torch.zeros_like(self.hull)  # cells the current SDF marks as well inside the object
+        self.rays_o, self.rays_d, self.rays_rgb, self.rays_alpha = rays.origins, rays.dirs, rays.rgb, rays.alpha
+        self.cfg, self.steps = choose_iterations(cfg, len(self.rays_o))
+        self.surface_points = self._surface_points(self.cfg)
+        self.support = None  # the supporting plane the mesh export cut away (without masks)
         # the training step's fixed-shape form compiled (`training_step` under `vq_mitsuba.compiled`),
         # or None: every step runs `_foreground` eagerly (NeuSTraining decides)
         self.compiled_step = None
@@ -145,85 +163,12 @@ class NeuS:
         p = p[inside]
         return p if len(p) else None
 
-    def _setup_sphere(self, capture, cfg: NeuSConfig, sphere: tuple, support: tuple | None) -> None:
-        """Without masks: the bounding sphere (above a known support) is the unit sphere of the box
-        and stands in for the visual hull; the SDF starts as a sphere; every pixel of every view is
-        a training ray."""
-        t0 = time.perf_counter()
-        center, radius, self.sphere_source = sphere
-        if not (np.all(np.isfinite(center)) and math.isfinite(radius) and radius > 0):
-            raise InputError(capture.source, f"the bounding sphere (centre {center}, radius {radius}, from "
-                                             f"{self.sphere_source}) is degenerate: check the camera poses")
-        self.center, self.half = np.asarray(center, dtype=np.float64), float(radius)
-        res = cfg.hull_resolution
-        axis = (torch.arange(res, dtype=torch.float32, device=self.device) + 0.5) / res * 2.0 - 1.0
-        grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
-        self.hull_sdf = grid.norm(dim=-1) - 1.0
-        if support is not None:
-            length = float(np.linalg.norm(support[0]))
-            n = np.asarray(support[0], np.float64) / length
-            c = (float(support[1]) / length - float(n @ self.center)) / self.half
-            if c > 0.9:
-                raise InputError(capture.source, "the supporting plane passes above the bounding sphere")
-            self.plane = (torch.tensor(n, dtype=torch.float32, device=self.device), c)
-            self.hull_sdf = torch.maximum(self.hull_sdf, c - grid @ self.plane[0])
-        self.hull = self.hull_sdf < 0
-        self.hull_dilated = self._dilated(self.hull)
-        self.hull_seconds = time.perf_counter() - t0
-        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half, masks=False)
-        self.model = NeuSModel(self.cfg, None, background=True).to(self.device)
-        self.deep = torch.zeros_like(self.hull)
-        origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
-        self.rays_o = self.to_box(torch.from_numpy(np.concatenate(origins)).to(self.device))
-        self.rays_d = torch.from_numpy(np.concatenate(dirs)).to(self.device)
-        images = torch.from_numpy(np.ascontiguousarray(capture.images)).to(self.device)
-        self.rays_rgb = encode_srgb(images.reshape(-1, 3))
-        self.rays_alpha = None
-        self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
-
-    def _dilated(self, occ: torch.Tensor) -> torch.Tensor:
-        """The occupancy grid dilated by two cells (scipy's, on the CPU), on the model's device."""
-        from scipy import ndimage
-
-        return torch.from_numpy(ndimage.binary_dilation(occ.cpu().numpy(), iterations=2)).to(self.device)
-
-    def _setup(self, capture, cfg: NeuSConfig, alpha: torch.Tensor) -> None:
-        alpha = alpha.to(self.device)
-        masks = alpha > cfg.hull_threshold
-        # Carve with masks dilated by one pixel, so the hull stays conservative at silhouettes.
-        dil = F.max_pool2d(masks.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0.5
-        t0 = time.perf_counter()
-        center, half, occ = _hull_box(capture.cameras, dil, cfg, capture.source)
-        self.center, self.half = np.asarray(center, dtype=np.float64), float(half)
-        self.hull = occ
-        self.hull_sdf = hull_sdf(occ).to(self.device)
-        self.hull_dilated = self._dilated(occ)
-        self.hull_seconds = time.perf_counter() - t0
-        self.cfg, self.grid = choose_grid(cfg, capture.cameras, self.center, self.half)
-        # built on the CPU (the same initial weights on every device), then moved
-        self.model = NeuSModel(self.cfg, self.hull_sdf.cpu() if cfg.init == "hull" else None).to(self.device)
-        self.deep = torch.zeros_like(occ)  # cells the current SDF marks as well inside the object
-
-        # Training rays: pixels within a few pixels of the foreground, from every view.
-        near_fg = F.max_pool2d(masks.float()[:, None], 7, stride=1, padding=3)[:, 0] > 0.5
-        origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
-        origins = torch.from_numpy(np.concatenate(origins)).to(self.device)
-        dirs = torch.from_numpy(np.concatenate(dirs)).to(self.device)
-        sel = near_fg.reshape(-1)
-        self.rays_o = self.to_box(origins[sel])
-        self.rays_d = dirs[sel]
-        rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).to(self.device).reshape(-1, 3)
-        self.rays_rgb = encode_srgb(rgb[sel])
-        self.rays_alpha = alpha.reshape(-1)[sel].clamp(0, 1)
-        self.cfg, self.steps = choose_iterations(self.cfg, len(self.rays_o))
-
     # ---- coordinates
     def to_box(self, x_world: torch.Tensor) -> torch.Tensor:
-        center = torch.from_numpy(self.center).to(x_world.device)
-        return ((x_world.double() - center) / self.half).float()
+        return self.box.to_box(x_world)
 
     def to_world(self, p_box: np.ndarray) -> np.ndarray:
-        return np.asarray(p_box, dtype=np.float64) * self.half + self.center
+        return self.box.to_world(p_box)
 
     # ---- schedule
     def level_weights(self, frac: float) -> list[float]:
@@ -422,93 +367,3 @@ class NeuS:
         keep = (w.detach() > COLOR_MIN_WEIGHT).reshape(-1).nonzero()[:, 0]
         color = self.model.color(feat[keep], normal[keep], view[keep])
         return w.new_zeros(w.numel(), 3).index_copy(0, keep, color).view(*w.shape, 3)
-
-    @torch.no_grad()
-    def render_camera(self, cam, chunk: int = 4096, composite: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """(sRGB colour (H, W, 3) on black, or with `composite` over the background model where there
-        is one; opacity (H, W)) of a camera, for novel-view PSNR."""
-        o, d = camera_rays(cam)
-        o = self.to_box(torch.from_numpy(o).to(self.device))
-        d = torch.from_numpy(d).to(self.device)
-        lw = [1.0] * self.cfg.levels
-        rgb, acc = [], []
-        for i in range(0, len(o), chunk):
-            r = self.render(o[i:i + chunk], d[i:i + chunk], lw, self.cfg.n_samples, False, False)
-            rgb.append(r["rgb"] if composite else r.get("rgb_fg", r["rgb"]))
-            acc.append(r["acc"].detach())
-        return (torch.cat(rgb).reshape(cam.height, cam.width, 3).cpu().numpy(),
-                torch.cat(acc).reshape(cam.height, cam.width).cpu().numpy())
-
-    # ---- mesh
-    @torch.no_grad()
-    def sdf_volume(self, res: int, chunk: int = 131072) -> np.ndarray:
-        """SDF on a res^3 grid spanning [-1, 1]^3 (box units), limited to the visual hull."""
-        axis = torch.linspace(-1.0, 1.0, res, device=self.device)
-        hull_res = self.cfg.hull_resolution
-        lw = [1.0] * self.cfg.levels
-        vol = torch.empty(res, res, res, device=self.device)
-        # Outside the (dilated) hull the SDF is the hull's own distance; inside, the network's,
-        # never below the hull distance minus a tolerance (the visual-hull constraint).
-        tol = 2.0 * 2.0 / hull_res
-        for i in range(res):
-            p = torch.stack(torch.meshgrid(axis[i:i + 1], axis, axis, indexing="ij"), -1).reshape(-1, 3)
-            hs = trilinear(self.hull_sdf.reshape(-1, 1), hull_res, p)[:, 0]
-            inside = self._lookup(self.hull_dilated, p)
-            s = hs.clone()
-            if bool(inside.any()):
-                q = p[inside]
-                s[inside] = torch.cat([self.model.sdf(q[j:j + chunk], lw)[0] for j in range(0, len(q), chunk)])
-                s = torch.maximum(s, hs - tol)
-            vol[i] = s.view(res, res)
-        return vol.cpu().numpy()
-
-    def _without_support(self, vol: np.ndarray, mesh):
-        """The mesh (box units) cut above a supporting plane, the known one or the one the mesh
-        shows (`support_plane`): the volume below the plane plus two grid cells is made empty and
-        the surface extracted again. Sets self.support to the plane in world units ({normal,
-        point, from}) or None."""
-        from vq_mitsuba.geometry.mesh import marching_cubes, support_plane
-
-        res = vol.shape[0]
-        cell = 2.0 / (res - 1)
-        if self.plane is not None:
-            plane = (self.plane[0].cpu().numpy().astype(np.float64), self.plane[1])
-        else:
-            views = self.to_box(torch.from_numpy(np.array([c.origin for c in self.capture.cameras]))).numpy()
-            points = None if self.points is None else self.to_box(torch.from_numpy(self.points)).numpy()
-            plane = support_plane(mesh, views, radius=1.0, tol=1.5 * cell, seed=self.cfg.seed, points=points)
-        if plane is None:
-            return mesh
-        n, c = plane
-        axis = np.linspace(-1.0, 1.0, res)
-        x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-        above = (c + 2.0 * cell) - (n[0] * x + n[1] * y + n[2] * z)  # positive (empty) below the cut
-        try:
-            cut = marching_cubes(np.maximum(vol, above.astype(np.float32)), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-        except ValueError:  # nothing stands on the plane: keep the surface as it is
-            return mesh
-        self.support = {"normal": [float(v) for v in n], "point": self.to_world(n * c).tolist(),
-                        "from": "sparse points" if self.plane is not None else "mesh"}
-        return cut
-
-    def extract_mesh(self, res: int | None = None, clean: bool = True):
-        from vq_mitsuba.geometry.mesh import clean_mesh, marching_cubes, smooth_vertex_normals
-
-        res = res or self.cfg.mesh_resolution
-        vol = self.sdf_volume(res)
-        try:
-            mesh = marching_cubes(vol, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-            self.support = None
-            if self.mask_free and clean:
-                mesh = self._without_support(vol, mesh)
-        except ValueError as exc:
-            raise InputError(self.source, f"NeuS produced no surface ({exc}); check the masks and cameras") from exc
-        mesh.vertices = self.to_world(mesh.vertices)
-        if clean:
-            c = self.cfg
-            # without masks only the largest piece is the object (the rest: background the SDF took)
-            mesh = clean_mesh(mesh, c.min_component, c.keep_largest or self.mask_free, c.smooth_iterations,
-                              c.max_faces)
-            if c.normal_smoothing > 0:
-                mesh = smooth_vertex_normals(mesh, c.normal_smoothing, c.normal_smoothing_angle)
-        return mesh

@@ -1,5 +1,6 @@
-"""Training NeuS (its step, optimiser, checkpoint and schedule on the loop skeleton) and the geometry
-stage that wraps it: train, export the mesh, write the run's geometry files."""
+"""Training NeuS (its step, optimiser, checkpoint and schedule on the loop skeleton) and
+`reconstruct`: a model for a loaded capture (`rays.neus_for`), trained, its mesh extracted and its
+summary gathered; the geometry stage (`vq_mitsuba.geometry.stage`) writes them into the run."""
 
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus import grid_kernel
+from vq_mitsuba.geometry.neus.mesh_export import extract_mesh
+from vq_mitsuba.geometry.neus.rays import neus_for, render_view
 from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
@@ -291,7 +294,7 @@ def view_psnr(neus: NeuS, capture, views: list[int], chunk: int = 8192) -> dict[
     with _threads(neus.cfg.threads):
         for v in views:
             cam = capture.cameras[v]
-            rgb, _ = neus.render_camera(cam, chunk, composite=True)
+            rgb, _ = render_view(neus, cam, chunk, composite=True)
             photo = encode_srgb(torch.from_numpy(np.ascontiguousarray(capture.images[v]))).numpy()
             err = (rgb - photo) ** 2
             if capture.has_alpha:
@@ -311,7 +314,7 @@ def sample_views(count: int, at_most: int) -> list[int]:
 @dataclass
 class Reconstruction:
     """What NeuS made: the extracted mesh, the trained model and its summary (the geometry stage,
-    `geometry/pipeline.py`, writes them as mesh.ply and geometry.json)."""
+    `geometry/stage.py`, writes them as mesh.ply and geometry.json)."""
 
     mesh: object  # trimesh.Trimesh, in the capture's world
     neus: NeuS
@@ -335,13 +338,13 @@ def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None
 def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
                  sphere=None, support=None, points=None) -> Reconstruction:
     t0 = time.perf_counter()
-    neus = NeuS(capture, cfg, sphere, support, points)
+    neus = neus_for(capture, cfg, sphere, support, points)
     run.create()
     setup_s = time.perf_counter() - t0
     summary = train(neus, run, resume=resume, progress=progress, callback=callback,
                     callback_every_s=callback_every_s)
     t1 = time.perf_counter()
-    mesh = neus.extract_mesh()
+    mesh, neus.support = extract_mesh(neus)
     export_s = time.perf_counter() - t1
     if summary["history"]:
         run.write_file(run.GEOMETRY_PLOT, lambda path: _plot_history(summary["history"], path))

@@ -1,8 +1,10 @@
-"""`vq-mitsuba fit`, run once from here: the run folder's checks, the camera poses when the capture
-is photos or a video without them (SfM), the geometry stage when the capture brings no geometry
-(NeuS), then the material fit: the capture loaded, a resumed run checked against it, run.json and
-the warnings about the inputs, the training loop (`vq_mitsuba.engine.trainer.Trainer`) and the
-results (`vq_mitsuba.engine.products`). `vq-mitsuba geometry` shares the pose step."""
+"""The pipeline `vq-mitsuba fit` runs, once, from here: the run folder's checks, the capture resolved
+once (`vq_mitsuba.data.captures.open_capture`: the value every stage takes), the camera poses when
+the capture is photos or a video without them (SfM), the geometry stage when the capture brings no
+geometry (NeuS: `vq_mitsuba.geometry.stage`), then the material fit: a resumed run checked against
+the capture, run.json and the warnings about the inputs, the training loop and the residual
+(`vq_mitsuba.engine.trainer.Trainer`) and the results (`vq_mitsuba.engine.products`).
+`vq-mitsuba geometry` runs its pose and geometry stages."""
 
 from __future__ import annotations
 
@@ -18,13 +20,13 @@ import torch
 from vq_mitsuba import messages
 from vq_mitsuba.backend import device_record, init_mitsuba, torch_device
 from vq_mitsuba.config import Config, PoseConfig
-from vq_mitsuba.data.captures import Capture, capture_has_geometry, load_capture
+from vq_mitsuba.data.captures import Capture, CaptureSource, open_capture
 from vq_mitsuba.engine.mesh_scale import mesh_scale_warning
 from vq_mitsuba.engine.products import write_products
 from vq_mitsuba.engine.trainer import Trainer, parse_snapshot_times
 from vq_mitsuba.errors import InputError, warn
-from vq_mitsuba.geometry.pipeline import ensure_geometry, masked_by_mesh, neus_psnr_line, run_geometry
-from vq_mitsuba.geometry.poses import ensure_poses, is_unposed
+from vq_mitsuba.geometry.stage import ensure_geometry, masked_by_mesh, neus_psnr_line, run_geometry
+from vq_mitsuba.geometry.poses import ensure_poses
 from vq_mitsuba.models.fitted import material_networks
 from vq_mitsuba.run.outputs import check_output_folder, removed_on_refusal
 from vq_mitsuba.run.run_dir import RunDir
@@ -33,16 +35,19 @@ GEOMETRY_MODES = ("auto", "neus", "given")
 COVERAGE_WARNING = 0.9  # a share of the opaque pixels hitting the mesh below this is warned about
 
 
-def needs_reconstruction(capture: str | Path, geometry: str = "auto", mesh: str | Path | None = None) -> bool:
-    """Whether the fit reconstructs the geometry with NeuS first: `neus`, or `auto` on a capture
-    without shapes, mesh.ply or --mesh."""
+def needs_reconstruction(capture: CaptureSource, geometry: str = "auto") -> bool:
+    """Whether the fit reconstructs the geometry with NeuS first: `neus`, photos or a video without
+    poses, or `auto` on a capture without shapes, mesh.ply or --mesh."""
     if geometry not in GEOMETRY_MODES:
         raise ValueError(f"geometry must be one of {GEOMETRY_MODES}, got {geometry!r}")
-    if geometry == "neus" and mesh is not None:
-        raise InputError(mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; drop one")
-    if geometry == "given" or mesh is not None:
+    if geometry == "neus" and capture.mesh is not None:
+        raise InputError(capture.mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; "
+                                       "drop one")
+    if not capture.posed:
+        return True
+    if geometry == "given" or capture.mesh is not None:
         return False
-    return geometry == "neus" or not capture_has_geometry(capture)
+    return geometry == "neus" or not capture.has_geometry()
 
 
 def check_fit_target(run: RunDir, resume: bool) -> None:
@@ -53,11 +58,15 @@ def check_fit_target(run: RunDir, resume: bool) -> None:
         raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
 
 
-def posed_capture(capture: str | Path, run: RunDir, cfg: PoseConfig, progress: bool = True,
-                  log: Callable[[str], None] = messages.note) -> str | Path:
+def posed_capture(capture: CaptureSource, run: RunDir, cfg: PoseConfig, progress: bool = True,
+                  log: Callable[[str], None] = messages.note) -> CaptureSource:
     """The capture to fit or reconstruct: photos or a video without poses posed into RUN/pose
-    (`ensure_poses`, reused while the inputs are the same), any other capture as it is."""
-    return ensure_poses(capture, run, cfg, progress=progress, log=log) if is_unposed(capture) else capture
+    (`ensure_poses`, reused while the inputs are the same) and that capture resolved, any other
+    capture as it is."""
+    if capture.posed:
+        return capture
+    posed = ensure_poses(capture, run, cfg, progress=progress, log=log)
+    return open_capture(posed, options=capture.options, cache_dir=capture.cache_dir)
 
 
 def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry: str = "auto",
@@ -74,12 +83,12 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
     check_output_folder(run.dir, "run", "fit")
     if resume and not run.dir.is_dir():
         raise InputError(run.dir, "no run to resume (the folder does not exist)")
-    unposed = is_unposed(capture)
-    if unposed and (mesh is not None or geometry == "given"):
-        raise InputError(mesh or capture, "known geometry cannot be used with photos or a video without poses: "
-                                          "their cameras come from SfM, in a frame and scale of its own; drop "
-                                          f"{'--mesh' if mesh is not None else '--geometry given'}")
-    reconstruct = unposed or needs_reconstruction(capture, geometry, mesh)
+    capture = open_capture(capture, mesh, cfg.capture, cache_dir=run.dir / RunDir.UNDISTORTED)
+    if not capture.posed and (mesh is not None or geometry == "given"):
+        raise InputError(mesh or capture.given, "known geometry cannot be used with photos or a video without "
+                                                "poses: their cameras come from SfM, in a frame and scale of its "
+                                                f"own; drop {'--mesh' if mesh is not None else '--geometry given'}")
+    reconstruct = needs_reconstruction(capture, geometry)
     with run.lock("fit", log):
         check_fit_target(run, resume)  # once no other process writes here
         # A stage refused once it has read the capture (no pixel hits a --mesh, no geometry) removes
@@ -89,14 +98,14 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
         if reconstruct:
             reused = resume and run.has_mesh()
             with removed_on_refusal(run.dir):
-                mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress,
-                                       capture_cfg=cfg.capture)
+                mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress)
             log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
             scores = run.neus_scores()
             if not reused and scores:
                 log(neus_psnr_line(scores))
+            capture = capture.with_mesh(mesh)
         with removed_on_refusal(run.dir):
-            return fit_materials(capture, run, cfg, mesh_path=mesh, resume=resume, progress=progress)
+            return fit_materials(capture, run, cfg, resume=resume, progress=progress)
 
 
 def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
@@ -113,23 +122,23 @@ def geometry_capture(capture: str | Path, run_dir: str | Path, cfg: Config, resu
     run = RunDir(run_dir)
     if resume and not run.dir.is_dir():
         raise InputError(run.dir, "no run to resume (the folder does not exist)")
+    capture = open_capture(capture, options=cfg.capture, cache_dir=run.dir / RunDir.UNDISTORTED)
     with run.lock("geometry"), removed_on_refusal(run.dir):
         capture = posed_capture(capture, run, cfg.pose, progress=progress)
-        return run_geometry(capture, run, cfg.neus, resume=resume, progress=progress, gt_mesh=gt_mesh,
-                            capture_cfg=cfg.capture)
+        return run_geometry(capture, run, cfg.neus, resume=resume, progress=progress, gt_mesh=gt_mesh)
 
 
-def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path: str | Path | None = None,
-                  resume: bool = False, progress: bool = True) -> dict:
-    """The material fit on known geometry in a checked, locked run: returns the summary written to
-    RUN_DIR/fit.json."""
+def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool = False,
+                  progress: bool = True) -> dict:
+    """The material fit on the capture's known geometry (its own, or `capture.mesh`) in a checked,
+    locked run: returns the summary written to RUN_DIR/fit.json."""
     t_start = time.perf_counter()
     if resume and not run.has_checkpoint():
         # Interrupted before the first checkpoint (e.g. right after the geometry stage): start the
         # material fit from the beginning, keeping what the folder already holds (mesh.ply).
         messages.note(f"{run.checkpoint_path}: no checkpoint yet; the material fit starts from the beginning")
         resume = False
-    capture = load_training_capture(capture_path, mesh_path, run, cfg)  # every input check happens here, first
+    capture = load_training_capture(capture, run)  # every input check happens here, first
     state = None
     if resume:
         state, cfg = _resume_point(run, capture, cfg)
@@ -154,11 +163,9 @@ def fit_materials(capture_path: str | Path, run: RunDir, cfg: Config, mesh_path:
     return summary
 
 
-def load_training_capture(capture_path: str | Path, mesh_path: str | Path | None, run: RunDir,
-                          cfg: Config) -> Capture:
+def load_training_capture(source: CaptureSource, run: RunDir) -> Capture:
     """The training views with their geometry (masked by the mesh when NeuS made it without masks)."""
-    capture = load_capture(capture_path, mesh=mesh_path, options=cfg.capture, split="train",
-                           cache_dir=run.undistorted_dir)
+    capture = source.load("train")
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
                          "(pass --mesh PATH, put mesh.ply in the capture's folder, or reconstruct it from the images "

@@ -1,4 +1,5 @@
-"""Where the geometry stage plugs in: whether a capture has geometry, and running NeuS for a run."""
+"""The geometry stage: NeuS on a resolved capture (`vq_mitsuba.data.captures.CaptureSource`), its
+framing and sparse points, its scores, and its one record in the run (geometry.json, then mesh.ply)."""
 
 from __future__ import annotations
 
@@ -7,28 +8,25 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.config import CaptureConfig, NeuSConfig
+from vq_mitsuba.config import NeuSConfig
+from vq_mitsuba.data.captures import CaptureSource
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
 
 
-def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, np.ndarray | None]:
+def framing(capture: CaptureSource, cameras, seed: int = 0) -> tuple[tuple, tuple | None, np.ndarray | None]:
     """Where NeuS without masks looks for the object: (the sphere (centre, radius, what framed it),
     a supporting plane (normal, offset) or None, the sparse points seen by 3 or more images or None).
-    The sphere: an IDR capture's scale_mat_0 (the region of interest NeuS normalises to), else
-    `bounding_sphere` of the cameras and, for a COLMAP capture, its sparse points
-    (sparse/0/points3D.bin or .txt), which may also show the table the object stands on
-    (`support_from_points`)."""
-    from vq_mitsuba.data.captures import capture_framing
+    The sphere: the region of interest the capture's files give (`CaptureSource.framing`: an IDR
+    capture's), else `bounding_sphere` of the cameras and the capture's own sparse points (a COLMAP
+    model's), which may also show the table the object stands on (`support_from_points`)."""
     from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points, well_seen
 
-    points, sphere = capture_framing(capture_path)
-    if sphere is not None:
-        sphere = (sphere[0], sphere[1], "scale_mat_0")
-    elif points is not None:
+    points, sphere = capture.framing()
+    if sphere is None and points is not None:
         sphere = bounding_sphere(cameras, points[0], points[1])
-    else:
+    elif sphere is None:
         sphere = bounding_sphere(cameras)
     if points is None:
         return sphere, None, None
@@ -42,19 +40,18 @@ def framing(capture_path, cameras, seed: int = 0) -> tuple[tuple, tuple | None, 
 MIN_POINTS_PER_VIEW = 10
 
 
-def surface_points(capture_path, capture, cfg: NeuSConfig) -> tuple[np.ndarray | None, dict | None]:
+def surface_points(source: CaptureSource, capture, cfg: NeuSConfig) -> tuple[np.ndarray | None, dict | None]:
     """The sparse points seen by 3 or more views that NeuS's SDF-is-zero term uses (neus.w_points)
-    on a capture with masks, and where they came from: the capture's own (COLMAP's points3D), else
-    triangulated from its training views with their cameras (`sparse_points.triangulate`, its time
+    on a capture with masks (`capture`, the loaded training views of `source`), and where they came
+    from: the capture's own (a COLMAP model's), else triangulated from its training views with their cameras (`sparse_points.triangulate`, its time
     recorded) and used when they number MIN_POINTS_PER_VIEW a view or more (smooth, rendered surfaces
     give few, and there they did not help). (None, None) with the term off."""
-    from vq_mitsuba.data.captures import capture_framing
     from vq_mitsuba.geometry.neus import well_seen
     from vq_mitsuba.geometry.sparse_points import triangulate
 
     if cfg.w_points <= 0:
         return None, None
-    own, _ = capture_framing(capture_path)
+    own, _ = source.framing()
     if own is not None:
         return well_seen(own[0], own[1]), {"source": "capture", "seconds": 0.0}
     found = triangulate(capture.cameras, capture.images, capture.alpha if capture.has_alpha else None)
@@ -99,29 +96,29 @@ def _read_info(run: RunDir) -> dict | None:
         return None
 
 
-def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
-                 progress: bool = True, gt_mesh=None, capture_cfg: CaptureConfig | None = None):
-    """Load the posed capture (photos or a video are posed first: `vq_mitsuba.engine.fit.posed_capture`),
-    run NeuS + mesh export into the run; score against gt_mesh if given. Returns the `Reconstruction`
-    (its summary is the run's geometry.json)."""
-    from vq_mitsuba.data.captures import load_capture, load_mesh
+def run_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
+                 progress: bool = True, gt_mesh=None):
+    """NeuS + mesh export into the run on a posed capture (photos or a video are posed first:
+    `vq_mitsuba.engine.pipeline.posed_capture`); score against gt_mesh if given. Returns the
+    `Reconstruction` (its summary is the run's geometry.json)."""
+    from vq_mitsuba.data.captures import load_mesh
     from vq_mitsuba.geometry.neus import reconstruct, uses_background_model
 
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     check_geometry_target(run)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
-    capture = load_capture(capture_path, options=capture_cfg, split="train", cache_dir=run.undistorted_dir)
+    capture = source.load("train")
     if uses_background_model(capture, cfg):
-        sphere, support, points = framing(capture_path, capture.cameras, cfg.seed)
+        sphere, support, points = framing(source, capture.cameras, cfg.seed)
         found = {"source": "capture", "seconds": 0.0} if points is not None else None
     else:
         sphere = support = None
-        points, found = surface_points(capture_path, capture, cfg)
+        points, found = surface_points(source, capture, cfg)
     result = reconstruct(capture, run, cfg, resume=resume, progress=progress, sphere=sphere, support=support,
                          points=points)
     if found is not None:
         result.summary["sparse_points"] = {**(result.summary.get("sparse_points") or {}), **found}
-    result.summary["neus_psnr"] = neus_psnr(result.neus, capture, capture_path, capture_cfg, run)
+    result.summary["neus_psnr"] = neus_psnr(result.neus, capture, source)
     if gt is not None:
         from vq_mitsuba.geometry.mesh import mesh_metrics
 
@@ -135,17 +132,16 @@ def run_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, re
 TRAIN_VIEWS_SCORED = 4  # training views NeuS renders at the end of the stage
 
 
-def neus_psnr(neus, capture, capture_path, capture_cfg: CaptureConfig | None, run: RunDir) -> dict:
-    """How well NeuS renders the photos it trained on (a few views spread over them) and, with
-    `capture.holdout`, the views kept out of training: mean and per-view sRGB PSNR (inside the masks
-    where there are masks), for geometry.json."""
-    from vq_mitsuba.data.captures import load_capture
+def neus_psnr(neus, capture, source: CaptureSource) -> dict:
+    """How well NeuS renders the photos it trained on (`capture`, a few views spread over them) and,
+    with `capture.holdout`, the views of `source` kept out of training: mean and per-view sRGB PSNR
+    (inside the masks where there are masks), for geometry.json."""
     from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
 
     train = view_psnr(neus, capture, sample_views(len(capture.cameras), TRAIN_VIEWS_SCORED))
     held = {}
-    if capture_cfg is not None and capture_cfg.holdout > 0:
-        holdout = load_capture(capture_path, options=capture_cfg, split="holdout", cache_dir=run.undistorted_dir)
+    if source.options.holdout > 0:
+        holdout = source.load("holdout")
         held = view_psnr(neus, holdout, list(range(len(holdout.cameras))))
 
     def mean(values: dict) -> float | None:
@@ -155,12 +151,12 @@ def neus_psnr(neus, capture, capture_path, capture_cfg: CaptureConfig | None, ru
             "per_view": {**train, **held}}
 
 
-def ensure_geometry(capture_path, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
-                    progress: bool = True, capture_cfg: CaptureConfig | None = None) -> Path:
+def ensure_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: NeuSConfig, resume: bool = False,
+                    progress: bool = True) -> Path:
     """The run's mesh.ply from NeuS, reusing an existing one on resume; returns its path."""
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     if not (resume and run.has_mesh()):
-        run_geometry(capture_path, run, cfg, resume=resume, progress=progress, capture_cfg=capture_cfg)
+        run_geometry(source, run, cfg, resume=resume, progress=progress)
     return run / RunDir.MESH
 
 
