@@ -105,7 +105,8 @@ class HashEncoding(nn.Module):
         hashed = (c[..., 0] * self.primes[0]) ^ (c[..., 1] * self.primes[1]) ^ (c[..., 2] * self.primes[2])
         idx = torch.where(self.dense[None, :, None], dense, hashed) % self.sizes[None, :, None]
         idx = idx + self.offsets[None, :, None]
-        feats = self.table[idx]  # (N, L, 8, F)
+        # (N, L, 8, F); index_select, whose gradient adds in index order on a CPU (indexing's does not)
+        feats = torch.index_select(self.table, 0, idx.reshape(-1)).view(*idx.shape, -1)
         w = torch.where(self.corners[None, None].bool(), frac[:, :, None, :], 1 - frac[:, :, None, :]).prod(-1)
         return (feats * w[..., None]).sum(2).flatten(1)
 

@@ -16,12 +16,15 @@ paths are not (biased dark in deep concavities).
 Sampled directions carry no gradient (as in Mitsuba's `prb`: BSDF values are differentiated,
 sampling is detached). So a call runs two kernels: the sampling kernel draws both samples and traces
 every ray without gradients (the shadow ray, and the BSDF sample's ray, whose hit is also the
-bounce's point), and the differentiable kernel evaluates the BSDF and the envmap at the stored
-samples. The backward pass then traces no ray again: it differentiates the second kernel alone.
+bounce's point), and the differentiable kernel evaluates the BSDF at the stored samples, lit by the
+envmap's radiance along them, which torch looks up as Mitsuba's envmap does (`envmap_lookup`: its
+gradient then adds up in the same order every run). The backward pass traces no ray again: it
+differentiates the second kernel alone.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +37,9 @@ from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, torch_device
 
 _PLUGINS_READY = False
-LANE_INPUTS = brdf.CHANNELS + 3  # differentiable inputs per shading lane: the BRDF's, bounce radiance (3)
+# Differentiable inputs per shading lane: the BRDF's channels, then three RGB radiances: the bounce's,
+# the envmap's along the emitter sample and along the BSDF sample where it escapes.
+LANE_INPUTS = brdf.CHANNELS + 9
 
 
 def _register_plugins() -> None:
@@ -88,10 +93,35 @@ def envmap_padded(env: torch.Tensor) -> torch.Tensor:
     return torch.cat([env[:, -1:], env, env[:, :1]], dim=1)
 
 
+def envmap_lookup(padded: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """The radiance (N, 3) Mitsuba's `envmap` gives at its texture coordinates `uv` (N, 2) from the
+    padded data (`envmap_padded`, (H, W + 2, 3)): bilinear between texel centres, u wrapping around
+    (its centres at (i + 0.5) / W), v from the first row's centre at 0 to the last's at 1 (as
+    Mitsuba 3.9 evaluates it; `tests/render/test_rendering.py` holds the two together). In torch,
+    so the envmap's gradient is summed in one order: Dr.Jit's scatter of it from several threads
+    adds in a different order each run."""
+    h, w2 = padded.shape[:2]
+    u = uv[:, 0] - torch.floor(uv[:, 0])
+    x, y = u * (w2 - 2) + 0.5, uv[:, 1] * (h - 1)
+    ix, iy = x.long().clamp(0, w2 - 2), y.long().clamp(0, h - 2)
+    fx, fy = (x - ix)[:, None], (y - iy)[:, None]
+    flat, i = padded.reshape(-1, 3), iy * w2 + ix
+    # index_select: its gradient (index_add) adds in index order on a CPU; indexing's does not
+    v00, v10, v01, v11 = (torch.index_select(flat, 0, j) for j in (i, i + 1, i + w2, i + w2 + 1))
+    top = v00 + fx * (v10 - v00)
+    bottom = v01 + fx * (v11 - v01)
+    return top + fy * (bottom - top)
+
+
+def direction_uv(d_world: torch.Tensor, world_to_env: torch.Tensor) -> torch.Tensor:
+    """Mitsuba's envmap texture coordinates (N, 2) of world directions (N, 3) towards the light."""
+    v = d_world @ world_to_env.T
+    return torch.stack([torch.atan2(v[:, 0], -v[:, 2]) * (0.5 / math.pi),
+                        torch.acos(v[:, 1].clamp(-1.0, 1.0)) * (1.0 / math.pi)], -1)
+
+
 def _lattice_generator(m: int) -> int:
     """A rank-1 lattice generator for m points: close to m / golden ratio, coprime to m."""
-    import math
-
     g = max(1, round(m / 1.6180339887))
     while math.gcd(g, m) != 1:
         g += 1
@@ -161,6 +191,9 @@ class ShadingScene:
         self.mesh = mesh_to_mitsuba(vertices, faces, normals)
         env_init = np.ascontiguousarray(env_init, dtype=np.float32)
         self.env_shape = env_init.shape
+        # the linear part of the envmap's world-to-local transform (directions), as Mitsuba's envmap applies it
+        self.world_to_env = torch.tensor(np.linalg.inv(np.asarray(env_to_world, np.float64))[:3, :3],
+                                         dtype=torch.float32, device=torch_device())
         self.scene = mi.load_dict(
             {
                 "type": "scene",
@@ -314,44 +347,35 @@ class ShadingScene:
         """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
         envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
         sampling kernel's results (so the backward pass traces no ray)."""
-        bsdf, emitter, ctx = self.bsdf, self.emitter, self.ctx
-        params, key, textures = self.params, self.env_key, self.textures
+        bsdf, ctx, textures = self.bsdf, self.ctx, self.textures
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, env, fixed, sampled):
+        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, sampled):
             # `lanes` holds the differentiable per-lane inputs interleaved (the BRDF's channels,
-            # then bounce radiance r, g, b): one gradient array, so the backward
-            # pass is one kernel instead of one per input, each tracing the shading again.
+            # then the bounce's, the emitter sample's and the escaping BSDF sample's radiance, r, g,
+            # b each): one gradient array, so the backward pass is one kernel instead of one per
+            # input, each tracing the shading again. The light's radiance comes in as lanes
+            # (`envmap_lookup`), so no Dr.Jit scatter adds into the envmap.
             # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
             # the default mode's per-thread copies bake the array size in: a compile per size.
             lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
-            *chans, lr, lg, lb = (dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute)
-                                  for c in range(LANE_INPUTS))
-            params[key] = env
-            params.update()
+            *chans, lr, lg, lb, er, eg, eb, br, bg, bb = (
+                dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(LANE_INPUTS))
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
             sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
-            ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
-            ds.d, ds.uv = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), mi.Point2f(sm["ds_u"], sm["ds_v"])
-            ds.pdf = sm["ds_pdf"]
+            d_em, pdf_em = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), sm["ds_pdf"]
             lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
-            em_weight = dr.select(lit, emitter.eval_direction(si, ds, lit) * dr.rcp(ds.pdf), 0.0)
-            # Lanes lit by a fixed light pass no gradient to the envmap.
-            fixed = f(fixed) > 0.5
-            em_weight = dr.select(fixed, dr.detach(em_weight), em_weight)
-            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d))
+            em_weight = dr.select(lit, mi.Color3f(er, eg, eb) * dr.rcp(pdf_em), 0.0)
+            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d_em))
             # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
             # pdf cannot overflow a square into inf / inf.
-            w_em = dr.detach(dr.select(ds.pdf > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / ds.pdf)), 0.0))
+            w_em = dr.detach(dr.select(pdf_em > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / pdf_em)), 0.0))
             radiance = f_em * em_weight * w_em
 
             # The BSDF sample: its direction detached, its value differentiated.
             f_bs = bsdf.eval(ctx, si, mi.Vector3f(sm["wo_x"], sm["wo_y"], sm["wo_z"]))
-            escaped = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
-            escaped.wi = mi.Vector3f(sm["wi2x"], sm["wi2y"], sm["wi2z"])  # world, as for a missed ray
-            le = emitter.eval(escaped, miss)
-            le = dr.select(fixed, dr.detach(le), le)
+            le = dr.select(miss, mi.Color3f(br, bg, bb), 0.0)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
             li_obj = mi.Color3f(lr, lg, lb)
@@ -372,6 +396,19 @@ class ShadingScene:
         self.params[self.env_key] = mi.TensorXf(envmap_padded(env_linear.detach()).contiguous())
         self.params.update()
         self._light_set = (env_linear, env_linear._version)
+
+    def _light_lanes(self, env_linear: torch.Tensor, sampled: list, fixed: torch.Tensor) -> tuple:
+        """The envmap's radiance (lanes, 3) along each lane's emitter sample (at the texture
+        coordinates it was drawn at) and along its BSDF sample (where that escapes: the direction
+        back along it, reversed), differentiable in `env_linear` except on lanes whose light is
+        `fixed` (> 0.5)."""
+        at = {name: sampled[i] for i, name in enumerate(self.SAMPLED)}
+        padded = envmap_padded(env_linear)
+        le_em = envmap_lookup(padded, torch.stack([at["ds_u"], at["ds_v"]], -1))
+        wi2 = torch.stack([at["wi2x"], at["wi2y"], at["wi2z"]], -1)
+        le_bs = envmap_lookup(padded, direction_uv(-wi2, self.world_to_env.to(wi2.device)))
+        keep = fixed[:, None] > 0.5
+        return tuple(torch.where(keep, le.detach(), le) for le in (le_em, le_bs))
 
     def shade(self, hits_position, hits_normal, hits_wi, material: dict,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
@@ -414,8 +451,8 @@ class ShadingScene:
                 with torch.no_grad():
                     mat2 = material_fn(p2)
                     li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2, env_linear, 1, generator))
-        lanes = torch.cat([chans, li], 1).reshape(-1)
-        rgb = self._shade(*geo, lanes, envmap_padded(env_linear), fixed, list(sampled))
+        lanes = torch.cat([chans, li, *self._light_lanes(env_linear, sampled, fixed)], 1).reshape(-1)
+        rgb = self._shade(*geo, lanes, list(sampled))
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
 
