@@ -32,6 +32,9 @@ import tempfile
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+# The environment as given, before `import vq_mitsuba` sets its OpenMP defaults in it: each revision's
+# child runs with its own defaults (the spin set now slows a revision whose torch fights Dr.Jit).
+GIVEN_ENV = dict(os.environ)
 
 
 def child(args) -> int:
@@ -139,7 +142,7 @@ def main(argv=None) -> int:
                            "--iterations", str(args.iterations), "--warmup", str(args.warmup),
                            "--seed", str(1000 + rep), "--eval-spp", str(args.eval_spp)]
                     res = subprocess.run(cmd, capture_output=True, text=True, cwd=trees[ref],
-                                         env={**os.environ, "PYTHONPATH": str(trees[ref])})
+                                         env={**GIVEN_ENV, "PYTHONPATH": str(trees[ref])})
                     line = [ln for ln in res.stdout.splitlines() if ln.startswith("STEP_RATE ")]
                     if res.returncode != 0 or not line:
                         sys.stderr.write(res.stdout[-2000:] + res.stderr[-4000:])

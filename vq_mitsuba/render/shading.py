@@ -37,9 +37,10 @@ from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, torch_device
 
 _PLUGINS_READY = False
-# Differentiable inputs per shading lane: the BRDF's channels, then three RGB radiances: the bounce's,
-# the envmap's along the emitter sample and along the BSDF sample where it escapes.
-LANE_INPUTS = brdf.CHANNELS + 9
+# Differentiable inputs per shading lane: the BRDF's channels and the bounce's RGB radiance; then,
+# where the envmap is differentiated, its RGB radiance along the emitter sample and along the BSDF
+# sample where it escapes (LIGHT_LANES).
+LANE_INPUTS, LIGHT_LANES = brdf.CHANNELS + 3, 6
 
 
 def _register_plugins() -> None:
@@ -265,11 +266,13 @@ class ShadingScene:
 
     # -- shading ------------------------------------------------------------------------
     def _make_shade(self):
-        """The sampling kernel (kept as self._sample) and the shading kernel (returned), sharing one
-        setup of the shading points."""
+        """The sampling kernel (kept as self._sample) and the shading kernels (returned: lit by the
+        light's radiance given as lanes, and, kept as self._shade_lit, by the envmap set in the
+        scene), sharing one setup of the shading points."""
         setup = self._make_setup()
         self._sample = self._make_sample(setup)
-        return self._make_shade_kernel(setup)
+        self._shade_lit = self._make_shade_kernel(setup, light_lanes=False)
+        return self._make_shade_kernel(setup, light_lanes=True)
 
     def _make_setup(self):
         """setup(p, n, wi, the BRDF's channels (brdf.CHANNELS flat arrays, in the order of brdf.INPUTS))
@@ -343,11 +346,13 @@ class ShadingScene:
                "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
                "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
 
-    def _make_shade_kernel(self, setup):
+    def _make_shade_kernel(self, setup, light_lanes: bool):
         """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
         envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
-        sampling kernel's results (so the backward pass traces no ray)."""
-        bsdf, ctx, textures = self.bsdf, self.ctx, self.textures
+        sampling kernel's results (so the backward pass traces no ray). The envmap's radiance comes
+        as lanes with `light_lanes` (a differentiated envmap), else from the scene's emitter."""
+        bsdf, ctx, textures, emitter = self.bsdf, self.ctx, self.textures, self.emitter
+        width = LANE_INPUTS + (LIGHT_LANES if light_lanes else 0)
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
@@ -355,18 +360,26 @@ class ShadingScene:
             # `lanes` holds the differentiable per-lane inputs interleaved (the BRDF's channels,
             # then the bounce's, the emitter sample's and the escaping BSDF sample's radiance, r, g,
             # b each): one gradient array, so the backward pass is one kernel instead of one per
-            # input, each tracing the shading again. The light's radiance comes in as lanes
-            # (`envmap_lookup`), so no Dr.Jit scatter adds into the envmap.
+            # input, each tracing the shading again. A differentiated light's radiance comes in as
+            # lanes (`envmap_lookup`), so no Dr.Jit scatter adds into the envmap.
             # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
             # the default mode's per-thread copies bake the array size in: a compile per size.
-            lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * LANE_INPUTS
-            *chans, lr, lg, lb, er, eg, eb, br, bg, bb = (
-                dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(LANE_INPUTS))
+            lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * width
+            values = [dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(width)]
+            chans, (lr, lg, lb), light = values[:brdf.CHANNELS], values[brdf.CHANNELS:LANE_INPUTS], values[LANE_INPUTS:]
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
             sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
             d_em, pdf_em = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), sm["ds_pdf"]
             lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
-            em_weight = dr.select(lit, mi.Color3f(er, eg, eb) * dr.rcp(pdf_em), 0.0)
+            if light_lanes:
+                le_em, le_bs = mi.Color3f(*light[:3]), mi.Color3f(*light[3:])
+            else:
+                ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
+                ds.d, ds.uv, ds.pdf = d_em, mi.Point2f(sm["ds_u"], sm["ds_v"]), pdf_em
+                escaped = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
+                escaped.wi = mi.Vector3f(sm["wi2x"], sm["wi2y"], sm["wi2z"])  # world, as for a missed ray
+                le_em, le_bs = emitter.eval_direction(si, ds, lit), emitter.eval(escaped, miss)
+            em_weight = dr.select(lit, le_em * dr.rcp(pdf_em), 0.0)
             f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d_em))
             # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
             # pdf cannot overflow a square into inf / inf.
@@ -375,7 +388,7 @@ class ShadingScene:
 
             # The BSDF sample: its direction detached, its value differentiated.
             f_bs = bsdf.eval(ctx, si, mi.Vector3f(sm["wo_x"], sm["wo_y"], sm["wo_z"]))
-            le = dr.select(miss, mi.Color3f(br, bg, bb), 0.0)
+            le = dr.select(miss, le_bs, 0.0)
             # Radiance arriving from the object itself (one bounce), supplied by the caller; the
             # emitter sample is occluded in that direction, so its MIS weight is 1.
             li_obj = mi.Color3f(lr, lg, lb)
@@ -451,8 +464,11 @@ class ShadingScene:
                 with torch.no_grad():
                     mat2 = material_fn(p2)
                     li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2, env_linear, 1, generator))
-        lanes = torch.cat([chans, li, *self._light_lanes(env_linear, sampled, fixed)], 1).reshape(-1)
-        rgb = self._shade(*geo, lanes, list(sampled))
+        if torch.is_grad_enabled() and env_linear.requires_grad:
+            lanes = torch.cat([chans, li, *self._light_lanes(env_linear, sampled, fixed)], 1).reshape(-1)
+            rgb = self._shade(*geo, lanes, list(sampled))
+        else:  # the light set for sampling lights the lanes in the kernel (no gradient to add up)
+            rgb = self._shade_lit(*geo, torch.cat([chans, li], 1).reshape(-1), list(sampled))
         samples = torch.stack(rgb, -1).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
 
