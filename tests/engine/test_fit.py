@@ -375,31 +375,3 @@ def test_a_mesh_far_too_large_for_the_cameras_is_warned_about(tmp_path, capsys):
         fit(capture, tmp_path / "huge", cfg, progress=False)
     assert "the mesh" not in capsys.readouterr().out  # a warning, not a result on stdout
 
-
-def test_a_fit_is_the_same_every_run(sphere_capture, tmp_path):
-    """The same capture, config and seed give the same fit to the bit, both branches and the
-    residual included, with Dr.Jit and torch on every core: nothing sums in the order threads
-    happen to run in."""
-    import drjit as dr
-
-    from vq_mitsuba.run.run_dir import RunDir
-
-    assert dr.thread_count() >= 2 and torch.get_num_threads() >= 2  # the case that was not reproducible
-    cfg = load_config(None, ["train.iterations=40", "train.batch_rays=512", "vq.warmup_frac=0.3",
-                             "train.bounce_after=10", "residual.iterations=40", "train.checkpoint_every=1000"])
-    runs = [RunDir(tmp_path / name) for name in ("a", "b")]
-    for run in runs:
-        fit(sphere_capture, run.dir, cfg, progress=False)
-    states = [run.load_state(run.checkpoint_path) for run in runs]
-    for key in ("model", "discrete", "envmap"):
-        first, second = (s[key] for s in states)
-        tensors = first.items() if isinstance(first, dict) else [(key, first)]
-        for name, value in tensors:
-            other = second[name] if isinstance(second, dict) else second
-            if torch.is_tensor(value):
-                assert torch.equal(value, other), f"{key}.{name}"
-    assert (runs[0] / RunDir.MATERIALS).read_text() == (runs[1] / RunDir.MATERIALS).read_text()
-    residuals = [torch.load(run / RunDir.RESIDUAL, weights_only=False) for run in runs]
-    tensors = [{k: v for k, v in r.items() if torch.is_tensor(v)} for r in (res["field"] for res in residuals)]
-    assert tensors[0] and tensors[0].keys() == tensors[1].keys()
-    assert all(torch.equal(tensors[0][k], tensors[1][k]) for k in tensors[0])
