@@ -63,11 +63,6 @@ class CaptureSource:
         """False for photos or a video without camera poses (the pose stage poses them)."""
         return bool(self.format.POSED)
 
-    @property
-    def kind(self) -> str:
-        """The format's KIND ("xml", "json", "idr", "llff", "colmap", "photos", "video", ...)."""
-        return self.format.KIND
-
     def _posed_format(self) -> ModuleType:
         if not self.posed:
             raise unposed_error(self.source)

@@ -24,10 +24,8 @@ def framing(capture: CaptureSource, cameras, seed: int = 0) -> tuple[tuple, tupl
     from vq_mitsuba.geometry.neus import bounding_sphere, support_from_points, well_seen
 
     points, sphere = capture.framing()
-    if sphere is None and points is not None:
-        sphere = bounding_sphere(cameras, points[0], points[1])
-    elif sphere is None:
-        sphere = bounding_sphere(cameras)
+    if sphere is None:
+        sphere = bounding_sphere(cameras) if points is None else bounding_sphere(cameras, points[0], points[1])
     if points is None:
         return sphere, None, None
     support = support_from_points(points[0], cameras, sphere, points[1], seed=seed)
@@ -43,9 +41,10 @@ MIN_POINTS_PER_VIEW = 10
 def surface_points(source: CaptureSource, capture, cfg: NeuSConfig) -> tuple[np.ndarray | None, dict | None]:
     """The sparse points seen by 3 or more views that NeuS's SDF-is-zero term uses (neus.w_points)
     on a capture with masks (`capture`, the loaded training views of `source`), and where they came
-    from: the capture's own (a COLMAP model's), else triangulated from its training views with their cameras (`sparse_points.triangulate`, its time
-    recorded) and used when they number MIN_POINTS_PER_VIEW a view or more (smooth, rendered surfaces
-    give few, and there they did not help). (None, None) with the term off."""
+    from: the capture's own (a COLMAP model's), else triangulated from its training views with their
+    cameras (`sparse_points.triangulate`, its time recorded) and used when they number
+    MIN_POINTS_PER_VIEW a view or more (smooth, rendered surfaces give few, and there they did not
+    help). (None, None) with the term off."""
     from vq_mitsuba.geometry.neus import well_seen
     from vq_mitsuba.geometry.sparse_points import triangulate
 

@@ -122,17 +122,18 @@ IMAGES, MODEL = "images", Path("sparse") / "0"
 OWN_ENTRIES = (IMAGES, MODEL.parts[0])  # the layout's top-level entries
 
 
+def _holds_cameras(model: Path) -> bool:
+    return any((model / f"cameras.{e}").is_file() for e in ("bin", "txt"))
+
+
 def has_model(folder: Path) -> bool:
     """Whether FOLDER/MODEL holds a model's cameras (the layout the pose stage writes)."""
-    return any((folder / MODEL / f"cameras.{e}").is_file() for e in ("bin", "txt"))
+    return _holds_cameras(folder / MODEL)
 
 
 def colmap_model_dir(folder: Path) -> Path | None:
     """The folder holding cameras.bin/.txt and images.bin/.txt: `sparse/0`, `sparse`, or the folder."""
-    for candidate in (folder / "sparse" / "0", folder / "sparse", folder):
-        if any((candidate / f"cameras.{e}").is_file() for e in ("bin", "txt")):
-            return candidate
-    return None
+    return next((c for c in (folder / MODEL, folder / MODEL.parent, folder) if _holds_cameras(c)), None)
 
 
 def read_colmap(model: Path) -> tuple[dict[int, Lens], list[ColmapImage]]:

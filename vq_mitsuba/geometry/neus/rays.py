@@ -126,9 +126,9 @@ def _hull_box_rays(capture, cfg: NeuSConfig, alpha: torch.Tensor) -> tuple[Box, 
     dil = F.max_pool2d(masks.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0.5
     t0 = time.perf_counter()
     center, half, occ = _hull_box(capture.cameras, dil, cfg, capture.source)
-    box = Box(np.asarray(center, dtype=np.float64), float(half), occ, hull_sdf(occ).to(device),
-              _dilated(occ, device), False)
-    box.seconds = time.perf_counter() - t0
+    sdf, dilated = hull_sdf(occ).to(device), _dilated(occ, device)
+    box = Box(np.asarray(center, dtype=np.float64), float(half), occ, sdf, dilated, False,
+              seconds=time.perf_counter() - t0)
     near_fg = F.max_pool2d(masks.float()[:, None], 7, stride=1, padding=3)[:, 0] > 0.5
     origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
     origins = torch.from_numpy(np.concatenate(origins)).to(device)
