@@ -25,7 +25,7 @@ from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.data.pixels import (ErrorSampler, hold_aside, neighbour_pairs, pixel_hit_table, sampler_tile,
                                     trace_training_pixels)
 from vq_mitsuba.run.run_dir import RunDir
-from vq_mitsuba.engine import skips
+from vq_mitsuba.engine import skips, trials
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.errors import InputError, NumericalError, warn
@@ -149,7 +149,8 @@ class Trainer:
         stages = [cfg.field.pe_anneal, cfg.loss.metallic_barrier_until] + ([cfg.vq.warmup_frac] if cfg.vq.enabled else [])
         self.pace = skips.Pace(t.iterations, t.stop == "auto", start_share=max(stages))
         self.held = self.train_idx = None
-        if self.pace.active:
+        self.trials_on = self.learn_env and t.trials == "auto"
+        if self.pace.active or self.trials_on:
             self.held, self.train_idx = hold_aside(pool, w, h, skips.stop_pixels(n_pixels), skips.np_seed(seed, 2))
         self.sampler = None
         if t.sampling == "auto":
@@ -162,6 +163,10 @@ class Trainer:
         self.env_cap, self.env_decided, self.env_choices = ladder[0], 0, []
         gen = torch.Generator().manual_seed(skips.np_seed(seed, 3))
         self.rough_idx = torch.randperm(len(pool), generator=gen)[:skips.ROUGHNESS_HITS].to(self.device)
+        self.trial_checked, self.trial, self.pull = False, None, None
+        self.decisions["trials"] = skips.decision(
+            t.trials, "none", "no learned light: nothing to trade a surface's roughness against" if not self.learn_env
+            else f"train.trials = {t.trials}" if not self.trials_on else "the fit ended before the trial's check")
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
@@ -223,7 +228,8 @@ class Trainer:
         """What the rules decided and measured so far (`vq_mitsuba.engine.skips`), for resuming."""
         return {"bounce_on": self.bounce_on, "decisions": self.decisions, "pace": self.pace.state_dict(),
                 "sampler": self.sampler.state_dict() if self.sampler is not None else None,
-                "envmap": {"cap": self.env_cap, "decided": self.env_decided, "choices": self.env_choices}}
+                "envmap": {"cap": self.env_cap, "decided": self.env_decided, "choices": self.env_choices},
+                "trial": {"checked": self.trial_checked, "pending": self.trial}}
 
     def load_skips_state(self, state: dict | None) -> None:
         """Resume the rules: a run keeps the bounce decided at its start, the pace, the envmap's
@@ -244,6 +250,10 @@ class Trainer:
             self.sampler.load_state_dict(state["sampler"])
         env = state["envmap"]
         self.env_cap, self.env_decided, self.env_choices = int(env["cap"]), int(env["decided"]), list(env["choices"])
+        trial = state.get("trial") or {"checked": False, "pending": None}
+        self.trial_checked, self.trial = bool(trial["checked"]), trial["pending"]
+        if "trials" in state["decisions"]:
+            self.decisions["trials"] = state["decisions"]["trials"]
 
     # --- one step -------------------------------------------------------------------------------
     @torch.no_grad()
@@ -332,6 +342,11 @@ class Trainer:
                                                                          cfg.loss.sm_beta)
         if self.learn_env and cfg.envmap.tv_weight > 0:
             terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
+        if self.pull is not None:  # a trial's copy: the flagged surfaces pulled to their other explanation
+            flags, floor, glossy = self.pull
+            branches = [out] + ([od] if discrete_on else [])
+            terms["trial"] = trials.PULL_WEIGHT * sum(trials.pull_term(o["roughness"], flags[hits], floor, glossy)
+                                                      for o in branches)
         return terms, samples.mean(1), per_pixel
 
     @staticmethod
@@ -447,6 +462,81 @@ class Trainer:
         return sum(float(losses.reconstruction_l2(self._pixel_means(branch, len(target)), target, cfg.loss.gamma))
                    for branch in rgb.split(len(hits)))
 
+    # --- the trial (`vq_mitsuba.engine.trials`) ---------------------------------------------------
+    def trial_after_step(self, p: Progress) -> None:
+        """After a step: the trial's choice when its steps are done, or its check once every stage of
+        the schedule has begun."""
+        if self.trial is not None:
+            if self.step >= self.trial["until"]:
+                self.finish_trial()
+        elif not self.trial_checked and self.pace.share() >= self.pace.start_share:
+            self.trial_checked = True
+            self.start_trial(p)
+
+    def start_trial(self, p: Progress) -> None:
+        """Flag the surfaces at the roughness floor and the glossy metals on the fixed hits; where
+        enough are flagged, train a copy of the fit with them pulled to their other explanation,
+        measure it on the held-aside pixels and keep it aside while the fit itself trains as many
+        steps."""
+        cfg, pool = self.cfg, self.pool
+        floor, glossy = cfg.field.roughness_min, trials.glossy_roughness(ENVMAP_START_HEIGHT)
+        with torch.no_grad():
+            fixed = trials.flag(self.model(pool.position[self.rough_idx]), floor, glossy)
+        up, down = float((fixed == trials.UP).float().mean()), float((fixed == trials.DOWN).float().mean())
+        seen = (f"of {len(self.rough_idx)} fixed training hits at step {self.step}, {100 * up:.1f} % within "
+                f"{trials.FLOOR_BAND:g} of the roughness floor {floor:g} and {100 * down:.1f} % metal (metallic > "
+                f"{trials.METAL:g}) between it and {glossy:.2f}")
+        if up + down < trials.MIN_SHARE:
+            self.decisions["trials"] = skips.decision(cfg.train.trials, "none",
+                                                      f"{seen} (a trial from {100 * trials.MIN_SHARE:g} %)")
+            return
+        flags = trials.flag_hits(self.model, pool.position, floor, glossy)
+        probe = {"up": self.rough_idx[fixed == trials.UP], "down": self.rough_idx[fixed == trials.DOWN]}
+        steps = max(2, round(trials.TRIAL_SHARE * cfg.train.iterations))
+        messages.note(f"trial: {seen}; a copy of the fit tries them at their other explanation for {steps} steps")
+        start = trials.copy_fit(self)
+        self.pull = (flags.to(self.device), floor, glossy)
+        for i in range(steps):
+            if i == steps // 2:
+                self.pull = None  # the second half free: the copy settles where the images want it
+            self.train_step(schedule_at(cfg, Progress(self.step, p.seconds, self.pace.share(), p.time_share)))
+            self.pace.advance()
+        self.pull = None
+        record = {"step": int(start["step"]), "steps": steps, "share_at_floor": up, "share_glossy_metal": down,
+                  "glossy": glossy, "hits_flagged": int((flags > 0).sum()), "held_loss_copy": self.held_loss(),
+                  "roughness_copy": self._median_roughness(probe)}
+        self.trial = {"until": self.step, "copy": trials.copy_fit(self), "record": record, "probe": probe}
+        trials.restore_fit(self, start)
+
+    def finish_trial(self) -> None:
+        """Keep whichever of the fit and its copy has the lower held-aside loss."""
+        cfg, record = self.cfg, self.trial["record"]
+        record["held_loss_fit"] = self.held_loss()
+        record["roughness_fit"] = self._median_roughness(self.trial["probe"])
+        keep_copy = record["held_loss_copy"] < record["held_loss_fit"]
+        if keep_copy:
+            trials.restore_fit(self, self.trial["copy"])
+
+        def medians(which):
+            return ", ".join(f"{name} {r:.3f}" for name, r in record[which].items() if r is not None)
+
+        reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits at the "
+                  f"roughness floor and {100 * record['share_glossy_metal']:.1f} % glossy metal; after "
+                  f"{record['steps']} steps the held-aside loss is {record['held_loss_copy']:.5g} for the copy "
+                  f"that tried their other explanation (median roughness: {medians('roughness_copy')}) against "
+                  f"{record['held_loss_fit']:.5g} for the fit ({medians('roughness_fit')}): "
+                  + ("the copy goes on" if keep_copy else "the fit goes on"))
+        self.decisions["trials"] = {**skips.decision(cfg.train.trials, "swapped" if keep_copy else "kept", reason),
+                                    "trials": [record]}
+        messages.note(f"trial: {reason}")
+        self.trial = None
+
+    @torch.no_grad()
+    def _median_roughness(self, probe: dict) -> dict:
+        """{name: median fitted roughness of the training hits `probe[name]` (None without any)}."""
+        return {name: float(self.model(self.pool.position[idx.to(self.device)])["roughness"].median())
+                if len(idx) else None for name, idx in probe.items()}
+
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:
         """Run the remaining steps under train.iterations and train.time_limit_s (the loop skeleton,
@@ -523,6 +613,8 @@ class Trainer:
         p = Progress(p.step, p.seconds, self.pace.share(), p.time_share)
         finite, loss, mse = self.train_step(schedule_at(self.cfg, p))
         self.pace.advance()
+        if self.trials_on:
+            self.trial_after_step(p)
         stage = self._stage()
         if stage != self._phase:
             self._phase = stage

@@ -1,0 +1,104 @@
+"""Choosing between two explanations on held-aside evidence (`train.trials`).
+
+Under a learned light a sharp surface's highlights have two explanations: a glossy lobe under a
+sharp light, or a mirror under a blurrier one. A fit keeps whichever it falls into first, and
+which it falls into can depend on the seed: the same metal fits at its roughness floor on one
+seed and glossy on another. Once every stage of the schedule has begun (`Pace.start_share`: the
+encoding open, the envmap's ladder at its top, the barrier over, the discrete branch training),
+the fitted roughness and metallic are read on fixed training hits, and two kinds of surface are
+flagged: those at the roughness floor (within `FLOOR_BAND` of field.roughness_min), which try a
+glossy lobe (`glossy_roughness`: the one the envmap's first rung resolves, the blur put in the
+surface instead of the light), and metals (metallic above `METAL`) between the floor and that
+glossy value, which try the floor (the blur put in the light instead). When at least `MIN_SHARE`
+of the hits are flagged, the fit is copied and the copy trains `TRIAL_SHARE` of train.iterations
+steps with the flagged surfaces pulled to their other explanation for the first half of its
+steps, then free; the fit itself trains as many steps, from the same state and the same random
+draws. Whichever has the lower loss on the held-aside pixels (never drawn for a step, shaded with
+the same samples each time) goes on; the other is dropped. The copy's steps are the trial's whole
+cost; a fit without such surfaces pays for one reading of the fields. Each trial, its evidence
+and its choice go into fit.json (`decisions.trials`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+
+from vq_mitsuba.engine import skips
+
+FLOOR_BAND = 0.02  # roughness within this of field.roughness_min counts as at the floor
+METAL = 0.5  # metallic above this: a surface whose look is its specular lobe alone
+MIN_SHARE = 0.01  # share of the fixed hits flagged that starts a trial
+TRIAL_SHARE = 0.1  # the copy's steps, as a share of train.iterations
+PULL_WEIGHT = 1.0  # weight of the pull (squared distance of the roughness past its other explanation)
+CHUNK = 1 << 16  # hits a flag pass evaluates at once
+
+UP, DOWN = 1, 2  # flags: a surface at the floor that tries a glossy lobe; a glossy metal that tries the floor
+
+
+def glossy_roughness(rows: int) -> float:
+    """The roughness whose lobe an envmap of `rows` rows just resolves (inverse of
+    `skips.rows_for_roughness`)."""
+    return math.sqrt(math.pi / (skips.ROW_PER_ALPHA * rows))
+
+
+def flag(out: dict, floor: float, glossy: float) -> torch.Tensor:
+    """(N,) int8 of the field's outputs `out`: UP at the roughness floor, DOWN for a metal between
+    the floor and `glossy`, 0 otherwise."""
+    r, m = out["roughness"].detach(), out["metallic"].detach()
+    at_floor = r < floor + FLOOR_BAND
+    glossy_metal = ~at_floor & (r < glossy) & (m > METAL)
+    return at_floor.to(torch.int8) * UP + glossy_metal.to(torch.int8) * DOWN
+
+
+@torch.no_grad()
+def flag_hits(model, positions: torch.Tensor, floor: float, glossy: float) -> torch.Tensor:
+    """`flag` of the material field at every position, in chunks."""
+    return torch.cat([flag(model(positions[i:i + CHUNK]), floor, glossy) for i in range(0, len(positions), CHUNK)])
+
+
+def pull_term(roughness: torch.Tensor, flags: torch.Tensor, floor: float, glossy: float) -> torch.Tensor:
+    """Mean over the flagged hits of the squared distance of their roughness past their other
+    explanation: below `glossy` for UP, above the floor band for DOWN (0 without flagged hits)."""
+    up, down = flags == UP, flags == DOWN
+    n = int(up.sum()) + int(down.sum())
+    if n == 0:
+        return roughness.sum() * 0.0
+    return (torch.relu(glossy - roughness[up]).square().sum()
+            + torch.relu(roughness[down] - (floor + FLOOR_BAND)).square().sum()) / n
+
+
+def copy_fit(trainer) -> dict:
+    """Everything a step changes, copied (tensors, lists and numbers only, so a checkpoint can
+    hold it): networks, light, optimiser, random generator, the rules' running state, the step."""
+    t = trainer
+    return {"model": copy.deepcopy(t.model.state_dict()),
+            "discrete": copy.deepcopy(t.discrete.state_dict()) if t.discrete is not None else None,
+            "envmap": copy.deepcopy(t.env_module.state_dict()) if t.learn_env else None,
+            "optim": copy.deepcopy(t.optim.state_dict()),
+            "generator": t.gen.get_state().clone(),
+            "pace": copy.deepcopy(t.pace.state_dict()),
+            "sampler": copy.deepcopy(t.sampler.state_dict()) if t.sampler is not None else None,
+            "env_rule": [t.env_cap, t.env_decided, copy.deepcopy(t.env_choices)],
+            "step": t.step}
+
+
+def restore_fit(trainer, parts: dict) -> None:
+    """Put the trainer back to `parts` (`copy_fit`)."""
+    t = trainer
+    t.model.load_state_dict(parts["model"])
+    if parts["discrete"] is not None:
+        t.discrete.load_state_dict(parts["discrete"])
+    if parts["envmap"] is not None:
+        t.set_envmap_height(parts["envmap"]["log_radiance"].shape[0], resample=False)
+        t.env_module.load_state_dict(parts["envmap"])
+    t.optim.load_state_dict(parts["optim"])
+    t.gen.set_state(parts["generator"].cpu())
+    t.pace.load_state_dict(parts["pace"])
+    if parts["sampler"] is not None:
+        t.sampler.load_state_dict(parts["sampler"])
+    t.env_cap, t.env_decided = int(parts["env_rule"][0]), int(parts["env_rule"][1])
+    t.env_choices = copy.deepcopy(list(parts["env_rule"][2]))
+    t.step = int(parts["step"])
