@@ -474,7 +474,7 @@ class Trainer:
             self.start_trial(p)
 
     def start_trial(self, p: Progress) -> None:
-        """Flag the surfaces at the roughness floor and the glossy metals on the fixed hits; where
+        """Flag the metals at the roughness floor and the glossy metals on the fixed hits; where
         enough are flagged, train a copy of the fit with them pulled to their other explanation,
         measure it on the held-aside pixels and keep it aside while the fit itself trains as many
         steps."""
@@ -483,9 +483,9 @@ class Trainer:
         with torch.no_grad():
             fixed = trials.flag(self.model(pool.position[self.rough_idx]), floor, glossy)
         up, down = float((fixed == trials.UP).float().mean()), float((fixed == trials.DOWN).float().mean())
-        seen = (f"of {len(self.rough_idx)} fixed training hits at step {self.step}, {100 * up:.1f} % within "
-                f"{trials.FLOOR_BAND:g} of the roughness floor {floor:g} and {100 * down:.1f} % metal (metallic > "
-                f"{trials.METAL:g}) between it and {glossy:.2f}")
+        seen = (f"of {len(self.rough_idx)} fixed training hits at step {self.step}, {100 * up:.1f} % metal (metallic > "
+                f"{trials.METAL:g}) within {trials.FLOOR_BAND:g} of the roughness floor {floor:g} and {100 * down:.1f} "
+                f"% metal between it and {glossy:.2f}")
         if up + down < trials.MIN_SHARE:
             self.decisions["trials"] = skips.decision(cfg.train.trials, "none",
                                                       f"{seen} (a trial from {100 * trials.MIN_SHARE:g} %)")
@@ -520,7 +520,7 @@ class Trainer:
         def medians(which):
             return ", ".join(f"{name} {r:.3f}" for name, r in record[which].items() if r is not None)
 
-        reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits at the "
+        reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits metal at the "
                   f"roughness floor and {100 * record['share_glossy_metal']:.1f} % glossy metal; after "
                   f"{record['steps']} steps the held-aside loss is {record['held_loss_copy']:.5g} for the copy "
                   f"that tried their other explanation (median roughness: {medians('roughness_copy')}) against "

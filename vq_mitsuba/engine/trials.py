@@ -5,11 +5,13 @@ sharp light, or a mirror under a blurrier one. A fit keeps whichever it falls in
 which it falls into can depend on the seed: the same metal fits at its roughness floor on one
 seed and glossy on another. Once every stage of the schedule has begun (`Pace.start_share`: the
 encoding open, the envmap's ladder at its top, the barrier over, the discrete branch training),
-the fitted roughness and metallic are read on fixed training hits, and two kinds of surface are
-flagged: those at the roughness floor (within `FLOOR_BAND` of field.roughness_min), which try a
-glossy lobe (`glossy_roughness`: the one the envmap's first rung resolves, the blur put in the
-surface instead of the light), and metals (metallic above `METAL`) between the floor and that
-glossy value, which try the floor (the blur put in the light instead). When at least `MIN_SHARE`
+the fitted roughness and metallic are read on fixed training hits, and two kinds of metal
+(metallic above `METAL`: a surface whose look is its specular lobe alone) are flagged: those at
+the roughness floor (within `FLOOR_BAND` of field.roughness_min), which try a glossy lobe
+(`glossy_roughness`: the one the envmap's first rung resolves, the blur put in the surface
+instead of the light), and those between the floor and that glossy value, which try the floor
+(the blur put in the light instead). Dielectrics are left alone: their highlight is a small part
+of their look, and a glossy dielectric pulled rougher can settle as a matte one. When at least `MIN_SHARE`
 of the hits are flagged, the fit is copied and the copy trains `TRIAL_SHARE` of train.iterations
 steps with the flagged surfaces pulled to their other explanation for the first half of its
 steps, then free; the fit itself trains as many steps, from the same state and the same random
@@ -35,7 +37,7 @@ TRIAL_SHARE = 0.1  # the copy's steps, as a share of train.iterations
 PULL_WEIGHT = 1.0  # weight of the pull (squared distance of the roughness past its other explanation)
 CHUNK = 1 << 16  # hits a flag pass evaluates at once
 
-UP, DOWN = 1, 2  # flags: a surface at the floor that tries a glossy lobe; a glossy metal that tries the floor
+UP, DOWN = 1, 2  # flags: a metal at the floor that tries a glossy lobe; a glossy metal that tries the floor
 
 
 def glossy_roughness(rows: int) -> float:
@@ -45,12 +47,11 @@ def glossy_roughness(rows: int) -> float:
 
 
 def flag(out: dict, floor: float, glossy: float) -> torch.Tensor:
-    """(N,) int8 of the field's outputs `out`: UP at the roughness floor, DOWN for a metal between
-    the floor and `glossy`, 0 otherwise."""
-    r, m = out["roughness"].detach(), out["metallic"].detach()
+    """(N,) int8 of the field's outputs `out`: UP for a metal at the roughness floor, DOWN for a
+    metal between the floor and `glossy`, 0 otherwise."""
+    r, metal = out["roughness"].detach(), out["metallic"].detach() > METAL
     at_floor = r < floor + FLOOR_BAND
-    glossy_metal = ~at_floor & (r < glossy) & (m > METAL)
-    return at_floor.to(torch.int8) * UP + glossy_metal.to(torch.int8) * DOWN
+    return (metal & at_floor).to(torch.int8) * UP + (metal & ~at_floor & (r < glossy)).to(torch.int8) * DOWN
 
 
 @torch.no_grad()
