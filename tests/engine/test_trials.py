@@ -131,3 +131,22 @@ def test_no_trial_without_a_surface_at_the_floor_or_without_a_learned_light(lear
     fit(known, tmp_path / "known_run", load_config(None, QUICK), progress=False)
     decision = json.loads((tmp_path / "known_run" / "fit.json").read_text())["decisions"]["trials"]
     assert decision["choice"] == "none" and "no learned light" in decision["reason"]
+
+
+def test_a_checkpoint_between_the_copy_and_the_choice_keeps_the_copy(learned_light_sphere, tmp_path, monkeypatch):
+    monkeypatch.setattr(trials, "FLOOR_BAND", 2.0)
+    monkeypatch.setattr(trials, "METAL", -1.0)
+    trainer = _trainer(learned_light_sphere, tmp_path)
+    _steps(trainer, 20)  # every stage of the schedule has begun
+    trainer.trial_after_step(Progress(trainer.step, 0.0, 0.5, 0.0))
+    pending = trainer.trial
+    assert pending is not None and pending["until"] == 24 and trainer.step == 20
+    trainer.run.create()
+    trainer.checkpoint(1.0)
+    again = _trainer(learned_light_sphere, tmp_path)
+    again.resume()
+    assert again.trial_checked and again.step == 20
+    assert again.trial["record"] == pending["record"] and again.trial["until"] == 24
+    assert all(torch.equal(a, b) for a, b in zip(again.trial["copy"]["model"].values(),
+                                                 pending["copy"]["model"].values()))
+    assert torch.equal(again.trial["probe"]["up"], pending["probe"]["up"])
