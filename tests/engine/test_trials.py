@@ -79,7 +79,7 @@ def test_the_pull_charges_each_flagged_surface_past_its_other_explanation():
     term.backward()
     assert r.grad[0] < 0 and r.grad[1] < 0 and r.grad[2] > 0  # up, up, down
     assert r.grad[3] == 0 and r.grad[4] == 0 and r.grad[5] == 0  # already glossy; not flagged; already at the floor
-    assert float(trials.pull_term(r, torch.zeros(6, dtype=torch.int8), 0.02, 0.25)) == 0.0
+    assert float(trials.pull_term(r, torch.zeros(6, dtype=torch.int8), 0.02, 0.25).detach()) == 0.0
 
 
 @pytest.mark.parametrize("copy_wins", [True, False])
