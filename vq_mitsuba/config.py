@@ -210,8 +210,8 @@ class TrainConfig:
         "auto", "the bounce of train.bounces: auto turns it off where under 1 % of secondary rays from the training "
                 "hits meet the object (decided at start-up)", ("auto", "on", "off"))
     trials: str = setting(
-        "auto", "auto: under a learned light, a copy of the fit tries sharp metals as mirrors and mirrors as glossy, "
-                "and the held-aside pixels choose which goes on; off: no trial",
+        "auto", "auto: under a learned light, a copy of the fit tries metals at the roughness floor as glossy and "
+                "the held-aside pixels choose which goes on; off: no trial",
         ("auto", "off"))
     stop: str = setting(
         "iterations", "when the fit ends: auto runs the schedule faster each time held-aside pixels stop improving and "

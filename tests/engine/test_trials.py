@@ -63,23 +63,21 @@ def test_a_restored_copy_repeats_the_same_steps_bit_for_bit(learned_light_sphere
     assert all(torch.equal(a, b) for a, b in zip(after, _params(trainer)))
 
 
-def test_metals_at_the_floor_try_a_glossy_lobe_and_glossy_metals_try_the_floor():
-    out = {"roughness": torch.tensor([0.02, 0.035, 0.12, 0.12, 0.4, 0.05, 0.03]),
-           "metallic": torch.tensor([1.0, 0.0, 1.0, 0.0, 1.0, 0.9, 0.7])}
-    flags = trials.flag(out, floor=0.02, glossy=0.25)
-    # dielectrics (at the floor or glossy) and rough metals are left alone
-    assert flags.tolist() == [trials.UP, 0, trials.DOWN, 0, 0, trials.DOWN, trials.UP]
+def test_metals_at_the_floor_are_flagged_and_nothing_else():
+    out = {"roughness": torch.tensor([0.02, 0.035, 0.12, 0.035, 0.4, 0.05, 0.03]),
+           "metallic": torch.tensor([1.0, 0.0, 1.0, 0.9, 1.0, 0.9, 0.7])}
+    # a dielectric at the floor, glossy and rough metals are left alone
+    assert trials.flag(out, floor=0.02).tolist() == [True, False, False, True, False, False, True]
 
 
-def test_the_pull_charges_each_flagged_surface_past_its_other_explanation():
-    r = torch.tensor([0.02, 0.03, 0.12, 0.5, 0.02, 0.03], requires_grad=True)
-    flags = torch.tensor([trials.UP, trials.UP, trials.DOWN, trials.UP, 0, trials.DOWN], dtype=torch.int8)
-    term = trials.pull_term(r, flags, floor=0.02, glossy=0.25)
-    assert float(term.detach()) == pytest.approx((0.23 ** 2 + 0.22 ** 2 + 0.08 ** 2) / 5)
+def test_the_pull_charges_flagged_roughness_below_the_glossy_value_only():
+    r = torch.tensor([0.02, 0.03, 0.5, 0.02], requires_grad=True)
+    flags = torch.tensor([True, True, True, False])
+    term = trials.pull_term(r, flags, 0.25)
+    assert float(term.detach()) == pytest.approx((0.23 ** 2 + 0.22 ** 2) / 3)
     term.backward()
-    assert r.grad[0] < 0 and r.grad[1] < 0 and r.grad[2] > 0  # up, up, down
-    assert r.grad[3] == 0 and r.grad[4] == 0 and r.grad[5] == 0  # already glossy; not flagged; already at the floor
-    assert float(trials.pull_term(r, torch.zeros(6, dtype=torch.int8), 0.02, 0.25).detach()) == 0.0
+    assert r.grad[0] < 0 and r.grad[1] < 0 and r.grad[2] == 0 and r.grad[3] == 0
+    assert float(trials.pull_term(r, torch.zeros(4, dtype=torch.bool), 0.25).detach()) == 0.0
 
 
 @pytest.mark.parametrize("copy_wins", [True, False])
@@ -114,7 +112,7 @@ def test_the_held_aside_pixels_choose_which_explanation_goes_on(learned_light_sp
     assert decision["choice"] == ("swapped" if copy_wins else "kept")
     assert record["held_loss_copy"] == (1.0 if copy_wins else 2.0) and record["hits_flagged"] > 0
     assert record["steps"] == 4 and record["glossy"] == 0.9 and record["share_at_floor"] == 1.0
-    assert record["roughness_copy"]["up"] > record["roughness_fit"]["up"]  # the pull moved the copy
+    assert record["roughness_copy"] > record["roughness_fit"]  # the pull moved the copy
     if copy_wins:  # the copy's networks replaced the fit's
         assert all(torch.equal(a, b) for a, b in zip(seen["copy"], seen["model_after"]))
         assert not all(torch.equal(a, b) for a, b in zip(seen["fit"], seen["after"]))
@@ -149,4 +147,4 @@ def test_a_checkpoint_between_the_copy_and_the_choice_keeps_the_copy(learned_lig
     assert again.trial["record"] == pending["record"] and again.trial["until"] == 24
     assert all(torch.equal(a, b) for a, b in zip(again.trial["copy"]["model"].values(),
                                                  pending["copy"]["model"].values()))
-    assert torch.equal(again.trial["probe"]["up"], pending["probe"]["up"])
+    assert torch.equal(again.trial["probe"], pending["probe"])

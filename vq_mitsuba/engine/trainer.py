@@ -343,9 +343,9 @@ class Trainer:
         if self.learn_env and cfg.envmap.tv_weight > 0:
             terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
         if self.pull is not None:  # a trial's copy: the flagged surfaces pulled to their other explanation
-            flags, floor, glossy = self.pull
+            flags, glossy = self.pull
             branches = [out] + ([od] if discrete_on else [])
-            terms["trial"] = trials.PULL_WEIGHT * sum(trials.pull_term(o["roughness"], flags[hits], floor, glossy)
+            terms["trial"] = trials.PULL_WEIGHT * sum(trials.pull_term(o["roughness"], flags[hits], glossy)
                                                       for o in branches)
         return terms, samples.mean(1), per_pixel
 
@@ -474,36 +474,34 @@ class Trainer:
             self.start_trial(p)
 
     def start_trial(self, p: Progress) -> None:
-        """Flag the metals at the roughness floor and the glossy metals on the fixed hits; where
-        enough are flagged, train a copy of the fit with them pulled to their other explanation,
-        measure it on the held-aside pixels and keep it aside while the fit itself trains as many
-        steps."""
+        """Flag the metals at the roughness floor on the fixed hits; where enough are flagged, train
+        a copy of the fit with them pulled glossier, measure it on the held-aside pixels and keep it
+        aside while the fit itself trains as many steps."""
         cfg, pool = self.cfg, self.pool
         floor, glossy = cfg.field.roughness_min, trials.glossy_roughness(ENVMAP_START_HEIGHT)
         with torch.no_grad():
-            fixed = trials.flag(self.model(pool.position[self.rough_idx]), floor, glossy)
-        up, down = float((fixed == trials.UP).float().mean()), float((fixed == trials.DOWN).float().mean())
-        seen = (f"of {len(self.rough_idx)} fixed training hits at step {self.step}, {100 * up:.1f} % metal (metallic > "
-                f"{trials.METAL:g}) within {trials.FLOOR_BAND:g} of the roughness floor {floor:g} and {100 * down:.1f} "
-                f"% metal between it and {glossy:.2f}")
-        if up + down < trials.MIN_SHARE:
+            fixed = trials.flag(self.model(pool.position[self.rough_idx]), floor)
+        share = float(fixed.float().mean())
+        seen = (f"{100 * share:.1f} % of {len(self.rough_idx)} fixed training hits at step {self.step} metal (metallic "
+                f"> {trials.METAL:g}) within {trials.FLOOR_BAND:g} of the roughness floor {floor:g}")
+        if share < trials.MIN_SHARE:
             self.decisions["trials"] = skips.decision(cfg.train.trials, "none",
                                                       f"{seen} (a trial from {100 * trials.MIN_SHARE:g} %)")
             return
-        flags = trials.flag_hits(self.model, pool.position, floor, glossy)
-        probe = {"up": self.rough_idx[fixed == trials.UP], "down": self.rough_idx[fixed == trials.DOWN]}
+        flags = trials.flag_hits(self.model, pool.position, floor)
+        probe = self.rough_idx[fixed]  # the fixed hits flagged, read again at the choice
         steps = max(2, round(trials.TRIAL_SHARE * cfg.train.iterations))
-        messages.note(f"trial: {seen}; a copy of the fit tries them at their other explanation for {steps} steps")
+        messages.note(f"trial: {seen}; a copy of the fit tries them at roughness >= {glossy:.2f} for {steps} steps")
         start = trials.copy_fit(self)
-        self.pull = (flags.to(self.device), floor, glossy)
+        self.pull = (flags.to(self.device), glossy)
         for i in range(steps):
             if i == steps // 2:
                 self.pull = None  # the second half free: the copy settles where the images want it
             self.train_step(schedule_at(cfg, Progress(self.step, p.seconds, self.pace.share(), p.time_share)))
             self.pace.advance()
         self.pull = None
-        record = {"step": int(start["step"]), "steps": steps, "share_at_floor": up, "share_glossy_metal": down,
-                  "glossy": glossy, "hits_flagged": int((flags > 0).sum()), "held_loss_copy": self.held_loss(),
+        record = {"step": int(start["step"]), "steps": steps, "share_at_floor": share, "glossy": glossy,
+                  "hits_flagged": int(flags.sum()), "held_loss_copy": self.held_loss(),
                   "roughness_copy": self._median_roughness(probe)}
         self.trial = {"until": self.step, "copy": trials.copy_fit(self), "record": record, "probe": probe}
         trials.restore_fit(self, start)
@@ -516,26 +514,23 @@ class Trainer:
         keep_copy = record["held_loss_copy"] < record["held_loss_fit"]
         if keep_copy:
             trials.restore_fit(self, self.trial["copy"])
-
-        def medians(which):
-            return ", ".join(f"{name} {r:.3f}" for name, r in record[which].items() if r is not None)
-
+        fmt = lambda r: "none" if r is None else f"{r:.3f}"  # noqa: E731
         reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits metal at the "
-                  f"roughness floor and {100 * record['share_glossy_metal']:.1f} % glossy metal; after "
-                  f"{record['steps']} steps the held-aside loss is {record['held_loss_copy']:.5g} for the copy "
-                  f"that tried their other explanation (median roughness: {medians('roughness_copy')}) against "
-                  f"{record['held_loss_fit']:.5g} for the fit ({medians('roughness_fit')}): "
-                  + ("the copy goes on" if keep_copy else "the fit goes on"))
+                  f"roughness floor; after {record['steps']} steps the held-aside loss is "
+                  f"{record['held_loss_copy']:.5g} for the copy pulled to >= {record['glossy']:.2f} (median roughness "
+                  f"{fmt(record['roughness_copy'])}) against {record['held_loss_fit']:.5g} for the fit "
+                  f"({fmt(record['roughness_fit'])}): " + ("the copy goes on" if keep_copy else "the fit goes on"))
         self.decisions["trials"] = {**skips.decision(cfg.train.trials, "swapped" if keep_copy else "kept", reason),
                                     "trials": [record]}
         messages.note(f"trial: {reason}")
         self.trial = None
 
     @torch.no_grad()
-    def _median_roughness(self, probe: dict) -> dict:
-        """{name: median fitted roughness of the training hits `probe[name]` (None without any)}."""
-        return {name: float(self.model(self.pool.position[idx.to(self.device)])["roughness"].median())
-                if len(idx) else None for name, idx in probe.items()}
+    def _median_roughness(self, idx: torch.Tensor) -> float | None:
+        """Median fitted roughness of the training hits `idx` (None without any)."""
+        if len(idx) == 0:
+            return None
+        return float(self.model(self.pool.position[idx.to(self.device)])["roughness"].median())
 
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:

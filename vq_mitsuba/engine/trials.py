@@ -1,24 +1,25 @@
 """Choosing between two explanations on held-aside evidence (`train.trials`).
 
-Under a learned light a sharp surface's highlights have two explanations: a glossy lobe under a
+Under a learned light a sharp metal's highlights have two explanations: a glossy lobe under a
 sharp light, or a mirror under a blurrier one. A fit keeps whichever it falls into first, and
-which it falls into can depend on the seed: the same metal fits at its roughness floor on one
-seed and glossy on another. Once every stage of the schedule has begun (`Pace.start_share`: the
+which it falls into depends on the seed: the same metal fits at its roughness floor on one seed
+and glossy on another. Once every stage of the schedule has begun (`Pace.start_share`: the
 encoding open, the envmap's ladder at its top, the barrier over, the discrete branch training),
-the fitted roughness and metallic are read on fixed training hits, and two kinds of metal
-(metallic above `METAL`: a surface whose look is its specular lobe alone) are flagged: those at
-the roughness floor (within `FLOOR_BAND` of field.roughness_min), which try a glossy lobe
-(`glossy_roughness`: the one the envmap's first rung resolves, the blur put in the surface
-instead of the light), and those between the floor and that glossy value, which try the floor
-(the blur put in the light instead). Dielectrics are left alone: their highlight is a small part
-of their look, and a glossy dielectric pulled rougher can settle as a matte one. When at least `MIN_SHARE`
-of the hits are flagged, the fit is copied and the copy trains `TRIAL_SHARE` of train.iterations
-steps with the flagged surfaces pulled to their other explanation for the first half of its
-steps, then free; the fit itself trains as many steps, from the same state and the same random
-draws. Whichever has the lower loss on the held-aside pixels (never drawn for a step, shaded with
-the same samples each time) goes on; the other is dropped. The copy's steps are the trial's whole
-cost; a fit without such surfaces pays for one reading of the fields. Each trial, its evidence
-and its choice go into fit.json (`decisions.trials`).
+the fitted roughness and metallic are read on fixed training hits; metals (metallic above
+`METAL`: a surface whose look is its specular lobe alone) at the roughness floor (within
+`FLOOR_BAND` of field.roughness_min) are flagged. When at least `MIN_SHARE` of the hits are, the
+fit is copied and the copy trains `TRIAL_SHARE` of train.iterations steps with the flagged
+surfaces pulled up to a glossy lobe (`glossy_roughness`: the one the envmap's first rung resolves,
+the blur put in the surface instead of the light) for the first half of its steps, then free;
+the fit itself trains as many steps, from the same state and the same random draws. Whichever
+has the lower loss on the held-aside pixels (never drawn for a step, shaded with the same samples
+each time) goes on; the other is dropped. The copy's steps are the trial's whole cost; a fit
+without such surfaces pays for one reading of the fields. Each trial, its evidence and its
+choice go into fit.json (`decisions.trials`).
+
+Only the floor is tried. Glossy metals tried at the floor as well chose the mirror on balls'
+silver (true roughness 0.15) and cost its relighting; dielectrics are left alone (polished's
+glossy plastic, pulled rougher, settled as a matte one); `benchmarks/results/trials/`.
 """
 
 from __future__ import annotations
@@ -34,10 +35,8 @@ FLOOR_BAND = 0.02  # roughness within this of field.roughness_min counts as at t
 METAL = 0.5  # metallic above this: a surface whose look is its specular lobe alone
 MIN_SHARE = 0.01  # share of the fixed hits flagged that starts a trial
 TRIAL_SHARE = 0.1  # the copy's steps, as a share of train.iterations
-PULL_WEIGHT = 1.0  # weight of the pull (squared distance of the roughness past its other explanation)
+PULL_WEIGHT = 1.0  # weight of the pull (squared shortfall of the roughness below the glossy value)
 CHUNK = 1 << 16  # hits a flag pass evaluates at once
-
-UP, DOWN = 1, 2  # flags: a metal at the floor that tries a glossy lobe; a glossy metal that tries the floor
 
 
 def glossy_roughness(rows: int) -> float:
@@ -46,29 +45,22 @@ def glossy_roughness(rows: int) -> float:
     return math.sqrt(math.pi / (skips.ROW_PER_ALPHA * rows))
 
 
-def flag(out: dict, floor: float, glossy: float) -> torch.Tensor:
-    """(N,) int8 of the field's outputs `out`: UP for a metal at the roughness floor, DOWN for a
-    metal between the floor and `glossy`, 0 otherwise."""
-    r, metal = out["roughness"].detach(), out["metallic"].detach() > METAL
-    at_floor = r < floor + FLOOR_BAND
-    return (metal & at_floor).to(torch.int8) * UP + (metal & ~at_floor & (r < glossy)).to(torch.int8) * DOWN
+def flag(out: dict, floor: float) -> torch.Tensor:
+    """(N,) bool of the field's outputs `out`: a metal at the roughness floor."""
+    return (out["roughness"].detach() < floor + FLOOR_BAND) & (out["metallic"].detach() > METAL)
 
 
 @torch.no_grad()
-def flag_hits(model, positions: torch.Tensor, floor: float, glossy: float) -> torch.Tensor:
+def flag_hits(model, positions: torch.Tensor, floor: float) -> torch.Tensor:
     """`flag` of the material field at every position, in chunks."""
-    return torch.cat([flag(model(positions[i:i + CHUNK]), floor, glossy) for i in range(0, len(positions), CHUNK)])
+    return torch.cat([flag(model(positions[i:i + CHUNK]), floor) for i in range(0, len(positions), CHUNK)])
 
 
-def pull_term(roughness: torch.Tensor, flags: torch.Tensor, floor: float, glossy: float) -> torch.Tensor:
-    """Mean over the flagged hits of the squared distance of their roughness past their other
-    explanation: below `glossy` for UP, above the floor band for DOWN (0 without flagged hits)."""
-    up, down = flags == UP, flags == DOWN
-    n = int(up.sum()) + int(down.sum())
-    if n == 0:
+def pull_term(roughness: torch.Tensor, flags: torch.Tensor, glossy: float) -> torch.Tensor:
+    """Mean squared shortfall below `glossy` of the flagged hits' roughness (0 without any)."""
+    if not bool(flags.any()):
         return roughness.sum() * 0.0
-    return (torch.relu(glossy - roughness[up]).square().sum()
-            + torch.relu(roughness[down] - (floor + FLOOR_BAND)).square().sum()) / n
+    return torch.relu(glossy - roughness[flags]).square().mean()
 
 
 def copy_fit(trainer) -> dict:
