@@ -72,6 +72,7 @@ def copy_fit(trainer) -> dict:
             "envmap": copy.deepcopy(t.env_module.state_dict()) if t.learn_env else None,
             "optim": copy.deepcopy(t.optim.state_dict()),
             "generator": t.gen.get_state().clone(),
+            "torch_rng": torch.get_rng_state(),  # the codebook's dead codes are re-seeded from it
             "pace": copy.deepcopy(t.pace.state_dict()),
             "sampler": copy.deepcopy(t.sampler.state_dict()) if t.sampler is not None else None,
             "env_rule": [t.env_cap, t.env_decided, copy.deepcopy(t.env_choices)],
@@ -89,6 +90,7 @@ def restore_fit(trainer, parts: dict) -> None:
         t.env_module.load_state_dict(parts["envmap"])
     t.optim.load_state_dict(parts["optim"])
     t.gen.set_state(parts["generator"].cpu())
+    torch.set_rng_state(parts["torch_rng"].cpu())
     t.pace.load_state_dict(parts["pace"])
     if parts["sampler"] is not None:
         t.sampler.load_state_dict(parts["sampler"])
