@@ -200,11 +200,14 @@ class Trainer:
                 "envmap_fixed": None if self.learn_env else torch.as_tensor(self.capture.envmap),
                 "step": self.step, "elapsed_s": elapsed, "config": to_dict(self.cfg)}
 
+    def training_state(self, elapsed: float) -> dict:
+        """The fitted state plus what resuming needs (`resume` reads it back)."""
+        return {**self.fitted_state(elapsed), "optim": self.optim.state_dict(), "generator": self.gen.get_state(),
+                "history": self.history, "skips": self.skips_state()}
+
     def checkpoint(self, elapsed: float) -> None:
-        """The fitted state plus what resuming needs, and config.yaml with the same configuration."""
-        self.run.save_state({**self.fitted_state(elapsed), "optim": self.optim.state_dict(),
-                             "generator": self.gen.get_state(), "history": self.history,
-                             "skips": self.skips_state()})
+        """`training_state` as the run's checkpoint, and config.yaml with the same configuration."""
+        self.run.save_state(self.training_state(elapsed))
         self.run.write_config(self.cfg)
 
     def snapshot(self, elapsed: float) -> None:
@@ -503,17 +506,19 @@ class Trainer:
         record = {"step": int(start["step"]), "steps": steps, "share_at_floor": share, "glossy": glossy,
                   "hits_flagged": int(flags.sum()), "held_loss_copy": self.held_loss(),
                   "roughness_copy": self._median_roughness(probe)}
-        self.trial = {"until": self.step, "copy": trials.copy_fit(self), "record": record, "probe": probe}
+        until, copied = self.step, trials.copy_fit(self)
         trials.restore_fit(self, start)
+        self.trial = {"until": until, "copy": copied, "record": record, "probe": probe}
 
     def finish_trial(self) -> None:
         """Keep whichever of the fit and its copy has the lower held-aside loss."""
-        cfg, record = self.cfg, self.trial["record"]
+        cfg, trial = self.cfg, self.trial
+        record = trial["record"]
         record["held_loss_fit"] = self.held_loss()
-        record["roughness_fit"] = self._median_roughness(self.trial["probe"])
+        record["roughness_fit"] = self._median_roughness(trial["probe"])
         keep_copy = record["held_loss_copy"] < record["held_loss_fit"]
         if keep_copy:
-            trials.restore_fit(self, self.trial["copy"])
+            trials.restore_fit(self, trial["copy"])
         fmt = lambda r: "none" if r is None else f"{r:.3f}"  # noqa: E731
         reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits metal at the "
                   f"roughness floor; after {record['steps']} steps the held-aside loss is "

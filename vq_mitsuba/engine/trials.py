@@ -64,36 +64,16 @@ def pull_term(roughness: torch.Tensor, flags: torch.Tensor, glossy: float) -> to
 
 
 def copy_fit(trainer) -> dict:
-    """Everything a step changes, copied (tensors, lists and numbers only, so a checkpoint can
-    hold it): networks, light, optimiser, random generator, the rules' running state, the step."""
-    t = trainer
-    return {"model": copy.deepcopy(t.model.state_dict()),
-            "discrete": copy.deepcopy(t.discrete.state_dict()) if t.discrete is not None else None,
-            "envmap": copy.deepcopy(t.env_module.state_dict()) if t.learn_env else None,
-            "optim": copy.deepcopy(t.optim.state_dict()),
-            "generator": t.gen.get_state().clone(),
-            "torch_rng": torch.get_rng_state(),  # the codebook's dead codes are re-seeded from it
-            "pace": copy.deepcopy(t.pace.state_dict()),
-            "sampler": copy.deepcopy(t.sampler.state_dict()) if t.sampler is not None else None,
-            "env_rule": [t.env_cap, t.env_decided, copy.deepcopy(t.env_choices)],
-            "step": t.step}
+    """Everything a step changes, copied: the trainer's checkpoint (`Trainer.training_state`:
+    networks, light, optimiser, batch generator, the rules' state, the step) and torch's global
+    generator (the codebook's dead codes are re-seeded from it)."""
+    return {**copy.deepcopy(trainer.training_state(trainer.elapsed_before)), "torch_rng": torch.get_rng_state()}
 
 
 def restore_fit(trainer, parts: dict) -> None:
-    """Put the trainer back to `parts` (`copy_fit`)."""
-    t = trainer
-    t.model.load_state_dict(parts["model"])
-    if parts["discrete"] is not None:
-        t.discrete.load_state_dict(parts["discrete"])
-    if parts["envmap"] is not None:
-        t.set_envmap_height(parts["envmap"]["log_radiance"].shape[0], resample=False)
-        t.env_module.load_state_dict(parts["envmap"])
-    t.optim.load_state_dict(parts["optim"])
-    t.gen.set_state(parts["generator"].cpu())
+    """Put the trainer back to `parts` (`copy_fit`) as a resume from it would, but for the loss
+    curve and the clock, which go on."""
+    history, elapsed = trainer.history, trainer.elapsed_before
+    trainer.resume(parts)
+    trainer.history, trainer.elapsed_before = history, elapsed
     torch.set_rng_state(parts["torch_rng"].cpu())
-    t.pace.load_state_dict(parts["pace"])
-    if parts["sampler"] is not None:
-        t.sampler.load_state_dict(parts["sampler"])
-    t.env_cap, t.env_decided = int(parts["env_rule"][0]), int(parts["env_rule"][1])
-    t.env_choices = copy.deepcopy(list(parts["env_rule"][2]))
-    t.step = int(parts["step"])
