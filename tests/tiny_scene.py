@@ -36,8 +36,10 @@ def _render_view(scene, cam, spp: int, seed: int, out: Path) -> str:
 
 
 def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: float = 0.3, metallic: float = 0.0,
-                         size: int = 32, n_views: int = 12, spp: int = 64, known_envmap: bool = True) -> Path:
-    """A uniform principled sphere (radius 0.5) seen from n_views cameras; returns the XML path."""
+                         size: int = 32, n_views: int = 12, spp: int = 64, known_envmap: bool = True,
+                         env: np.ndarray | None = None) -> Path:
+    """A uniform principled sphere (radius 0.5) seen from n_views cameras under `env` (default
+    `smooth_env()`); returns the XML path."""
     import mitsuba as mi
     import trimesh
 
@@ -50,7 +52,7 @@ def write_sphere_capture(out: Path, base_color=(0.7, 0.35, 0.2), roughness: floa
     (out / "images").mkdir(parents=True, exist_ok=True)
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     sphere.export(out / "sphere.ply")
-    env = smooth_env()
+    env = smooth_env() if env is None else env
     write_exr(out / "env.exr", env)
     bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": list(base_color)},
             "metallic": metallic, "roughness": roughness}

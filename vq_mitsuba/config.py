@@ -143,6 +143,9 @@ class LossConfig:
     lam_decay: float = setting(0.1, "w5 at the end of training relative to its start (1: constant)", "(0,1]")
     metallic_barrier_until: float = setting(0.3, "training share during which the metallic prior is -log(1 - metallic)",
                                                  "(0,1]")
+    prior_evidence: str = setting(
+        "auto", "auto: the Lambertian prior weakened where the images show view-dependent light that the fit leaves "
+                "unexplained; off: the same weight everywhere", ("auto", "off"))
     w_sm: float = setting(0.0, "w6: colour-aware smoothness of neighbouring pixels (0: off)")
     sm_alpha: float = setting(60.0, "alpha of L_sm: how fast image differences switch the smoothness off")
     sm_beta: float = setting(0.1, "beta of L_sm: weight of metallic/roughness differences")

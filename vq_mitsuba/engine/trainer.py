@@ -25,7 +25,7 @@ from vq_mitsuba.data.captures import Capture
 from vq_mitsuba.data.pixels import (ErrorSampler, hold_aside, neighbour_pairs, pixel_hit_table, sampler_tile,
                                     trace_training_pixels)
 from vq_mitsuba.run.run_dir import RunDir
-from vq_mitsuba.engine import skips, trials
+from vq_mitsuba.engine import evidence, skips, trials
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.errors import InputError, NumericalError, warn
@@ -167,6 +167,45 @@ class Trainer:
         self.decisions["trials"] = skips.decision(
             t.trials, "none", "no learned light: nothing to trade a surface's roughness against" if not self.learn_env
             else f"train.trials = {t.trials}" if not self.trials_on else "the fit ended before the trial's check")
+        self.prior_grid = None
+        self.decisions["prior"] = self._weigh_prior()
+
+    def _weigh_prior(self) -> dict:
+        """The metallic term's weight over the object from the highlights of the images
+        (`vq_mitsuba.engine.evidence`), before the first step; its decision."""
+        cfg, pool, t = self.cfg, self.pool, self.cfg.train
+        setting = cfg.loss.prior_evidence
+        if setting != "auto" or cfg.loss.w_lam <= 0 or cfg.loss.lam_metallic <= 0:
+            return skips.decision(setting, "whole", f"loss.prior_evidence = {setting}" if setting != "auto"
+                                  else "no metallic prior to weigh (loss.w_lam or loss.lam_metallic is 0)")
+        gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 5))
+        pick = torch.randperm(len(pool), generator=gen)[:evidence.HITS].to(self.device)
+        pos = pool.position[pick]
+        views = evidence.sample_views(self.scene, self.capture, pos, pool.normal[pick], t.alpha_threshold,
+                                      skips.np_seed(t.seed, 6))
+        tint = evidence.highlight_tint(views)
+        bounds = torch.tensor(np.array(self.capture.mesh.bounds), dtype=torch.float32)
+        grid = evidence.WeightGrid.of_tints(pos, tint, bounds)
+        shown = ~torch.isnan(tint)
+        weight = grid(pos).cpu()
+        record = {"hits": len(pick), "hits_with_highlight": int(shown.sum()),
+                  "tint_median": float(tint[shown].median()) if bool(shown.any()) else None,
+                  "share_weakened": float((weight < 1).float().mean()), "share_off": float((weight == 0).float().mean()),
+                  "mean_weight": float(weight.mean())}
+        seen = (f"{record['hits_with_highlight']} of {len(pick)} training hits show a highlight (in {evidence.RANK + 1} "
+                f"views at least {evidence.HIGHLIGHT:g} x their median view's luminance) on a coloured surface")
+        if grid.full:
+            return {**skips.decision(setting, "whole", f"{seen}; no voxel's highlights keep more than "
+                                     f"{evidence.DIELECTRIC:g} of its colour (median "
+                                     + ("none" if record["tint_median"] is None else f"{record['tint_median']:.2f}")
+                                     + "): the metallic prior is whole"), **record}
+        self.prior_grid = grid
+        reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
+                  f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
+                  f"(off on {100 * record['share_off']:.0f} %, from a tint of {evidence.METAL:g}), mean weight "
+                  f"{record['mean_weight']:.2f}")
+        messages.note(f"prior: {reason}")
+        return {**skips.decision(setting, "weighed", reason), **record}
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
@@ -282,10 +321,13 @@ class Trainer:
                                 generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2,
                                 fixed_light=fixed_light)
 
-    def _lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None) -> torch.Tensor:
-        """Eq. (9), L_lam, with the metallic barrier early in training."""
+    def _lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None,
+                    metallic_scale: torch.Tensor | None = None) -> torch.Tensor:
+        """Eq. (9), L_lam, with the metallic barrier early in training; `weight` (N,): the hits'
+        importance weights, `metallic_scale` (N,): their metallic term's weight."""
         logit = out["metallic_logit"] if s.metallic_barrier else None
-        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit, weight)
+        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit, weight,
+                                       metallic_scale)
 
     def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool,
                    weight: torch.Tensor | None = None) -> tuple[dict, torch.Tensor, torch.Tensor | None]:
@@ -299,6 +341,8 @@ class Trainer:
         target, hits = pool.rgb[idx], self.footprint(idx)
         hit_weight = None if weight is None else weight.repeat_interleave(self.copies)
         out = self.model(pool.position[hits])
+        # the metallic term of the prior weighed by the images' highlights (`evidence`)
+        metal_w = None if self.prior_grid is None else self.prior_grid(pool.position[hits])
         env = self.envmap()
         bounce_fn = self.model if bounce else None
         discrete_on = self.discrete is not None and bool(self.discrete.initialised)
@@ -327,14 +371,14 @@ class Trainer:
         terms = {
             "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
                                                                                                      gamma, weight),
-            "lam_c": s.w_lam * self._lambertian(out, s, hit_weight),
+            "lam_c": s.w_lam * self._lambertian(out, s, hit_weight, metal_w),
         }
         if discrete_on:
             terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
             terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
                                                                                            out["basecolor"], hit_weight)
             terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
-            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, hit_weight)
+            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, hit_weight, metal_w)
         if self.pairs is not None and len(self.pairs) > 0:
             pick = self.pairs[torch.randint(0, len(self.pairs), (max(self.batch // 4, 1),), generator=self.gen,
                                             device=self.device)]

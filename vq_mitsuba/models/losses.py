@@ -47,7 +47,8 @@ def decorrelated_error(samples: torch.Tensor, rgb_target: torch.Tensor, gamma: f
 
 
 def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_weight: float = 1.0,
-                     metallic_logit: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> torch.Tensor:
+                     metallic_logit: torch.Tensor | None = None, weight: torch.Tensor | None = None,
+                     metallic_scale: torch.Tensor | None = None) -> torch.Tensor:
     """L_lam: pulls materials towards Lambertian (metallic 0, roughness 1) unless the images object.
 
     `metallic_weight` scales the metallic term against the roughness one (the paper weighs them
@@ -55,10 +56,14 @@ def lambertian_prior(metallic: torch.Tensor, roughness: torch.Tensor, metallic_w
     softplus(logit) = -log(1 - metallic): its pull on the logit tends to
     the full weight where metallic saturates at 1, where the paper's linear term's pull vanishes
     with the sigmoid's slope (a saturated wrong metal then never comes back). `weight` (N,):
-    importance weights of the points (the mean of weight x per-point term)."""
-    if weight is not None:
+    importance weights of the points (the mean of weight x per-point term). `metallic_scale` (N,):
+    each point's weight of the metallic term alone (`vq_mitsuba.engine.evidence`)."""
+    if weight is not None or metallic_scale is not None:
         m = torch.nn.functional.softplus(metallic_logit) if metallic_logit is not None else metallic
-        return torch.mean(weight * (metallic_weight * m + 1.0 - roughness))
+        if metallic_scale is not None:
+            m = metallic_scale * m
+        term = metallic_weight * m + 1.0 - roughness
+        return torch.mean(term if weight is None else weight * term)
     if metallic_logit is not None:
         m_term = torch.mean(torch.nn.functional.softplus(metallic_logit))
     else:

@@ -1,0 +1,196 @@
+"""The Lambertian prior weighed by the view-dependent light the fit leaves unexplained
+(vq_mitsuba/engine/evidence.py): the measure on Mitsuba renders of known materials, the weights,
+their grid, and the trainer's use of them."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tiny_scene import smooth_env, write_sphere_capture
+from vq_mitsuba.config import load_config
+from vq_mitsuba.data.captures import load_capture
+from vq_mitsuba.data.pixels import trace_training_pixels
+from vq_mitsuba.engine import evidence
+from vq_mitsuba.engine.pipeline import fit
+from vq_mitsuba.engine.schedule import schedule_at
+from vq_mitsuba.engine.trainer import Trainer
+from vq_mitsuba.run.loop import Progress
+from vq_mitsuba.render.shading import scene_for_mesh
+from vq_mitsuba.run.run_dir import RunDir
+
+QUICK = ["train.batch_rays=64", "residual.iterations=0", "train.iterations=40", "vq.warmup_frac=0.1"]
+GOLD = dict(base_color=(0.9, 0.6, 0.15), roughness=0.3, metallic=1.0)
+PLASTIC = dict(base_color=(0.3, 0.2, 0.05), roughness=0.3, metallic=0.0)
+
+
+@pytest.fixture(scope="module")
+def spheres(tmp_path_factory):
+    """A glossy gold sphere and a glossy plastic one of the same hue under the same light, a broad sun."""
+    return {name: write_sphere_capture(tmp_path_factory.mktemp(name), size=48, n_views=16, spp=32,
+                                       env=smooth_env(lobe_strength=40.0, lobe_width=5.0), **material)
+            for name, material in (("gold", GOLD), ("plastic", PLASTIC))}
+
+
+def _views(capture_path, n=512):
+    capture = load_capture(capture_path)
+    scene = scene_for_mesh(capture.mesh, capture.envmap, capture.envmap_to_world)
+    pool, _ = trace_training_pixels(scene, capture, 0.5)
+    idx = torch.randperm(len(pool), generator=torch.Generator().manual_seed(0))[:n]
+    pos, nrm = pool.position[idx], pool.normal[idx]
+    return capture, scene, pos, nrm, evidence.sample_views(scene, capture, pos, nrm, 0.5, seed=1)
+
+
+def test_saturation_is_the_chromaticity_s_distance_from_grey():
+    sat = evidence.saturation(torch.tensor([[0.5, 0.5, 0.5], [2.0, 2.0, 2.0], [1.0, 0.0, 0.0], [0.2, 0.1, 0.1]]))
+    assert sat.tolist() == pytest.approx([0.0, 0.0, math.sqrt(2 / 3), math.sqrt(6) / 12], abs=1e-6)
+
+
+def _samples(rows):
+    """ViewSamples of hits whose colours in their views are `rows` (lists of RGB, None: not seen)."""
+    k = max(len(r) for r in rows)
+    rgb = torch.full((len(rows), k, 3), float("nan"))
+    view = torch.full((len(rows), k), -1)
+    for i, r in enumerate(rows):
+        for j, c in enumerate(r):
+            if c is not None:
+                rgb[i, j], view[i, j] = torch.tensor(c), j
+    return evidence.ViewSamples(view, torch.zeros(len(rows), k, 3), rgb)
+
+
+def test_a_highlight_keeps_the_colour_of_a_metal_and_pales_on_a_dielectric():
+    red, grey = [0.4, 0.1, 0.1], [0.3, 0.3, 0.3]
+    tint = evidence.highlight_tint(_samples([
+        [red] * 6 + [[1.6, 0.4, 0.4]] * 2,  # a metal: the highlight is the surface's colour, brighter
+        [red] * 6 + [[1.6, 1.3, 1.3]] * 2,  # a dielectric: the light's white added
+        [red] * 8,  # no highlight: no evidence
+        [grey] * 6 + [[1.2, 1.2, 1.2]] * 2,  # a grey surface: no colour to keep
+        [red] * 7 + [[1.6, 0.4, 0.4]],  # a highlight in one view only: a misregistered edge as likely
+        [red, red, [1.6, 0.4, 0.4], None, None, None, None, None],  # seen in too few views
+    ]))
+    assert float(tint[0]) == pytest.approx(1.0, abs=1e-5)
+    assert 0.0 < float(tint[1]) < evidence.DIELECTRIC
+    assert bool(torch.isnan(tint[2:]).all())
+    assert evidence.metallic_weight(tint).tolist()[:3] == [0.0, 1.0, 1.0]
+
+
+def test_a_hit_is_read_in_the_views_that_face_it_at_its_pixel(spheres):
+    capture, scene, pos, nrm, views = _views(spheres["plastic"])
+    assert float(views.seen().float().mean()) > 0.5  # 16 views around a sphere: most hits face MIN_VIEWS of them
+    p, k = torch.nonzero(views.valid, as_tuple=True)
+    v = views.view[p, k]
+    cams = capture.cameras
+    # the direction towards the view points at that camera, within FACING of the hit's normal
+    to_cam = torch.stack([torch.as_tensor(cams[int(i)].origin, dtype=torch.float32) for i in v]) - pos[p]
+    to_cam = to_cam / to_cam.norm(dim=1, keepdim=True)
+    assert torch.allclose(views.wi[p, k], to_cam, atol=1e-4)
+    assert bool(((views.wi[p, k] * nrm[p]).sum(1) > evidence.FACING).all())
+    # and the colour is that of the image at the hit's projection in that view, an opaque pixel
+    for j in range(0, len(p), 97):
+        cam, point = cams[int(v[j])], pos[int(p[j])].double().numpy()[None]
+        x, y = np.floor(cam.project(point)[0]).astype(int)
+        assert views.rgb[p[j], k[j]].tolist() == pytest.approx(capture.images[int(v[j]), y, x].tolist(), rel=1e-6)
+        assert capture.alpha[int(v[j]), y, x] >= evidence.OPAQUE
+    assert bool(torch.isnan(views.rgb[~views.valid]).all())
+    # a hit on the far side of the sphere (centred at the origin) from a camera is never read in it
+    for i in range(len(cams)):
+        away = (nrm * torch.as_tensor(cams[i].origin, dtype=torch.float32)).sum(1) < -0.2
+        assert not bool((views.view[away] == i).any())
+
+
+def test_mitsuba_renders_of_a_gold_weaken_the_metallic_prior_and_of_a_plastic_keep_it(spheres):
+    """Rendered by Mitsuba's path tracer under the same light: the gold's highlights keep its colour
+    and the metallic term is off where they are; the plastic's highlights pale and it keeps the term."""
+    weight, tints = {}, {}
+    for name in ("gold", "plastic"):
+        capture, scene, pos, nrm, views = _views(spheres[name], n=evidence.HITS)
+        tint = evidence.highlight_tint(views)
+        tints[name] = tint[~torch.isnan(tint)]
+        assert len(tints[name]) > 50  # a glossy sphere under a broad sun: highlights on both
+        bounds = torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32)
+        weight[name] = evidence.WeightGrid.of_tints(pos, tint, bounds)(pos)
+    assert float(tints["gold"].median()) > evidence.METAL
+    assert float(tints["plastic"].median()) < 0.5 * (evidence.DIELECTRIC + evidence.METAL)
+    weakened = weight["gold"] < 1
+    assert float(weakened.float().mean()) > 0.15 and float(weight["gold"][weakened].median()) == 0.0
+    assert float((weight["plastic"] < 1).float().mean()) < 0.02
+
+
+def test_weights_are_whole_up_to_a_dielectric_s_tint_and_off_from_a_metal_s():
+    t = torch.tensor([0.0, evidence.DIELECTRIC, 0.5 * (evidence.DIELECTRIC + evidence.METAL), evidence.METAL, 1.5,
+                      float("nan")])
+    assert evidence.metallic_weight(t).tolist() == pytest.approx([1.0, 1.0, 0.5, 0.0, 0.0, 1.0])
+
+
+def test_the_grid_averages_the_tints_of_a_voxel_with_enough_evidence_and_keeps_the_term_elsewhere():
+    bounds = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    metal, dielectric = evidence.METAL + 0.05, evidence.DIELECTRIC - 0.2
+    points = torch.tensor([[0.1, 0.1, 0.1]] * 4 + [[0.9, 0.9, 0.9]] * 2 + [[0.6, 0.1, 0.1]] * 3)
+    tint = torch.tensor([metal, metal, metal - 0.4, float("nan"),  # mean of the three with evidence
+                         metal, metal,  # too few with evidence
+                         dielectric] * 1 + [dielectric] * 2)
+    grid = evidence.WeightGrid.of_tints(points, tint, bounds, res=4)
+    mean = (3 * metal - 0.4) / 3
+    looked = grid(torch.tensor([[0.05, 0.2, 0.15], [0.95, 0.8, 0.9], [0.6, 0.15, 0.1], [0.5, 0.9, 0.5],
+                                [2.0, 0.0, 0.0]]))
+    assert looked.tolist() == pytest.approx([float(evidence.metallic_weight(torch.tensor(mean))), 1.0, 1.0, 1.0, 1.0])
+    again = evidence.WeightGrid.from_state(grid.state_dict())
+    assert torch.equal(again(points), grid(points)) and not grid.full
+
+
+def _trainer(capture_path, tmp_path, extra=()):
+    return Trainer(load_capture(capture_path, split="train"), RunDir(tmp_path / "run"),
+                   load_config(None, QUICK + list(extra)))
+
+
+@pytest.fixture(scope="module")
+def learned_light_gold(tmp_path_factory):
+    return write_sphere_capture(tmp_path_factory.mktemp("gold"), size=32, n_views=12, spp=16, known_envmap=False,
+                                env=smooth_env(lobe_strength=40.0, lobe_width=5.0), **GOLD)
+
+
+def test_a_capture_that_keeps_the_whole_prior_fits_as_without_the_rule(learned_light_gold, tmp_path, monkeypatch):
+    monkeypatch.setattr(evidence, "DIELECTRIC", 1e9)  # no highlight is metal enough
+    monkeypatch.setattr(evidence, "METAL", 2e9)
+    runs = {}
+    for setting in ("auto", "off"):
+        out = tmp_path / setting
+        fit(learned_light_gold, out, load_config(None, QUICK + [f"loss.prior_evidence={setting}"]), progress=False)
+        runs[setting] = torch.load(out / "checkpoint.pt", weights_only=False)
+        decision = json.loads((out / "fit.json").read_text())["decisions"]["prior"]
+        assert decision["choice"] == "whole"
+    assert all(torch.equal(a, b) for a, b in zip(runs["auto"]["model"].values(), runs["off"]["model"].values()))
+
+
+def test_where_the_images_say_metal_the_metallic_term_is_off_and_the_roughness_term_stays(learned_light_gold, tmp_path,
+                                                                                          monkeypatch):
+    monkeypatch.setattr(evidence, "DIELECTRIC", -2.0)  # every highlight counts as a metal's
+    monkeypatch.setattr(evidence, "METAL", -1.0)
+    trainer = _trainer(learned_light_gold, tmp_path)
+    decision = trainer.decisions["prior"]
+    assert decision["choice"] == "weighed" and decision["hits_with_highlight"] > 0
+    hits = torch.arange(64)
+    pos = trainer.pool.position[hits]
+    off = trainer.prior_grid(pos) == 0
+    assert bool(off.any())
+    out = trainer.model(pos)
+    s = schedule_at(trainer.cfg, Progress(0, 0.0, 0.5, 0.0))  # after the barrier: the linear terms
+    term = trainer._lambertian(out, s, None, trainer.prior_grid(pos))
+    lam_m = trainer.cfg.loss.lam_metallic
+    expected = torch.mean(torch.where(off, 0.0, lam_m * out["metallic"]) + 1.0 - out["roughness"])
+    assert float(term.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
+    whole = trainer._lambertian(out, s)
+    assert float(whole.detach()) > float(term.detach())  # the metallic term of the hits where it is off is gone
+    # the term's gradient no longer reaches the metallic of those hits
+    metallic = out["metallic"].detach().requires_grad_(True)
+    losses_term = trainer._lambertian({**out, "metallic": metallic}, s, None, trainer.prior_grid(pos))
+    losses_term.backward()
+    assert bool((metallic.grad[off] == 0).all()) and bool((metallic.grad[~off] > 0).all())
+    # the same grid after a resume: decided again from the same seed and images
+    trainer.run.create()
+    trainer.checkpoint(1.0)
+    again = _trainer(learned_light_gold, tmp_path)
+    again.resume()
+    assert torch.equal(again.prior_grid.values, trainer.prior_grid.values)

@@ -1,0 +1,169 @@
+"""The Lambertian prior's metallic term weighed by what the images say (`loss.prior_evidence`).
+
+The prior pulls every surface towards a dielectric whether or not the images object. They can: a
+dielectric's highlight is the colour of the light (its specular reflection is untinted), so on a
+coloured dielectric the brightest views of a point are paler than its typical view; a metal's
+highlight is the colour of the metal, as saturated as the rest of it.
+
+Before the first step, `HITS` training hits are read in up to `VIEWS` of the views that face
+them (unoccluded, within `FACING` of the normal, on opaque pixels: no silhouette pixel mixed with
+what lies behind; `sample_views`). A hit gives evidence where it has a highlight (in `RANK` + 1
+views at least `HIGHLIGHT` times its median view's luminance: one bright view is as likely a
+misregistered shadow edge) on a coloured surface (the median view's chromatic saturation at least
+`COLOURED`); its evidence is the saturation the highlight keeps (`highlight_tint`). The tints are
+averaged over a coarse voxel grid on the object (`WeightGrid`, voxels with at least
+`MIN_EVIDENCE` such hits); a voxel's weight of the metallic term is 1 up to a tint of `DIELECTRIC`
+(paler highlights: the images side with the prior), 0 from `METAL` (highlights that keep the
+colour: the images say metal), linear between, and 1 where there is no evidence (grey surfaces,
+no highlight: the images do not say, and the prior decides as before). Every hit of a step looks
+its voxel up. The roughness term is left whole.
+
+A capture with no voxel below 1 fits exactly as without the rule; `benchmarks/results/prior_evidence/`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+HITS = 16384  # training hits read in several views
+VIEWS = 16  # views per hit
+MIN_VIEWS = 4  # a hit seen in fewer views gives no evidence
+RANK = 1  # the highlight is read in the views sorted by luminance at this rank (0: the brightest)
+FACING = 0.35  # cosine between the normal and a view from which the hit is read there (no silhouette pixels)
+OPAQUE = 0.99  # alpha from which a pixel is read (no pixel mixed with what lies behind)
+HIGHLIGHT = 1.5  # brightest over median view luminance from which a hit has a highlight
+COLOURED = 0.08  # chromatic saturation of the median view from which a surface is coloured
+DIELECTRIC = 0.55  # highlight tint up to which the metallic term is whole
+METAL = 0.8  # highlight tint from which the metallic term is off
+GRID = 24  # voxels along the object's longest side
+MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+
+class ViewSamples:
+    """Where each of P hits is seen: `view` (P, K) view indices, -1 where none; `wi` (P, K, 3) unit
+    directions towards those views; `rgb` (P, K, 3) the images' linear colour at the hit's pixel
+    there (NaN where none)."""
+
+    def __init__(self, view: torch.Tensor, wi: torch.Tensor, rgb: torch.Tensor):
+        self.view, self.wi, self.rgb = view, wi, rgb
+
+    @property
+    def valid(self) -> torch.Tensor:
+        return self.view >= 0
+
+    @property
+    def lum(self) -> torch.Tensor:
+        """(P, K) luminance (NaN where not seen)."""
+        return self.rgb @ torch.tensor(LUMINANCE)
+
+    def seen(self) -> torch.Tensor:
+        """(P,) bool: the hit is seen in at least MIN_VIEWS views."""
+        return self.valid.sum(1) >= MIN_VIEWS
+
+
+def sample_views(scene, capture, positions: torch.Tensor, normals: torch.Tensor, alpha_threshold: float,
+                 seed: int, views: int = VIEWS) -> ViewSamples:
+    """The views that see each hit (positions, normals (P, 3)), `views` of them at most, drawn at
+    random, and the images' colour at each hit's pixel there."""
+    p = positions.detach().cpu().double().numpy()
+    n = normals.detach().cpu().float().numpy()
+    extent = float(np.ptp(p, 0).max()) if len(p) else 1.0
+    n_views = len(capture.cameras)
+    seen = np.zeros((len(p), n_views), bool)
+    rgb = np.zeros((len(p), n_views, 3), np.float32)
+    wi = np.zeros((len(p), n_views, 3), np.float32)
+    for v, cam in enumerate(capture.cameras):
+        d = p - cam.origin
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        ok = (n * -d).sum(1) > FACING
+        hits = scene.trace(np.ascontiguousarray(np.broadcast_to(cam.origin, p.shape), np.float32),
+                           d.astype(np.float32))
+        ok &= hits.valid.cpu().numpy() & (np.linalg.norm(hits.position.cpu().numpy() - p, axis=1) < 2e-3 * extent)
+        xy = cam.project(p)
+        xi, yi = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
+        ok &= (xi >= 0) & (yi >= 0) & (xi < capture.width) & (yi < capture.height)
+        xi, yi = np.clip(xi, 0, capture.width - 1), np.clip(yi, 0, capture.height - 1)
+        ok &= capture.alpha[v, yi, xi] >= max(alpha_threshold, OPAQUE)
+        seen[:, v], wi[:, v], rgb[:, v] = ok, -d, capture.images[v, yi, xi]
+    # `views` of each hit's views at random: the largest random keys among those that see it
+    keys = np.where(seen, np.random.default_rng(seed).random(seen.shape), -1.0)
+    pick = np.argsort(-keys, axis=1)[:, :min(views, n_views)]
+    ok = np.take_along_axis(seen, pick, 1)
+    rows = np.arange(len(p))[:, None]
+    return ViewSamples(torch.as_tensor(np.where(ok, pick, -1)), torch.as_tensor(wi[rows, pick] * ok[..., None]),
+                       torch.as_tensor(np.where(ok[..., None], rgb[rows, pick], np.nan).astype(np.float32)))
+
+
+def saturation(rgb: torch.Tensor) -> torch.Tensor:
+    """Chromatic saturation of linear colours (..., 3): the distance of the chromaticity r, g, b
+    over their sum from grey (0 for grey, 0.82 for a pure primary)."""
+    total = rgb.clamp_min(0).sum(-1, keepdim=True)
+    return (rgb.clamp_min(0) / total.clamp_min(1e-8) - 1.0 / 3.0).norm(dim=-1)
+
+
+def highlight_tint(samples: ViewSamples) -> torch.Tensor:
+    """(P,) the saturation each hit's brightest view keeps from its median view, NaN where the hit
+    gives no evidence (seen in fewer than MIN_VIEWS views, no highlight, a grey surface)."""
+    lum = samples.lum
+    n = samples.valid.sum(1)
+    order = torch.argsort(torch.nan_to_num(lum, nan=-1.0), dim=1, descending=True)
+    rows = torch.arange(len(lum))
+    bright, median = order[:, RANK], order[rows, n // 2]
+    l_bright, l_median = lum[rows, bright], lum[rows, median]
+    s_bright, s_median = saturation(samples.rgb[rows, bright]), saturation(samples.rgb[rows, median])
+    evidence = (n >= MIN_VIEWS) & (l_bright >= HIGHLIGHT * l_median) & (l_median > 0) & (s_median >= COLOURED)
+    return torch.where(evidence, s_bright / s_median.clamp_min(1e-8), torch.full((), float("nan")))
+
+
+def metallic_weight(tint: torch.Tensor) -> torch.Tensor:
+    """The metallic term's weight for a highlight tint: 1 up to DIELECTRIC, 0 from METAL, 1 for NaN."""
+    w = ((METAL - tint) / (METAL - DIELECTRIC)).clamp(0.0, 1.0)
+    return torch.where(torch.isnan(tint), torch.ones(()), w)
+
+
+class WeightGrid:
+    """Per-voxel values over a coarse grid, looked up at any point (1 outside the grid and in
+    voxels without a value)."""
+
+    def __init__(self, lo: torch.Tensor, size: float, res: int, values: torch.Tensor):
+        self.lo, self.size, self.res, self.values = lo, float(size), int(res), values
+
+    @classmethod
+    def of_tints(cls, positions: torch.Tensor, tint: torch.Tensor, bounds: torch.Tensor, res: int = GRID):
+        """The grid over `bounds` (2, 3), `res` voxels along the longest side, each voxel's value
+        the `metallic_weight` of the mean tint (P,) of the hits `positions` (P, 3) inside it that
+        gave evidence, where at least MIN_EVIDENCE did (else 1)."""
+        lo = bounds[0].float()
+        size = max(float((bounds[1] - bounds[0]).max()) / res * (1 + 1e-4), 1e-9)
+        grid = cls(lo, size, res, torch.ones(res ** 3))
+        key, inside = grid._keys(positions)
+        use = inside & ~torch.isnan(tint)
+        total = torch.zeros(res ** 3).index_add_(0, key[use], tint.float()[use])
+        count = torch.zeros(res ** 3).index_add_(0, key[use], torch.ones(int(use.sum())))
+        mean = torch.where(count >= MIN_EVIDENCE, total / count.clamp_min(1), torch.full((), float("nan")))
+        grid.values = metallic_weight(mean).float()
+        return grid
+
+    def _keys(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        cell = torch.floor((positions.detach().float().cpu() - self.lo.cpu()) / self.size).long()
+        inside = ((cell >= 0) & (cell < self.res)).all(1)
+        cell = cell.clamp(0, self.res - 1)
+        return (cell[:, 0] * self.res + cell[:, 1]) * self.res + cell[:, 2], inside
+
+    def __call__(self, positions: torch.Tensor) -> torch.Tensor:
+        key, inside = self._keys(positions)
+        return torch.where(inside, self.values[key], torch.ones(())).to(positions.device)
+
+    @property
+    def full(self) -> bool:
+        """Every voxel keeps the whole term."""
+        return bool((self.values >= 1.0).all())
+
+    def state_dict(self) -> dict:
+        return {"lo": self.lo.cpu(), "size": self.size, "res": self.res, "values": self.values.cpu()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> WeightGrid:
+        return cls(state["lo"], state["size"], state["res"], state["values"])
