@@ -127,15 +127,20 @@ def test_weights_are_whole_up_to_a_dielectric_s_tint_and_off_from_a_metal_s():
 def test_the_grid_averages_the_tints_of_a_voxel_with_enough_evidence_and_keeps_the_term_elsewhere():
     bounds = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     metal, dielectric = evidence.METAL + 0.05, evidence.DIELECTRIC - 0.2
-    points = torch.tensor([[0.1, 0.1, 0.1]] * 4 + [[0.9, 0.9, 0.9]] * 2 + [[0.6, 0.1, 0.1]] * 3)
-    tint = torch.tensor([metal, metal, metal - 0.4, float("nan"),  # mean of the three with evidence
+    nan = float("nan")
+    points = torch.tensor([[0.1, 0.1, 0.1]] * 4 + [[0.9, 0.9, 0.9]] * 2 + [[0.6, 0.1, 0.1]] * 3
+                          + [[0.1, 0.9, 0.1]] * 10)
+    tint = torch.tensor([metal, metal, metal - 0.4, nan,  # mean of the three with evidence
                          metal, metal,  # too few with evidence
-                         dielectric] * 1 + [dielectric] * 2)
+                         dielectric, dielectric, dielectric,
+                         metal, metal, metal] + [nan] * 7)  # evidence on too small a share of the voxel's hits
     grid = evidence.WeightGrid.of_tints(points, tint, bounds, res=4)
     mean = (3 * metal - 0.4) / 3
     looked = grid(torch.tensor([[0.05, 0.2, 0.15], [0.95, 0.8, 0.9], [0.6, 0.15, 0.1], [0.5, 0.9, 0.5],
-                                [2.0, 0.0, 0.0]]))
-    assert looked.tolist() == pytest.approx([float(evidence.metallic_weight(torch.tensor(mean))), 1.0, 1.0, 1.0, 1.0])
+                                [0.1, 0.9, 0.1], [2.0, 0.0, 0.0]]))
+    assert 0 < float(evidence.metallic_weight(torch.tensor(mean))) < 1
+    assert looked.tolist() == pytest.approx([float(evidence.metallic_weight(torch.tensor(mean))), 1.0, 1.0, 1.0, 1.0,
+                                             1.0])
     again = evidence.WeightGrid.from_state(grid.state_dict())
     assert torch.equal(again(points), grid(points)) and not grid.full
 

@@ -11,8 +11,9 @@ what lies behind; `sample_views`). A hit gives evidence where it has a highlight
 views at least `HIGHLIGHT` times its median view's luminance: one bright view is as likely a
 misregistered shadow edge) on a coloured surface (the median view's chromatic saturation at least
 `COLOURED`); its evidence is the saturation the highlight keeps (`highlight_tint`). The tints are
-averaged over a coarse voxel grid on the object (`WeightGrid`, voxels with at least
-`MIN_EVIDENCE` such hits); a voxel's weight of the metallic term is 1 up to a tint of `DIELECTRIC`
+averaged over a coarse voxel grid on the object (`WeightGrid`, voxels where at least
+`MIN_EVIDENCE` hits and `MIN_SHARE` of the hits read give evidence: a few bright views on a
+surface under lights that move with the camera, as DTU's, are not a metal); a voxel's weight of the metallic term is 1 up to a tint of `DIELECTRIC`
 (paler highlights: the images side with the prior), 0 from `METAL` (highlights that keep the
 colour: the images say metal), linear between, and 1 where there is no evidence (grey surfaces,
 no highlight: the images do not say, and the prior decides as before). Every hit of a step looks
@@ -38,6 +39,7 @@ DIELECTRIC = 0.55  # highlight tint up to which the metallic term is whole
 METAL = 0.8  # highlight tint from which the metallic term is off
 GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
+MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
@@ -134,7 +136,7 @@ class WeightGrid:
     def of_tints(cls, positions: torch.Tensor, tint: torch.Tensor, bounds: torch.Tensor, res: int = GRID):
         """The grid over `bounds` (2, 3), `res` voxels along the longest side, each voxel's value
         the `metallic_weight` of the mean tint (P,) of the hits `positions` (P, 3) inside it that
-        gave evidence, where at least MIN_EVIDENCE did (else 1)."""
+        gave evidence, where at least MIN_EVIDENCE and MIN_SHARE of them did (else 1)."""
         lo = bounds[0].float()
         size = max(float((bounds[1] - bounds[0]).max()) / res * (1 + 1e-4), 1e-9)
         grid = cls(lo, size, res, torch.ones(res ** 3))
@@ -142,7 +144,9 @@ class WeightGrid:
         use = inside & ~torch.isnan(tint)
         total = torch.zeros(res ** 3).index_add_(0, key[use], tint.float()[use])
         count = torch.zeros(res ** 3).index_add_(0, key[use], torch.ones(int(use.sum())))
-        mean = torch.where(count >= MIN_EVIDENCE, total / count.clamp_min(1), torch.full((), float("nan")))
+        hits = torch.zeros(res ** 3).index_add_(0, key[inside], torch.ones(int(inside.sum())))
+        enough = (count >= MIN_EVIDENCE) & (count >= MIN_SHARE * hits)
+        mean = torch.where(enough, total / count.clamp_min(1), torch.full((), float("nan")))
         grid.values = metallic_weight(mean).float()
         return grid
 
