@@ -7,8 +7,9 @@
 
 For each batch and scene: the median, min, max and spread (max - min) over its seeds of every
 figure `eval` writes (novel view, basecolor, metallic, roughness, relighting image scale, in dB),
-the materials found (M) against the truth, each true metal's fitted roughness, the fit's seconds
-(`fit.json`, the material stage and its residual) and the trial's choice (`decisions.trials`).
+the materials found (M) against the truth, each true metal's fitted roughness, each material's
+fitted and true metallic, the fit's seconds (`fit.json`, the material stage and its residual), the
+trial's choice (`decisions.trials`) and the prior's weighing (`decisions.prior`).
 Fit times compare only between batches run the same way (`--threads-per-run`, alone on the
 machine).
 """
@@ -39,6 +40,7 @@ def read_run(run: Path) -> dict:
     mats = json.loads((run / "materials.json").read_text())
     seg = metrics.get("segmentation") or {}
     trial = fit["decisions"].get("trials") or {}
+    prior = fit["decisions"].get("prior") or {}
     return {"run": run.name, "scene": metrics.get("scene"),
             **{name: _get(metrics, path) for name, path in FIGURES},
             "M": mats.get("num_materials"), "M_true": seg.get("num_materials_true"),
@@ -46,8 +48,11 @@ def read_run(run: Path) -> dict:
                        if (p.get("metallic_true") or 0) > 0.5},
             "metal_truth": {p["name"]: round(p["roughness_true"], 3) for p in metrics.get("per_material", [])
                             if (p.get("metallic_true") or 0) > 0.5},
+            "metallic_per_material": {p["name"]: [round(p["metallic"], 3), p.get("metallic_true")]
+                                      for p in metrics.get("per_material", [])},
             "fit_s": fit.get("seconds"), "residual_s": _get(fit, ("residual", "seconds")),
-            "trial": trial.get("choice"), "trial_reason": trial.get("reason")}
+            "trial": trial.get("choice"), "trial_reason": trial.get("reason"),
+            "prior": prior.get("choice"), "prior_mean_weight": prior.get("mean_weight")}
 
 
 def spread(values: list[float]) -> dict:

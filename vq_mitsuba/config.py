@@ -144,8 +144,8 @@ class LossConfig:
     metallic_barrier_until: float = setting(0.3, "training share during which the metallic prior is -log(1 - metallic)",
                                                  "(0,1]")
     prior_evidence: str = setting(
-        "auto", "auto: the Lambertian prior weakened where the images show view-dependent light that the fit leaves "
-                "unexplained; off: the same weight everywhere", ("auto", "off"))
+        "auto", "auto: the Lambertian prior's metallic term weakened where the images' highlights keep the surface's "
+                "colour, as a metal's do; off: the same weight everywhere", ("auto", "off"))
     w_sm: float = setting(0.0, "w6: colour-aware smoothness of neighbouring pixels (0: off)")
     sm_alpha: float = setting(60.0, "alpha of L_sm: how fast image differences switch the smoothness off")
     sm_beta: float = setting(0.1, "beta of L_sm: weight of metallic/roughness differences")
