@@ -140,7 +140,8 @@ class WeightGrid:
         lo = bounds[0].float()
         size = max(float((bounds[1] - bounds[0]).max()) / res * (1 + 1e-4), 1e-9)
         grid = cls(lo, size, res, torch.ones(res ** 3))
-        key, inside = grid._keys(positions)
+        key, inside = grid._keys(positions.cpu())
+        tint = tint.cpu()
         use = inside & ~torch.isnan(tint)
         total = torch.zeros(res ** 3).index_add_(0, key[use], tint.float()[use])
         count = torch.zeros(res ** 3).index_add_(0, key[use], torch.ones(int(use.sum())))
@@ -151,14 +152,16 @@ class WeightGrid:
         return grid
 
     def _keys(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        cell = torch.floor((positions.detach().float().cpu() - self.lo.cpu()) / self.size).long()
+        """Each position's voxel index and whether it lies inside the grid (on the positions' device)."""
+        cell = torch.floor((positions.detach().float() - self.lo.to(positions.device)) / self.size).long()
         inside = ((cell >= 0) & (cell < self.res)).all(1)
         cell = cell.clamp(0, self.res - 1)
         return (cell[:, 0] * self.res + cell[:, 1]) * self.res + cell[:, 2], inside
 
     def __call__(self, positions: torch.Tensor) -> torch.Tensor:
         key, inside = self._keys(positions)
-        return torch.where(inside, self.values[key], torch.ones(())).to(positions.device)
+        values = self.values.to(positions.device)
+        return torch.where(inside, values[key], torch.ones((), device=positions.device))
 
     @property
     def full(self) -> bool:
