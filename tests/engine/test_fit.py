@@ -170,9 +170,9 @@ def test_metallic_barrier_stops_at_its_progress(sphere_capture, tmp_path, monkey
 
     real, seen = losses.lambertian_prior, []
 
-    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None, weight=None):
+    def spy(metallic, roughness, metallic_weight=1.0, metallic_logit=None, weight=None, metallic_scale=None):
         seen.append(metallic_logit is not None)
-        return real(metallic, roughness, metallic_weight, metallic_logit, weight)
+        return real(metallic, roughness, metallic_weight, metallic_logit, weight, metallic_scale)
 
     monkeypatch.setattr(losses, "lambertian_prior", spy)
     run = tmp_path / "run"
