@@ -1,10 +1,13 @@
 """The training-loop skeleton: budgets, the clock that leaves out writes, checkpoints, snapshots."""
 
+import os
+import signal
+import sys
 import time
 
 import pytest
 
-from vq_mitsuba.run.loop import Budget, Clock, Loop
+from vq_mitsuba.run.loop import Budget, Clock, Interrupted, Loop, interrupt_signals, stop_status
 
 
 def test_step_budget_runs_exact_steps_and_reports_shares():
@@ -99,3 +102,36 @@ def test_periodic_snapshots():
     Loop("t", Budget(steps=25), step, snapshot=lambda p, label: taken.append(label), snapshot_every_s=0.05,
          progress_bar=False).run()
     assert len(taken) >= 3 and taken == sorted(taken) and taken[0] == pytest.approx(0.05)
+
+
+class _SignalInFinaliser:
+    """Sends the process SIGTERM from its __del__: Python reports and drops any exception a
+    finaliser raises, so the handler's Interrupted is lost there (as it can be in a library's
+    callback run from C++)."""
+
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):  # the handler runs between bytecodes, here
+            time.sleep(0.001)
+
+
+def test_a_signal_whose_exception_was_lost_still_stops_the_loop_before_the_next_step():
+    steps, checkpoints, unraisable = [], [], []
+
+    def step(p):
+        steps.append(p.step)
+        if p.step == 2:
+            _SignalInFinaliser()  # made and finalised at once: the signal arrives inside __del__
+
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
+    try:
+        with interrupt_signals(), pytest.raises(Interrupted) as stop:
+            Loop("t", Budget(steps=100), step, checkpoint=lambda p: checkpoints.append(p.step),
+                 checkpoint_every=50, progress_bar=False).run()
+    finally:
+        sys.unraisablehook = hook
+    assert [type(u.exc_value) for u in unraisable] == [Interrupted]  # the first exception was lost...
+    assert steps == [0, 1, 2] and checkpoints == [3]  # ...and the loop stopped before step 3, checkpointed
+    assert stop.value.signum == signal.SIGTERM and stop_status(stop.value) == 128 + signal.SIGTERM
+    with interrupt_signals():  # a later block starts with no signal pending
+        assert Loop("t", Budget(steps=2), lambda p: None, progress_bar=False).run().steps == 2

@@ -31,6 +31,15 @@ class Interrupted(KeyboardInterrupt):
 
 
 _last_signal: int | None = None  # the last signal `interrupt_signals` turned into Interrupted
+_pending: int | None = None  # a signal received inside `interrupt_signals`, until its block ends
+
+
+def raise_if_interrupted() -> None:
+    """Raise `Interrupted` again if a signal came and its exception was lost: Python drops an
+    exception raised in a finaliser or a library's callback (a garbage-collected object's __del__, a
+    hook run from C++), and the loop would run on. The loop asks before every step."""
+    if _pending is not None:
+        raise Interrupted(_pending)
 
 
 def stop_status(exc: KeyboardInterrupt) -> int:
@@ -50,16 +59,19 @@ def interrupt_signals():
         return
 
     def interrupt(signum, frame):
-        global _last_signal
-        _last_signal = signum
+        global _last_signal, _pending
+        _last_signal = _pending = signum
         raise Interrupted(signum)
 
+    global _pending
+    _pending = None
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        _pending = None
 
 
 @dataclass(frozen=True)
@@ -180,6 +192,7 @@ class Loop:
         stopped_by_time = stopped_early = False
         try:
             while self._steps_left():
+                raise_if_interrupted()
                 if self.done_fn is not None and self.done_fn():
                     stopped_early = True
                     break
