@@ -35,9 +35,10 @@ _pending: int | None = None  # a signal received inside `interrupt_signals`, unt
 
 
 def raise_if_interrupted() -> None:
-    """Raise `Interrupted` again if a signal came and its exception was lost: Python drops an
-    exception raised in a finaliser or a library's callback (a garbage-collected object's __del__, a
-    hook run from C++), and the loop would run on. The loop asks before every step."""
+    """Raise `Interrupted` again if a signal came and its exception was lost, so that the loop does
+    not run on: Dr.Jit drops an exception raised inside a torch tensor's __dlpack__ while it imports
+    the tensor (every `dr.wrap` call does), and Python drops one raised in a finaliser (__del__).
+    The loop asks before every step."""
     if _pending is not None:
         raise Interrupted(_pending)
 
