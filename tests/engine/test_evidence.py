@@ -57,7 +57,7 @@ def _samples(rows):
         for j, c in enumerate(r):
             if c is not None:
                 rgb[i, j], view[i, j] = torch.tensor(c), j
-    return evidence.ViewSamples(view, torch.zeros(len(rows), k, 3), rgb)
+    return evidence.ViewSamples(view, rgb)
 
 
 def test_a_highlight_keeps_the_colour_of_a_metal_and_pales_on_a_dielectric():
@@ -82,11 +82,10 @@ def test_a_hit_is_read_in_the_views_that_face_it_at_its_pixel(spheres):
     p, k = torch.nonzero(views.valid, as_tuple=True)
     v = views.view[p, k]
     cams = capture.cameras
-    # the direction towards the view points at that camera, within FACING of the hit's normal
+    # the camera of each view a hit is read in lies within FACING of the hit's normal
     to_cam = torch.stack([torch.as_tensor(cams[int(i)].origin, dtype=torch.float32) for i in v]) - pos[p]
     to_cam = to_cam / to_cam.norm(dim=1, keepdim=True)
-    assert torch.allclose(views.wi[p, k], to_cam, atol=1e-4)
-    assert bool(((views.wi[p, k] * nrm[p]).sum(1) > evidence.FACING).all())
+    assert bool(((to_cam * nrm[p]).sum(1) > evidence.FACING).all())
     # and the colour is that of the image at the hit's projection in that view, an opaque pixel
     for j in range(0, len(p), 97):
         cam, point = cams[int(v[j])], pos[int(p[j])].double().numpy()[None]
@@ -141,8 +140,7 @@ def test_the_grid_averages_the_tints_of_a_voxel_with_enough_evidence_and_keeps_t
     assert 0 < float(evidence.metallic_weight(torch.tensor(mean))) < 1
     assert looked.tolist() == pytest.approx([float(evidence.metallic_weight(torch.tensor(mean))), 1.0, 1.0, 1.0, 1.0,
                                              1.0])
-    again = evidence.WeightGrid.from_state(grid.state_dict())
-    assert torch.equal(again(points), grid(points)) and not grid.full
+    assert not grid.full
 
 
 def _trainer(capture_path, tmp_path, extra=()):

@@ -9,6 +9,9 @@ import numpy as np
 from vq_mitsuba.errors import InputError, WriteError, as_write_error
 
 
+LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709 weights of linear R, G, B
+
+
 def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB decoding; input in [0, 1]."""
     srgb = np.asarray(srgb, dtype=np.float32)

@@ -27,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vq_mitsuba.data.imageio import LUMINANCE
+
 HITS = 16384  # training hits read in several views
 VIEWS = 16  # views per hit
 MIN_VIEWS = 4  # a hit seen in fewer views gives no evidence
@@ -40,16 +42,14 @@ METAL = 0.8  # highlight tint from which the metallic term is off
 GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
 MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
-LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 class ViewSamples:
-    """Where each of P hits is seen: `view` (P, K) view indices, -1 where none; `wi` (P, K, 3) unit
-    directions towards those views; `rgb` (P, K, 3) the images' linear colour at the hit's pixel
-    there (NaN where none)."""
+    """Where each of P hits is seen: `view` (P, K) view indices, -1 where none; `rgb` (P, K, 3) the
+    images' linear colour at the hit's pixel there (NaN where none)."""
 
-    def __init__(self, view: torch.Tensor, wi: torch.Tensor, rgb: torch.Tensor):
-        self.view, self.wi, self.rgb = view, wi, rgb
+    def __init__(self, view: torch.Tensor, rgb: torch.Tensor):
+        self.view, self.rgb = view, rgb
 
     @property
     def valid(self) -> torch.Tensor:
@@ -75,7 +75,6 @@ def sample_views(scene, capture, positions: torch.Tensor, normals: torch.Tensor,
     n_views = len(capture.cameras)
     seen = np.zeros((len(p), n_views), bool)
     rgb = np.zeros((len(p), n_views, 3), np.float32)
-    wi = np.zeros((len(p), n_views, 3), np.float32)
     for v, cam in enumerate(capture.cameras):
         d = p - cam.origin
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
@@ -88,13 +87,13 @@ def sample_views(scene, capture, positions: torch.Tensor, normals: torch.Tensor,
         ok &= (xi >= 0) & (yi >= 0) & (xi < capture.width) & (yi < capture.height)
         xi, yi = np.clip(xi, 0, capture.width - 1), np.clip(yi, 0, capture.height - 1)
         ok &= capture.alpha[v, yi, xi] >= max(alpha_threshold, OPAQUE)
-        seen[:, v], wi[:, v], rgb[:, v] = ok, -d, capture.images[v, yi, xi]
+        seen[:, v], rgb[:, v] = ok, capture.images[v, yi, xi]
     # `views` of each hit's views at random: the largest random keys among those that see it
     keys = np.where(seen, np.random.default_rng(seed).random(seen.shape), -1.0)
     pick = np.argsort(-keys, axis=1)[:, :min(views, n_views)]
     ok = np.take_along_axis(seen, pick, 1)
     rows = np.arange(len(p))[:, None]
-    return ViewSamples(torch.as_tensor(np.where(ok, pick, -1)), torch.as_tensor(wi[rows, pick] * ok[..., None]),
+    return ViewSamples(torch.as_tensor(np.where(ok, pick, -1)),
                        torch.as_tensor(np.where(ok[..., None], rgb[rows, pick], np.nan).astype(np.float32)))
 
 
@@ -167,10 +166,3 @@ class WeightGrid:
     def full(self) -> bool:
         """Every voxel keeps the whole term."""
         return bool((self.values >= 1.0).all())
-
-    def state_dict(self) -> dict:
-        return {"lo": self.lo.cpu(), "size": self.size, "res": self.res, "values": self.values.cpu()}
-
-    @classmethod
-    def from_state(cls, state: dict) -> WeightGrid:
-        return cls(state["lo"], state["size"], state["res"], state["values"])

@@ -19,7 +19,7 @@ import numpy as np
 
 from vq_mitsuba.backend import import_pycolmap
 from vq_mitsuba.data.cameras import Camera
-from vq_mitsuba.data.imageio import linear_to_srgb
+from vq_mitsuba.data.imageio import LUMINANCE, linear_to_srgb
 
 MIN_VIEWS = 3  # a point seen by fewer views is not kept (SfM's usual floor for a trusted point)
 NEIGHBOURS = 6  # views each view is matched with: its nearest by viewing direction
@@ -32,7 +32,7 @@ REPROJECTION_PX = 2.0  # a track whose point lands further from one of its featu
 
 def _gray(image: np.ndarray) -> np.ndarray:
     """A linear RGB image (H, W, 3) as 8-bit sRGB luminance."""
-    lum = image[..., :3] @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    lum = image[..., :3] @ np.array(LUMINANCE, dtype=np.float32)
     return np.ascontiguousarray(np.round(linear_to_srgb(lum) * 255.0).astype(np.uint8))
 
 
