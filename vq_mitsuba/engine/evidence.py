@@ -12,12 +12,13 @@ views at least `HIGHLIGHT` times its median view's luminance: one bright view is
 misregistered shadow edge) on a coloured surface (the median view's chromatic saturation at least
 `COLOURED`); its evidence is the saturation the highlight keeps (`highlight_tint`). The tints are
 averaged over a coarse voxel grid on the object (`WeightGrid`, voxels where at least
-`MIN_EVIDENCE` hits and `MIN_SHARE` of the hits read give evidence: a few bright views on a
-surface under lights that move with the camera, as DTU's, are not a metal); a voxel's weight of the metallic term is 1 up to a tint of `DIELECTRIC`
-(paler highlights: the images side with the prior), 0 from `METAL` (highlights that keep the
-colour: the images say metal), linear between, and 1 where there is no evidence (grey surfaces,
-no highlight: the images do not say, and the prior decides as before). Every hit of a step looks
-its voxel up. The roughness term is left whole.
+`MIN_EVIDENCE` hits and `MIN_SHARE` of the hits read give evidence: a few bright views of a
+painted surface that keep its colour, as on DTU scan24, are not a metal); a voxel's weight of
+the metallic term is 1 up to a tint of `DIELECTRIC` (paler highlights: the images side with the
+prior), 0 from `METAL` (highlights that keep the colour: the images say metal), linear between,
+and 1 where there is no evidence (grey surfaces, no highlight: the images do not say, and the
+prior decides as before). Every hit of a step looks its voxel up. The roughness term is left
+whole.
 
 A capture with no voxel below 1 fits exactly as without the rule; `benchmarks/results/prior_evidence/`.
 """
