@@ -5,6 +5,7 @@ fitted or edited run before any geometry work."""
 import argparse
 import ast
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -259,6 +260,31 @@ def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys
     err = capsys.readouterr().err
     assert err.startswith("interrupted")
     assert ("--resume" in err) == hint and (f"vq-mitsuba {command}" in err) == hint
+
+
+def test_a_signal_whose_exception_a_library_lost_still_ends_the_command_as_a_stop(monkeypatch, capsys):
+    """SIGTERM arriving where its exception is dropped (here a finaliser; in a fit, Dr.Jit's import
+    of a torch tensor): the command's work ends, and it exits 143 as a stopped command, not 0."""
+    import os
+    import signal
+    import time
+
+    class SignalInFinaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs between bytecodes, here
+                time.sleep(0.001)
+
+    def work(args):
+        SignalInFinaliser()
+        return 0
+
+    monkeypatch.setattr(sys, "unraisablehook", lambda unraisable: None)  # the dropped exception, unreported
+    _replace_command(monkeypatch, "eval", work)
+    assert cli.main(["eval", "run"]) == 128 + signal.SIGTERM
+    assert capsys.readouterr().err.startswith("interrupted")
+    _replace_command(monkeypatch, "eval", lambda args: 0)
+    assert cli.main(["eval", "run"]) == 0  # the next command starts with no signal pending
 
 
 def test_the_tools_own_warnings_go_to_stderr(monkeypatch, capsys):

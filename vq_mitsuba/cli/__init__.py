@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from vq_mitsuba.backend import choose_device, set_threads
         from vq_mitsuba.messages import quiet
-        from vq_mitsuba.run.loop import interrupt_signals
+        from vq_mitsuba.run.loop import interrupt_signals, raise_if_interrupted
 
         # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock.
         # --quiet silences every note and progress bar here, in one place (warnings and errors remain).
@@ -117,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
             set_threads(args.threads)
             if getattr(args, "device", None):  # the commands that compute: one device for the process
                 choose_device(args.device)
-            return args.func(args)
+            status = args.func(args)
+            raise_if_interrupted()  # a signal whose exception a library lost still ends as a stop
+            return status
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
