@@ -265,15 +265,9 @@ def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys
 def test_a_signal_whose_exception_a_library_lost_still_ends_the_command_as_a_stop(monkeypatch, capsys):
     """SIGTERM arriving where its exception is dropped (here a finaliser; in a fit, Dr.Jit's import
     of a torch tensor): the command's work ends, and it exits 143 as a stopped command, not 0."""
-    import os
     import signal
-    import time
 
-    class SignalInFinaliser:
-        def __del__(self):
-            os.kill(os.getpid(), signal.SIGTERM)
-            for _ in range(1000):  # the handler runs between bytecodes, here
-                time.sleep(0.001)
+    from test_loop import SignalInFinaliser
 
     def work(args):
         SignalInFinaliser()

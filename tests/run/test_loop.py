@@ -104,10 +104,10 @@ def test_periodic_snapshots():
     assert len(taken) >= 3 and taken == sorted(taken) and taken[0] == pytest.approx(0.05)
 
 
-class _SignalInFinaliser:
+class SignalInFinaliser:
     """Sends the process SIGTERM from its __del__: Python reports and drops any exception a
     finaliser raises, so the handler's Interrupted is lost there (as it can be in a library's
-    callback run from C++)."""
+    callback run from C++). Also used by test_cli."""
 
     def __del__(self):
         os.kill(os.getpid(), signal.SIGTERM)
@@ -121,11 +121,11 @@ def test_a_signal_whose_exception_was_lost_still_stops_the_loop_before_the_next_
     def step(p):
         steps.append(p.step)
         if p.step == 2:
-            _SignalInFinaliser()  # made and finalised at once: the signal arrives inside __del__
+            SignalInFinaliser()  # made and finalised at once: the signal arrives inside __del__
 
     hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
     try:
-        with interrupt_signals(), pytest.raises(Interrupted) as stop:
+        with pytest.raises(Interrupted) as stop, interrupt_signals():
             Loop("t", Budget(steps=100), step, checkpoint=lambda p: checkpoints.append(p.step),
                  checkpoint_every=50, progress_bar=False).run()
     finally:

@@ -109,17 +109,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from vq_mitsuba.backend import choose_device, set_threads
         from vq_mitsuba.messages import quiet
-        from vq_mitsuba.run.loop import interrupt_signals, raise_if_interrupted
+        from vq_mitsuba.run.loop import interrupt_signals
 
-        # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock.
+        # SIGTERM ends a command as Ctrl-C does: a fit writes its checkpoint and releases the run's lock;
+        # a signal whose exception a library lost ends the command as stopped once its work returns.
         # --quiet silences every note and progress bar here, in one place (warnings and errors remain).
         with _warnings_as_messages(), interrupt_signals(), quiet(getattr(args, "quiet", False)):
             set_threads(args.threads)
             if getattr(args, "device", None):  # the commands that compute: one device for the process
                 choose_device(args.device)
-            status = args.func(args)
-            raise_if_interrupted()  # a signal whose exception a library lost still ends as a stop
-            return status
+            return args.func(args)
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -38,7 +38,7 @@ def raise_if_interrupted() -> None:
     """Raise `Interrupted` again if a signal came and its exception was lost, so that the loop does
     not run on: Dr.Jit drops an exception raised inside a torch tensor's __dlpack__ while it imports
     the tensor (every `dr.wrap` call does), and Python drops one raised in a finaliser (__del__).
-    The loop asks before every step."""
+    The loop asks before every step, `interrupt_signals` when its block ends."""
     if _pending is not None:
         raise Interrupted(_pending)
 
@@ -54,7 +54,9 @@ def stop_status(exc: KeyboardInterrupt) -> int:
 def interrupt_signals():
     """While inside, SIGINT and SIGTERM raise `Interrupted` in the main thread (SIGINT too when the
     process inherited it ignored, as a command started in the background of a script does); the
-    previous handlers come back on the way out. Elsewhere than in the main thread: no change."""
+    previous handlers come back on the way out, and a block that ends normally after a signal whose
+    exception was lost (`raise_if_interrupted`) raises it there. Elsewhere than in the main thread:
+    no change."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -64,15 +66,18 @@ def interrupt_signals():
         _last_signal = _pending = signum
         raise Interrupted(signum)
 
-    global _pending
-    _pending = None
+    global _last_signal, _pending
+    _last_signal = _pending = None  # a command starts with no signal of an earlier one in the process
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
+        lost = _pending
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         _pending = None
+    if lost is not None:
+        raise Interrupted(lost)
 
 
 @dataclass(frozen=True)
