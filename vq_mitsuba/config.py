@@ -404,19 +404,116 @@ def _apply(cfg, data: dict, source, prefix: str = "") -> None:
             setattr(cfg, key, _coerce(value, hints[key], name, source))
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last)."""
+# Bounds on every YAML file the tool reads (configs, presets, scenes, a run's config.yaml, --set
+# values): each of these is a few KB, and aliases let a 1 KB file stand for billions of values.
+MAX_YAML_BYTES = 1 << 20
+MAX_YAML_NODES = 100_000  # values once every alias is expanded
+
+
+class _YAMLRefused(Exception):
+    """A YAML document refused by _BoundedLoader: the message says why, in words."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """YAML's safe loader with bounds: a document whose aliases expand past MAX_YAML_NODES values or
+    refer to themselves is refused before it is built, so is a key given twice in one mapping (YAML
+    would keep the last) and a merge key (`<<`)."""
+
+    def get_single_node(self):
+        node = super().get_single_node()
+        if node is not None:
+            _check_expanded_size(node)
+        return node
 
     def construct_mapping(self, node, deep=False):
         seen = {}
         for key_node, _ in node.value:
+            line = key_node.start_mark.line + 1
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                raise _YAMLRefused(f"line {line}: a YAML merge key ('<<') is not supported; write the keys out in full")
             key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, typing.Hashable):
+                raise _YAMLRefused(f"line {line}: a key is a list or a mapping; keys are plain values")
             if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"'{key}' is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
-                    key_node.start_mark)
-            seen[key] = key_node.start_mark.line
+                raise _YAMLRefused(f"'{key}' is given twice (lines {seen[key]} and {line})")
+            seen[key] = line
         return super().construct_mapping(node, deep=deep)
+
+
+def _children(node) -> list:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return list(node.value) if isinstance(node, yaml.SequenceNode) else []
+
+
+def _check_expanded_size(root) -> None:
+    """Refuse a node graph whose tree, every alias expanded, has more than MAX_YAML_NODES nodes or
+    no end (an alias inside the node it names). Each shared node is counted once per use, in time
+    linear in the distinct nodes."""
+    sizes: dict[int, int] = {}
+    open_: set[int] = set()
+    stack = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        key = id(node)
+        if done:
+            open_.discard(key)
+            sizes[key] = 1 + sum(sizes[id(c)] for c in _children(node))
+            if sizes[key] > MAX_YAML_NODES:
+                raise _YAMLRefused(f"holds more than {MAX_YAML_NODES} values once its aliases are expanded "
+                                   f"(line {node.start_mark.line + 1})")
+        elif key not in sizes:
+            if key in open_:
+                raise _YAMLRefused(f"line {node.start_mark.line + 1}: an alias refers to the value that holds it")
+            open_.add(key)
+            stack.append((node, True))
+            stack.extend((c, False) for c in _children(node) if id(c) not in sizes)
+
+
+def _yaml_error_text(exc: yaml.YAMLError) -> str:
+    """A parser's error as one sentence with its line, without PyYAML's stream name."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    context, context_mark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if context and context_mark is not None:
+        context += f" from line {context_mark.line + 1}"
+    return f"invalid YAML: {where}{problem}" + (f" ({context})" if context else "")
+
+
+def parse_yaml(text: str, source) -> object:
+    """`text` as YAML through the bounded loader; InputError naming `source` (a file or an option)
+    when it is not YAML or exceeds a bound."""
+    try:
+        return yaml.load(text, Loader=_BoundedLoader)
+    except _YAMLRefused as exc:
+        raise InputError(source, str(exc)) from None
+    except yaml.YAMLError as exc:
+        raise InputError(source, _yaml_error_text(exc)) from None
+    except RecursionError:
+        raise InputError(source, "invalid YAML: nested too deep") from None
+
+
+def read_yaml(path: str | Path, what: str = "a YAML file") -> object:
+    """A YAML file through the bounded loader (at most MAX_YAML_BYTES); InputError naming the file
+    when it is missing, too large, not UTF-8 or not YAML. `what` says what the file should be."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(path, f"is a folder: expected {what}")
+    if not path.is_file():
+        raise InputError(path, "not found")
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_YAML_BYTES + 1)
+    except OSError as exc:
+        raise InputError(path, f"cannot be read: {exc.strerror}") from None
+    if len(raw) > MAX_YAML_BYTES:
+        raise InputError(path, f"is larger than {MAX_YAML_BYTES // 1024} KB: {what} is a few KB of YAML text")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"is not UTF-8 text (byte {exc.start}): {what} is YAML text") from None
+    return parse_yaml(text, path)
 
 
 def read_config_file(path: str | Path) -> dict:
@@ -426,12 +523,7 @@ def read_config_file(path: str | Path) -> dict:
         raise InputError(path, "is a folder: --config takes a YAML file")
     if not path.is_file():
         raise InputError(path, "config file not found")
-    try:
-        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader) or {}
-    except UnicodeDecodeError as exc:
-        raise InputError(path, f"is not UTF-8 text (byte {exc.start}): a config file is YAML text") from None
-    except yaml.YAMLError as exc:
-        raise InputError(path, f"invalid YAML: {exc}") from None
+    data = read_yaml(path, "a config file") or {}
     if not isinstance(data, dict):
         raise InputError(path, "expected a mapping of sections")
     return data
@@ -510,7 +602,7 @@ def parse_overrides(overrides: list[str] | None) -> dict:
             cur = cur.setdefault(part, {})
             if not isinstance(cur, dict):
                 raise InputError(None, f"--set {key}: '{part}' is a key, not a section")
-        cur[parts[-1]] = yaml.safe_load(value)
+        cur[parts[-1]] = parse_yaml(value, f"--set {key.strip()}")
     return nested
 
 
@@ -626,7 +718,9 @@ def markdown() -> str:
              "`vq-mitsuba fit --help-config` prints the same. A run's config is the defaults, then "
              "`--preset NAME` (a bundled preset, `fit --help-config` lists them), then `--config FILE`, then "
              "each `--set section.key=value`. "
-             "Every value is checked against its range as its layer is applied; an error names the layer.",
+             "Every value is checked against its range as its layer is applied; an error names the layer. "
+             f"A config file is YAML text of at most {MAX_YAML_BYTES // 1024} KB; a key given twice, a merge key "
+             f"(`<<`) and aliases that expand to more than {MAX_YAML_NODES} values are refused.",
              "",
              f"A run's `config.yaml` starts with `version: {CONFIG_VERSION}`; one without a version (version 1) "
              "is read with its old names: `" + "`, `".join(f"{old}` as `{new}" for old, new in _V1_RENAMED.items())

@@ -1,6 +1,9 @@
 """Config files and command-line values a user gets wrong are refused with a message naming the
 file or the option, before any work."""
 
+import subprocess
+import sys
+
 import pytest
 
 from vq_mitsuba import cli
@@ -57,3 +60,57 @@ def test_neus_settings_whose_step_would_not_fit_in_memory_are_refused(tmp_path, 
     renderer.check_step_memory(load_config(None, ["neus.batch_rays=512"]).neus, 2 ** 30)  # the defaults fit 1 GiB
     with pytest.raises(InputError, match="need about 2.6 GiB"):
         renderer.check_step_memory(load_config(None, ["neus.batch_rays=512", "neus.n_samples=2000"]).neus, 2 ** 30)
+
+
+def _laughs(depth: int = 9) -> str:
+    """A value of a few hundred bytes whose aliases, nested `depth` deep, stand for 9**depth values."""
+    value = "[&l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]"
+    for i in range(1, depth + 1):
+        value += f", &l{i} [" + ", ".join([f"*l{i - 1}"] * 9) + "]"
+    return value + "]"
+
+
+def test_a_billion_laughs_config_under_a_known_key_is_refused_at_once(tmp_path):
+    path = tmp_path / "laughs.yaml"
+    path.write_text(f"train:\n  seed: {_laughs()}\n")
+    assert path.stat().st_size < 2000
+    proc = subprocess.run([sys.executable, "-m", "vq_mitsuba.cli", "fit", str(tmp_path), "--config", str(path),
+                           "--quiet"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert f"{path}: holds more than" in proc.stderr and "aliases" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_every_yaml_the_tool_reads_is_bounded(tmp_path):
+    from vq_mitsuba.config import MAX_YAML_BYTES
+    from vq_mitsuba.run.run_dir import RunDir
+
+    with pytest.raises(InputError, match="--set train.seed: holds more than"):  # a value on the command line
+        load_config(None, [f"train.seed={_laughs(6)}"])
+    (tmp_path / "config.yaml").write_text(f"version: 2\ntrain:\n  seed: {_laughs()}\n")  # a run's own config
+    with pytest.raises(InputError, match="holds more than") as err:
+        RunDir(tmp_path).saved_config()
+    assert err.value.path == tmp_path / "config.yaml"
+    path = tmp_path / "loop.yaml"
+    path.write_text("train: &t\n  seed: *t\n")  # an alias inside the value it names has no end
+    with pytest.raises(InputError, match="line 1: an alias refers to the value that holds it") as err:
+        load_config(path)
+    assert err.value.path == path
+    path.write_text("train:\n  seed: 1\n" + "#" * MAX_YAML_BYTES)
+    with pytest.raises(InputError, match="is larger than 1024 KB") as err:
+        load_config(path)
+    assert err.value.path == path
+
+
+def test_yaml_messages_are_plain_sentences_without_pyyaml_trailers(tmp_path):
+    path = tmp_path / "bad.yaml"
+    cases = {"base: &b\n  lr: 0.01\ntrain:\n  <<: *b\n":  # a merge key, not PyYAML's constructor text
+             "line 4: a YAML merge key ('<<') is not supported; write the keys out in full",
+             "train:\n  lr: 0.01\n  lr: 0.02\n": "'lr' is given twice (lines 2 and 3)",
+             "train:\n  lr: [0.01\n": "invalid YAML: line 3, column 1: expected ',' or ']', but got '<stream end>' "
+                                      "(while parsing a flow sequence from line 2)"}
+    for text, message in cases.items():
+        path.write_text(text)
+        with pytest.raises(InputError) as err:
+            load_config(path)
+        assert err.value.path == path and err.value.message == message

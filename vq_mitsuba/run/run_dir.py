@@ -44,10 +44,9 @@ from typing import Callable
 
 import numpy as np
 import torch
-import yaml
 
 from vq_mitsuba import messages
-from vq_mitsuba.config import Config, load_config, save_config
+from vq_mitsuba.config import Config, load_config, read_yaml, save_config
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models.material_edits import Edit
 from vq_mitsuba.models.fitted import FittedModel, material_networks
@@ -420,10 +419,10 @@ class RunDir:
         path = self.dir / self.CONFIG
         if not path.is_file():
             return None
-        try:
-            return yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(path, f"invalid YAML: {exc}") from None
+        data = read_yaml(path, "a run's config.yaml") or {}
+        if not isinstance(data, dict):
+            raise InputError(path, "expected a mapping of sections")
+        return data
 
     def config(self) -> Config:
         """The run's resolved configuration: parsed once, and a copy of its own for each caller

@@ -31,6 +31,7 @@ import numpy as np
 
 from vq_mitsuba.data import envmaps
 from vq_mitsuba.backend import init_mitsuba
+from vq_mitsuba.config import read_yaml
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, look_at
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
@@ -63,13 +64,12 @@ SCENES: tuple[str, ...] = _scene_names()
 # --------------------------------------------------------------------------------------------
 def load_scene_spec(name: str) -> dict:
     """The parsed and checked `vq_mitsuba/synthetic/scenes/<name>.yaml`."""
-    import yaml
-
     path = SCENES_DIR / f"{name}.yaml"
     if not path.is_file():
         raise InputError(None, f"unknown synthetic scene '{name}' (bundled: {', '.join(SCENES) or 'none'})")
-    with open(path) as f:
-        spec = yaml.safe_load(f)
+    spec = read_yaml(path, "a scene definition")
+    if not isinstance(spec, dict):
+        raise InputError(path, "expected a mapping with materials and shapes")
     spec["name"] = name
     mats = spec.get("materials") or []
     shapes = spec.get("shapes") or []
