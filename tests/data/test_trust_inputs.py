@@ -314,6 +314,33 @@ def test_a_missing_idr_or_llff_photo_is_named_not_its_mask(photographed, tmp_pat
         assert refused.value.path == first
 
 
+@pytest.mark.parametrize("fmt, image, mask", [
+    ("colmap", "images/001.png", "masks/001.png.png"), ("colmap_opencv", "images/001.png", "masks/001.png.png"),
+    ("llff", "images/001.png", "masks/001.png"), ("neus", "image/001.png", "mask/001.png"),
+    ("nerfstudio", "images/001.png", "masks/001.png"), ("scene.xml", "images/train_001.exr", None),
+    ("transforms_train.json", "images/train_001.exr", None),
+])
+def test_a_photo_missing_with_its_mask_is_named_as_a_missing_image(photographed, tmp_path, fmt, image, mask):
+    """The photo gone with its mask: the other masks do not make it a missing mask, and a format that
+    pairs views with photos in order (NeuS/IDR, LLFF) does not give the next photo its pose."""
+    import shutil
+
+    from vq_mitsuba.data.captures import load_capture
+
+    folder = tmp_path / "cap"
+    if fmt.endswith((".xml", ".json")):
+        shutil.copytree(photographed, folder, ignore=shutil.ignore_patterns("colmap*", "llff", "neus", "nerfstudio"))
+        (folder / image).with_suffix(".png").unlink()
+    else:
+        shutil.copytree(photographed / fmt, folder)
+        (folder / mask).unlink()
+    (folder / image).unlink()
+    with pytest.raises(InputError) as refused:
+        load_capture(folder / fmt if fmt.endswith((".xml", ".json")) else folder)
+    assert refused.value.path == folder / image, refused.value
+    assert "image" in refused.value.message and "mask" not in refused.value.message, refused.value
+
+
 def test_an_odd_sized_idr_photo_is_blamed_not_the_others(photographed, tmp_path):
     import shutil
 

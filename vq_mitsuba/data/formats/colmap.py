@@ -74,6 +74,10 @@ def _colmap_views(folder: Path) -> tuple[list[Camera], list[Path], list[Path | N
     image_dir = folder / "images"
     if not image_dir.is_dir():
         raise InputError(image_dir, "missing: a COLMAP capture keeps its photos in images/")
+    images_file = model / ("images.bin" if (model / "cameras.bin").is_file() else "images.txt")  # as read_colmap
+    raise_all([InputError(image_dir / img.name, f"image missing: {images_file.name} registers it but images/ has "
+                                                "no such file") for img in registered
+               if not (image_dir / img.name).is_file()], image_dir)  # before the masks, which then look partial
     cameras, paths, masks, used = [], [], [], []
     for img in registered:
         lens = lenses[img.camera_id]

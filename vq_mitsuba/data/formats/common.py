@@ -188,6 +188,22 @@ def paired_masks(image_dir: Path, images: list[Path], mask_dir: Path, masks: lis
     raise InputError(mask_dir, f"holds {len(masks)} masks for {len(images)} images in {image_dir.name}/")
 
 
+def missing_numbered(images: list[Path], count: int, first: int | None = None) -> Path | None:
+    """The first photo missing from numbered photos (000.png, 001.png, ...; one prefix, width and
+    suffix) that `count` views expect, numbered from `first` (unknown: only a gap between two photos
+    is named); None when the names do not show which."""
+    import re
+
+    found = [re.fullmatch(r"(.*?)(\d+)", p.stem) for p in images]
+    if not images or not all(found) or len({(m[1], len(m[2]), p.suffix) for m, p in zip(found, images)}) != 1:
+        return None
+    numbers = {int(m[2]) for m in found}
+    start = min(numbers) if first is None else first
+    gaps = [n for n in range(start, start + count) if n not in numbers and (first is not None or n < max(numbers))]
+    prefix, width, suffix = found[0][1], len(found[0][2]), images[0].suffix
+    return images[0].with_name(f"{prefix}{gaps[0]:0{width}d}{suffix}") if gaps else None
+
+
 def read_views(source: Path, cameras: list[Camera], paths: list[Path], masks: list[Path | None],
                lenses: list[Lens | None], cache_dir=None, shrink: Shrink | None = None):
     """(images (N, H, W, 3) linear, alpha (N, H, W), has_alpha) of the views: each photo read, its

@@ -22,7 +22,8 @@ import numpy as np
 from vq_mitsuba.data.cameras import OPENCV_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, collect
 from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
-                                            numpy_file_kind, paired_masks, read_views, up_frame)
+                                            missing_numbered, numpy_file_kind, paired_masks, read_views,
+                                            up_frame)
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -70,11 +71,28 @@ def _idr_views(npz: Path) -> tuple[list[Camera], list[Path], list[Path] | None]:
     mask_dir = next((folder / d for d in ("mask", "masks") if images_in(folder / d)), folder / "mask")
     masks = images_in(mask_dir)
     paired_masks(image_dir, images, mask_dir, masks)
+    _no_view_without_image(npz, image_dir, images)
     views, _ = read_idr(npz, len(images))
     w, h = common_image_size(images)
     check_idr_views(npz, views, w, h)
     cameras = [idr_camera(p.stem, k, c2w, w, h) for p, (k, c2w) in zip(images, views)]
     return cameras, images, masks or None
+
+
+def _no_view_without_image(npz: Path, image_dir: Path, images: list[Path]) -> None:
+    """Refuses an archive with more views (world_mat_i) than photos: views pair with photos in sorted
+    order, so a photo missing would give the next ones its pose. Names it when the file names show which."""
+    with _open_npz(npz) as data:
+        count = len(images)
+        while f"world_mat_{count}" in data.files:
+            count += 1
+    if count == len(images):
+        return
+    what = f"{npz.name} holds {count} views (world_mat_0..{count - 1}) for {len(images)} images in {image_dir.name}/"
+    missing = missing_numbered(images, count, first=0)
+    if missing is not None:
+        raise InputError(missing, f"image missing: {what}")
+    raise InputError(npz, f"{what.removeprefix(npz.name + ' ')}: one photo per view (an image missing?)")
 
 
 def read_idr(path: Path, count: int) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:

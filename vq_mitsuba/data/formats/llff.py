@@ -17,7 +17,8 @@ import numpy as np
 from vq_mitsuba.data.cameras import Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_intrinsics, check_pose, check_size, collect, finite_number
 from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
-                                            moved_camera, numpy_file_kind, paired_masks, read_views, up_frame)
+                                            missing_numbered, moved_camera, numpy_file_kind, paired_masks,
+                                            read_views, up_frame)
 from vq_mitsuba.data.imageio import write_png
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -68,7 +69,11 @@ def _llff_views(npy: Path) -> tuple[list[Camera], list[Path], list[Path | None]]
     poses, _ = read_poses_bounds(npy)
     paired_masks(image_dir, images, folder / "masks", images_in(folder / "masks"))  # names a missing photo
     if len(poses) != len(images):
-        raise InputError(npy, f"holds {len(poses)} poses for {len(images)} images in {image_dir.name}/")
+        what = f"holds {len(poses)} poses for {len(images)} images in {image_dir.name}/"
+        missing = missing_numbered(images, len(poses)) if len(poses) > len(images) else None
+        if missing is not None:
+            raise InputError(missing, f"image missing: {npy.name} {what}")
+        raise InputError(npy, what + (" (one row per photo: an image missing?)" if len(poses) > len(images) else ""))
     width, height = common_image_size(images)
     cameras, problems = [], []
     for i, (pose, path) in enumerate(zip(poses, images)):
