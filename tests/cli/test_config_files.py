@@ -42,6 +42,16 @@ def test_an_empty_set_value_is_called_empty(tmp_path, capsys):
     assert "the value is empty" in err and "None" not in err
 
 
+def test_an_empty_dataset_path_is_called_empty_not_read_as_the_current_folder(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        cli.main(["eval", str(tmp_path / "run"), "--gt", "", "--quiet"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --gt: the value is empty" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_option_given_a_list_that_starts_negative_reaches_its_check(tmp_path, capsys):
     assert cli.main(["fit", str(tmp_path), "--background-color", "-0.5,0,0", "--quiet"]) == 2
     err = capsys.readouterr().err

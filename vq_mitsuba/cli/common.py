@@ -22,6 +22,13 @@ def positive_int(text: str) -> int:
     return value
 
 
+def nonempty_path(text: str) -> str:
+    """A path on the command line; an empty one is refused (as a path it would be the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the value is empty (give a path)")
+    return text
+
+
 def finite(limit: float):
     """A float type accepting finite values of magnitude <= limit."""
     def parse(text: str) -> float:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vq_mitsuba.cli.common import capture_flags, output_option, positive_int
+from vq_mitsuba.cli.common import capture_flags, nonempty_path, output_option, positive_int
 from vq_mitsuba.errors import InputError
 
 
@@ -36,7 +36,7 @@ def add_parser(sub, shared) -> None:
                     "--max-size say otherwise. The MeanShift baseline segments the continuous branch's BRDF maps "
                     "(it needs ground-truth material ids).")
     e.add_argument("run_dir", help="a run directory written by `vq-mitsuba fit`")
-    e.add_argument("--gt", metavar="DATASET", help="the ground-truth dataset folder (default: the held-out views)")
+    e.add_argument("--gt", type=nonempty_path, metavar="DATASET", help="the ground-truth dataset folder (default: the held-out views)")
     e.add_argument("--spp", type=positive_int, help="render samples per pixel (default: render.spp of the run's config)")
     e.add_argument("--scale", choices=["lstsq", "median"], default="lstsq",
                    help="basecolor scale alignment: lstsq (NeRFactor) or median (TensoIR)")
