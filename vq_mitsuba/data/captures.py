@@ -19,6 +19,8 @@ offending file.
 
 from __future__ import annotations
 
+import errno
+import functools
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import ModuleType
@@ -39,6 +41,24 @@ from vq_mitsuba.errors import InputError, warn
 # re-exported: the loaded capture and mesh (vq_mitsuba.data.formats.common)
 __all__ = ["Capture", "CaptureSource", "open_capture", "load_mesh", "load_capture", "load_cameras", "named_views", "capture_kind",
            "resolve_capture_path", "check_one_capture", "split_indices", "finish_capture"]
+
+
+def _read_errors_named(read):
+    """`read` with an OSError from the file system (a name longer than it takes, a folder this process
+    may not read) as the InputError naming the file; a full or read-only disk (the undistorted
+    photos' cache) stays a write error."""
+
+    @functools.wraps(read)
+    def reading(first, *args, **kwargs):
+        try:
+            return read(first, *args, **kwargs)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+                raise
+            where = exc.filename if exc.filename is not None else getattr(first, "source", first)
+            raise InputError(where, f"cannot be read ({exc.strerror or exc})") from None
+
+    return reading
 
 
 @dataclass(frozen=True)
@@ -68,11 +88,13 @@ class CaptureSource:
             raise unposed_error(self.source)
         return self.format
 
+    @_read_errors_named
     def has_geometry(self) -> bool:
         """Whether the fit has geometry without reconstructing it: a `mesh` given, or the capture's own
         (a scene XML's shapes, a mesh.ply in its folder). Reads no image."""
         return self.mesh is not None or (self.posed and self.format.has_geometry(self.source))
 
+    @_read_errors_named
     def framing(self) -> tuple[tuple[np.ndarray, np.ndarray] | None, tuple[np.ndarray, float, str] | None]:
         """What the capture's own files say of where the object is: (its sparse points (N, 3) and each
         one's track length, or None; the region of interest (centre, radius, what gives it), or None)."""
@@ -83,6 +105,7 @@ class CaptureSource:
             self._read["framing"] = (points, sphere)
         return self._read["framing"]
 
+    @_read_errors_named
     def cameras(self, split: str = "all") -> tuple[list[Camera], str]:
         """The cameras of a split at the size they are read, without reading images: (cameras, world)."""
         cameras, world = self._posed_format().cameras(self.source)
@@ -90,6 +113,7 @@ class CaptureSource:
         cameras = [shrink.camera(c, self.source) for c in named_views(cameras)]
         return [cameras[i] for i in split_indices(len(cameras), self.options.holdout, split)], world
 
+    @_read_errors_named
     def load(self, split: str = "all") -> Capture:
         """The validated capture of a split ("all", "train" without the held-out views, "holdout"):
         the images are read on the first call, each view checked and named."""
@@ -109,6 +133,7 @@ class CaptureSource:
         return replace(self, mesh=None if mesh is None else Path(mesh), _read=self._read)
 
 
+@_read_errors_named
 def open_capture(path: str | Path | CaptureSource, mesh: str | Path | None = None,
                  options: CaptureConfig | None = None, cache_dir: str | Path | None = None) -> CaptureSource:
     """Resolve a capture once (a scene XML, transforms json, NeuS/IDR cameras_sphere.npz, LLFF
