@@ -105,7 +105,7 @@ def loader_fuzz(examples: int, select: str | None, tmp: Path) -> dict:
     tally = tmp / "fuzz_tally.txt"
     env = {**os.environ, "VQM_FUZZ_EXAMPLES": str(examples), "VQM_FUZZ_TALLY": str(tally)}
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                           str(ROOT / "tests" / "test_fuzz_captures.py"), *(["-k", select] if select else [])],
+                           str(ROOT / "tests" / "data" / "test_fuzz_captures.py"), *(["-k", select] if select else [])],
                           env=env, capture_output=True, text=True)
     last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr[-500:]
     tests: dict[str, dict[str, int]] = {}
