@@ -461,17 +461,21 @@ def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them()
     assert line == "NeuS renders its training views at 21.50 dB inside the masks, its held-out views at 19.25 dB"
 
 
-def test_neus_takes_two_passes_over_its_training_rays_within_its_bounds_unless_told():
+def test_neus_trains_for_its_time_budget_without_a_step_limit_unless_told():
     from vq_mitsuba.geometry.neus.renderer import choose_iterations
 
-    auto = NeuSConfig(batch_rays=512)
-    assert auto.iterations == 0
+    timed = NeuSConfig(batch_rays=512)
+    assert timed.iterations == 0 and timed.time_limit_s > 0
+    cfg, info = choose_iterations(timed, 3_443_727)
+    assert cfg.iterations == info["iterations"] == 0 and "no step limit" in info["reason"]
+    # Without a time limit: two passes over the training rays, within 4000-11000 steps.
+    auto = NeuSConfig(batch_rays=512, time_limit_s=0)
     for rays, steps in ((100_000, 4000), (1_280_000, 5000), (2_560_000, 10000), (3_443_727, 11000)):
         cfg, info = choose_iterations(auto, rays)
         assert cfg.iterations == info["iterations"] == steps and info["training_rays"] == rays
     cfg, info = choose_iterations(replace(auto, iterations=123), 3_443_727)
     assert cfg.iterations == 123 and info["reason"] == "neus.iterations given"
-    neus = neus_for(sphere_capture(n_views=6, size=16), small_cfg(iterations=0, batch_rays=64))
+    neus = neus_for(sphere_capture(n_views=6, size=16), small_cfg(iterations=0, batch_rays=64, time_limit_s=0))
     assert neus.cfg.iterations == neus.steps["iterations"] == 4000 and neus.steps["training_rays"] == len(neus.rays_o)
 
 

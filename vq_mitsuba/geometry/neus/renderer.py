@@ -17,6 +17,7 @@ from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus.networks import NeuSModel
 
 BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
+ERROR_TILE_PX = 8  # side of the error map's tiles of pixels (`sampling.RaySampler`)
 COLOR_MIN_WEIGHT = 1e-3  # samples of smaller compositing weight are shaded black (the colour network skips them)
 
 
@@ -37,7 +38,7 @@ class _threads:
         return False
 
 
-# Training steps when neus.iterations is 0 (auto): enough for PASSES passes over the training rays,
+# Training steps when neus.iterations and neus.time_limit_s are 0: enough for PASSES passes over the training rays,
 # at least MIN_STEPS and at most MAX_STEPS. On DTU's photos (2-3.4 M rays at --downscale 4) 8000 steps
 # raised NeuS's own held-out renders 0.6-0.7 dB over 4000, and 11000 another 0.5-0.6 dB, each in
 # about the time the fewer steps took before the step got faster; on tabletop (0.57 M rays, 3.6
@@ -67,6 +68,10 @@ def choose_iterations(cfg: NeuSConfig, training_rays: int) -> tuple[NeuSConfig, 
     check_step_memory(cfg, available_memory())
     if cfg.iterations:
         return cfg, {"iterations": cfg.iterations, "batch_rays": cfg.batch_rays, "reason": "neus.iterations given"}
+    if cfg.time_limit_s > 0:
+        return cfg, {"iterations": 0, "batch_rays": cfg.batch_rays, "training_rays": training_rays,
+                     "reason": f"no step limit: {cfg.time_limit_s:g} s of training or the plateau of the held-aside "
+                               "rays, whichever first"}
     wanted = math.ceil(PASSES * training_rays / cfg.batch_rays)
     steps = int(min(max(wanted, MIN_STEPS), MAX_STEPS))
     return replace(cfg, iterations=steps), {
@@ -113,6 +118,7 @@ class TrainingRays:
     dirs: torch.Tensor  # (N, 3)
     rgb: torch.Tensor  # (N, 3)
     alpha: torch.Tensor | None  # (N,)
+    tiles: torch.Tensor | None = None  # (N,) int64: each ray's tile of ERROR_TILE_PX pixels (`rays.pixel_tiles`)
 
 
 class NeuS:
@@ -137,6 +143,7 @@ class NeuS:
         self.model = NeuSModel(cfg, init, background=self.mask_free).to(self.device)
         self.deep = torch.zeros_like(self.hull)  # cells the current SDF marks as well inside the object
         self.rays_o, self.rays_d, self.rays_rgb, self.rays_alpha = rays.origins, rays.dirs, rays.rgb, rays.alpha
+        self.rays_tiles = rays.tiles if rays.tiles is not None else torch.arange(len(rays.origins), device=self.device)
         self.cfg, self.steps = choose_iterations(cfg, len(self.rays_o))
         self.surface_points = self._surface_points(self.cfg)
         self.support = None  # the supporting plane the mesh export cut away (without masks)
@@ -182,18 +189,28 @@ class NeuS:
 
     # ---- occupancy
     @torch.no_grad()
-    def refresh_occupancy(self, level_weights, chunk: int = 65536) -> None:
-        """Mark hull cells whose SDF is below -margin as deep inside (ray intervals end there)."""
+    def refresh_occupancy(self, level_weights, band: bool = False, chunk: int = 65536) -> None:
+        """Mark the dilated hull's cells whose SDF is below -margin as deep inside (ray intervals end
+        there) and, with `band`, those whose SDF is above +margin (dilated back by a cell) as empty
+        (ray intervals start past them): the samples gather in a band about the surface, which then
+        moves outwards by at most the margin between refreshes (`NeuSTraining` asks for the band
+        once the surface is found)."""
         res = self.cfg.hull_resolution
-        cells = self.hull.nonzero()
+        cells = self.hull_dilated.nonzero()
         p = (cells.float() + 0.5) / res * 2.0 - 1.0
         sdf = torch.cat([self.model.sdf(p[i:i + chunk], level_weights)[0] for i in range(0, len(p), chunk)])
         margin = 3.0 * 2.0 / res
-        deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
         flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
+        deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
         deep[flat] = sdf < -margin
-        self.deep = deep.reshape(res, res, res)
-        self.codes = self.hull_dilated.to(torch.uint8) + (self.deep & self.hull_dilated).to(torch.uint8)
+        self.deep = deep.reshape(res, res, res) & self.hull
+        occupied = self.hull_dilated
+        if band:
+            near = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
+            near[flat] = sdf <= margin
+            near = F.max_pool3d(near.reshape(1, 1, res, res, res).float(), 3, stride=1, padding=1)[0, 0] > 0.5
+            occupied = occupied & near
+        self.codes = occupied.to(torch.uint8) + (self.deep & occupied).to(torch.uint8)
         # Each batch's ray intervals are marched when drawn: caching them for every training ray
         # costs minutes and gigabytes per refresh on a capture of many large photos.
 

@@ -21,6 +21,7 @@ from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.neus.mesh_export import extract_mesh
 from vq_mitsuba.geometry.neus.rays import neus_for, render_view
 from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
+from vq_mitsuba.geometry.neus.sampling import RaySampler
 from vq_mitsuba.run.loop import Budget, Loop, Progress
 from vq_mitsuba.run.run_dir import RunDir, save_torch
 
@@ -36,6 +37,13 @@ HISTORY_EVERY = 10  # steps between reads of the losses from the device (and pro
 # step saves about a tenth of a 25 ms step, so a shorter stage would not earn back a first compile
 # (benchmarks/results/compiled/).
 COMPILE_FROM = 6000
+# Without a step limit, the step runs compiled when the time budget is at least COMPILE_FROM_S seconds.
+COMPILE_FROM_S = 200.0
+# The plateau check (neus.plateau_s): HELD_ASIDE training rays never drawn, rendered CHECKS times
+# in every neus.plateau_s training seconds once the finer grid levels are all open; training ends
+# when their PSNR gained under PLATEAU_DB over neus.plateau_s seconds, after ANNEAL of the seconds
+# done more with the learning rate decaying to its end (a clock-stopped rate left high renders worse).
+HELD_ASIDE, CHECKS, PLATEAU_DB, ANNEAL = 4096, 4, 0.05, 0.15
 
 
 def lr_factor(cfg: NeuSConfig, step: int, prog: float) -> float:
@@ -97,6 +105,12 @@ class NeuSTraining:
         # HISTORY_EVERY steps, so that a step never waits for the device
         self.pending: list[tuple[int, float, torch.Tensor]] = []
         self.ckpt = run.neus_checkpoint_path if run is not None else None
+        self.sampler = RaySampler(neus.rays_tiles, cfg.error_share, HELD_ASIDE if cfg.plateau_s > 0 else 0, self.gen)
+        # the plateau check: [(training seconds, held-aside PSNR)], the next check's time, and once
+        # the plateau is reached (seconds, schedule share) where the final decay started
+        self.checks: list[tuple[float, float]] = []
+        self.next_check = cfg.plateau_s / CHECKS
+        self.anneal: tuple[float, float] | None = None
 
     def resume(self) -> None:
         if self.ckpt is None or not self.ckpt.is_file():
@@ -111,6 +125,11 @@ class NeuSTraining:
         self.model.load_state_dict(state["model"])  # copied onto the model's device
         self.optim.load_state_dict(state["optim"])
         self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
+        self.sampler.load_state_dict(state.get("sampler"))
+        plateau = state.get("plateau") or {}
+        self.checks = [tuple(c) for c in plateau.get("checks", [])]
+        self.next_check = plateau.get("next_check", self.cfg.plateau_s / CHECKS)
+        self.anneal = tuple(plateau["anneal"]) if plateau.get("anneal") else None
         try:
             self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
         except RuntimeError:  # the generator of the other device kind: a new stream, seeded by the step
@@ -120,8 +139,12 @@ class NeuSTraining:
             torch.cuda.set_rng_state(state["cuda_rng"].cpu(), self.device)
 
     def plan_compile(self) -> None:
-        """Run the steps compiled when COMPILE_FROM or more are left."""
-        if self.cfg.iterations - self.step >= COMPILE_FROM:
+        """Run the steps compiled when COMPILE_FROM or more are left (without a step limit: when
+        COMPILE_FROM_S seconds or more are)."""
+        cfg = self.cfg
+        left = (cfg.iterations - self.step >= COMPILE_FROM if cfg.iterations
+                else cfg.time_limit_s - self.elapsed >= COMPILE_FROM_S)
+        if left:
             self.neus.compiled_step = Compiled(self.neus.training_step, "NeuS's step", data_dependent_shapes=True)
 
     def save(self, p: Progress) -> None:
@@ -131,7 +154,9 @@ class NeuSTraining:
             save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                         "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
                         "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
-                        "background_model": self.neus.mask_free, **extra}, self.ckpt)
+                        "background_model": self.neus.mask_free, "sampler": self.sampler.state_dict(),
+                        "plateau": {"checks": self.checks, "next_check": self.next_check, "anneal": self.anneal},
+                        **extra}, self.ckpt)
 
     def read_history(self) -> None:
         """The pending steps' losses, read from the device at once (one small tensor), into history."""
@@ -156,35 +181,80 @@ class NeuSTraining:
         distance = self.model.sdf(pts[pick], lw)[0].abs()
         return (POINTS_SCALE * torch.log1p(distance / POINTS_SCALE)).mean()
 
+    def schedule_share(self, p: Progress) -> float:
+        """Where the learning rate stands in its decay: the share of the steps (with a step limit) or
+        of the seconds; once the plateau is reached, from there to the end over the final decay."""
+        share = p.step_share if self.cfg.iterations else p.time_share
+        if self.anneal is not None:
+            start_s, start_share = self.anneal
+            span = max(ANNEAL * start_s, self.cfg.plateau_s / CHECKS)
+            share = start_share + (1.0 - start_share) * (p.seconds - start_s) / span
+        return min(max(share, 0.0), 1.0)
+
+    def done(self) -> bool:
+        """True once the final decay after the plateau has run its course."""
+        return self.anneal is not None and self.schedule_share(self.loop.progress()) >= 1.0
+
+    @torch.no_grad()
+    def held_aside_psnr(self, lw: list[float], chunk: int = 4096) -> float:
+        """NeuS's render of the held-aside rays against their colours: sRGB PSNR."""
+        neus, err = self.neus, []
+        for idx in self.sampler.held.split(chunk):
+            o, d = neus.rays_o[idx], neus.rays_d[idx]
+            out = neus.render(o, d, lw, self.cfg.n_samples, False, False)
+            err.append(((out["rgb"] - neus.rays_rgb[idx]) ** 2).mean(-1))
+        return -10.0 * math.log10(max(float(torch.cat(err).mean()), 1e-10))
+
+    def check_plateau(self, p: Progress, lw: list[float]) -> None:
+        """CHECKS times every neus.plateau_s seconds once every grid level is open: score the
+        held-aside rays, and start the final decay when they gained under PLATEAU_DB over
+        neus.plateau_s seconds."""
+        cfg = self.cfg
+        if cfg.plateau_s <= 0 or len(self.sampler.held) == 0 or p.seconds < self.next_check:
+            return
+        self.next_check = p.seconds + cfg.plateau_s / CHECKS
+        if p.share < cfg.coarse_to_fine or self.anneal is not None:
+            return
+        psnr = self.held_aside_psnr(lw)
+        self.checks.append((round(p.seconds, 2), psnr))
+        before = [v for t, v in self.checks if t <= p.seconds - cfg.plateau_s]
+        if before and max(v for _, v in self.checks) - max(before) < PLATEAU_DB:
+            self.anneal = (p.seconds, self.schedule_share(p))
+
     def loop_step(self, p: Progress) -> dict | None:
         cfg, neus = self.cfg, self.neus
         lw = neus.level_weights(p.share)
+        self.check_plateau(p, lw)
         for group in self.optim.param_groups:
-            group["lr"] = group["base_lr"] * lr_factor(cfg, p.step, p.step_share)
-        idx = torch.randint(0, len(neus.rays_o), (cfg.batch_rays,), generator=self.gen, device=self.device)
+            group["lr"] = group["base_lr"] * lr_factor(cfg, p.step, self.schedule_share(p))
+        idx, weight = self.sampler.draw(cfg.batch_rays)
         o, d = neus.rays_o[idx], neus.rays_d[idx]
         near, far = neus.intervals(o, d)
         out = neus.render(o, d, lw, cfg.n_samples, True, True, near=near, far=far)
         target = neus.rays_rgb[idx]
-        color_loss = (out["rgb"] - target).abs().mean()
+        ray_error = (out["rgb"] - target).abs().mean(-1)
+        color_loss = ray_error.mean() if weight is None else (weight * ray_error).mean()
         if neus.rays_alpha is None:  # no masks: the colour of every pixel, fore- and background
             mask_loss = out["acc"].new_zeros(())
         else:
             acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
-            mask_loss = F.binary_cross_entropy(acc, neus.rays_alpha[idx])
+            alpha = neus.rays_alpha[idx]
+            mask_loss = F.binary_cross_entropy(acc, alpha, weight=weight)
+            ray_error = ray_error + (acc - alpha).abs()
         loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
         points_loss = self._points_loss(lw)
         loss = loss + cfg.w_points * (1.0 - p.share) * points_loss
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         self.optim.step()
+        self.sampler.update(ray_error.detach())
         step = p.step + 1
         mse = ((out["rgb"].detach() - target) ** 2).mean()
         losses = torch.stack([loss, color_loss, out["eikonal"], mask_loss, mse, self.model.inv_s(),
                               points_loss]).detach()
         self.pending.append((step, round(self.loop.clock(), 3), losses))
         if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
-            neus.refresh_occupancy(lw)
+            neus.refresh_occupancy(lw, band=cfg.band and p.share >= cfg.coarse_to_fine)
         if step % HISTORY_EVERY == 0:  # with the progress bar
             self.read_history()
             h = self.history[-1]
@@ -201,7 +271,8 @@ class NeuSTraining:
         self.loop = Loop("neus", budget, self.loop_step, start_step=self.step, start_seconds=self.elapsed,
                          checkpoint=self.save, checkpoint_every=cfg.checkpoint_every,
                          snapshot=(lambda p, label: callback(self.neus, p.step, p.seconds)) if periodic else None,
-                         snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress)
+                         snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress,
+                         done=self.done)
         with self.loop.clock.paused():  # set-up work is not training time
             self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
             if periodic and self.step == 0:
@@ -211,7 +282,10 @@ class NeuSTraining:
         finally:
             self.read_history()
         return {"iterations": result.steps, "train_seconds": result.seconds, "history": self.history,
-                "stopped_by_time": result.stopped_by_time,
+                "stopped_by_time": result.stopped_by_time, "stopped_by_plateau": result.stopped_early,
+                "plateau": {"checks": self.checks, "anneal_from_s": self.anneal[0] if self.anneal else None,
+                            "held_aside_rays": len(self.sampler.held)},
+                "error_map_tiles": self.sampler.tiles,
                 "step": "eager" if self.neus.compiled_step is None else self.neus.compiled_step.state}
 
 
@@ -354,6 +428,9 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "world": capture.world,
         "iterations": summary["iterations"],
         "stopped_by_time_limit": summary["stopped_by_time"],
+        "stopped_by_plateau": summary["stopped_by_plateau"],
+        "plateau": summary["plateau"],
+        "error_map_tiles": summary["error_map_tiles"],
         "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(neus.hull_seconds, 2),
                     "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
                     "total": round(time.perf_counter() - t0, 2)},
