@@ -52,6 +52,17 @@ def test_an_empty_dataset_path_is_called_empty_not_read_as_the_current_folder(tm
     assert list(tmp_path.iterdir()) == []
 
 
+def test_every_texture_size_out_of_range_gets_the_one_message_naming_the_option(tmp_path, capsys):
+    for size in ("0", "1", "3", "9000", "-5", "abc"):
+        out = tmp_path / "out"
+        assert cli.main(["export", str(tmp_path / "run"), "--format", "obj", "--texture-size", size, "-o", str(out),
+                         "--quiet"]) == 2, size
+        shown = size if size.lstrip("-").isdigit() else repr(size)
+        assert capsys.readouterr().err.strip() == (
+            f"error: --texture-size must be a whole number of texels in 16..8192, got {shown}"), size
+        assert not out.exists()
+
+
 def test_an_option_given_a_list_that_starts_negative_reaches_its_check(tmp_path, capsys):
     assert cli.main(["fit", str(tmp_path), "--background-color", "-0.5,0,0", "--quiet"]) == 2
     err = capsys.readouterr().err

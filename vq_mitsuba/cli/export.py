@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from vq_mitsuba.cli.common import output_option, positive_int, refuse_file_output
+from vq_mitsuba.cli.common import output_option, refuse_file_output
 
 
 def add_parser(sub, shared) -> None:
@@ -16,7 +16,7 @@ def add_parser(sub, shared) -> None:
                     "it as envmap.exr and envmap.hdr.")
     x.add_argument("run_dir", help="a fitted or edited run directory")
     x.add_argument("--format", required=True, choices=["gltf", "obj", "mitsuba"], help="what to write")
-    x.add_argument("--texture-size", type=positive_int, default=1024, metavar="N",
+    x.add_argument("--texture-size", default=1024, metavar="N",
                    help="texture width and height in texels")
     x.add_argument("--branch", choices=["continuous", "discrete"], default="continuous",
                    help="bake the continuous field (texture detail) or the discrete materials (flat per material)")
@@ -25,10 +25,15 @@ def add_parser(sub, shared) -> None:
 
 
 def run(args) -> int:
-    from vq_mitsuba.export.formats import export_run
+    from vq_mitsuba.export.formats import check_texture_size, export_run
 
+    try:
+        size = int(args.texture_size)
+    except ValueError:
+        size = args.texture_size  # refused below, as given
+    size = check_texture_size(size, "--texture-size")  # export's one bound and message, naming the option
     refuse_file_output(args.output)
-    summary = export_run(args.run_dir, args.format, args.output, args.texture_size, args.branch, args.envmap,
+    summary = export_run(args.run_dir, args.format, args.output, size, args.branch, args.envmap,
                          progress=not args.quiet)
     s = summary["seconds"]
     print(f"exported {summary['format']} ({summary['branch']} branch, {summary['texture_size']}^2 textures, "

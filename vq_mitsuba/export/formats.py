@@ -60,15 +60,17 @@ def _earlier_files(out: Path) -> list[str]:
 TEXTURE_SIZES = (16, 8192)  # the texture sizes an export takes, in texels a side
 
 
-def check_texture_size(texture_size) -> int:
-    """The texture size as a whole number in TEXTURE_SIZES; InputError otherwise."""
+def check_texture_size(texture_size, name: str = "the texture size") -> int:
+    """The texture size as a whole number in TEXTURE_SIZES; InputError otherwise, its message
+    starting with `name` (the option or field that gave it)."""
     low, high = TEXTURE_SIZES
     try:
         ok = not isinstance(texture_size, bool) and float(texture_size).is_integer() and low <= texture_size <= high
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
-        raise InputError(None, f"the texture size must be a whole number of texels in {low}..{high}, got {texture_size}")
+        shown = repr(texture_size) if isinstance(texture_size, str) else texture_size
+        raise InputError(None, f"{name} must be a whole number of texels in {low}..{high}, got {shown}")
     return int(texture_size)
 
 
