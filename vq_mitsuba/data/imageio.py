@@ -44,7 +44,8 @@ def file_kind(path: str | Path) -> str | None:
 
 def checked_kind(path: str | Path) -> str:
     """The image format of `path`, which its bytes and its suffix must agree on: an InputError naming
-    the file when they do not (another kind of file renamed, or a truncated one) or the suffix is unknown."""
+    the file when they do not (another kind of file renamed, or a truncated one) or the suffix is unknown,
+    or when its header claims more than MAX_TEXELS texels (`check_claimed_size`)."""
     path = Path(path)
     named = KIND_OF_SUFFIX.get(path.suffix.lower())
     if named is None:
@@ -52,7 +53,44 @@ def checked_kind(path: str | Path) -> str:
     found = file_kind(path)
     if found != named:
         raise _not_a(path, named, found)
+    check_claimed_size(path, named)
     return named
+
+
+# The most texels an image file may have (16384 x 16384): a decoder allocates what the header
+# claims, so a damaged or hostile header of a few bytes could ask for any amount of memory.
+MAX_TEXELS = 1 << 28
+
+
+def claimed_size(path: Path, kind: str) -> tuple[int, int] | None:
+    """(width, height) as an EXR, PNG or PFM header states it, read without decoding a pixel (None for
+    other formats, whose readers bound it themselves: Pillow's JPEG limit, the .hdr header check, or a
+    header that cannot be read, which the decoder then reports)."""
+    try:
+        if kind == "exr":
+            import OpenEXR
+
+            with OpenEXR.File(str(path), header_only=True) as exr:
+                low, high = exr.header()["dataWindow"]
+            return int(high[0]) - int(low[0]) + 1, int(high[1]) - int(low[1]) + 1
+        with open(path, "rb") as f:
+            head = f.read(64)
+        if kind == "png" and head[12:16] == b"IHDR":
+            return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        if kind == "pfm":
+            fields = head.split(maxsplit=3)
+            return int(fields[1]), int(fields[2])
+    except Exception:  # an unreadable header: the decoder says what is wrong
+        return None
+    return None
+
+
+def check_claimed_size(path: Path, kind: str) -> None:
+    """An InputError naming the file when its header claims more than MAX_TEXELS texels."""
+    size = claimed_size(path, kind)
+    if size is not None and size[0] * size[1] > MAX_TEXELS:
+        raise InputError(path, f"its header says {size[0]} x {size[1]} texels, more than an image may have "
+                               f"({MAX_TEXELS} texels, 16384 x 16384): a damaged file?")
 
 
 def _not_a(path: Path, named: str, found: str | None) -> InputError:
@@ -159,6 +197,7 @@ def read_exr(path: str | Path) -> np.ndarray:
     found = file_kind(path)
     if found != "exr":
         raise _not_a(Path(path), "exr", found)
+    check_claimed_size(Path(path), "exr")
     with OpenEXR.File(str(path)) as f:
         channels = f.channels()
         if "RGBA" in channels:
