@@ -76,3 +76,52 @@ def test_a_lock_that_cannot_be_written_is_not_left_behind(three_materials, tmp_p
     assert "no space left on the device" in capsys.readouterr().err
     assert not out.exists()  # neither an empty run.lock nor the folder made for it
 
+
+
+TINY_SCENE = ["make-scene", "demo", "--resolution", "8", "--spp", "1", "--n-train", "2", "--n-test", "1"]
+
+
+@pytest.mark.parametrize("name, extra", [("transforms_train.json", []), ("scene.xml", []), ("scene.json", []),
+                                         ("images.txt", ["--photo-formats"]), ("images.bin", ["--photo-formats"]),
+                                         ("poses_bounds.npy", ["--photo-formats"])])
+def test_make_scene_on_a_full_disk_names_the_file(tmp_path, monkeypatch, capsys, name, extra):
+    real_text, real_bytes = Path.write_text, Path.write_bytes
+    real_open = open
+
+    def full(real):
+        def write(self, *args, **kwargs):
+            if self.name == name:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(self, *args, **kwargs)
+        return write
+
+    def full_open(file, *args, **kwargs):  # numpy's writers open the file themselves
+        if Path(str(file)).name == name:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full(real_text))
+    monkeypatch.setattr(Path, "write_bytes", full(real_bytes))
+    monkeypatch.setattr("builtins.open", full_open)
+    out = tmp_path / "data"
+    assert cli.main([*TINY_SCENE, *extra, "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    error = next(line for line in err.splitlines() if line.startswith("error:"))
+    assert f"{name}: cannot be written: no space left on the device" in error and str(out) in error, error
+    assert "the unfinished dataset is removed" in error and not out.exists()
+
+
+def test_make_scene_names_its_folder_where_a_refused_write_names_no_file(tmp_path, monkeypatch, capsys):
+    from vq_mitsuba.synthetic import mitsuba_scenes
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")  # as a library's write says it: no file name
+
+    monkeypatch.setattr(mitsuba_scenes, "write_envmaps", full)
+    out = tmp_path / "data"
+    out.mkdir()
+    assert cli.main([*TINY_SCENE, "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert f"error: {out}: cannot be written: no space left on the device (the unfinished dataset is removed)" in err
+    assert "Traceback" not in err and out.is_dir() and not any(out.iterdir())

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from vq_mitsuba.cli.common import output_option, positive_int
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.errors import InputError, as_write_error
 
 
 def resolution(text: str):
@@ -67,7 +67,13 @@ def run(args) -> int:
         from vq_mitsuba.synthetic import cycles
 
         cycles.check_environment()  # before any work: names the missing interpreter and `make cycles`
-        cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
+        try:
+            cycles.make_scene_cycles(args.name, out, seed=args.seed, **kwargs)
+        except OSError as exc:  # a refused write that names no file (the writers name theirs): the folder
+            error = as_write_error(exc, exc.filename or out)
+            if error is None:
+                raise
+            raise error from None
     else:
         synthetic.make_scene(args.name, out, seed=args.seed, photo_formats=args.photo_formats, **kwargs)
     files = (DatasetDir.SCENE_XML, DatasetDir.TRANSFORMS_TRAIN, DatasetDir.TRANSFORMS_TEST, DatasetDir.GT + "/",

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
-from vq_mitsuba.data.imageio import write_exr, write_png
+from vq_mitsuba.data.imageio import write_exr, write_png, written
 from vq_mitsuba.errors import InputError
 
 
@@ -203,7 +203,8 @@ class DatasetDir:
 
     def mark_incomplete(self) -> None:
         """Mark the folder as being written, and drop an earlier dataset's scene.json (written again last)."""
-        (self.dir / self.INCOMPLETE).write_text("make-scene did not finish writing this folder\n")
+        mark = self.dir / self.INCOMPLETE
+        written(mark, lambda: mark.write_text("make-scene did not finish writing this folder\n"))
         self.info_path.unlink(missing_ok=True)
 
     def mark_complete(self) -> None:
@@ -217,7 +218,7 @@ class DatasetDir:
         write_gt(self.gt_stem(name), gt)
 
     def write_info(self, meta: dict) -> None:
-        self.info_path.write_text(json.dumps(meta, indent=2))
+        written(self.info_path, lambda: self.info_path.write_text(json.dumps(meta, indent=2)))
 
     # --- reading -------------------------------------------------------------------------------
     def info(self) -> dict:

@@ -35,7 +35,8 @@ from vq_mitsuba.config import read_yaml
 from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, Camera, look_at
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
-from vq_mitsuba.errors import InputError
+from vq_mitsuba.data.imageio import written
+from vq_mitsuba.errors import InputError, WriteError, as_write_error
 
 SCENES_DIR = Path(str(resources.files("vq_mitsuba.synthetic") / "scenes"))  # package data, installed with the wheel
 R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = R @ Mitsuba_world
@@ -488,14 +489,16 @@ def write_geometry(spec: dict, out: Path) -> SceneGeometry:
         v, f, nrm = build_shape(s)
         mat = mats[s["material"]]
         colors = eval_base_color(mat["base_color"], v) if is_textured(mat) else None
-        _mi_mesh(s["name"], v @ r, f, nrm @ r, colors).write_ply(str(dataset.shape_mesh(s["name"])))
+        shape_mesh = _mi_mesh(s["name"], v @ r, f, nrm @ r, colors)
+        written(dataset.shape_mesh(s["name"]), lambda: shape_mesh.write_ply(str(dataset.shape_mesh(s["name"]))))
         shapes.append({"name": s["name"], "material": s["material"], "vertices": v, "faces": f, "normals": nrm})
         all_v.append(v), all_f.append(f + offset), all_n.append(nrm)
         offset += len(v)
         shape_info[s["name"]] = {"material": s["material"], "file": DatasetDir.shape_file(s["name"]),
                                  "vertices": int(len(v)), "faces": int(len(f))}
     verts = np.concatenate(all_v)
-    _mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n)).write_ply(str(dataset / DatasetDir.MESH))
+    merged = _mi_mesh("mesh", verts, np.concatenate(all_f), np.concatenate(all_n))
+    written(dataset / DatasetDir.MESH, lambda: merged.write_ply(str(dataset / DatasetDir.MESH)))
     lo, hi = verts.min(0), verts.max(0)
     center = 0.5 * (lo + hi)
     radius = float(np.linalg.norm(verts - center, axis=1).max())
@@ -699,13 +702,29 @@ def _complete_or_removed(out_dir):
     DatasetDir(out).mark_incomplete()  # and an earlier dataset's scene.json removed, written again last
     try:
         yield out
-    except BaseException:
+    except BaseException as exc:
         if empty:
             shutil.rmtree(out, ignore_errors=True)
             if not made:
                 out.mkdir()
+        error = _refused_write(exc, out, removed=empty)
+        if error is not None:
+            raise error from None
         raise
     DatasetDir(out).mark_complete()
+
+
+def _refused_write(exc: BaseException, out: Path, removed: bool) -> WriteError | None:
+    """A write the disk refused (full, read-only, no permission) as a WriteError naming the file, or
+    the dataset folder where the error names none, and saying what became of the dataset; None for
+    any other exception."""
+    error = exc if isinstance(exc, WriteError) else as_write_error(exc)
+    if error is None:
+        return None
+    reason = error.message.removesuffix(" (files written before are kept)")
+    became = "the unfinished dataset is removed" if removed else \
+        f"the folder keeps its {INCOMPLETE} mark until make-scene finishes writing it"
+    return WriteError(error.path or out, f"{reason} ({became})")
 
 
 def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test: int, spp: int, seed: int,

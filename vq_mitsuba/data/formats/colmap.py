@@ -18,8 +18,10 @@ Everything read is checked before any work (vq_mitsuba.data.checks, `check_lens`
 
 from __future__ import annotations
 
+import io
 import math
 import struct
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -28,7 +30,7 @@ import numpy as np
 from vq_mitsuba.data.cameras import OPENCV_TO_MITSUBA, Camera, camera_from_intrinsics
 from vq_mitsuba.data.checks import check_pose, check_unique, collect
 from vq_mitsuba.data.formats.common import Capture, mesh_beside, known_mesh, moved_camera, read_views, up_frame
-from vq_mitsuba.data.imageio import write_png
+from vq_mitsuba.data.imageio import write_png, written
 from vq_mitsuba.data.lens import MODEL_IDS, MODELS, Lens, check_lens, distort_rgba
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -385,6 +387,18 @@ def colmap_camera(img: ColmapImage, lens: Lens) -> Camera:
                                   lens.cx, lens.cy, lens.width, lens.height)
 
 
+@contextmanager
+def _written_binary(path: Path):
+    """A buffer whose bytes become `path` once filled (a refused write names the file: `written`)."""
+    buffer = io.BytesIO()
+    yield buffer
+    written(path, lambda: path.write_bytes(buffer.getvalue()))
+
+
+def _written_text(path: Path, text: str) -> None:
+    written(path, lambda: path.write_text(text))
+
+
 def write_colmap(model: Path, cameras: list[Camera], names: list[str], lens_of=None, binary: bool = True,
                  points: np.ndarray | None = None) -> None:
     """Write a sparse model: one camera entry per view (`lens_of(camera)` gives its Lens, default
@@ -404,29 +418,29 @@ def write_colmap(model: Path, cameras: list[Camera], names: list[str], lens_of=N
         poses.append((matrix_to_qvec(r), -r @ c2w[:3, 3]))
     pts = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64)
     if binary:
-        with open(model / "cameras.bin", "wb") as f:
+        with _written_binary(model / "cameras.bin") as f:
             f.write(struct.pack("<Q", len(lenses)))
             for i, lens in enumerate(lenses):
                 f.write(struct.pack("<iiQQ", i + 1, MODEL_IDS[lens.model], lens.width, lens.height))
                 f.write(struct.pack("<" + "d" * len(lens.params()), *lens.params()))
-        with open(model / "images.bin", "wb") as f:
+        with _written_binary(model / "images.bin") as f:
             f.write(struct.pack("<Q", len(names)))
             for i, (name, (q, t)) in enumerate(zip(names, poses)):
                 f.write(struct.pack("<idddddddi", i + 1, *q, *t, i + 1))
                 f.write(name.encode() + b"\x00")
                 f.write(struct.pack("<Q", 0))
-        with open(model / "points3D.bin", "wb") as f:
+        with _written_binary(model / "points3D.bin") as f:
             f.write(struct.pack("<Q", len(pts)))
             for i, p in enumerate(pts):
                 f.write(struct.pack("<QdddBBBdQ", i + 1, *p, 128, 128, 128, 0.0, 0))
     else:
-        (model / "cameras.txt").write_text("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(
+        _written_text(model / "cameras.txt", "# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "".join(
             f"{i + 1} {lens.model} {lens.width} {lens.height} " + " ".join(f"{p:.17g}" for p in lens.params()) + "\n"
             for i, lens in enumerate(lenses)))
-        (model / "images.txt").write_text("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n" + "".join(
+        _written_text(model / "images.txt", "# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n" + "".join(
             f"{i + 1} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {i + 1} {name}\n\n"
             for i, (name, (q, t)) in enumerate(zip(names, poses))))
-        (model / "points3D.txt").write_text("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n" + "".join(
+        _written_text(model / "points3D.txt", "# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n" + "".join(
             f"{i + 1} {p[0]:.17g} {p[1]:.17g} {p[2]:.17g} 128 128 128 0\n" for i, p in enumerate(pts)))
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from vq_mitsuba.data.cameras import MITSUBA_TO_BLENDER
 from vq_mitsuba.data.formats import colmap, idr, llff, nerfstudio
 from vq_mitsuba.data.formats.common import Capture
+from vq_mitsuba.data.imageio import written
 from vq_mitsuba.data.lens import Lens
 
 # The COLMAP copy's world: x_colmap = SCALE * ROTATION @ x + OFFSET (an arbitrary similarity, as
@@ -94,5 +95,5 @@ def write_photo_formats(capture: Capture, out: Path, distort: bool = True) -> di
         for name, folder in folders.items():
             moved_mesh = capture.mesh.copy()
             moved_mesh.apply_transform(frames[name])
-            moved_mesh.export(folder / "mesh.ply")
+            written(folder / "mesh.ply", lambda: moved_mesh.export(folder / "mesh.ply"))
     return folders

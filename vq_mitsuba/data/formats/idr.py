@@ -24,7 +24,7 @@ from vq_mitsuba.data.checks import check_intrinsics, check_pose, collect
 from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
                                             missing_numbered, numpy_file_kind, paired_masks, read_views,
                                             up_frame)
-from vq_mitsuba.data.imageio import write_png
+from vq_mitsuba.data.imageio import write_png, written
 from vq_mitsuba.errors import InputError, raise_all
 
 KIND = "idr"
@@ -227,7 +227,7 @@ def write_idr(path: Path, cameras: list[Camera], centre: np.ndarray, radius: flo
         p[:3, :4] = k @ w2c[:3, :4]
         out[f"world_mat_{i}"] = p
         out[f"scale_mat_{i}"] = scale
-    np.savez(path, **out)
+    written(path, lambda: np.savez(path, **out))
 
 
 def write_capture(capture: Capture, folder: Path, names: list[str], centre: np.ndarray, radius: float) -> Path:

@@ -19,7 +19,7 @@ from vq_mitsuba.data.checks import check_intrinsics, check_pose, check_size, col
 from vq_mitsuba.data.formats.common import (Capture, mesh_beside, common_image_size, has_suffix, images_in, known_mesh,
                                             missing_numbered, moved_camera, numpy_file_kind, paired_masks,
                                             read_views, up_frame)
-from vq_mitsuba.data.imageio import write_png
+from vq_mitsuba.data.imageio import write_png, written
 from vq_mitsuba.errors import InputError, raise_all
 
 KIND = "llff"
@@ -168,8 +168,7 @@ def write_poses_bounds(path: Path, cameras, bounds) -> None:
             raise ValueError(f"camera {cam.name}: LLFF holds centred cameras with one focal length")
         pose = world_to_llff(cam.to_world, cam.height, cam.width, fx)
         rows.append(np.concatenate([pose.ravel(), [near, far]]))
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    np.save(path, np.asarray(rows, np.float64))
+    written(path, lambda: np.save(path, np.asarray(rows, np.float64)))
 
 
 def llff_window(camera) -> tuple[int, int, int, int]:

@@ -25,7 +25,7 @@ from vq_mitsuba.data.checks import check_camera, finite_number
 from vq_mitsuba.data.envmaps import check_envmap, load_envmap
 from vq_mitsuba.data.formats.common import (Capture, ensure_variant, find_image, has_suffix, load_mesh,
                                             shrunk_entry, stack_images)
-from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.data.imageio import read_image, written
 from vq_mitsuba.data.resize import Shrink
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -336,7 +336,7 @@ def write_capture(path: Path, cameras: list[Camera], materials: list[dict], shap
                   '    </shape>']
     parts += [_sensor_xml(c, spp, sampler) for c in cameras]
     parts.append("</scene>\n")
-    path.write_text("\n".join(parts))
+    written(path, lambda: path.write_text("\n".join(parts)))
 
 
 def _fmt(x) -> str:

@@ -23,7 +23,7 @@ from vq_mitsuba.data.checks import MAX_FOV_DEG, MIN_FOV_DEG, check_camera, check
 from vq_mitsuba.data.formats.common import Capture, mesh_beside, has_suffix, shrunk_entry, stack_images
 from vq_mitsuba.data.formats.transforms_json import (frame_image, frame_image_candidates, frame_matrices, frame_names,
                                                      json_frames, json_mesh, nerfstudio_style, read_json)
-from vq_mitsuba.data.imageio import read_image
+from vq_mitsuba.data.imageio import read_image, written
 from vq_mitsuba.data.resize import Shrink
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -125,4 +125,4 @@ def write_capture(path: Path, cameras: list[Camera], files: list[str], fov_x_deg
         m, angle = camera_to_nerf(cam)
         frames.append({"file_path": file, "transform_matrix": m.tolist()})
     data = {"camera_angle_x": angle if angle is not None else math.radians(fov_x_deg), "frames": frames}
-    path.write_text(json.dumps(data, indent=2))
+    written(path, lambda: path.write_text(json.dumps(data, indent=2)))

@@ -32,7 +32,7 @@ from vq_mitsuba.data.checks import check_size, finite_number
 from vq_mitsuba.data.formats.common import Capture, mesh_beside, has_suffix, moved_camera, read_views, up_frame
 from vq_mitsuba.data.formats.transforms_json import (frame_image, frame_matrices, frame_names, json_frames,
                                                      json_mesh, nerfstudio_style, read_json)
-from vq_mitsuba.data.imageio import write_png
+from vq_mitsuba.data.imageio import write_png, written
 from vq_mitsuba.data.lens import DISTORTION, FISHEYE, Lens, check_lens, distort_rgba
 from vq_mitsuba.errors import InputError, raise_all
 
@@ -198,8 +198,7 @@ def write_transforms_json(path: Path, cameras: list[Camera], files: list[str], l
     data = {"camera_model": lenses[0].model if lenses else "OPENCV", "frames": frames}
     if applied_transform is not None:
         data["applied_transform"] = np.asarray(applied_transform, np.float64)[:3, :4].tolist()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(data, indent=1))
+    written(path, lambda: Path(path).write_text(json.dumps(data, indent=1)))
 
 
 def write_capture(capture: Capture, folder: Path, names: list[str], sim: np.ndarray, lenses: list[Lens],
