@@ -5,6 +5,7 @@ naming a file; no other exception (no traceback) ever reaches the user."""
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -580,6 +581,79 @@ def test_damaged_capture_files_are_refused_by_name(valid_captures, tmp_path_fact
         values = [cap.images, cap.alpha] + [np.r_[c.to_world.ravel(), c.intrinsics()] for c in cap.cameras]
         assert all(np.isfinite(v).all() for v in values)
         _tally("loaded")
+
+
+# Transforms jsons (NeRF-synthetic and nerfstudio): any value of a valid one replaced, a key given twice
+
+json_leaves = st.sampled_from([10 ** 400, -10 ** 400, 2 ** 64, -1, 0, 1e308, -1e308, 1e-300, float("nan"),
+                               float("inf"), None, True, "", "x", "../../x", [], {}, [1, 2], [[1e400] * 4] * 4])
+
+
+def _leaves(data, out=None):
+    """Every (container, key) of a json value whose value is not a container itself."""
+    out = [] if out is None else out
+    for key in (range(len(data)) if isinstance(data, list) else sorted(data)):
+        if isinstance(data[key], (list, dict)) and data[key]:
+            _leaves(data[key], out)
+        else:
+            out.append((data, key))
+    return out
+
+
+def _objects(data, out=None):
+    """Every json object (dict) in `data`, outermost first."""
+    out = [] if out is None else out
+    if isinstance(data, dict):
+        out.append(data)
+    for value in (data.values() if isinstance(data, dict) else data if isinstance(data, list) else []):
+        _objects(value, out)
+    return out
+
+
+@FUZZ
+@given(kind=st.sampled_from(["nerf_synthetic", "nerfstudio"]),
+       edits=st.lists(st.tuples(st.integers(0, 300), json_leaves, st.booleans()), max_size=3),
+       twice=st.none() | st.integers(0, 300))
+def test_transforms_jsons_with_any_value_changed_load_or_are_refused(valid_captures, tmp_path_factory, kind, edits,
+                                                                      twice):
+    import shutil
+
+    base, given_path = valid_captures[kind]
+    folder = tmp_path_factory.mktemp("json")
+    shutil.copytree(base, folder, dirs_exist_ok=True)
+    path = folder / given_path.name
+    data = json.loads(path.read_text())
+    for which, value, named in edits:  # named: a value under a key (not one of a matrix's numbers)
+        leaves = [(c, k) for c, k in _leaves(data) if isinstance(c, dict) or not named]
+        container, key = leaves[which % len(leaves)]
+        container[key] = value
+    objects = [o for o in _objects(data) if o]
+    if twice is not None and objects:  # one key of one object given twice (the first value, then another)
+        obj = objects[twice % len(objects)]
+        key = sorted(obj)[twice % len(obj)]
+        obj["__twice__"] = 0.5
+        text = json.dumps(data, allow_nan=True).replace('"__twice__"', json.dumps(key))
+    else:
+        text = json.dumps(data, allow_nan=True)
+    path.write_text(text)
+    if _check_photo(folder) == "loaded":
+        assert twice is None  # a key given twice is refused: which value would be meant?
+
+
+@pytest.mark.parametrize("text, words", [
+    ('{"camera_angle_x": 0.7, "frames": [{"file_path": "img", "transform_matrix": '
+     '[[1, 0, 0, 1%s], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]}]}' % ("0" * 400),
+     "frames[0] (img): malformed transform_matrix"),
+    ('{"camera_angle_x": 0.7, "camera_angle_x": 0.9, "frames": []}', "'camera_angle_x' is given twice"),
+])
+def test_json_values_beyond_a_float_and_keys_given_twice_are_refused(tmp_path, text, words):
+    """Found by the json fuzz: an integer too large for a float in a transform_matrix ended in
+    OverflowError, and of a key given twice the last value was taken without a word."""
+    (tmp_path / "transforms_train.json").write_text(text)
+    _photos(tmp_path, "", ["img.png"])
+    with pytest.raises(InputError, match=re.escape(words)) as refused:
+        load_capture(tmp_path / "transforms_train.json")
+    assert refused.value.path == tmp_path / "transforms_train.json"
 
 
 def test_a_name_longer_than_the_file_system_takes_is_refused_by_name(tmp_path, capsys):

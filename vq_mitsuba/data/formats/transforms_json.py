@@ -37,15 +37,31 @@ def nerfstudio_style(path: Path) -> bool:
     return isinstance(data, dict) and is_nerfstudio(data)
 
 
+class _KeyTwice(Exception):
+    """A json object that gives one key twice (json.loads would keep the last value)."""
+
+
+def _once_each(pairs: list[tuple[str, object]]) -> dict:
+    seen = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _KeyTwice(key)
+        seen[key] = value
+    return seen
+
+
 def read_json(path: Path) -> dict:
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, f"cannot read json file ({exc})") from exc
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_once_each)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"malformed json at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    except _KeyTwice as exc:
+        raise InputError(path, f"malformed json: '{exc.args[0]}' is given twice in one object (which value is "
+                               "meant?); each key may appear once") from None
     if not isinstance(data, dict):
         raise InputError(path, "malformed capture json: the top level must be an object")
     return data
@@ -84,7 +100,7 @@ def frame_matrices(path: Path, frames: list[dict]) -> list[np.ndarray]:
     for i, frame in enumerate(frames):
         try:
             m = np.array(frame["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
             m = None
         if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise InputError(path, f"frames[{i}] ({frame['file_path']}): malformed transform_matrix "
