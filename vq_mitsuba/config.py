@@ -126,8 +126,8 @@ class EnvmapConfig:
     lr: float = setting(0.05, "Adam learning rate of the log-radiance texels", "(0,1]")
     tv_weight: float = setting(1e-4, "weight of the smoothness term on neighbouring log-radiance texels")
     final_height: str = setting(
-        "auto", "the learned envmap's last rung: auto stops growing at the rows the fitted roughness can resolve "
-                "(read as the ladder grows and as the fit goes on), full grows to envmap.height", ("auto", "full"))
+        "auto", "the learned envmap's last rung: auto stops at the rows the fitted roughness can resolve (read as "
+                "the fit goes on), full at envmap.height", ("auto", "full"))
 
 
 @dataclass
@@ -144,8 +144,8 @@ class LossConfig:
     metallic_barrier_until: float = setting(0.3, "training share during which the metallic prior is -log(1 - metallic)",
                                                  "(0,1]")
     prior_evidence: str = setting(
-        "auto", "auto: the Lambertian prior's metallic term weakened where the images' highlights keep the surface's "
-                "colour, as a metal's do; off: the same weight everywhere", ("auto", "off"))
+        "auto", "auto weakens the Lambertian prior's metallic term where highlights keep the surface's colour, as "
+                "a metal's do; off: the same weight everywhere", ("auto", "off"))
     w_sm: float = setting(0.0, "w6: colour-aware smoothness of neighbouring pixels (0: off)")
     sm_alpha: float = setting(60.0, "alpha of L_sm: how fast image differences switch the smoothness off")
     sm_beta: float = setting(0.1, "beta of L_sm: weight of metallic/roughness differences")
@@ -217,8 +217,8 @@ class TrainConfig:
                 "the held-aside pixels choose which goes on; off: no trial",
         ("auto", "off"))
     stop: str = setting(
-        "iterations", "when the fit ends: auto runs the schedule faster each time held-aside pixels stop improving and "
-                "ends when it is done (train.iterations the ceiling), iterations after train.iterations steps",
+        "iterations", "auto: the schedule speeds up as held-aside pixels stop improving and ends the fit (at most "
+                      "train.iterations); iterations: train.iterations steps",
         ("auto", "iterations"))
     sampling: str = setting(
         "uniform", "which pixels a step draws: auto by their running error with a 30 % uniform share "
@@ -288,9 +288,8 @@ class NeuSConfig:
     w_points: float = setting(0.5, "weight of the SDF-is-zero term at the capture's sparse points seen by 3 or more "
                                    "views, fading linearly to 0 over training (0: none)", ">=0")
     background: str = setting(
-        "auto", "what tells the object from the backdrop: masks (the capture's alpha or masks), model (no "
-                "masks: the object in a sphere framed from the cameras, a background model outside it) or auto "
-                "(masks when the capture has them)", ("auto", "masks", "model"))
+        "auto", "object or backdrop: masks (the capture's), model (a sphere framed from the cameras, a background "
+                "model outside it) or auto (masks if any)", ("auto", "masks", "model"))
     hull_resolution: int = setting(128, "visual-hull / occupancy grid resolution", ">0")
     hull_threshold: float = setting(0.5, "alpha above which a pixel is foreground for carving", "[0,1]")
     hull_min_views: float = setting(0.3, "share of the views whose frusta must hold a voxel for it to be carved in",
@@ -325,8 +324,8 @@ class CaptureConfig:
 class PoseConfig:
     """Camera poses of photos or a video without them (structure from motion with COLMAP)."""
 
-    matcher: str = setting("auto", "which image pairs SfM matches: sequential (neighbours in order), exhaustive "
-                                   "(all pairs) or auto (sequential for a video and over 100 photos, else exhaustive)",
+    matcher: str = setting("auto", "image pairs SfM matches: sequential (neighbours), exhaustive (all) or auto "
+                                   "(sequential for a video or over 100 photos, else exhaustive)",
                            ("auto", "sequential", "exhaustive"))
     frames: int = setting(80, "frames kept from a video: the sharpest of each of this many equal time windows", ">0")
     min_registered: float = setting(0.5, "share of the images SfM must place (and at least 3), else it is refused",

@@ -69,6 +69,23 @@ def test_every_option_has_a_one_line_help():
             assert "\n" not in action.help and len(action.help) <= 100, label
 
 
+def test_fit_help_names_every_capture_format_as_the_format_describes_itself(capsys, monkeypatch):
+    from vq_mitsuba.data.formats import FORMATS
+
+    monkeypatch.setenv("COLUMNS", "60")  # wrapped narrow, a name stays whole (NeRF-synthetic)
+    with pytest.raises(SystemExit):
+        cli.main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    missing = [fmt.DESCRIPTION for fmt in FORMATS if fmt.DESCRIPTION not in text]
+    assert not missing, missing
+
+
+def test_help_config_lines_fit_a_reader(capsys):
+    assert cli.main(["fit", "--help-config"]) == 0
+    long = [line for line in capsys.readouterr().out.splitlines() if len(line) > 200]
+    assert not long, long
+
+
 @pytest.mark.parametrize("name", sorted(_subparsers()))
 def test_help_of_every_command_prints(name, capsys):
     with pytest.raises(SystemExit) as info:

@@ -42,6 +42,28 @@ def finite(limit: float):
     return parse
 
 
+# --- help ---------------------------------------------------------------------------------------
+CAPTURE_FORMATS = "{capture formats}"  # in a description: the capture formats, each as its module describes it
+
+
+class CaptureFormatsHelp(argparse.HelpFormatter):
+    """Help whose description lists the capture formats (vq_mitsuba.data.formats' DESCRIPTIONs) in place
+    of CAPTURE_FORMATS; the formats are imported when the help is shown, not at every start."""
+
+    def add_text(self, text):
+        if text and CAPTURE_FORMATS in text:
+            from vq_mitsuba.data.formats import described
+
+            text = text.replace(CAPTURE_FORMATS, described())
+        super().add_text(text)
+
+    def _fill_text(self, text, width, indent):  # argparse's, without breaking a name at its hyphen (NeRF-synthetic)
+        import textwrap
+
+        text = self._whitespace_matcher.sub(" ", text).strip()
+        return textwrap.fill(text, width, initial_indent=indent, subsequent_indent=indent, break_on_hyphens=False)
+
+
 # --- shared options ----------------------------------------------------------------------------
 def _parent() -> argparse.ArgumentParser:
     return argparse.ArgumentParser(add_help=False)

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
-from vq_mitsuba.cli.common import command_config, help_config, refuse_file_output, run_dir_of, run_parents
+from vq_mitsuba.cli.common import (CAPTURE_FORMATS, CaptureFormatsHelp, command_config, help_config, refuse_file_output,
+                                   run_dir_of, run_parents)
 
 
 def add_parser(sub, shared) -> None:
     f = sub.add_parser(
         "fit", parents=run_parents(shared), help="decompose a capture into materials and lighting (VQ-NeRF)",
+        formatter_class=CaptureFormatsHelp,
         description="Fit VQ-NeRF to a capture: geometry (given, or NeuS from the images), the continuous and "
-                    "discrete material branches, the lighting if unknown, and the ranked materials. Writes RUN_DIR "
-                    "(docs/run_dir.md): run.json, config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
+                    "discrete material branches, the lighting if unknown, and the ranked materials. The capture "
+                    f"is {CAPTURE_FORMATS} (docs/captures.md); photos and a video are posed first, by structure "
+                    "from motion. Writes RUN_DIR (docs/run_dir.md): run.json, config.yaml, checkpoint.pt, mesh.ply, envmap.exr, materials.json, "
                     "materials_err.png, materials_sheet.png, loss.png, fit.json, residual.pt. --geometry auto (the "
                     "default) uses the capture's shapes, its mesh.ply or --mesh when there are any, and otherwise "
                     "reconstructs the mesh with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus always "
