@@ -294,6 +294,26 @@ def test_mutated_neus_archives_load_or_are_refused(folder, edits, garbage):
     _check_photo(folder)
 
 
+def test_an_archive_member_that_unpacks_to_far_more_than_a_matrix_is_refused_unread(folder):
+    """A 130 KB cameras_sphere.npz whose world_mat_0 unpacks to 128 MB (numpy unpacks a member whole
+    before its shape can be checked): refused naming the file and the member, with nothing of that
+    size allocated."""
+    import tracemalloc
+
+    _photos(folder, "image", ["000.png", "001.png", "002.png"])
+    matrices = {f"world_mat_{i}": np.eye(4) for i in range(3)}
+    np.savez_compressed(folder / "cameras_sphere.npz", **{**matrices, "world_mat_0": np.zeros(1 << 24)})
+    assert (folder / "cameras_sphere.npz").stat().st_size < 1 << 20
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match="world_mat_0 unpacks to 134217856 bytes") as refused:
+            load_capture(folder)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert refused.value.path == folder / "cameras_sphere.npz" and peak < 16 << 20
+
+
 # nerfstudio transforms.json: any value for any intrinsic key, at the top level or per frame
 ns_keys = st.sampled_from(["fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
                            "camera_model", "camera_angle_x", "mask_path", "applied_transform"])

@@ -32,6 +32,7 @@ SUFFIXES = (".npz",)
 FOLDER_FILES = ("cameras_sphere.npz",)
 DESCRIPTION = "a NeuS/IDR cameras_sphere.npz"  # what a person gives, in messages and help
 POSED = True
+MAX_MATRIX_BYTES = 1 << 16  # what a matrix of the archive may unpack to (a 4x4 of any dtype takes far less)
 points = None  # no sparse points (sphere: scale_mat_0's region of interest)
 has_geometry = mesh_beside  # known geometry: a mesh.ply in the capture's folder
 
@@ -147,7 +148,12 @@ def _open_npz(path: Path):
 
 
 def _idr_matrix(path: Path, data, key: str, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
-    """One matrix of the archive: numbers (no strings, no pickled objects), one of `shapes`, finite."""
+    """One matrix of the archive: numbers (no strings, no pickled objects), one of `shapes`, finite;
+    a member that would unpack to more than MAX_MATRIX_BYTES is refused before it is read."""
+    member = data.zip.NameToInfo.get(f"{key}.npy")
+    if member is not None and member.file_size > MAX_MATRIX_BYTES:
+        raise InputError(path, f"{key} unpacks to {member.file_size} bytes, far more than a matrix takes (a damaged "
+                               "archive?)")
     try:
         raw = data[key]
     except ValueError as exc:
