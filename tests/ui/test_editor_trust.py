@@ -83,8 +83,64 @@ def test_an_export_it_would_refuse_saves_nothing(editor, size):
     _, server, run = editor
     name = "never_saved"
     status, answer = _post(server, "export", {"name": name, "format": "obj", "texture_size": size})
-    assert status == 400 and "texture size" in answer["error"]
+    assert status == 400 and answer["error"].startswith("'texture_size' must be a whole number"), answer
     assert not (run.dir.parent / name).exists()
+
+
+# Python's own words for a wrong type or value, which the editor never answers with
+PYTHON_TEXT = ("invalid literal", "indices must", "object is not", "object has no", "NoneType", "float()", "int()",
+               "not iterable", "not subscriptable", "unhashable", "convert", "positional argument", "cannot do that")
+
+
+@pytest.mark.parametrize("action, body, words", [
+    ("select", {"materials": "all"}, "'materials' must be a list of material numbers (whole numbers; this run's: 1..3)"),
+    ("select", {"materials": [1.5]}, "'materials' must be a list of material numbers"),
+    ("select", {"materials": [True]}, "'materials' must be a list of material numbers"),
+    ("select", {"materials": {"1": 1}}, "'materials' must be a list of material numbers"),
+    ("select", {"pixel": "3,4"}, "'pixel' must be two whole numbers [x, y]"),
+    ("select", {"pixel": [1]}, "'pixel' must be two whole numbers [x, y]"),
+    ("select", {"box": [[0, 0, 0], [1, 1, None]]}, "'box' must be two corners of three finite numbers"),
+    ("select", {"box": "x"}, "'box' must be two corners of three finite numbers"),
+    ("select", {"add": "yes"}, "'add' must be true or false, got 'yes'"),
+    ("select", {"material": [1]}, "unknown field 'material' (/api/select takes materials, box, pixel, add)"),
+    ("edit", {"changes": "x"}, "'changes' must be a list of changes"),
+    ("edit", {"changes": ["x"]}, "'changes[0]' must be a change"),
+    ("edit", {"changes": [{"key": 5, "value": 1}]}, "'changes[0].key' must be one of basecolor, metallic, roughness"),
+    ("edit", {"changes": [{"key": "roughness", "value": 0.5, "op": 3}]}, "'changes[0].op' must be one of set, scale"),
+    ("edit", {"changes": [{"key": "roughness", "value": 0.5, "by": 1}]}, "'changes[0]' has an unknown field 'by'"),
+    ("edit", {"changes": [{"key": "roughness", "value": 10 ** 400}]}, "the value of 'roughness' must be a number"),
+    ("edit", {"changes": [{"key": "roughness", "value": True}]}, "the value of 'roughness' must be a number"),
+    ("edit", {"preset": 5}, "'preset' must be the name of a library material"),
+    ("edit", {"live": "no"}, "'live' must be true or false"),
+    ("view", {"name": 5}, "'name' must be a string, got 5"),
+    ("mode", {"mode": ["render"]}, "'mode' must be a string"),
+    ("orbit", {"yaw": 10 ** 400}, "'yaw' must be a finite number"),
+    ("orbit", {"pitch": True}, "'pitch' must be a finite number, got True"),
+    ("orbit", {"zoom": 9}, "'zoom' must be a number from 0.2 to 5, got 9"),
+    ("lighting", {"envmap": 3}, "'envmap' must be a string, got 3"),
+    ("lighting", {"rotate": "x"}, "'rotate' must be a finite number"),
+    ("lighting", {"exposure": 100}, "'exposure' must be a number from -64 to 64, got 100"),
+    ("save", {"name": ["a"]}, "'name' must be a string"),
+    ("save", {}, "the request has no 'name'"),
+    ("export", {"name": "never_exported", "format": 3}, "'format' must be a string, got 3"),
+    ("undo", {"steps": 2}, "unknown field 'steps' (/api/undo takes no fields)"),
+])
+def test_every_wrong_field_is_named_with_what_it_must_be(editor, action, body, words):
+    session, server, run = editor
+    before = (session.position, len(session.history), session.selection, session.view_name, session.mode)
+    status, answer = _post(server, action, body)
+    assert status == 400 and words in answer["error"], answer
+    assert not any(text in answer["error"] for text in PYTHON_TEXT), answer
+    assert (session.position, len(session.history), session.selection, session.view_name, session.mode) == before
+    assert not (run.dir.parent / "never_exported").exists()
+
+
+def test_a_frame_query_names_its_wrong_parameter(editor):
+    from test_ui import _get
+
+    _, server, _ = editor
+    status, answer = _get(server, "/api/frame?version=1&spp=many")
+    assert status == 400 and b"'spp' must be a whole number, got 'many'" in answer
 
 
 def test_concurrent_atomic_writes_of_one_file_never_collide(tmp_path):

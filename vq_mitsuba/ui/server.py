@@ -94,6 +94,15 @@ def parse_body(raw: bytes) -> dict:
     return body
 
 
+def _query_int(query: dict, key: str) -> int:
+    """A whole number of the query string (-1 when absent); InputError naming the parameter otherwise."""
+    text = query.get(key, ["-1"])[0]
+    try:
+        return int(text)
+    except ValueError:
+        raise InputError(None, f"'{key}' must be a whole number, got {_shown(text)}") from None
+
+
 def _host_name(host: str) -> str:
     """A bound address as a Host header spells it (IPv6 in brackets)."""
     return f"[{host}]" if ":" in host and not host.startswith("[") else host
@@ -193,9 +202,9 @@ class _Handler(BaseHTTPRequestHandler):
         if path == "/api/frame":
             q = parse_qs(url.query)
             try:
-                version, spp = int(q.get("version", ["-1"])[0]), int(q.get("spp", ["-1"])[0])
-            except ValueError:
-                return self._json({"error": "version and spp are integers"}, 400)
+                version, spp = (_query_int(q, key) for key in ("version", "spp"))
+            except InputError as exc:
+                return self._json({"error": str(exc)}, 400)
             frame = self.session.wait_frame(version, spp)
             if frame is None:
                 return self._send(204, b"", "text/plain")
@@ -220,9 +229,9 @@ class _Handler(BaseHTTPRequestHandler):
                               HTTPStatus.UNSUPPORTED_MEDIA_TYPE)
         path = urlsplit(self.path).path
         action = path[len("/api/"):] if path.startswith("/api/") else None
-        handler = ACTIONS.get(action)
-        if handler is None:
+        if action not in ACTIONS:
             return self._not_found()
+        handler = ACTIONS[action][1]
         try:
             try:
                 length = int(self.headers.get("Content-Length") or 0)
@@ -233,6 +242,7 @@ class _Handler(BaseHTTPRequestHandler):
             if length > MAX_BODY:
                 raise InputError(None, "request too large")
             body = parse_body(self.rfile.read(length) if length else b"{}")
+            check_fields(action, body)
             result = handler(self.session, body)
         except UserError as exc:
             return self._json({"error": str(exc)}, 400)
@@ -243,48 +253,184 @@ class _Handler(BaseHTTPRequestHandler):
         self._json({"ok": True, **(result or {}), "state": self.session.state()})
 
 
-def _select(s: EditorSession, b: dict) -> dict:
-    pixel = b.get("pixel")
-    sel = s.select(materials=b.get("materials"), box=b.get("box"), pixel=tuple(pixel) if pixel is not None else None,
-                   add=bool(b.get("add", False)))
-    return {"selection": sel.to_dict()}
+# --- the request bodies: every field checked, a wrong one refused with a sentence naming it --------
+
+_REQUIRED = object()  # a field without a default
 
 
-def _text(body: dict, key: str) -> str:
+def _shown(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _wrong(field: str, what: str, value) -> InputError:
+    return InputError(None, f"'{field}' must be {what}, got {_shown(value)}")
+
+
+def _value(body: dict, key: str, default=_REQUIRED):
     if key not in body:
-        raise InputError(None, f"the request has no '{key}'")
-    return str(body[key])
+        if default is _REQUIRED:
+            raise InputError(None, f"the request has no '{key}'")
+        return default
+    return body[key]
 
 
-def _number(body: dict, key: str, default: float) -> float:
-    """A finite number of the request; InputError naming the field otherwise."""
-    value = body.get(key, default)
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _finite(value) -> float | None:
+    """`value` as a finite float; None when it is not a finite number (a bool or a string is not)."""
+    if not _is_number(value):
+        return None
     try:
-        number = float(value) if not isinstance(value, bool) else math.nan
-    except (TypeError, ValueError):
-        number = math.nan
-    if not math.isfinite(number):
-        raise InputError(None, f"'{key}' must be a finite number, got {value!r}")
+        number = float(value)
+    except OverflowError:  # an integer beyond any float
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _whole(value) -> int | None:
+    """`value` as an int when it is a whole number (2 or 2.0), else None."""
+    number = _finite(value)
+    return int(number) if number is not None and number.is_integer() else None
+
+
+def _text(body: dict, key: str, default=_REQUIRED) -> str:
+    value = _value(body, key, default)
+    if not isinstance(value, str):
+        raise _wrong(key, "a string", value)
+    return value
+
+
+def _number(body: dict, key: str, default: float, low: float | None = None, high: float | None = None) -> float:
+    """A finite number of the request (within low..high when given); InputError naming the field otherwise."""
+    value = _value(body, key, default)
+    number = _finite(value)
+    if number is None:
+        raise _wrong(key, "a finite number", value)
+    if low is not None and not low <= number <= high:
+        raise _wrong(key, f"a number from {low:g} to {high:g}", value)
     return number
 
 
+def _flag(body: dict, key: str) -> bool:
+    value = _value(body, key, False)
+    if not isinstance(value, bool):
+        raise _wrong(key, "true or false", value)
+    return value
+
+
+def _materials(s: EditorSession, body: dict) -> list[int] | None:
+    value = _value(body, "materials", None)
+    if value is None:
+        return None
+    ids = [_whole(k) for k in value] if isinstance(value, list) else None
+    if ids is None or None in ids:
+        which = f"1..{s.num_materials}" if s.num_materials else "none: this run has no discrete branch"
+        raise _wrong("materials", f"a list of material numbers (whole numbers; this run's: {which})", value)
+    return ids
+
+
+def _pixel(body: dict) -> tuple[int, int] | None:
+    value = _value(body, "pixel", None)
+    if value is None:
+        return None
+    xy = [_whole(v) for v in value] if isinstance(value, list) else []
+    if len(xy) != 2 or None in xy:
+        raise _wrong("pixel", "two whole numbers [x, y] (a pixel of the view)", value)
+    return xy[0], xy[1]
+
+
+def _box(body: dict) -> list[list[float]] | None:
+    value = _value(body, "box", None)
+    if value is None:
+        return None
+    corners = [[_finite(v) for v in c] if isinstance(c, list) else [] for c in value] if isinstance(value, list) else []
+    if len(corners) != 2 or any(len(c) != 3 or None in c for c in corners):
+        raise _wrong("box", "two corners of three finite numbers, [[x0, y0, z0], [x1, y1, z1]]", value)
+    return corners
+
+
+CHANGE_FIELDS = ("op", "key", "value")
+
+
+def _changes(body: dict) -> list[dict] | None:
+    """The list of changes, each an object with 'key' and 'value' (and 'op'); their values are checked
+    by the edit (`EditorSession.edit`), which names the key."""
+    from vq_mitsuba.models.material_edits import KEYS, OPS
+
+    value = _value(body, "changes", None)
+    if value is None:
+        return None
+    if not isinstance(value, list):
+        raise _wrong("changes", 'a list of changes, each {"key": ..., "value": ...}', value)
+    for i, change in enumerate(value):
+        field = f"changes[{i}]"
+        if not isinstance(change, dict):
+            raise _wrong(field, 'a change, an object {"key": ..., "value": ...}', change)
+        unknown = [k for k in change if k not in CHANGE_FIELDS]
+        if unknown:
+            raise InputError(None, f"'{field}' has an unknown field '{unknown[0]}' (a change has "
+                                   f"{', '.join(CHANGE_FIELDS)})")
+        for key in ("key", "value"):
+            if key not in change:
+                raise InputError(None, f"'{field}' is a change without '{key}': give 'key' and 'value'")
+        if not isinstance(change["key"], str):
+            raise _wrong(f"{field}.key", f"one of {', '.join(KEYS)}", change["key"])
+        if "op" in change and not isinstance(change["op"], str):
+            raise _wrong(f"{field}.op", f"one of {', '.join(OPS)}", change["op"])
+    return value
+
+
+def _texture_size(body: dict) -> int:
+    from vq_mitsuba.export.formats import check_texture_size
+
+    return check_texture_size(_value(body, "texture_size", 1024), "'texture_size'")
+
+
+def _select(s: EditorSession, b: dict) -> dict:
+    sel = s.select(materials=_materials(s, b), box=_box(b), pixel=_pixel(b), add=_flag(b, "add"))
+    return {"selection": sel.to_dict()}
+
+
+def _edit(s: EditorSession, b: dict) -> dict:
+    preset = _value(b, "preset", None)
+    if preset is not None and not isinstance(preset, str):
+        raise _wrong("preset", "the name of a library material (a string)", preset)
+    return {"label": s.edit(_changes(b), preset, _flag(b, "live")).label}
+
+
 def _save(s: EditorSession, b: dict) -> dict:
-    return {"path": str(s.save(str(b.get("name", ""))).dir)}
+    return {"path": str(s.save(_text(b, "name")).dir)}
 
 
+# action -> (the fields its body may hold, what it does with them)
 ACTIONS = {
-    "view": lambda s, b: s.set_view(_text(b, "name")),
-    "orbit": lambda s, b: s.orbit_view(_number(b, "yaw", 0), _number(b, "pitch", 0), _number(b, "zoom", 1)),
-    "mode": lambda s, b: s.set_mode(_text(b, "mode")),
-    "lighting": lambda s, b: s.set_lighting(str(b.get("envmap", "fitted")), _number(b, "rotate", 0),
-                                            _number(b, "exposure", 0)),
-    "select": _select,
-    "edit": lambda s, b: {"label": s.edit(b.get("changes"), b.get("preset"), bool(b.get("live", False))).label},
-    "undo": lambda s, b: s.undo(),
-    "redo": lambda s, b: s.redo(),
-    "save": _save,
-    "export": lambda s, b: s.export(str(b.get("name", "")), str(b.get("format", "")), b.get("texture_size", 1024)),
+    "view": (("name",), lambda s, b: s.set_view(_text(b, "name"))),
+    "orbit": (("yaw", "pitch", "zoom"),
+              lambda s, b: s.orbit_view(_number(b, "yaw", 0), _number(b, "pitch", 0), _number(b, "zoom", 1, 0.2, 5))),
+    "mode": (("mode",), lambda s, b: s.set_mode(_text(b, "mode"))),
+    "lighting": (("envmap", "rotate", "exposure"),
+                 lambda s, b: s.set_lighting(_text(b, "envmap", "fitted"), _number(b, "rotate", 0),
+                                             _number(b, "exposure", 0, -64, 64))),
+    "select": (("materials", "box", "pixel", "add"), _select),
+    "edit": (("changes", "preset", "live"), _edit),
+    "undo": ((), lambda s, b: s.undo()),
+    "redo": ((), lambda s, b: s.redo()),
+    "save": (("name",), _save),
+    "export": (("name", "format", "texture_size"),
+               lambda s, b: s.export(_text(b, "name"), _text(b, "format"), _texture_size(b))),
 }
+
+
+def check_fields(action: str, body: dict) -> None:
+    """Refuse a field the action does not take, naming the ones it does."""
+    fields = ACTIONS[action][0]
+    unknown = [k for k in body if k not in fields]
+    if unknown:
+        takes = f"takes {', '.join(fields)}" if fields else "takes no fields"
+        raise InputError(None, f"unknown field '{unknown[0]}' (/api/{action} {takes})")
 
 
 def make_server(session: EditorSession, host: str = DEFAULT_HOST, port: int = 8080) -> ThreadingHTTPServer:

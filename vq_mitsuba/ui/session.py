@@ -579,8 +579,10 @@ class EditorSession:
 def _numbers(key, value):
     """A change's value as a float, or three for a colour; ValueError naming the key otherwise."""
     try:
+        if any(isinstance(v, bool) for v in (value if isinstance(value, (list, tuple)) else [value])):
+            raise TypeError("true and false are not numbers")
         return tuple(float(v) for v in value) if isinstance(value, (list, tuple)) else float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
         raise ValueError(f"the value of '{key}' must be a number (three for a colour), got {value!r}") from None
 
 
