@@ -356,20 +356,31 @@ def presets() -> list[str]:
 
 
 def preset_path(name: str) -> Path:
-    """vq_mitsuba/presets/NAME.yaml; an InputError listing the presets when there is none of that name."""
-    path = PRESETS_DIR / f"{name}.yaml"
-    if not path.is_file():
+    """vq_mitsuba/presets/NAME.yaml; an InputError listing the presets when there is none of that name
+    (a name is one of `presets()`, never a path: '../presets/demo' is no preset)."""
+    if name not in presets():
         raise InputError(None, f"unknown preset '{name}' (presets: {', '.join(presets())})")
-    return path
+    return PRESETS_DIR / f"{name}.yaml"
 
 
 def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def _shown(value, limit: int = 60) -> str:
+    """`value` as a message quotes it: its text, cut short past `limit` characters (a value of a
+    hundred thousand aliased items is no message)."""
+    text = str(value)
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
+
+
 def _coerce(value, typ, key: str, source):
     if typ is str and isinstance(value, bool):  # YAML reads on / off (and yes / no) as booleans
         return "on" if value else "off"
+    if isinstance(value, (list, dict)):  # never the text of a list: "[30, 60]" would pass as a string
+        what = "a list" if isinstance(value, list) else "a mapping"
+        expects = "text" if typ is str else typ.__name__
+        raise InputError(source, f"'{key}' expects {expects}, got {what}: {_shown(value)}")
     if typ in (int, float) and isinstance(value, bool):  # YAML's true / false are not numbers
         raise InputError(source, f"'{key}' expects {typ.__name__}, got {str(value).lower()}")
     if typ is bool:
@@ -378,18 +389,18 @@ def _coerce(value, typ, key: str, source):
                 return True
             if value.lower() in ("0", "false", "no", "off"):
                 return False
-            raise InputError(source, f"'{key}' expects true/false, got '{value}'")
+            raise InputError(source, f"'{key}' expects true/false, got '{_shown(value)}'")
         return bool(value)
     try:
         if typ is int and isinstance(value, float) and not value.is_integer():
             raise ValueError
         out = typ(value)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(source, f"'{key}' expects {typ.__name__}, got '{value}'") from None
+        raise InputError(source, f"'{key}' expects {typ.__name__}, got '{_shown(value)}'") from None
     if typ is float and not math.isfinite(out):
-        raise InputError(source, f"'{key}' must be a finite number, got {value}")
+        raise InputError(source, f"'{key}' must be a finite number, got {_shown(value)}")
     if typ is int and abs(out) > MAX_INT:
-        raise InputError(source, f"'{key}' must be a whole number within +-{MAX_INT}, got {value}")
+        raise InputError(source, f"'{key}' must be a whole number within +-{MAX_INT}, got {_shown(value)}")
     return out
 
 
@@ -499,6 +510,9 @@ def parse_yaml(text: str, source) -> object:
         raise InputError(source, _yaml_error_text(exc)) from None
     except RecursionError:
         raise InputError(source, "invalid YAML: nested too deep") from None
+    except ValueError as exc:  # a value YAML reads as a number or a date that cannot be one
+        reason = "more than 4300 digits" if "integer string conversion" in str(exc) else str(exc)
+        raise InputError(source, f"invalid YAML: a number or date that cannot be read ({reason})") from None
 
 
 def read_yaml(path: str | Path, what: str = "a YAML file") -> object:
@@ -551,7 +565,7 @@ def _value_error(key: str, value, range_) -> str | None:
     if isinstance(range_, tuple):
         if value in range_:
             return None
-        return f"{key} must be one of {', '.join(repr(c) for c in range_)}, got {value!r}"
+        return f"{key} must be one of {', '.join(repr(c) for c in range_)}, got {_shown(repr(value))}"
     if isinstance(value, str):
         return None  # free text, parsed where it is used
     test, phrase = RANGES[range_]
@@ -599,10 +613,10 @@ def parse_overrides(overrides: list[str] | None) -> dict:
     nested: dict = {}
     for item in overrides or []:
         if "=" not in item:
-            raise InputError(None, f"--set expects key=value, got '{item}'")
+            raise InputError(None, f"--set expects key=value, got '{_shown(item)}'")
         key, value = item.split("=", 1)
         if not value.strip():
-            raise InputError(None, f"--set {item}: the value is empty (give one after '=')")
+            raise InputError(None, f"--set {_shown(item)}: the value is empty (give one after '=')")
         parts = key.strip().split(".")
         cur = nested
         for part in parts[:-1]:
