@@ -56,13 +56,16 @@ def _ray_processes() -> set[str]:
     return set(found.split())
 
 
+# a batch of one fit of a few seconds (about 70 steps a second on one core), checkpointed often
+BATCH = ["--set", "train.iterations=400", "--set", "train.batch_rays=64", "--set", "train.checkpoint_every=5",
+         "--set", "vq.enabled=false"]
+
+
 def _batch_with_a_checkpoint(capture, out: Path) -> subprocess.Popen:
-    """A batch of one long fit, in its own process, once that fit has written a checkpoint."""
+    """A batch of one fit, in its own process, once that fit has written its first checkpoint."""
     env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
     proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", "batch", str(capture), "-o", str(out), "--quiet",
-                             "--set", "train.iterations=100000", "--set", "train.batch_rays=64",
-                             "--set", "train.checkpoint_every=5", "--set", "vq.enabled=false"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                             *BATCH], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 180
     while not any(out.glob("*/checkpoint.pt")):
         if proc.poll() is not None or time.monotonic() > deadline:
@@ -72,7 +75,7 @@ def _batch_with_a_checkpoint(capture, out: Path) -> subprocess.Popen:
     return proc
 
 
-def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path):
+def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path, capsys):
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
     out = tmp_path / "batch"
     before = _ray_processes()
@@ -89,9 +92,16 @@ def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resu
     assert (out / "batch.json").is_file()  # stopped before its first run finished, and still a batch
     run = RunDir(next(out.glob("*-s0")))
     stopped_at = run.load_state()["step"]
-    assert cli.main(["batch", str(capture), "-o", str(out), "--quiet", "--set", "train.iterations=12",
-                     "--set", "train.batch_rays=64", "--set", "vq.enabled=false"]) == 0
-    assert run.fit_summary()["iterations"] == max(stopped_at, 12)  # resumed from its checkpoint, finished
+    assert 5 <= stopped_at < 400
+    # a rerun asking for other settings leaves the run as it is and says so, naming the key
+    other = [a.replace("=400", "=12") for a in BATCH]
+    assert cli.main(["batch", str(capture), "-o", str(out), "--quiet", *other]) == 1
+    err = capsys.readouterr().err
+    assert "refused" in err and "train.iterations=400 (asked 12)" in err, err
+    assert run.load_state()["step"] == stopped_at and not run.fit_summary()
+    # with its own settings it resumes from its checkpoint and finishes
+    assert cli.main(["batch", str(capture), "-o", str(out), "--quiet", *BATCH]) == 0
+    assert run.fit_summary()["iterations"] == 400 and run.fit_summary()["steps_this_call"] == 400 - stopped_at
 
 
 @pytest.mark.parametrize("args, message", [

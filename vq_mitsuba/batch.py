@@ -8,16 +8,21 @@ where the tasks run: on this machine's cores, or across a cluster with `--addres
 Resumable as a whole: `OUT/batch.json` records each finished run; a rerun skips them, and the
 others resume from their checkpoints. A fit process that dies by a signal (its worker killed, a
 machine lost) or stopped by SIGTERM / SIGINT fails its task as a `RunLost`, which Ray retries, and
-the retry resumes. A capture's bad input fails only its own run, with its message. At the end
-`OUT/summary.csv` and `OUT/summary.md` hold one row per run (its figures, time and status; the
-markdown with a novel view of each run, `OUT/views/<run>.png`, and its material sheet).
+the retry resumes. A capture's bad input fails only its own run, with its message. A run goes on
+only with its own settings: when the config a rerun asks for differs from the one in the run's
+config.yaml, the run is left as it is and reported `refused`, naming the keys that differ. At the
+end `OUT/summary.csv` and `OUT/summary.md` hold one row per run (its settings, figures, time and
+status; the markdown with a novel view of each run, `OUT/views/<run>.png`, and its material sheet).
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import dataclasses
+import hashlib
 import io
+import json
 import os
 import signal
 import subprocess
@@ -36,7 +41,10 @@ LOGS = "logs"  # OUT/logs/<run>.log: what each run's commands printed
 VIEWS = "views"  # OUT/views/<run>.png: one novel view of each finished run, for the summary
 VIEW_SIZE, VIEW_SPP = 256, 16  # the long side and samples per pixel of those views
 RETRIES = 3  # tries of a run whose process died by a signal
+LOCK_WAIT_S = 300.0  # how long a retry waits for the fit of the try before it to let go of the run
 MAX_SEED = 2 ** 32 - 1  # the seeds numpy, torch and Mitsuba all take
+SEED_KEYS = ("train.seed", "neus.seed")  # the keys the batch sets for each run's seed
+REFUSED = "refused"  # the status of a run whose settings differ from the ones a rerun asks for
 
 
 class RunLost(Exception):
@@ -111,17 +119,171 @@ def ground_truth_of(capture: str | Path) -> Path | None:
     return folder if (folder / DatasetDir.INFO).is_file() and (folder / DatasetDir.GT).is_dir() else None
 
 
+def fit_options(spec: RunSpec, fit_args: list[str]) -> list[str]:
+    """The options of the run's `fit` after its capture and folder: the batch's, the capture's own,
+    its seed and its preset."""
+    return [*fit_args, *spec.args, "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}",
+            *(["--preset", spec.preset] if spec.preset else [])]
+
+
+def _config_options() -> argparse.ArgumentParser:
+    """The fit options that make its config (those of `vq_mitsuba.cli.common`), the others left aside."""
+    p = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
+    p.add_argument("--preset")
+    p.add_argument("--config")
+    p.add_argument("--set", action="append", default=[])
+    for option in ("--downscale", "--max-size", "--background-color", "--holdout"):
+        p.add_argument(option)
+    return p
+
+
+def asked_config(spec: RunSpec, fit_args: list[str]):
+    """The config the run's `fit` would start a new run with (defaults <- preset <- --config <- the
+    capture options <- each --set); None when its options do not make one (the fit will say why)."""
+    from vq_mitsuba.config import load_config
+
+    try:
+        args, _ = _config_options().parse_known_args(fit_options(spec, fit_args))
+    except (SystemExit, argparse.ArgumentError):
+        return None
+    flags = [f"capture.{key}={getattr(args, key)}" for key in ("downscale", "max_size", "background_color", "holdout")
+             if getattr(args, key) is not None]
+    try:
+        return load_config(args.config, flags + args.set, preset=args.preset)
+    except UserError:
+        return None
+
+
+def own_config(run: RunDir):
+    """The run's own config (its config.yaml, which it has from the start of its material fit); None
+    without one, or when it cannot be read (the fit will say why)."""
+    try:
+        return run.config() if run.saved_config() is not None else None
+    except UserError:
+        return None
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _shown(value) -> str:
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+def changed_settings(own, asked) -> list[str]:
+    """`key=<the run's value> (asked <value>)` for each key whose value differs, in the config's order."""
+    from vq_mitsuba.config import to_dict
+
+    mine, theirs = _flat(to_dict(own)), _flat(to_dict(asked))
+    keys = list(mine) + [k for k in theirs if k not in mine]
+    return [f"{k}={_shown(mine.get(k))} (asked {_shown(theirs.get(k))})" for k in keys if mine.get(k) != theirs.get(k)]
+
+
+def settings_digest(cfg) -> str:
+    """Eight hex digits of the config without its seeds: runs that share them have the same settings."""
+    from vq_mitsuba.config import to_dict
+
+    flat = {k: v for k, v in _flat(to_dict(cfg)).items() if k not in SEED_KEYS}
+    return hashlib.sha256(json.dumps(flat, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def refuse_changed_settings(out: Path, specs: list[RunSpec], fit_args: list[str], status: dict) -> set[str]:
+    """Mark `refused` (in `status`) every run whose config.yaml differs from what this call asks for,
+    naming the keys: a run goes on only with its own settings. Returns their names."""
+    refused = set()
+    for spec in specs:
+        own = own_config(RunDir(out / spec.name))
+        asked = asked_config(spec, fit_args) if own is not None else None
+        changes = changed_settings(own, asked) if asked is not None else []
+        if not changes:
+            continue
+        more = f" and {len(changes) - 4} more" if len(changes) > 4 else ""
+        status[spec.name] = {**status.get(spec.name, {}), "status": REFUSED, "message": (
+            f"its settings differ from this call's: {', '.join(changes[:4])}{more}; the run is left as it is: "
+            "rerun with its own settings, or fit the new ones into another -o")}
+        refused.add(spec.name)
+    return refused
+
+
+def this_node() -> str:
+    """The Ray node a task runs on, as its IP address and the start of its id ('' outside Ray)."""
+    try:
+        import ray
+
+        if not ray.is_initialized():
+            return ""
+        return f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
+    except Exception:  # noqa: BLE001 - a name to show, nothing depends on it
+        return ""
+
+
+def _wait_while_locked(run: Path, log: io.TextIOBase) -> None:
+    """Wait (LOCK_WAIT_S at most) while another process holds the run: above all the fit of an earlier
+    try, whose worker or node was lost, writing its checkpoint on its way out."""
+    try:
+        import fcntl
+    except ImportError:
+        return
+    deadline, said = time.monotonic() + LOCK_WAIT_S, False
+    while time.monotonic() < deadline:
+        try:
+            fd = os.open(run / RunDir.LOCK, os.O_RDONLY)
+        except OSError:
+            return  # no lock file: nobody holds the run
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if not said:
+                log.write(f"# {run.name} is held by another process (an earlier try ending?); waiting for it\n")
+                log.flush()
+                said = True
+        finally:
+            os.close(fd)
+        time.sleep(1.0)
+
+
+def _earlier_tries(log_path: Path, call: str) -> list[str]:
+    """The nodes of the earlier tries of this run in this batch call (its log's try lines)."""
+    mark = f"# batch {call}: try on "
+    try:
+        return [line[len(mark):].strip() for line in log_path.read_text().splitlines() if line.startswith(mark)]
+    except OSError:
+        return []
+
+
+def _retry_note(run: RunDir, node: str, earlier: list[str]) -> str:
+    """What happened to a run that needed more than one try: where they ran, and the step it resumed from."""
+    fit = run.fit_summary()
+    resumed = fit.get("iterations", 0) - fit.get("steps_this_call", 0)
+    tries = "try" if len(earlier) == 1 else "tries"
+    return (f"retried: {len(earlier)} earlier {tries} lost (on {', '.join(earlier)}); finished on {node or 'a node'}"
+            + (f", resumed from its checkpoint at step {resumed}" if resumed > 0 else ""))
+
+
 def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate: bool,
-            eval_args: list[str] = ()) -> dict:
-    """One run (a Ray task's body): fit (resuming what the folder holds), then eval when asked."""
+            eval_args: list[str] = (), call: str = "") -> dict:
+    """One run (a Ray task's body): fit (resuming what the folder holds), then eval when asked. Each
+    try writes the node it runs on into the run's log, so that a retry (`call`: this batch call)
+    can say which tries before it were lost."""
     start = time.time()
     run = Path(out) / spec.name
-    (Path(out) / LOGS).mkdir(parents=True, exist_ok=True)
-    with open(Path(out) / LOGS / f"{spec.name}.log", "a") as log:
-        argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads), *fit_args, *spec.args,
-                "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}"]
-        if spec.preset:
-            argv += ["--preset", spec.preset]
+    log_path = Path(out) / LOGS / f"{spec.name}.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    earlier, node = _earlier_tries(log_path, call), this_node()
+    with open(log_path, "a") as log:
+        log.write(f"# batch {call}: try on {node or 'this machine'}\n")
+        log.flush()
+        _wait_while_locked(run, log)
+        argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads),
+                *fit_options(spec, fit_args)]
         if RunDir(run).holds_run_files():  # an interrupted run: its poses, NeuS and checkpoint go on
             argv.append("--resume")
         code, message = _command(argv, log)
@@ -132,7 +294,10 @@ def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate
                                      + (["--gt", str(gt)] if gt else []), log)
             if code != 0:
                 row = {"status": "eval failed", "message": message}
-    return {**row, "wall_s": round(time.time() - start, 1)}
+    if earlier and row["status"] == "done":
+        row["message"] = _retry_note(RunDir(run), node, earlier)
+    return {**row, "wall_s": round(time.time() - start, 1), "node": node, "tries": len(earlier) + 1,
+            "nodes": [*earlier, node]}
 
 
 def preview_camera(run: RunDir):
@@ -176,8 +341,12 @@ def write_previews(out: Path, specs: list[RunSpec], status: dict, progress: bool
 
 
 def figures(run: RunDir) -> dict:
-    """A finished run's headline figures, read through RunDir (missing ones left out)."""
+    """A run's own settings (its train.iterations and `settings_digest`) and a finished run's headline
+    figures, read through RunDir (missing ones left out)."""
     out = {}
+    own = own_config(run)
+    if own is not None:
+        out.update(train_iterations=own.train.iterations, settings=settings_digest(own))
     fit = run.fit_summary() if run.dir.is_dir() else {}
     for key in ("iterations", "seconds", "final_psnr_train_batch"):
         if key in fit:
@@ -194,8 +363,9 @@ def figures(run: RunDir) -> dict:
     return out
 
 
-COLUMNS = ["run", "capture", "preset", "seed", "status", "message", "wall_s", "iterations", "seconds",
-           "final_psnr_train_batch", "materials", "novel_view_psnr", "basecolor_psnr"]
+COLUMNS = ["run", "capture", "preset", "seed", "train_iterations", "settings", "status", "message", "wall_s",
+           "node", "tries", "iterations", "seconds", "final_psnr_train_batch", "materials", "novel_view_psnr",
+           "basecolor_psnr"]
 
 
 def write_summary(out: Path, specs: list[RunSpec], status: dict) -> None:
@@ -204,7 +374,7 @@ def write_summary(out: Path, specs: list[RunSpec], status: dict) -> None:
     for spec in specs:
         record = status.get(spec.name, {"status": "not run"})
         rows.append({"run": spec.name, "capture": spec.capture, "preset": spec.preset or "", "seed": spec.seed,
-                     **{k: record.get(k, "") for k in ("status", "message", "wall_s")},
+                     **{k: record.get(k, "") for k in ("status", "message", "wall_s", "node", "tries")},
                      **figures(RunDir(out / spec.name))})
     text = io.StringIO()
     writer = csv.DictWriter(text, COLUMNS, extrasaction="ignore")
@@ -217,17 +387,33 @@ def write_summary(out: Path, specs: list[RunSpec], status: dict) -> None:
         return fmt.format(value) if isinstance(value, float) else str(value).replace("|", "/").replace("\n", " ")
 
     done = sum(r["status"] == "done" for r in rows)
-    lines = [f"# Batch: {done} of {len(rows)} runs done", "",
-             "| run | status | M | novel view PSNR | basecolor PSNR | fit s | a novel view | material sheet |",
-             "|---|---|---|---|---|---|---|---|"]
+    nodes = sorted({n for r in rows for n in (status.get(r["run"], {}).get("nodes") or [r.get("node")]) if n})
+    retried = [r["run"] for r in rows if isinstance(r.get("tries"), int) and r["tries"] > 1]
+    lines = [f"# Batch: {done} of {len(rows)} runs done", ""]
+    if nodes:
+        lines += [f"Ray nodes the runs ran on: {', '.join(nodes)}; " + (
+            f"{len(retried)} run{'s' if len(retried) > 1 else ''} needed more than one try, the earlier ones lost "
+            f"with their worker or node ({', '.join(retried)}: see the status)." if retried
+            else "no run needed a second try."), ""]
+    lines += ["Iterations: the steps a run did of its own train.iterations; settings: a digest of its config.yaml "
+              "without the seeds (runs that share it were fitted with the same settings).", "",
+              "| run | status | iterations | settings | M | novel view PSNR | basecolor PSNR | fit s | node "
+              "| a novel view | material sheet |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def picture(path: Path) -> str:
         return f'<img src="{path}" width="200">' if (out / path).is_file() else ""
 
+    def iterations(row) -> str:
+        if row.get("train_iterations", "") == "":
+            return cell(row, "iterations")
+        return f"{row.get('iterations', '-')} of {row['train_iterations']}"
+
     for row in rows:
         status = row["status"] + (f": {cell(row, 'message')}" if row.get("message") else "")
-        lines.append(f"| {row['run']} | {status} | {cell(row, 'materials')} | {cell(row, 'novel_view_psnr')} | "
-                     f"{cell(row, 'basecolor_psnr')} | {cell(row, 'seconds', '{:.0f}')} | "
+        lines.append(f"| {row['run']} | {status} | {iterations(row)} | {cell(row, 'settings')} | "
+                     f"{cell(row, 'materials')} | {cell(row, 'novel_view_psnr')} | "
+                     f"{cell(row, 'basecolor_psnr')} | {cell(row, 'seconds', '{:.0f}')} | {cell(row, 'node')} | "
                      f"{picture(Path(VIEWS) / (row['run'] + '.png'))} | {picture(Path(row['run']) / RunDir.SHEET)} |")
     write_atomic(out / "summary.md", lambda tmp: tmp.write_text("\n".join(lines) + "\n"))
 
@@ -323,15 +509,17 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
     out = Path(out)
     specs = plan(list(captures), list(seeds), list(presets), capture_args)
     status = check_output(out)
-    todo = [s for s in specs
-            if status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file()]
+    refused = refuse_changed_settings(out, specs, list(fit_args), status)
+    todo = [s for s in specs if s.name not in refused and (
+            status.get(s.name, {}).get("status") != "done" or not (out / s.name / RunDir.FIT).is_file())]
     ray, started = _start_ray(address, cpus, threads)  # before OUT exists: a failed start leaves nothing
     watchdog = _watch_ray() if started and not address else None
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / STATUS, {"runs": status})  # the folder is the batch's from here: a rerun resumes it
         task = ray.remote(run_one).options(num_cpus=threads, max_retries=RETRIES, retry_exceptions=[RunLost])
-        pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate, list(eval_args)): s
+        call = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"  # this call's tries in the runs' logs
+        pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate, list(eval_args), call): s
                    for s in todo}
         _gather(ray, pending, out, specs, status, progress, skipped=len(specs) - len(todo))
     finally:

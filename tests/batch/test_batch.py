@@ -98,6 +98,63 @@ def test_a_batch_evaluates_held_out_views_and_shows_one(local_ray, captures, tmp
     assert (out / "views" / "sphere_a-s0.png").is_file()
 
 
+def test_a_rerun_with_other_settings_refuses_the_runs_it_would_change_and_the_summary_shows_each_runs_own(
+        local_ray, captures, tmp_path):
+    """A rerun asking for other settings than a run's own (here train.iterations) leaves that run as
+    it is and says so, naming the key; a new run takes the new settings; the summary shows each
+    run's own iterations and a digest of its settings."""
+    out = tmp_path / "batch"
+    assert run_batch(captures[:1], out, seeds=[0], fit_args=QUICK, progress=False)[0]["status"] == "done"
+    fewer = [*QUICK, "--set", "train.iterations=4"]
+    rows = {r["run"]: r for r in run_batch(captures[:2], out, seeds=[0], fit_args=fewer, progress=False)}
+    kept = rows["sphere_a-s0"]
+    assert kept["status"] == "refused", kept
+    assert "train.iterations=6 (asked 4)" in kept["message"] and "batch_rays" not in kept["message"]
+    assert rows["sphere_b-s0"]["status"] == "done", rows
+    assert RunDir(out / "sphere_a-s0").load_state()["step"] == 6 and len(_fits_started(out, "sphere_a-s0")) == 1
+    assert RunDir(out / "sphere_b-s0").load_state()["step"] == 4
+    assert json.loads((out / "batch.json").read_text())["runs"]["sphere_a-s0"]["status"] == "refused"
+    with open(out / "summary.csv") as f:
+        table = {r["run"]: r for r in csv.DictReader(f)}
+    assert (table["sphere_a-s0"]["train_iterations"], table["sphere_a-s0"]["iterations"]) == ("6", "6")
+    assert (table["sphere_b-s0"]["train_iterations"], table["sphere_b-s0"]["iterations"]) == ("4", "4")
+    digests = {name: row["settings"] for name, row in table.items()}
+    assert all(len(d) == 8 for d in digests.values()) and digests["sphere_a-s0"] != digests["sphere_b-s0"]
+    summary_md = (out / "summary.md").read_text()
+    assert "| sphere_a-s0 | refused: its settings differ" in summary_md and "| 6 of 6 |" in summary_md
+    assert "| 4 of 4 |" in summary_md
+    # asked again with its own settings, the run is done again, as it was
+    again = {r["run"]: r for r in run_batch(captures[:1], out, seeds=[0], fit_args=QUICK, progress=False)}
+    assert again["sphere_a-s0"]["status"] == "done" and RunDir(out / "sphere_a-s0").load_state()["step"] == 6
+
+
+def test_a_try_waits_for_the_process_still_holding_its_run(captures, tmp_path):
+    """The fit of a try whose worker or node was lost may still be writing its checkpoint when the
+    retry starts: the retry waits for it to let go of the run rather than fail on its lock."""
+    from vq_mitsuba.batch import run_one
+    from vq_mitsuba.run.lock import RunLock
+
+    out = tmp_path / "batch"
+    spec = plan(captures[:1], [0], [None])[0]
+    log = out / "logs" / f"{spec.name}.log"
+    held = threading.Event()
+
+    def earlier_try():  # ends once the try has seen it (or after 60 s)
+        with RunLock(out / spec.name / RunDir.LOCK, "fit"):
+            held.set()
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not (log.is_file() and "held by another" in log.read_text()):
+                time.sleep(0.05)
+
+    holder = threading.Thread(target=earlier_try)
+    holder.start()
+    held.wait(10)
+    record = run_one(spec, str(out), QUICK, 1, False, call="c")
+    holder.join()
+    assert record["status"] == "done", record
+    assert RunDir(out / spec.name).load_state()["step"] == 6
+
+
 def _parent_pid(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
 
