@@ -51,6 +51,109 @@ def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path,
     assert (run / RunDir.MESH).is_file() and (run / RunDir.GEOMETRY).is_file()
 
 
+def _stop_when(proc: subprocess.Popen, ready, what: str, timeout: float = 180) -> bytes:
+    """SIGTERM to `proc` once `ready()`; its stderr once it has ended."""
+    try:
+        deadline = time.monotonic() + timeout
+        while not ready():
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"{what} was not reached: {proc.communicate()}")
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    return err
+
+
+def _stopped_cleanly(proc: subprocess.Popen, err: bytes) -> None:
+    assert proc.returncode == 143, err[-2000:]
+    assert b"Traceback" not in err and b"stack trace" not in err and b"SIGTERM" not in err, err[-2000:]
+    assert err.decode().strip().splitlines()[-1].startswith("interrupted"), err[-2000:]
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory):
+    """24 photos of a textured scene around it, without poses (the SfM tests' own)."""
+    from orbit_photos import write_photos
+
+    folder = tmp_path_factory.mktemp("orbit") / "photos"
+    write_photos(folder, n=24)
+    return folder
+
+
+@pytest.mark.parametrize("command", ["pose", "fit"])
+def test_a_signal_during_structure_from_motion_leaves_no_half_pose_and_says_how_to_go_on(photos, tmp_path,
+                                                                                        monkeypatch, command):
+    """SIGTERM while COLMAP poses the photos (`pose`, or `fit` of a photo folder): exit 143 without a
+    stack dump, no half-written model or scratch folder, the run's lock released, and a last line
+    that says what was kept and how to go on; `fit` run again as it says poses the photos and goes
+    on to the next stages (stand-ins here: NeuS and the material fit have their own tests)."""
+    import vq_mitsuba.engine.pipeline as pipeline
+    from vq_mitsuba.config import load_config
+
+    out = tmp_path / ("posed" if command == "pose" else "run")
+    scratch = out.parent / ".posed.pose-tmp" if command == "pose" else out / f".{RunDir.POSE}.pose-tmp"
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-m", "vq_mitsuba.cli", command, str(photos), "-o", str(out), "--quiet"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    err = _stop_when(proc, lambda: (scratch / "database.db").is_file(), "structure from motion")
+    _stopped_cleanly(proc, err)
+    assert not scratch.exists() and not (out / "sparse").exists() and not (out / RunDir.POSE).exists()
+    assert not out.exists()  # nothing was written yet, and the folder the command made is gone
+    if command == "pose":
+        assert b"nothing half-written is kept (run the same command again)" in err
+        return
+    assert b"nothing was kept yet (run the same command again, without --resume)" in err
+    seen = []
+    monkeypatch.setattr(pipeline, "ensure_geometry", lambda capture, run, *a, **k: seen.append(capture) or
+                        run / RunDir.MESH)
+    monkeypatch.setattr(pipeline, "fit_materials", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
+    pipeline.fit_capture(photos, out, load_config(None, []), progress=False, log=lambda line: None)
+    assert [c.source for c in seen] == [out / RunDir.POSE] * 2 and (out / RunDir.POSE_SUMMARY).is_file()
+
+
+# the residual made to run until a signal ends it (no early stop, no bound by the pool's size); a file
+# tells when its steps have begun
+_LONG_RESIDUAL = """
+import sys
+from pathlib import Path
+import vq_mitsuba.engine.residual_fit as residual_fit
+residual_fit.PATIENCE = residual_fit.MAX_EPOCHS = 10 ** 9
+radiance = residual_fit.physical_radiance
+def physical_radiance(*args, **kwargs):
+    out = radiance(*args, **kwargs)
+    Path(sys.argv[1]).touch()
+    return out
+residual_fit.physical_radiance = physical_radiance
+from vq_mitsuba import cli
+sys.exit(cli.main(sys.argv[2:]))
+"""
+
+
+def test_a_signal_during_the_residual_keeps_the_material_fit_and_the_run_resumes(tmp_path):
+    """SIGTERM while the residual is fitted, after the material fit's last step: exit 143 without a
+    stack dump, the material fit's checkpoint kept at its last step and no residual written; `fit
+    --resume` trains no step again and fits the residual."""
+    capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    run = RunDir(tmp_path / "run")
+    started = tmp_path / "residual-started"
+    quick = ["--set", "train.iterations=8", "--set", "train.batch_rays=64", "--set", "vq.enabled=false"]
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).resolve().parents[2])}
+    proc = subprocess.Popen([sys.executable, "-c", _LONG_RESIDUAL, str(started), "fit", str(capture), "-o",
+                             str(run.dir), "--quiet", *quick, "--set", "residual.iterations=100000"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    err = _stop_when(proc, started.is_file, "the residual")
+    _stopped_cleanly(proc, err)
+    assert not (run / RunDir.LOCK).exists() and not (run / RunDir.RESIDUAL).exists() and not run.fit_summary()
+    assert run.load_state()["step"] == 8
+    assert cli.main(["fit", str(capture), "-o", str(run.dir), "--resume", "--quiet", *quick,
+                     "--set", "residual.iterations=50"]) == 0
+    summary = run.fit_summary()
+    assert summary["steps_this_call"] == 0 and summary["iterations"] == 8 and summary["residual"]["iterations"] > 0
+    assert run.residual_state(8) is not None
+
+
 def _ray_processes() -> set[str]:
     found = subprocess.run(["pgrep", "-f", "raylet|gcs_server|ray::"], capture_output=True, text=True).stdout
     return set(found.split())

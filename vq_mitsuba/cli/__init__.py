@@ -104,6 +104,23 @@ def _warnings_as_messages():
         yield
 
 
+def _kept(args) -> str:
+    """What a command stopped by a signal kept, and how to go on from there."""
+    if args.command == "batch":
+        return "; finished runs and checkpoints are kept (run the same command again to resume)"
+    if args.command == "pose":
+        return "; nothing half-written is kept (run the same command again)"
+    if args.command not in ("fit", "geometry"):
+        return ""
+    try:
+        folder = _run_dir(args, args.command)
+    except UserError:
+        folder = None
+    if folder is not None and not folder.is_dir():  # stopped before anything was written (e.g. while posing)
+        return "; nothing was kept yet (run the same command again, without --resume)"
+    return f"; the last checkpoint is kept (continue with `vq-mitsuba {args.command} ... --resume`)"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
@@ -131,10 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt as exc:
-        kept = {"batch": "; finished runs and checkpoints are kept (run the same command again to resume)"}
-        kept.update({c: f"; the last checkpoint is kept (continue with `vq-mitsuba {c} ... --resume`)"
-                     for c in ("fit", "geometry")})
-        print("interrupted" + kept.get(args.command, ""), file=sys.stderr)
+        print("interrupted" + _kept(args), file=sys.stderr)
         from vq_mitsuba.run.loop import stop_status
 
         return stop_status(exc)  # 130 for SIGINT, 143 for SIGTERM
