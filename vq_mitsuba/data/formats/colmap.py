@@ -76,10 +76,6 @@ def _colmap_views(folder: Path) -> tuple[list[Camera], list[Path], list[Path | N
     image_dir = folder / "images"
     if not image_dir.is_dir():
         raise InputError(image_dir, "missing: a COLMAP capture keeps its photos in images/")
-    images_file = model / ("images.bin" if (model / "cameras.bin").is_file() else "images.txt")  # as read_colmap
-    raise_all([InputError(image_dir / img.name, f"image missing: {images_file.name} registers it but images/ has "
-                                                "no such file") for img in registered
-               if not (image_dir / img.name).is_file()], image_dir)  # before the masks, which then look partial
     cameras, paths, masks, used = [], [], [], []
     for img in registered:
         lens = lenses[img.camera_id]
@@ -93,6 +89,10 @@ def _colmap_views(folder: Path) -> tuple[list[Camera], list[Path], list[Path | N
         masks.append(mask)
         used.append(lens)
     if any(m is not None for m in masks) and not all(m is not None for m in masks):
+        # a photo missing with its mask is the photo missing, not a mask
+        images_file = model / ("images.bin" if (model / "cameras.bin").is_file() else "images.txt")  # as read_colmap
+        raise_all([InputError(p, f"image missing: {images_file.name} registers it but images/ has no such file")
+                   for p, m in zip(paths, masks) if m is None and not p.is_file()], image_dir)
         missing = next(p for p, m in zip(paths, masks) if m is None)
         raise InputError(folder / "masks", f"has masks for some images but not for {missing.name}: "
                                            "give every image a mask or none")
