@@ -257,8 +257,6 @@ class NeuSConfig:
                                      "rays gained under 0.05 dB over this many seconds (0: never)", ">=0")
     error_share: float = setting(0.5, "share of each batch's rays drawn by a running per-tile error map (importance "
                                       "weighted)", "[0,1)")
-    band: bool = setting(True, "once the finer levels are open, samples start past cells whose SDF is well outside "
-                               "the surface")
     batch_rays: int = setting(0, "rays per step, drawn from all views (0: auto, 512 on a CPU, more on a GPU)", ">=0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
     lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", "(0,1]")

@@ -1,6 +1,5 @@
-"""Where NeuS spends its steps: rays drawn by a running error map (unbiased by their weights), the
-held-aside rays' plateau that ends training after a final decay, and samples in a band about the
-surface once it is found."""
+"""Where NeuS spends its steps: rays drawn by a running error map (unbiased by their weights), and the
+held-aside rays' plateau that ends training after a final decay."""
 
 from __future__ import annotations
 
@@ -107,28 +106,3 @@ def test_a_rising_held_aside_score_trains_to_the_time_limit(monkeypatch):
     monkeypatch.setattr(NeuSTraining, "held_aside_psnr", lambda self, lw: float(next(score)))
     summary = train(neus, None, progress=False)
     assert summary["stopped_by_time"] and not summary["stopped_by_plateau"]
-
-
-def test_the_band_starts_the_rays_near_the_surface_and_keeps_it_inside_their_intervals(monkeypatch):
-    capture = sphere_capture(n_views=6, size=24)
-    neus = neus_for(capture, small_cfg(iterations=1))
-    radius = 0.6 * 0.5 / neus.half  # an SDF whose surface lies well inside the object's hull (box units)
-
-    class Sphere(torch.nn.Module):
-        def forward(self, p, lw):
-            return p.norm(dim=-1) - radius, None
-
-    monkeypatch.setattr(neus.model, "sdf", Sphere())
-    lw = neus.level_weights(1.0)
-    o, d = neus.rays_o, neus.rays_d
-    b = (o * d).sum(-1)
-    disc = b * b - ((o * o).sum(-1) - radius ** 2)
-    hits = disc > 0
-    t_hit = (-b - disc.clamp(min=0).sqrt())[hits]
-    lengths = {}
-    for band in (False, True):
-        neus.refresh_occupancy(lw, band=band)
-        near, far = neus.intervals(o, d)
-        assert bool((near[hits] <= t_hit).all() and (far[hits] >= t_hit).all())  # the surface is inside
-        lengths[band] = float((far - near)[hits].mean())
-    assert lengths[True] < 0.7 * lengths[False]

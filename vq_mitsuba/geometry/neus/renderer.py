@@ -189,28 +189,18 @@ class NeuS:
 
     # ---- occupancy
     @torch.no_grad()
-    def refresh_occupancy(self, level_weights, band: bool = False, chunk: int = 65536) -> None:
-        """Mark the dilated hull's cells whose SDF is below -margin as deep inside (ray intervals end
-        there) and, with `band`, those whose SDF is above +margin (dilated back by a cell) as empty
-        (ray intervals start past them): the samples gather in a band about the surface, which then
-        moves outwards by at most the margin between refreshes (`NeuSTraining` asks for the band
-        once the surface is found)."""
+    def refresh_occupancy(self, level_weights, chunk: int = 65536) -> None:
+        """Mark hull cells whose SDF is below -margin as deep inside (ray intervals end there)."""
         res = self.cfg.hull_resolution
-        cells = self.hull_dilated.nonzero()
+        cells = self.hull.nonzero()
         p = (cells.float() + 0.5) / res * 2.0 - 1.0
         sdf = torch.cat([self.model.sdf(p[i:i + chunk], level_weights)[0] for i in range(0, len(p), chunk)])
         margin = 3.0 * 2.0 / res
-        flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
         deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
+        flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
         deep[flat] = sdf < -margin
-        self.deep = deep.reshape(res, res, res) & self.hull
-        occupied = self.hull_dilated
-        if band:
-            near = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
-            near[flat] = sdf <= margin
-            near = F.max_pool3d(near.reshape(1, 1, res, res, res).float(), 3, stride=1, padding=1)[0, 0] > 0.5
-            occupied = occupied & near
-        self.codes = occupied.to(torch.uint8) + (self.deep & occupied).to(torch.uint8)
+        self.deep = deep.reshape(res, res, res)
+        self.codes = self.hull_dilated.to(torch.uint8) + (self.deep & self.hull_dilated).to(torch.uint8)
         # Each batch's ray intervals are marched when drawn: caching them for every training ray
         # costs minutes and gigabytes per refresh on a capture of many large photos.
 

@@ -254,7 +254,7 @@ class NeuSTraining:
                               points_loss]).detach()
         self.pending.append((step, round(self.loop.clock(), 3), losses))
         if cfg.occupancy_every > 0 and step % cfg.occupancy_every == 0:
-            neus.refresh_occupancy(lw, band=cfg.band and p.share >= cfg.coarse_to_fine)
+            neus.refresh_occupancy(lw)
         if step % HISTORY_EVERY == 0:  # with the progress bar
             self.read_history()
             h = self.history[-1]
