@@ -89,6 +89,8 @@ def parse_body(raw: bytes) -> dict:
         body = json.loads(raw or b"{}", parse_constant=_refuse_constant, parse_float=_finite_float)
     except (json.JSONDecodeError, UnicodeDecodeError):
         raise InputError(None, "the request body is not JSON") from None
+    except RecursionError:  # [[[[... within MAX_BODY: deeper than the parser goes
+        raise InputError(None, "the request body nests lists or objects too deep") from None
     if not isinstance(body, dict):
         raise InputError(None, "the request body is not a JSON object")
     return body
