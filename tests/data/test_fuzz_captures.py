@@ -552,6 +552,7 @@ file_damage = st.one_of(
     st.tuples(st.just("swap"), st.integers(0, 40)),
     st.tuples(st.just("size"), st.sampled_from([0, 1, 7, 9, 65535, 2 ** 31 - 1, 2 ** 32 - 1]),
               st.sampled_from([0, 1, 5, 65535, 2 ** 31 - 1, 2 ** 32 - 1])),  # a PNG's header size
+    st.tuples(st.just("nest"), st.sampled_from([b"[", b'{"a": ', b"<a>"])),  # nested 50000 deep
 )
 
 
@@ -573,6 +574,8 @@ def _damaged(data: bytes, damage, files) -> bytes:
         return b""
     if kind == "swap":
         return files[damage[1] % len(files)].read_bytes()
+    if kind == "nest":
+        return damage[1] * 50000
     if data[12:16] != b"IHDR":  # "size" changes only a PNG
         return data
     ihdr = struct.pack(">II", damage[1], damage[2]) + data[24:29]
@@ -674,6 +677,29 @@ def test_json_values_beyond_a_float_and_keys_given_twice_are_refused(tmp_path, t
     with pytest.raises(InputError, match=re.escape(words)) as refused:
         load_capture(tmp_path / "transforms_train.json")
     assert refused.value.path == tmp_path / "transforms_train.json"
+
+
+def test_json_nested_deeper_than_the_parser_goes_is_refused_by_name(tmp_path):
+    """Found by the damaged-file fuzz: a transforms json of 50000 nested lists ended in RecursionError.
+    The other json files a user may hand the tool (a dataset's scene.json for `eval --gt`, a run's
+    run.json) are refused alike."""
+    from vq_mitsuba.data.dataset_dir import DatasetDir
+    from vq_mitsuba.run.run_dir import RunDir
+
+    deep = "[" * 50000
+    (tmp_path / "transforms_train.json").write_text('{"frames": ' + deep)
+    with pytest.raises(InputError, match="nested too deep") as refused:
+        load_capture(tmp_path / "transforms_train.json")
+    assert refused.value.path == tmp_path / "transforms_train.json"
+    dataset = DatasetDir(tmp_path)
+    dataset.info_path.write_text(deep)
+    with pytest.raises(InputError, match="nested too deep") as refused:
+        dataset.info()
+    assert refused.value.path == dataset.info_path
+    (tmp_path / RunDir.INFO).write_text(deep)
+    with pytest.raises(InputError, match="nested too deep") as refused:
+        RunDir(tmp_path).info()
+    assert refused.value.path == tmp_path / RunDir.INFO
 
 
 def test_a_name_longer_than_the_file_system_takes_is_refused_by_name(tmp_path, capsys):

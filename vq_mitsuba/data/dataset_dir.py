@@ -187,7 +187,7 @@ class DatasetDir:
         if not (self.dir / self.INCOMPLETE).is_file():
             try:
                 meta = json.loads(self.info_path.read_text())
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
                 meta = exc
             if not isinstance(meta, dict) or not {"name", "resolution"} <= meta.keys():
                 why = f"cannot be read ({meta})" if isinstance(meta, Exception) else "is not make-scene's"
@@ -230,6 +230,8 @@ class DatasetDir:
             meta = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise InputError(path, f"not valid JSON ({exc})") from None
+        except RecursionError:  # [[[[... deeper than the parser goes
+            raise InputError(path, "not valid JSON (lists or objects nested too deep)") from None
         if not isinstance(meta, dict):
             raise InputError(path, "expected a JSON object (the dataset's description)")
         relight = meta.get("relight")

@@ -148,6 +148,8 @@ def read_json(path: Path, missing: str) -> dict:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(path, f"not valid JSON ({exc})") from None
+    except RecursionError:  # [[[[... deeper than the parser goes
+        raise InputError(path, "not valid JSON (lists or objects nested too deep)") from None
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object")
     return data

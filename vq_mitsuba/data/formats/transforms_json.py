@@ -59,6 +59,8 @@ def read_json(path: Path) -> dict:
         data = json.loads(text, object_pairs_hook=_once_each)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"malformed json at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+    except RecursionError:  # [[[[... deeper than the parser goes
+        raise InputError(path, "malformed json: lists or objects nested too deep") from None
     except _KeyTwice as exc:
         raise InputError(path, f"malformed json: '{exc.args[0]}' is given twice in one object (which value is "
                                "meant?); each key may appear once") from None
