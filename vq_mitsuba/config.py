@@ -251,12 +251,10 @@ class NeuSConfig:
     seed: int = setting(0, "seed of the networks, ray batches and sample jitter")
     iterations: int = setting(0, "training steps (0: none, the time limit and the plateau end training; with no time "
                                  "limit 2 passes over the training rays within 4000-11000)", ">=0")
-    time_limit_s: float = setting(600.0, "training seconds; the learning rate decays over them when neus.iterations is 0 "
+    time_limit_s: float = setting(480.0, "training seconds; the learning rate decays over them when neus.iterations is 0 "
                                          "(0: no limit)", ">=0")
     plateau_s: float = setting(60.0, "end training, after a short decay of the learning rate, once the held-aside "
                                      "rays gained under 0.05 dB over this many seconds (0: never)", ">=0")
-    error_share: float = setting(0.5, "share of each batch's rays drawn by a running per-tile error map (importance "
-                                      "weighted)", "[0,1)")
     batch_rays: int = setting(0, "rays per step, drawn from all views (0: auto, 512 on a CPU, more on a GPU)", ">=0")
     n_samples: int = setting(24, "stratified samples per ray inside its occupied interval", ">0")
     lr: float = setting(1e-2, "Adam learning rate of the feature grids and the colour network", "(0,1]")

@@ -21,7 +21,7 @@ from vq_mitsuba.geometry.neus.framing import bounding_sphere, box_footprint_px, 
 from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
 from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, MASKED_GRID, SDF_LAYERS,
                                              SDF_LAYERS_FINE)
-from vq_mitsuba.geometry.neus.renderer import ERROR_TILE_PX, Box, NeuS, TrainingRays, _threads, encode_srgb
+from vq_mitsuba.geometry.neus.renderer import Box, NeuS, TrainingRays, _threads, encode_srgb
 from vq_mitsuba.backend import torch_device
 
 
@@ -112,8 +112,7 @@ def _sphere_box(capture, cfg: NeuSConfig, sphere: tuple, support: tuple | None) 
     origins, dirs = zip(*(camera_rays(c) for c in capture.cameras))
     images = torch.from_numpy(np.ascontiguousarray(capture.images)).to(device)
     rays = TrainingRays(box.to_box(torch.from_numpy(np.concatenate(origins)).to(device)),
-                        torch.from_numpy(np.concatenate(dirs)).to(device), encode_srgb(images.reshape(-1, 3)), None,
-                        pixel_tiles(capture.cameras).to(device))
+                        torch.from_numpy(np.concatenate(dirs)).to(device), encode_srgb(images.reshape(-1, 3)), None)
     return box, rays
 
 
@@ -137,21 +136,8 @@ def _hull_box_rays(capture, cfg: NeuSConfig, alpha: torch.Tensor) -> tuple[Box, 
     sel = near_fg.reshape(-1)
     rgb = torch.from_numpy(np.ascontiguousarray(capture.images)).to(device).reshape(-1, 3)
     rays = TrainingRays(box.to_box(origins[sel]), dirs[sel], encode_srgb(rgb[sel]),
-                        alpha.reshape(-1)[sel].clamp(0, 1), pixel_tiles(capture.cameras).to(device)[sel])
+                        alpha.reshape(-1)[sel].clamp(0, 1))
     return box, rays
-
-
-def pixel_tiles(cameras, tile: int = ERROR_TILE_PX) -> torch.Tensor:
-    """Each pixel's tile of `tile` x `tile` pixels, numbered over every view, in the order of the
-    views' rays (`camera_rays`: row by row): (sum of H * W,) int64, the error map's cells."""
-    out, first = [], 0
-    for c in cameras:
-        rows, cols = -(-c.height // tile), -(-c.width // tile)
-        y = torch.arange(c.height, device="cpu")[:, None] // tile
-        x = torch.arange(c.width, device="cpu")[None, :] // tile
-        out.append((first + y * cols + x).reshape(-1))
-        first += rows * cols
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.long, device="cpu")
 
 
 @torch.no_grad()

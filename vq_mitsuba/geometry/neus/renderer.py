@@ -17,7 +17,6 @@ from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus.networks import NeuSModel
 
 BACKGROUND_SAMPLES = 16  # samples per ray of the background model (without masks)
-ERROR_TILE_PX = 8  # side of the error map's tiles of pixels (`sampling.RaySampler`)
 COLOR_MIN_WEIGHT = 1e-3  # samples of smaller compositing weight are shaded black (the colour network skips them)
 
 
@@ -118,7 +117,6 @@ class TrainingRays:
     dirs: torch.Tensor  # (N, 3)
     rgb: torch.Tensor  # (N, 3)
     alpha: torch.Tensor | None  # (N,)
-    tiles: torch.Tensor | None = None  # (N,) int64: each ray's tile of ERROR_TILE_PX pixels (`rays.pixel_tiles`)
 
 
 class NeuS:
@@ -143,7 +141,6 @@ class NeuS:
         self.model = NeuSModel(cfg, init, background=self.mask_free).to(self.device)
         self.deep = torch.zeros_like(self.hull)  # cells the current SDF marks as well inside the object
         self.rays_o, self.rays_d, self.rays_rgb, self.rays_alpha = rays.origins, rays.dirs, rays.rgb, rays.alpha
-        self.rays_tiles = rays.tiles if rays.tiles is not None else torch.arange(len(rays.origins), device=self.device)
         self.cfg, self.steps = choose_iterations(cfg, len(self.rays_o))
         self.surface_points = self._surface_points(self.cfg)
         self.support = None  # the supporting plane the mesh export cut away (without masks)

@@ -105,7 +105,7 @@ class NeuSTraining:
         # HISTORY_EVERY steps, so that a step never waits for the device
         self.pending: list[tuple[int, float, torch.Tensor]] = []
         self.ckpt = run.neus_checkpoint_path if run is not None else None
-        self.sampler = RaySampler(neus.rays_tiles, cfg.error_share, HELD_ASIDE if cfg.plateau_s > 0 else 0, self.gen)
+        self.sampler = RaySampler(len(neus.rays_o), HELD_ASIDE if cfg.plateau_s > 0 else 0, self.gen, self.device)
         # the plateau check: [(training seconds, held-aside PSNR)], the next check's time, and once
         # the plateau is reached (seconds, schedule share) where the final decay started
         self.checks: list[tuple[float, float]] = []
@@ -125,7 +125,6 @@ class NeuSTraining:
         self.model.load_state_dict(state["model"])  # copied onto the model's device
         self.optim.load_state_dict(state["optim"])
         self.step, self.elapsed, self.history = state["step"], state["elapsed"], state["history"]
-        self.sampler.load_state_dict(state.get("sampler"))
         plateau = state.get("plateau") or {}
         self.checks = [tuple(c) for c in plateau.get("checks", [])]
         self.next_check = plateau.get("next_check", self.cfg.plateau_s / CHECKS)
@@ -154,7 +153,7 @@ class NeuSTraining:
             save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                         "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
                         "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
-                        "background_model": self.neus.mask_free, "sampler": self.sampler.state_dict(),
+                        "background_model": self.neus.mask_free,
                         "plateau": {"checks": self.checks, "next_check": self.next_check, "anneal": self.anneal},
                         **extra}, self.ckpt)
 
@@ -227,27 +226,23 @@ class NeuSTraining:
         self.check_plateau(p, lw)
         for group in self.optim.param_groups:
             group["lr"] = group["base_lr"] * lr_factor(cfg, p.step, self.schedule_share(p))
-        idx, weight = self.sampler.draw(cfg.batch_rays)
+        idx = self.sampler.draw(cfg.batch_rays)
         o, d = neus.rays_o[idx], neus.rays_d[idx]
         near, far = neus.intervals(o, d)
         out = neus.render(o, d, lw, cfg.n_samples, True, True, near=near, far=far)
         target = neus.rays_rgb[idx]
-        ray_error = (out["rgb"] - target).abs().mean(-1)
-        color_loss = ray_error.mean() if weight is None else (weight * ray_error).mean()
+        color_loss = (out["rgb"] - target).abs().mean()
         if neus.rays_alpha is None:  # no masks: the colour of every pixel, fore- and background
             mask_loss = out["acc"].new_zeros(())
         else:
             acc = out["acc"].clamp(1e-3, 1.0 - 1e-3)
-            alpha = neus.rays_alpha[idx]
-            mask_loss = F.binary_cross_entropy(acc, alpha, weight=weight)
-            ray_error = ray_error + (acc - alpha).abs()
+            mask_loss = F.binary_cross_entropy(acc, neus.rays_alpha[idx])
         loss = color_loss + cfg.w_eikonal * out["eikonal"] + cfg.w_mask * mask_loss
         points_loss = self._points_loss(lw)
         loss = loss + cfg.w_points * (1.0 - p.share) * points_loss
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         self.optim.step()
-        self.sampler.update(ray_error.detach())
         step = p.step + 1
         mse = ((out["rgb"].detach() - target) ** 2).mean()
         losses = torch.stack([loss, color_loss, out["eikonal"], mask_loss, mse, self.model.inv_s(),
@@ -285,7 +280,6 @@ class NeuSTraining:
                 "stopped_by_time": result.stopped_by_time, "stopped_by_plateau": result.stopped_early,
                 "plateau": {"checks": self.checks, "anneal_from_s": self.anneal[0] if self.anneal else None,
                             "held_aside_rays": len(self.sampler.held)},
-                "error_map_tiles": self.sampler.tiles,
                 "step": "eager" if self.neus.compiled_step is None else self.neus.compiled_step.state}
 
 
@@ -430,7 +424,6 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "stopped_by_time_limit": summary["stopped_by_time"],
         "stopped_by_plateau": summary["stopped_by_plateau"],
         "plateau": summary["plateau"],
-        "error_map_tiles": summary["error_map_tiles"],
         "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(neus.hull_seconds, 2),
                     "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
                     "total": round(time.perf_counter() - t0, 2)},
