@@ -552,7 +552,7 @@ file_damage = st.one_of(
     st.tuples(st.just("swap"), st.integers(0, 40)),
     st.tuples(st.just("size"), st.sampled_from([0, 1, 7, 9, 65535, 2 ** 31 - 1, 2 ** 32 - 1]),
               st.sampled_from([0, 1, 5, 65535, 2 ** 31 - 1, 2 ** 32 - 1])),  # a PNG's header size
-    st.tuples(st.just("nest"), st.sampled_from([b"[", b'{"a": ', b"<a>"])),  # nested 50000 deep
+    st.tuples(st.just("nest"), st.sampled_from([b"[", b'{"a": ', b"<a>", b"<shape>"])),  # nested 50000 deep
 )
 
 
@@ -575,7 +575,7 @@ def _damaged(data: bytes, damage, files) -> bytes:
     if kind == "swap":
         return files[damage[1] % len(files)].read_bytes()
     if kind == "nest":
-        return damage[1] * 50000
+        return (b'<scene version="3.0.0">' if damage[1] == b"<shape>" else b"") + damage[1] * 50000
     if data[12:16] != b"IHDR":  # "size" changes only a PNG
         return data
     ihdr = struct.pack(">II", damage[1], damage[2]) + data[24:29]
@@ -700,6 +700,16 @@ def test_json_nested_deeper_than_the_parser_goes_is_refused_by_name(tmp_path):
     with pytest.raises(InputError, match="nested too deep") as refused:
         RunDir(tmp_path).info()
     assert refused.value.path == tmp_path / RunDir.INFO
+
+
+def test_xml_nested_deeper_than_a_scene_is_refused_before_mitsuba_parses_it(tmp_path):
+    """A scene.xml of 50000 nested <shape> elements: Mitsuba's parser recursed until the process
+    died (a segmentation fault, no message at all); refused naming the file."""
+    (tmp_path / "scene.xml").write_text('<scene version="3.0.0">' + '<shape type="sphere">' * 50000
+                                        + "</shape>" * 50000 + "</scene>")
+    with pytest.raises(InputError, match="elements nest more than 64 levels deep") as refused:
+        load_capture(tmp_path / "scene.xml")
+    assert refused.value.path == tmp_path / "scene.xml"
 
 
 def test_a_name_longer_than_the_file_system_takes_is_refused_by_name(tmp_path, capsys):

@@ -36,6 +36,9 @@ DESCRIPTION = "a Mitsuba scene .xml (scene.xml in a folder)"  # what a person gi
 POSED = True
 points = sphere = None  # no sparse points, no region of interest
 MESH_SHAPES = ("ply", "obj", "serialized", "cube")  # loaded by Mitsuba as triangle meshes
+# How deep elements may nest: a scene nests a few levels, and Mitsuba's parser recurses per level
+# (about 10000 levels overflow its stack: the process ends in a segmentation fault).
+MAX_XML_DEPTH = 64
 SPHERE_SUBDIVISIONS = 4
 
 
@@ -104,6 +107,13 @@ def _parse_xml(xml: Path) -> tuple[ET.Element, dict[str, str]]:
         raise InputError(xml, f"cannot read scene file ({exc})") from exc
     if root.tag != "scene":
         raise InputError(xml, f"not a Mitsuba scene (root element is <{root.tag}>, expected <scene>)")
+    stack = [(root, 1)]
+    while stack:  # iteratively: the check must not recurse either
+        elem, depth = stack.pop()
+        if depth > MAX_XML_DEPTH:
+            raise InputError(xml, f"elements nest more than {MAX_XML_DEPTH} levels deep (a <{elem.tag}> at level "
+                                  f"{depth}); a scene nests a few")
+        stack.extend((child, depth + 1) for child in elem)
     defaults = {d.get("name"): d.get("value", "") for d in root.iter("default") if d.get("name")}
     return root, defaults
 
