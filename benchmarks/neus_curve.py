@@ -14,7 +14,6 @@ final held-out and training-view PSNR the stage itself records in geometry.json.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
