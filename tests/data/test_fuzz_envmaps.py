@@ -17,7 +17,7 @@ from vq_mitsuba.data.envmaps import load_envmap
 from vq_mitsuba.data.imageio import MAX_TEXELS
 from vq_mitsuba.errors import InputError
 
-FUZZ = fuzz(80)
+FUZZ = fuzz(150)
 SUFFIX = {"exr": ".exr", "hdr": ".hdr", "png": ".png", "png16": ".png", "jpeg": ".jpg", "pfm": ".pfm"}
 texel_values = st.sampled_from([0.0, 0.5, 1.0, 7.0, -1e-3, -1.0, 1e-35, 3e38, 1e31, float("nan"), float("inf")])
 
@@ -55,7 +55,8 @@ def _claimed_size(data: bytes, kind: str, width: int, height: int) -> bytes:
     if kind == "exr":
         for name in (b"dataWindow\0box2i\0", b"displayWindow\0box2i\0"):
             at = data.find(name) + len(name) + 4
-            data = data[:at] + struct.pack("<iiii", 0, 0, width - 1, height - 1) + data[at + 16:]
+            corner = [(side - 1 + 2 ** 31) % 2 ** 32 - 2 ** 31 for side in (width, height)]  # as int32 holds it
+            data = data[:at] + struct.pack("<iiii", 0, 0, *corner) + data[at + 16:]
         return data
     if kind in ("png", "png16"):
         ihdr = struct.pack(">II", width, height) + data[24:29]
@@ -132,3 +133,14 @@ def test_a_header_claiming_a_huge_image_is_refused_by_its_size(tmp_path, kind):
         load_envmap(path, hdr_only=False)
     message = refused.value.message
     assert refused.value.path == path and "100000" in message and "50000" in message, refused.value
+
+
+@pytest.mark.parametrize("sides", [b"4 0", b"0 2", b"4 0x2", b"-4 2"])
+def test_a_pfm_header_without_a_texel_is_refused(tmp_path, sides):
+    """Found by the envmap fuzz: a PFM whose header says 4 x 0 made Mitsuba's reader divide by zero,
+    and the process died of a floating-point exception (no message, no exit status 2)."""
+    path = tmp_path / "env.pfm"
+    path.write_bytes(b"PF\n" + sides + b"\n-1.0\n" + bytes(96))
+    with pytest.raises(InputError, match="texels: no image") as refused:
+        load_envmap(path, hdr_only=False)
+    assert refused.value.path == path

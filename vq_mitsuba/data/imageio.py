@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -77,17 +78,20 @@ def claimed_size(path: Path, kind: str) -> tuple[int, int] | None:
             head = f.read(64)
         if kind == "png" and head[12:16] == b"IHDR":
             return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-        if kind == "pfm":
-            fields = head.split(maxsplit=3)
-            return int(fields[1]), int(fields[2])
+        if kind == "pfm":  # each side as Mitsuba reads it: the whole number its text starts with ("0x2" is 0)
+            sides = [re.match(rb"[-+]?\d+", field) for field in head.split(maxsplit=3)[1:3]]
+            return int(sides[0].group()), int(sides[1].group())
     except Exception:  # an unreadable header: the decoder says what is wrong
         return None
     return None
 
 
 def check_claimed_size(path: Path, kind: str) -> None:
-    """An InputError naming the file when its header claims more than MAX_TEXELS texels."""
+    """An InputError naming the file when its header claims no texel or more than MAX_TEXELS (a
+    side of 0 made Mitsuba's PFM reader divide by zero: the process died of a floating-point exception)."""
     size = claimed_size(path, kind)
+    if size is not None and min(size) < 1:
+        raise InputError(path, f"its header says {size[0]} x {size[1]} texels: no image (a damaged file?)")
     if size is not None and size[0] * size[1] > MAX_TEXELS:
         raise InputError(path, f"its header says {size[0]} x {size[1]} texels, more than an image may have "
                                f"({MAX_TEXELS} texels, 16384 x 16384): a damaged file?")
