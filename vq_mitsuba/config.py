@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import datetime
 import math
 import typing
 from dataclasses import dataclass
@@ -370,11 +371,16 @@ def _shown(value, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
+# What YAML builds that no key takes, as a message names it (a key of text takes a date quoted: '2001-12-14').
+_NOT_SCALARS = ((list, "a list"), (dict, "a mapping"), ((set, frozenset), "a set"), (bytes, "binary data"),
+                ((datetime.date, datetime.datetime), "a date"))
+
+
 def _coerce(value, typ, key: str, source):
     if typ is str and isinstance(value, bool):  # YAML reads on / off (and yes / no) as booleans
         return "on" if value else "off"
-    if isinstance(value, (list, dict)):  # never the text of a list: "[30, 60]" would pass as a string
-        what = "a list" if isinstance(value, list) else "a mapping"
+    what = next((w for kinds, w in _NOT_SCALARS if isinstance(value, kinds)), None)
+    if what is not None:  # never the text of a list: "[30, 60]" would pass as a string
         expects = "text" if typ is str else typ.__name__
         raise InputError(source, f"'{key}' expects {expects}, got {what}: {_shown(value)}")
     if typ in (int, float) and isinstance(value, bool):  # YAML's true / false are not numbers
@@ -439,7 +445,15 @@ class _BoundedLoader(yaml.SafeLoader):
             _check_expanded_size(node)
         return node
 
+    def construct_object(self, node, deep=False):
+        try:
+            return super().construct_object(node, deep=deep)
+        except (ValueError, TypeError, KeyError, AttributeError, IndexError) as exc:  # PyYAML's constructors
+            raise _YAMLRefused(_unreadable(node, exc)) from None
+
     def construct_mapping(self, node, deep=False):
+        if not isinstance(node, yaml.MappingNode):  # "!!set [1]": PyYAML says what it expected
+            return super().construct_mapping(node, deep=deep)
         seen = {}
         for key_node, _ in node.value:
             line = key_node.start_mark.line + 1
@@ -452,6 +466,22 @@ class _BoundedLoader(yaml.SafeLoader):
                 raise _YAMLRefused(f"'{key}' is given twice (lines {seen[key]} and {line})")
             seen[key] = line
         return super().construct_mapping(node, deep=deep)
+
+
+# What a value of each YAML tag must be, as a message says it.
+_TAG_WORDS = {"int": "a whole number", "float": "a number", "bool": "true or false", "timestamp": "a date",
+              "null": "empty", "binary": "base64 data"}
+
+
+def _unreadable(node, exc: Exception) -> str:
+    """Why a value (a node whose constructor failed: "!!bool x", "!!float x", a date of month 13, a
+    whole number of more than 4300 digits) cannot be read, in words, with its line."""
+    kind = node.tag.rsplit(":", 1)[-1]
+    what = _TAG_WORDS.get(kind, f"a !!{kind}")
+    shown = repr(_shown(node.value)) if isinstance(node.value, str) else "this value"
+    why = ("more than 4300 digits" if "integer string conversion" in str(exc)
+           else str(exc) if kind == "timestamp" and isinstance(exc, ValueError) else "")
+    return f"line {node.start_mark.line + 1}: {shown} cannot be read as {what}" + (f" ({why})" if why else "")
 
 
 def _children(node) -> list:
@@ -506,9 +536,6 @@ def parse_yaml(text: str, source) -> object:
         raise InputError(source, _yaml_error_text(exc)) from None
     except RecursionError:
         raise InputError(source, "invalid YAML: nested too deep") from None
-    except ValueError as exc:  # a value YAML reads as a number or a date that cannot be one
-        reason = "more than 4300 digits" if "integer string conversion" in str(exc) else str(exc)
-        raise InputError(source, f"invalid YAML: a number or date that cannot be read ({reason})") from None
 
 
 def read_yaml(path: str | Path, what: str = "a YAML file") -> object:

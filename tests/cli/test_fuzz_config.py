@@ -17,7 +17,7 @@ from vq_mitsuba import cli
 from vq_mitsuba.config import Config, check, load_config, presets
 from vq_mitsuba.errors import InputError
 
-FUZZ = fuzz(100)
+FUZZ = fuzz(200)
 
 
 def _keys(cfg=Config(), prefix="") -> list[str]:
@@ -39,7 +39,8 @@ yaml_tokens = st.sampled_from([".nan", ".inf", "-.inf", "1e400", "0x7fffffffffff
                                "2001-12-14", "~", "yes", "off", "!!python/object/apply:os.system ['true']",
                                "!!binary aGk=", "!!float x", "&a", "*a", "*nothere", "[", "{", "'", '"', "? x", "|",
                                "- 1", "a: b: c", "\t", "%YAML 1.1", "---", "...", "<<: *a", "1" * 5000,
-                               "0x" + "f" * 4000, "2001-13-45", "2001-02-30 25:61:61"]) | st.text(max_size=8)
+                               "0x" + "f" * 4000, "2001-13-45", "2001-02-30 25:61:61", "!!bool x", "!!timestamp x",
+                               "!!set [1]", "!!map [1]", "!!int", "!!binary aGk=", "!!set {a, b}"]) | st.text(max_size=8)
 
 
 @st.composite
@@ -165,17 +166,22 @@ def test_a_hostile_config_on_the_command_line_exits_2_naming_the_file_and_writes
 
 
 @pytest.mark.parametrize("item, words", [
-    ("train.seed=" + "1" * 5000, "--set train.seed: invalid YAML: a number or date that cannot be read (more than 4300 "
-                                 "digits)"),
-    ("train.seed=2001-13-45", "--set train.seed: invalid YAML: a number or date that cannot be read (month must be in "
+    ("train.seed=" + "1" * 5000, "--set train.seed: line 1: '" + "1" * 60 + "... (5000 characters)' cannot be read "
+                                 "as a whole number (more than 4300 digits)"),
+    ("train.seed=2001-13-45", "--set train.seed: line 1: '2001-13-45' cannot be read as a date (month must be in "
                               "1..12)"),
+    ("train.seed=!!float x", "--set train.seed: line 1: 'x' cannot be read as a number"),
+    ("train.seed=!!bool x", "--set train.seed: line 1: 'x' cannot be read as true or false"),
+    ("train.seed=!!timestamp x", "--set train.seed: line 1: 'x' cannot be read as a date"),
     ("train.snapshot_s=[30, 60]", "--set: 'train.snapshot_s' expects text, got a list: [30, 60]"),
+    ("train.snapshot_s=!!binary aGk=", "--set: 'train.snapshot_s' expects text, got binary data: b'hi'"),
     ("train.seed=[" + "1, " * 50000 + "1]", "--set: 'train.seed' expects int, got a list: [1, 1, 1,"),
 ])
 def test_values_found_by_the_config_fuzz_are_refused_in_a_sentence(tmp_path, item, words):
-    """Found by the fuzz: a YAML integer of more than 4300 digits or a date that is none (month 13)
-    ended in Python's ValueError; a list for a text key passed as its text; a refused value of
-    thousands of items was quoted whole. Each is one sentence, in a file as after --set."""
+    """Found by the fuzz: a YAML integer of more than 4300 digits, a date that is none (month 13) or a
+    value its tag cannot be (`!!float x`, `!!bool x`, `!!timestamp x`) ended in Python's ValueError,
+    KeyError or AttributeError; a list or binary data for a text key passed as its text; a refused
+    value of thousands of items was quoted whole. Each is one sentence, in a file as after --set."""
     with pytest.raises(InputError) as refused:
         load_config(overrides=[item])
     assert str(refused.value).startswith(words) and len(str(refused.value)) < 200, refused.value

@@ -18,6 +18,7 @@ from vq_mitsuba.data.captures import load_capture
 from vq_mitsuba.errors import InputError
 
 FUZZ = fuzz(60)  # benchmarks/stress.py raises the number of examples through VQM_FUZZ_EXAMPLES
+FUZZ_FILES = fuzz(150)  # whole files changed: a few milliseconds an example
 
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers(-5, 5) | st.sampled_from([10 ** 400, -10 ** 400, 2 ** 63, -2 ** 64])
@@ -451,7 +452,7 @@ def test_the_fuzzed_xml_scene_loads_as_written(xml_folder):
     assert [c.name for c in cap.cameras] == ["a", "b"] and cap.mesh is not None and cap.envmap is not None
 
 
-@FUZZ
+@FUZZ_FILES
 @given(edits=xml_edits, change=xml_bytes)
 def test_mutated_xml_scenes_load_or_are_refused(xml_folder, edits, change):
     xml = xml_folder / "scene.xml"
@@ -582,7 +583,7 @@ def _damaged(data: bytes, damage, files) -> bytes:
     return data[:16] + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr) & 0xFFFFFFFF) + data[33:]
 
 
-@FUZZ
+@FUZZ_FILES
 @given(kind=st.sampled_from(sorted(CAPTURES)), image=st.booleans(), which=st.integers(0, 40), damage=file_damage)
 def test_damaged_capture_files_are_refused_by_name(valid_captures, tmp_path_factory, kind, image, which, damage):
     """Half the examples damage the file of cameras (the json, XML, archive or model), half an image,
@@ -633,7 +634,7 @@ def _objects(data, out=None):
     return out
 
 
-@FUZZ
+@FUZZ_FILES
 @given(kind=st.sampled_from(["nerf_synthetic", "nerfstudio"]),
        edits=st.lists(st.tuples(st.integers(0, 300), json_leaves, st.booleans()), max_size=3),
        twice=st.none() | st.integers(0, 300))
