@@ -8,6 +8,13 @@ sys.path[:0] = [str(Path(__file__).parent)] + sorted(str(d) for d in Path(__file
 
 
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# Every property-based test tries the same examples on every run (a seed from the test's own
+# name), writes no example database into the checkout, and has no deadline on a loaded machine;
+# tests/fuzzing.py sets the number of examples of each fuzz test.
+settings.register_profile("vq-mitsuba", derandomize=True, database=None, deadline=None)
+settings.load_profile("vq-mitsuba")
 
 
 def pytest_runtest_setup(item):
