@@ -24,7 +24,35 @@ from provenance import command_line, describe, write_result
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def plot(path: str, runs: list[str]) -> None:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for run in runs:
+        r = json.loads(Path(run).read_text())
+        curve = r["curve"]
+        ax.plot([c["train_seconds"] for c in curve], [c["holdout_psnr"] for c in curve], marker="o", ms=3,
+                label=f"{r['name']} ({r['commit']}): {r['steps']} steps")
+    ax.set_xlabel("NeuS training seconds")
+    ax.set_ylabel("held-out PSNR inside the masks (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
 def main(argv: list[str] | None = None) -> int:
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--plot"]:
+        plot(argv[1], argv[2:])
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("capture", help="a masked capture (e.g. a NeuS/IDR folder)")
     ap.add_argument("--downscale", type=int, default=4)
