@@ -100,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
            "train_s": info["seconds"]["train"], "stage_wall_s": round(wall, 1),
            "steps_per_s": info["iterations_per_s"], "steps_per_s_spread": info["iterations_per_s_spread"],
            "training_rays": info["training_rays"], "batch_rays": info["config"]["batch_rays"],
-           "n_samples": info["config"]["n_samples"], "stop": info.get("stop"),
+           "n_samples": info["config"]["n_samples"], "stopped_by_plateau": info.get("stopped_by_plateau"),
+           "plateau": info.get("plateau"),
            "holdout_psnr": final["holdout_views"], "train_views_psnr": final["train_views"],
            "per_view": final["per_view"], "curve": curve}
     print(f"[{args.name}] {row['steps']} steps in {row['train_s']:.0f} s ({row['steps_per_s']:.1f}/s): held out "
