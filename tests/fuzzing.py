@@ -25,7 +25,7 @@ def fuzz(examples: int) -> settings:
 # message with one of these is a traceback in words, not the tool's sentence.
 PYTHON_TEXT = ("invalid literal", "string indices", "object is not", "has no attribute", "unsupported operand",
                "not subscriptable", "not iterable", "could not convert", "NoneType", "positional argument",
-               "unhashable", "index out of range", "out of bounds", "bad_alloc", "MemoryError", "Traceback")
+               "unhashable", "index out of range", "out of bounds for axis", "bad_alloc", "MemoryError", "Traceback")
 
 
 def python_text(message: str) -> str | None:

@@ -3,6 +3,7 @@ channel layouts, mutated COLMAP text and binary models and NeuS/IDR archives. A 
 loads with finite images in [0, 1]-ish ranges and finite cameras, or is refused with an InputError
 naming a file; no other exception (no traceback) ever reaches the user."""
 
+import copy
 import json
 import os
 import re
@@ -650,7 +651,7 @@ def test_transforms_jsons_with_any_value_changed_load_or_are_refused(valid_captu
     for which, value, named in edits:  # named: a value under a key (not one of a matrix's numbers)
         leaves = [(c, k) for c, k in _leaves(data) if isinstance(c, dict) or not named]
         container, key = leaves[which % len(leaves)]
-        container[key] = value
+        container[key] = copy.deepcopy(value)  # never the strategy's own list, edited by the next example
     objects = [o for o in _objects(data) if o]
     if twice is not None and objects:  # one key of one object given twice (the first value, then another)
         obj = objects[twice % len(objects)]
