@@ -175,7 +175,7 @@ def test_a_hostile_config_on_the_command_line_exits_2_naming_the_file_and_writes
     ("train.seed=!!timestamp x", "--set train.seed: line 1: 'x' cannot be read as a date"),
     ("train.snapshot_s=[30, 60]", "--set: 'train.snapshot_s' expects text, got a list: [30, 60]"),
     ("train.snapshot_s=!!binary aGk=", "--set: 'train.snapshot_s' expects text, got binary data: b'hi'"),
-    ("train.seed=[" + "1, " * 50000 + "1]", "--set: 'train.seed' expects int, got a list: [1, 1, 1,"),
+    ("train.seed=[" + "1, " * 2000 + "1]", "--set: 'train.seed' expects int, got a list: [1, 1, 1,"),
 ])
 def test_values_found_by_the_config_fuzz_are_refused_in_a_sentence(tmp_path, item, words):
     """Found by the fuzz: a YAML integer of more than 4300 digits, a date that is none (month 13) or a
