@@ -266,17 +266,24 @@ def test_help_says_what_the_commands_do():
 
 
 @pytest.mark.parametrize("command, hint", [("fit", True), ("geometry", True), ("render", False), ("eval", False)])
-def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys, command, hint):
+def test_ctrl_c_hints_at_resume_only_where_a_command_resumes(monkeypatch, capsys, tmp_path, command, hint):
     def interrupted(args):
         raise KeyboardInterrupt
 
     _replace_command(monkeypatch, command, interrupted)
-    argv = {"fit": ["fit", "cap"], "geometry": ["geometry", "cap"], "render": ["render", "run", "--cameras", "c"],
-            "eval": ["eval", "run"]}[command]
+    run = tmp_path / "run"
+    run.mkdir()  # the run folder the command had begun to write
+    argv = {"fit": ["fit", "cap", "-o", str(run)], "geometry": ["geometry", "cap", "-o", str(run)],
+            "render": ["render", "run", "--cameras", "c"], "eval": ["eval", "run"]}[command]
     assert cli.main(argv) == 130
     err = capsys.readouterr().err
     assert err.startswith("interrupted")
     assert ("--resume" in err) == hint and (f"vq-mitsuba {command}" in err) == hint
+    if hint:  # stopped before its run folder existed: nothing to resume
+        run.rmdir()
+        assert cli.main(argv) == 130
+        err = capsys.readouterr().err
+        assert "nothing was kept yet" in err and "without --resume" in err
 
 
 def test_a_signal_whose_exception_a_library_lost_still_ends_the_command_as_a_stop(monkeypatch, capsys):
