@@ -178,6 +178,7 @@ def _batch_with_a_checkpoint(capture, out: Path) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_sigterm_to_a_batch_exits_143_leaves_no_ray_process_and_the_batch_resumes(tmp_path, capsys):
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
     out = tmp_path / "batch"
@@ -226,6 +227,7 @@ def test_geometry_resume_of_a_missing_folder_is_refused(tmp_path, capsys):
     assert "no run to resume" in capsys.readouterr().err and not (tmp_path / "nothing").exists()
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_killed_batch_leaves_no_ray_process(tmp_path):
     """kill -9 gives the batch no time to stop Ray: a watchdog ends the Ray processes it started."""
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)

@@ -44,6 +44,7 @@ def _fits_started(out: Path, run: str) -> list[str]:
     return [line for line in (out / "logs" / f"{run}.log").read_text().splitlines() if line.startswith("$ vq-mitsuba fit")]
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(local_ray, captures, tmp_path):
     out = tmp_path / "batch"
     rows = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
