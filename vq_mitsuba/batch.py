@@ -163,34 +163,24 @@ def own_config(run: RunDir):
         return None
 
 
-def _flat(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 def _shown(value) -> str:
     return value if isinstance(value, str) else json.dumps(value)
 
 
 def changed_settings(own, asked) -> list[str]:
     """`key=<the run's value> (asked <value>)` for each key whose value differs, in the config's order."""
-    from vq_mitsuba.config import to_dict
+    from vq_mitsuba.config import flat_keys, to_dict
 
-    mine, theirs = _flat(to_dict(own)), _flat(to_dict(asked))
+    mine, theirs = flat_keys(to_dict(own)), flat_keys(to_dict(asked))
     keys = list(mine) + [k for k in theirs if k not in mine]
     return [f"{k}={_shown(mine.get(k))} (asked {_shown(theirs.get(k))})" for k in keys if mine.get(k) != theirs.get(k)]
 
 
 def settings_digest(cfg) -> str:
     """Eight hex digits of the config without its seeds: runs that share them have the same settings."""
-    from vq_mitsuba.config import to_dict
+    from vq_mitsuba.config import flat_keys, to_dict
 
-    flat = {k: v for k, v in _flat(to_dict(cfg)).items() if k not in SEED_KEYS}
+    flat = {k: v for k, v in flat_keys(to_dict(cfg)).items() if k not in SEED_KEYS}
     return hashlib.sha256(json.dumps(flat, sort_keys=True, default=str).encode()).hexdigest()[:8]
 
 

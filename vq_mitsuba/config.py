@@ -364,6 +364,17 @@ def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def flat_keys(tree: dict, prefix: str = "") -> dict:
+    """A nested config mapping (`to_dict`'s, or a YAML file's) as {"section.key": value}."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flat_keys(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def _shown(value, limit: int = 60) -> str:
     """`value` as a message quotes it: its text, cut short past `limit` characters (a value of a
     hundred thousand aliased items is no message)."""

@@ -10,7 +10,7 @@ import yaml
 
 from tiny_scene import write_sphere_capture
 from vq_mitsuba.cli import main
-from vq_mitsuba.config import CONFIG_VERSION, preset_path, presets
+from vq_mitsuba.config import CONFIG_VERSION, flat_keys, preset_path, presets
 
 # Six steps; the discrete branch starts after vq.warmup_frac of them (step 2), so ranking runs.
 SHORT = ["train.iterations=6", "train.batch_rays=128", "train.spp=2", "train.log_every=2",
@@ -20,16 +20,6 @@ SHORT = ["train.iterations=6", "train.batch_rays=128", "train.spp=2", "train.log
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
     return write_sphere_capture(tmp_path_factory.mktemp("preset_sphere"), size=16, n_views=4, spp=8)
-
-
-def _flat(data: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def test_the_presets_are_the_bundled_files():
@@ -50,9 +40,9 @@ def test_each_preset_fits_a_few_steps(name, capture, tmp_path):
     assert saved["version"] == CONFIG_VERSION
     # The preset's own values (its ablation switch among them) are in the saved config, except
     # where the short-fit settings above replace them.
-    preset = _flat(yaml.safe_load(preset_path(name).read_text()))
+    preset = flat_keys(yaml.safe_load(preset_path(name).read_text()))
     overridden = {item.split("=")[0] for item in SHORT}
-    assert preset and all(_flat(saved)[key] == value for key, value in preset.items() if key not in overridden)
+    assert preset and all(flat_keys(saved)[key] == value for key, value in preset.items() if key not in overridden)
     if name.startswith("ablation_"):
         assert saved["ablation"][name.removeprefix("ablation_")] is True
         assert sum(saved["ablation"].values()) == 1
