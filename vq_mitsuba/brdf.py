@@ -24,7 +24,7 @@ class BrdfInput:
     low: float = 0.0  # its range (a decoder may keep a config floor above `low`)
     high: float = 1.0
     step: float = 0.01  # the editor's slider step (a scalar's)
-    scene_default: float | None = None  # a synthetic scene's value where a material leaves it out; None: required
+    default: float | None = None  # a scalar's value where a scene spec leaves it out, the editor's first; None: required
     gltf_channel: int | None = None  # its channel of glTF's metallicRoughnessTexture; None: a texture of its own
 
     @property
@@ -35,8 +35,8 @@ class BrdfInput:
 BASECOLOR, METALLIC, ROUGHNESS = "basecolor", "metallic", "roughness"  # handles for rules about one input
 
 INPUTS = (BrdfInput(BASECOLOR, 3, "base_color", "Base Color"),
-          BrdfInput(METALLIC, 1, "metallic", "Metallic", scene_default=0.0, gltf_channel=2),
-          BrdfInput(ROUGHNESS, 1, "roughness", "Roughness", scene_default=0.5, gltf_channel=1))
+          BrdfInput(METALLIC, 1, "metallic", "Metallic", default=0.0, gltf_channel=2),
+          BrdfInput(ROUGHNESS, 1, "roughness", "Roughness", default=0.5, gltf_channel=1))
 NAMES = tuple(i.name for i in INPUTS)
 CHANNELS = sum(i.channels for i in INPUTS)  # values per point, the colours' three each
 FIXED = {"specular": 0.5}  # principled's parameters the fit holds, not learned

@@ -37,11 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.envmaps import load_envmap
 from vq_mitsuba.data.imageio import checked_kind, read_exr
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.eval import input_scores, metrics as M
 from vq_mitsuba.eval.baselines import MEANSHIFT_BANDWIDTHS
 from vq_mitsuba.eval.heldout import evaluate_holdout, held_out_capture, straight_colours
 from vq_mitsuba.eval.report import format_table, table_rows
@@ -117,9 +118,8 @@ def load_ground_truth(root: Path, name: str) -> dict[str, np.ndarray]:
     dataset = DatasetDir(root)
     rgb, alpha = _read_rgba(dataset.image(name).with_suffix(".exr"))
     gt = {"rgb": rgb, "mask": _read_mask(root, name, alpha)}
-    gt["basecolor"], _ = _read_rgba(dataset.gt(name, "basecolor"))
-    gt["metallic"] = _read_map(dataset.gt(name, "metallic"))
-    gt["roughness"] = _read_map(dataset.gt(name, "roughness"))
+    for i in brdf.INPUTS:
+        gt[i.name] = _read_rgba(dataset.gt(name, i.name))[0] if i.colour else _read_map(dataset.gt(name, i.name))
     normal_path = dataset.gt(name, "normal")
     if normal_path.is_file():
         gt["normal"], _ = _read_rgba(normal_path)
@@ -200,11 +200,12 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view",
                             disable=not progress)
     preds = _render_fitted_lighting(predictor, data, spp, aa, bar)
-    per_view, bc_scales = _image_scores(data, preds, scale_method)
+    per_view, scales = _image_scores(data, preds, scale_method)
+    bc_scales = scales[brdf.BASECOLOR]  # the albedo's: relighting and coverage are scored with it too
     discrete = _discrete_branch_scores(preds, data.gts, scale_method)
     segmentation = _segmentation_scores(preds, data.gts, predictor.num_materials, data.meta)
     surface = evaluate_surface(predictor, data, aa or predictor.default_aa, scale_method)
-    per_material = per_material_scores(preds, data.gts, bc_scales, data.meta)
+    per_material = per_material_scores(preds, data.gts, scales, data.meta)
     meanshift = None
     if meanshift_bandwidths and all("material" in g for g in data.gts):
         meanshift = meanshift_segmentation(preds, data.gts, meanshift_bandwidths, seed=0)
@@ -287,51 +288,43 @@ def _render_fitted_lighting(predictor, data: _TestViews, spp: int, aa: int | Non
     return preds
 
 
-def _image_scores(data: _TestViews, preds: list[dict], scale_method: str) -> tuple[list[dict], np.ndarray]:
-    """(per-view rows of the novel-view, basecolor, metallic, roughness, normal and coverage
-    scores, the basecolor alignment scales computed over all views jointly)."""
+def _image_scores(data: _TestViews, preds: list[dict],
+                  scale_method: str) -> tuple[list[dict], dict[str, np.ndarray]]:
+    """(per-view rows of the novel-view, every BRDF input's, normal and coverage scores, each
+    colour input's alignment scales computed over all views jointly)."""
     gts = data.gts
     masks = np.stack([gt["mask"] for gt in gts])
-    _, bc_scales = M.scale_align(np.stack([p["basecolor"] for p in preds]), np.stack([gt["basecolor"] for gt in gts]),
-                                 masks, method=scale_method)
+    scales = input_scores.alignment_scales(preds, gts, masks, scale_method)
+    bc_scales = scales[brdf.BASECOLOR]
     per_view = []
     for cam, pred, gt in zip(data.cameras, preds, gts):
         m = gt["mask"]
         nv = M.image_metrics(pred["rgb"], gt["rgb"], m)
-        bc = M.image_metrics(pred["basecolor"] * bc_scales, gt["basecolor"], m)
         row = {"view": cam.name, "pixels": int(m.sum()),
                "novel_view_psnr": nv["psnr"], "novel_view_ssim": nv["ssim"],
                **({"novel_view_residual_" + k: v for k, v in M.image_metrics(pred["rgb_residual"], gt["rgb"], m).items()}
                   if "rgb_residual" in pred else {}),
-               "basecolor_psnr": bc["psnr"], "basecolor_ssim": bc["ssim"],
-               "basecolor_psnr_unaligned": M.psnr(M.srgb(pred["basecolor"]), M.srgb(gt["basecolor"]), m),
-               "metallic_psnr": M.psnr(pred["metallic"], gt["metallic"], m),
-               "roughness_psnr": M.psnr(pred["roughness"], gt["roughness"], m),
-               "metallic_mae": float(np.abs(pred["metallic"] - gt["metallic"])[m].mean()) if m.any() else math.nan,
-               "roughness_mae": float(np.abs(pred["roughness"] - gt["roughness"])[m].mean()) if m.any() else math.nan}
+               **input_scores.view_scores(pred, gt, m, scales, unaligned=True)}
         if "normal" in gt:
             row["normal_mae_deg"] = _normal_error_deg(pred["normal"], gt["normal"], m)
-        row.update(coverage_scores(pred["alpha"], pred["basecolor"] * bc_scales, gt["basecolor"], m))
+        row.update(coverage_scores(pred["alpha"], pred[brdf.BASECOLOR] * bc_scales, gt[brdf.BASECOLOR], m))
         per_view.append(row)
-    return per_view, bc_scales
+    return per_view, scales
 
 
 def _discrete_branch_scores(preds: list[dict], gts: list[dict], scale_method: str) -> dict | None:
-    """The discrete branch's basecolor (aligned on its own), metallic and roughness scores; None
-    when the predictor has no discrete branch."""
+    """The discrete branch's scores of every BRDF input (a colour aligned on its own); None when
+    the predictor has no discrete branch."""
     if not all("discrete" in p for p in preds):
         return None
     masks = np.stack([gt["mask"] for gt in gts])
     dmaps = [p["discrete"] for p in preds]
-    _, d_scales = M.scale_align(np.stack([d["basecolor"] for d in dmaps]),
-                                np.stack([gt["basecolor"] for gt in gts]), masks, method=scale_method)
-    rows_d = [M.image_metrics(d["basecolor"] * d_scales, gt["basecolor"], gt["mask"]) for d, gt in zip(dmaps, gts)]
-    return {"basecolor": {"psnr": M.mean_of(r["psnr"] for r in rows_d), "ssim": M.mean_of(r["ssim"] for r in rows_d),
-                          "scales": [float(x) for x in d_scales]},
-            "metallic": {"psnr": M.mean_of(M.psnr(d["metallic"], gt["metallic"], gt["mask"])
-                                       for d, gt in zip(dmaps, gts))},
-            "roughness": {"psnr": M.mean_of(M.psnr(d["roughness"], gt["roughness"], gt["mask"])
-                                        for d, gt in zip(dmaps, gts))}}
+    scales = input_scores.alignment_scales(dmaps, gts, masks, scale_method)
+    rows = [input_scores.view_scores(d, gt, gt["mask"], scales, mae=False) for d, gt in zip(dmaps, gts)]
+    out = input_scores.mean_scores(rows, mae=False)
+    for name, s in scales.items():
+        out[name]["scales"] = [float(x) for x in s]
+    return out
 
 
 def _segmentation_scores(preds: list[dict], gts: list[dict], num_materials: int | None, meta: dict) -> dict | None:
@@ -406,12 +399,10 @@ def _assemble_result(data: _TestViews, per_view: list[dict], bc_scales: np.ndarr
         "novel_view": {"psnr": avg("novel_view_psnr"), "ssim": avg("novel_view_ssim")},
         "novel_view_residual": {"psnr": avg("novel_view_residual_psnr"), "ssim": avg("novel_view_residual_ssim")}
         if any("novel_view_residual_psnr" in row for row in per_view) else None,
-        "basecolor": {"psnr": avg("basecolor_psnr"), "ssim": avg("basecolor_ssim"),
-                      "psnr_unaligned": avg("basecolor_psnr_unaligned"), "aligned_with": scale_method},
+        **{name: {**s, **({"aligned_with": scale_method} if brdf.get(name).colour else {})}
+           for name, s in input_scores.mean_scores(per_view, unaligned=True).items()},
         "alignment": {"method": scale_method, "scales": [float(s) for s in bc_scales],
                       "computed_over": "all test views jointly, foreground pixels, linear basecolor"},
-        "metallic": {"psnr": avg("metallic_psnr"), "mae": avg("metallic_mae")},
-        "roughness": {"psnr": avg("roughness_psnr"), "mae": avg("roughness_mae")},
         "normal": {"mae_deg": avg("normal_mae_deg")},
         "coverage": {"iou": avg("coverage_iou"), "basecolor_psnr_covered": avg("basecolor_psnr_covered"),
                      "what": "predicted alpha >= 0.5 against the ground-truth mask; basecolor PSNR (aligned) on "
@@ -453,11 +444,14 @@ def coverage_scores(alpha: np.ndarray, basecolor: np.ndarray, gt_basecolor: np.n
             "basecolor_psnr_covered": M.psnr(M.srgb(basecolor), M.srgb(gt_basecolor), mask & covered)}
 
 
-def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarray, meta: dict) -> list[dict] | None:
-    """Each ground-truth material's pixels pooled over the test views: the mean fitted basecolor
-    (linear, after the basecolor alignment), metallic and roughness beside the true means, their
-    mean absolute errors, and the novel-view PSNR there. Shows which material a fit got wrong.
-    None when the dataset has no material ids."""
+def per_material_scores(preds: list[dict], gts: list[dict], scales: dict[str, np.ndarray] | np.ndarray,
+                        meta: dict) -> list[dict] | None:
+    """Each ground-truth material's pixels pooled over the test views: the mean fitted value of
+    every BRDF input (a colour linear, after its alignment `scales`, {input: (3,)}, or an array:
+    the basecolor's) beside the true mean, a scalar's mean absolute error, and the novel-view PSNR
+    there. Shows which material a fit got wrong. None when the dataset has no material ids."""
+    if not isinstance(scales, dict):
+        scales = {brdf.BASECOLOR: scales}
     if not all("material" in g for g in gts):
         return None
     names = {int(m["id"]): str(m.get("name", m["id"])) for m in meta.get("materials", []) if "id" in m}
@@ -467,18 +461,18 @@ def per_material_scores(preds: list[dict], gts: list[dict], bc_scales: np.ndarra
         sel = [(g["material"] == k) & g["mask"] for g in gts]
         def pick(maps, key):  # (pixels, channels) of this material in every view (some views have none)
             return np.concatenate([m[key][s] if m[key].ndim == 3 else m[key][s][:, None] for m, s in zip(maps, sel)])
-        bc_p, bc_g = pick(preds, "basecolor") * bc_scales, pick(gts, "basecolor")[:, :3]
-        me_p, me_g = pick(preds, "metallic")[:, 0], pick(gts, "metallic")[:, 0]
-        ro_p, ro_g = pick(preds, "roughness")[:, 0], pick(gts, "roughness")[:, 0]
+        row = {"id": k, "name": names.get(k, str(k)), "pixels": int(sum(s.sum() for s in sel))}
+        errors = {}
+        for i in brdf.INPUTS:
+            p, g = pick(preds, i.name)[:, :i.channels], pick(gts, i.name)[:, :i.channels]
+            if i.colour:
+                p = p * scales[i.name]
+                row[i.name], row[f"{i.name}_true"] = [float(x) for x in p.mean(0)], [float(x) for x in g.mean(0)]
+            else:
+                row[i.name], row[f"{i.name}_true"] = float(p.mean()), float(g.mean())
+                errors[f"{i.name}_mae"] = float(np.abs(p - g).mean())
         rgb_p, rgb_g = pick(preds, "rgb"), pick(gts, "rgb")[:, :3]
-        rows.append({
-            "id": k, "name": names.get(k, str(k)), "pixels": int(len(me_p)),
-            "basecolor": [float(x) for x in bc_p.mean(0)], "basecolor_true": [float(x) for x in bc_g.mean(0)],
-            "metallic": float(me_p.mean()), "metallic_true": float(me_g.mean()),
-            "roughness": float(ro_p.mean()), "roughness_true": float(ro_g.mean()),
-            "metallic_mae": float(np.abs(me_p - me_g).mean()), "roughness_mae": float(np.abs(ro_p - ro_g).mean()),
-            "novel_view_psnr": M.psnr(M.srgb(rgb_p), M.srgb(rgb_g)),
-        })
+        rows.append({**row, **errors, "novel_view_psnr": M.psnr(M.srgb(rgb_p), M.srgb(rgb_g))})
     return rows
 
 
@@ -488,8 +482,7 @@ def meanshift_segmentation(preds: list[dict], gts: list[dict], bandwidths, seed:
     from vq_mitsuba.eval.baselines import brdf_features, meanshift_labels
 
     fg = [g["mask"] & (g["material"] > 0) for g in gts]
-    feats = np.concatenate([brdf_features(p["basecolor"][m], p["metallic"][m], p["roughness"][m])
-                            for p, m in zip(preds, fg)])
+    feats = np.concatenate([brdf_features(*(p[name][m] for name in brdf.NAMES)) for p, m in zip(preds, fg)])
     truth = np.concatenate([g["material"][m] for g, m in zip(gts, fg)])
     out = {"features": "sRGB basecolor, metallic, roughness (continuous branch, test views)"}
     for bw in bandwidths:

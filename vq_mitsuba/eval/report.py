@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import math
 
-
+from vq_mitsuba import brdf
+from vq_mitsuba.eval import input_scores
 
 def _fmt(x, digits: int) -> str:
     if x is None:
@@ -26,14 +27,10 @@ def table_rows(metrics: dict) -> list[tuple[str, object, object]]:
     if metrics.get("novel_view_residual"):
         rows.append(("novel view + residual", metrics["novel_view_residual"]["psnr"],
                      metrics["novel_view_residual"]["ssim"]))
-    rows += [(f"basecolor ({method}-aligned)", metrics["basecolor"]["psnr"], metrics["basecolor"]["ssim"]),
-             ("metallic (linear)", metrics["metallic"]["psnr"], None),
-             ("roughness (linear)", metrics["roughness"]["psnr"], None)]
+    rows += input_scores.table_rows(metrics, method)
     d = metrics.get("discrete_branch")
     if d:
-        rows += [(f"discrete: basecolor ({method}-aligned)", d["basecolor"]["psnr"], d["basecolor"]["ssim"]),
-                 ("discrete: metallic (linear)", d["metallic"]["psnr"], None),
-                 ("discrete: roughness (linear)", d["roughness"]["psnr"], None)]
+        rows += input_scores.table_rows(d, method, prefix="discrete: ")
     for variant in ("albedo_scale", "image_scale"):
         block = metrics["relighting"][variant]
         for env, v in block["envs"].items():
@@ -61,9 +58,8 @@ def format_table(metrics: dict) -> str:
         lines.append(f"normal mean angular error: {metrics['normal']['mae_deg']:.2f} deg")
     surf = metrics.get("surface_material")
     if surf:
-        lines.append(f"materials at the true surface (nearest point of the run's mesh): basecolor "
-                     f"{_fmt(surf['basecolor']['psnr'], 2)} dB, metallic {_fmt(surf['metallic']['psnr'], 2)} dB, "
-                     f"roughness {_fmt(surf['roughness']['psnr'], 2)} dB; true points "
+        each = ", ".join(f"{i.name} {_fmt(surf[i.name]['psnr'], 2)} dB" for i in brdf.INPUTS if i.name in surf)
+        lines.append(f"materials at the true surface (nearest point of the run's mesh): {each}; true points "
                      f"{_fmt(surf['distance']['median'], 4)} (median) from the run's mesh")
     seg = metrics.get("segmentation")
     if seg:
@@ -74,12 +70,11 @@ def format_table(metrics: dict) -> str:
     if mats:
         lines.append("per material (fitted / true; basecolor linear, aligned):")
         w = max(len(m["name"]) for m in mats)
+        value = lambda v: "(" + ", ".join(f"{x:.2f}" for x in v) + ")" if isinstance(v, list) else f"{v:.2f}"
         for m in mats:
-            bc = lambda v: "(" + ", ".join(f"{x:.2f}" for x in v) + ")"
-            lines.append(f"  {m['name']:{w}}  basecolor {bc(m['basecolor'])} / {bc(m['basecolor_true'])}  "
-                         f"metallic {m['metallic']:.2f} / {m['metallic_true']:.2f}  "
-                         f"roughness {m['roughness']:.2f} / {m['roughness_true']:.2f}  "
-                         f"view {_fmt(m['novel_view_psnr'], 2)} dB")
+            each = "".join(f"{i.name} {value(m[i.name])} / {value(m[i.name + '_true'])}  "
+                           for i in brdf.INPUTS if i.name in m)
+            lines.append(f"  {m['name']:{w}}  {each}view {_fmt(m['novel_view_psnr'], 2)} dB")
     ms = metrics.get("meanshift")
     if ms:
         for bw, v in ms.items():

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vq_mitsuba.brdf import CHANNELS, INPUTS
+from vq_mitsuba import brdf
 from vq_mitsuba.data.cameras import camera_rays, pixel_jitter, world_rotation
 from vq_mitsuba.data.dataset_dir import DatasetDir
-from vq_mitsuba.eval import metrics as M
+from vq_mitsuba.eval import input_scores, metrics as M
 
 DATASET_MESH = DatasetDir.MESH  # the merged true mesh of a make-scene dataset, in its cameras' world
 SAME_SURFACE_TOL = 1e-5  # meshes closer than this share of the diagonal everywhere are the same surface
@@ -163,7 +163,7 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
     h, w = camera.height, camera.width
     n_pix = h * w
     rng = np.random.default_rng(seed)  # the offsets `render.views.Renderer` draws for this seed
-    sums = np.zeros((n_pix, CHANNELS))
+    sums = np.zeros((n_pix, brdf.CHANNELS))
     count = np.zeros(n_pix)
     distances = []
     device = fitted.model.center.device
@@ -175,7 +175,7 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
             continue
         near, dist = lookup(hits.position[idx].double().cpu().numpy())
         out = fitted.materials_at(torch.as_tensor(near, dtype=torch.float32, device=device), ids=False)
-        values = torch.cat([out[i.name].reshape(-1, i.channels) for i in INPUTS], 1)
+        values = torch.cat([out[i.name].reshape(-1, i.channels) for i in brdf.INPUTS], 1)
         pix, values = idx.cpu().numpy(), values.double().cpu().numpy()
         for c in range(values.shape[1]):  # bincount, not np.add.at: the same sums, far faster
             sums[:, c] += np.bincount(pix, values[:, c], minlength=n_pix)
@@ -183,7 +183,7 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
         distances.append(dist)
     mean = sums / np.maximum(count, 1)[:, None]
     maps, at = {}, 0
-    for i in INPUTS:  # each input's columns of the sums, as an (h, w, 3) or (h, w) map
+    for i in brdf.INPUTS:  # each input's columns of the sums, as an (h, w, 3) or (h, w) map
         maps[i.name] = mean[:, at:at + i.channels].reshape((h, w, 3) if i.colour else (h, w))
         at += i.channels
     return {**maps, "hits": count.reshape(h, w),
@@ -192,7 +192,7 @@ def true_surface_maps(fitted, true_scene, camera, aa: int, seed: int, lookup: Cl
 
 def surface_material_scores(fitted, true_mesh, cameras: list, gts: list[dict], aa: int,
                             scale_method: str = "lstsq") -> dict:
-    """Basecolor (aligned), metallic and roughness PSNR of the fitted materials at the true surface
+    """Every BRDF input's scores (`input_scores`) of the fitted materials at the true surface
     points of every test view (`cameras` in the run's world, `gts` their ground truth as
     `evaluate.load_ground_truth` reads it, view i traced with seed i as `evaluate` renders it),
     and how far the true points lie from the run's mesh."""
@@ -202,19 +202,13 @@ def surface_material_scores(fitted, true_mesh, cameras: list, gts: list[dict], a
     true_scene = scene_for_mesh(true_mesh, np.ones((2, 4, 3), np.float32), np.eye(4))  # traced only
     maps = [true_surface_maps(fitted, true_scene, cam, aa, i, lookup) for i, cam in enumerate(cameras)]
     masks = np.stack([g["mask"] for g in gts])
-    _, scales = M.scale_align(np.stack([m["basecolor"] for m in maps]), np.stack([g["basecolor"] for g in gts]),
-                              masks, method=scale_method)
-    rows = []
-    for m, g in zip(maps, gts):
-        mask = g["mask"]
-        bc = M.image_metrics(m["basecolor"] * scales, g["basecolor"], mask)
-        rows.append({"basecolor_psnr": bc["psnr"], "basecolor_ssim": bc["ssim"],
-                     "metallic_psnr": M.psnr(m["metallic"], g["metallic"], mask),
-                     "roughness_psnr": M.psnr(m["roughness"], g["roughness"], mask),
-                     "metallic_mae": float(np.abs(m["metallic"] - g["metallic"])[mask].mean()) if mask.any() else math.nan,
-                     "roughness_mae": float(np.abs(m["roughness"] - g["roughness"])[mask].mean()) if mask.any() else math.nan,
-                     "hit_share": float((m["hits"][mask] > 0).mean()) if mask.any() else math.nan})
-    mean = lambda key: float(np.nanmean([r[key] for r in rows])) if rows else math.nan  # noqa: E731
+    scales = input_scores.alignment_scales(maps, gts, masks, scale_method)
+    rows = [{**input_scores.view_scores(m, g, g["mask"], scales),
+             "hit_share": float((m["hits"][g["mask"]] > 0).mean()) if g["mask"].any() else math.nan}
+            for m, g in zip(maps, gts)]
+    scores = input_scores.mean_scores(rows)
+    for name, s in scales.items():
+        scores[name].update(aligned_with=scale_method, scales=[float(x) for x in s])
     dist = np.concatenate([m["distance"] for m in maps])
     diag = float(np.linalg.norm(np.ptp(np.asarray(true_mesh.vertices), axis=0)))
     q = (lambda p: float(np.percentile(dist, p))) if len(dist) else (lambda p: math.nan)
@@ -223,11 +217,8 @@ def surface_material_scores(fitted, true_mesh, cameras: list, gts: list[dict], a
                 "primary rays), looked up at the nearest point of the run's mesh, against the ground-truth maps "
                 "as the image-space scores compare them: the image-space figure minus this one is the geometry's "
                 "share of the error",
-        "basecolor": {"psnr": mean("basecolor_psnr"), "ssim": mean("basecolor_ssim"), "aligned_with": scale_method,
-                      "scales": [float(s) for s in scales]},
-        "metallic": {"psnr": mean("metallic_psnr"), "mae": mean("metallic_mae")},
-        "roughness": {"psnr": mean("roughness_psnr"), "mae": mean("roughness_mae")},
-        "hit_share": mean("hit_share"),
+        **scores,
+        "hit_share": M.mean_of(r["hit_share"] for r in rows),
         "distance": {"mean": float(dist.mean()) if len(dist) else math.nan, "median": q(50), "p90": q(90),
                      "true_mesh_diagonal": diag,
                      "what": "from each true hit point to the nearest point of the run's mesh, in the run's units"},

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.brdf import INPUTS, NAMES
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.config import setting
@@ -64,6 +65,11 @@ class TexelConfig:
 
 
 TEXTURES = NAMES
+
+
+def _floors(cfg: TexelConfig) -> dict[str, float]:
+    """Each texture's lowest texel value: its input's range, roughness's raised to `roughness_min`."""
+    return {**{i.name: i.low for i in brdf.INPUTS}, brdf.ROUGHNESS: cfg.roughness_min}
 _CHANNELS = {i.name: i.channels for i in INPUTS}
 _BSDF_KEY = {i.name: i.principled for i in INPUTS}
 
@@ -194,9 +200,9 @@ class TexelScene:
         self.vertices = np.asarray(mesh_tm.vertices, dtype=np.float32)[vmap]
         self.normals = np.asarray(mesh_tm.vertex_normals, dtype=np.float32)[vmap]
         res = self.resolution = int(cfg.resolution)
-        init = {"basecolor": np.full((res, res, 3), cfg.init_basecolor, np.float32),
-                "metallic": np.full((res, res), cfg.init_metallic, np.float32),
-                "roughness": np.full((res, res), max(cfg.init_roughness, cfg.roughness_min), np.float32)}
+        floors = _floors(cfg)
+        init = {i.name: np.full((res, res, 3) if i.colour else (res, res),
+                                max(getattr(cfg, f"init_{i.name}"), floors[i.name]), np.float32) for i in brdf.INPUTS}
         self._init = init
         mesh, _ = _textured_mesh(self.vertices, self.faces, self.normals, self.uvs, init)
 
@@ -335,7 +341,7 @@ class _TexelFit:
         self.tv_idx = {name: _neighbour_index(ts.resolution, _CHANNELS[name]) for name in TEXTURES} \
             if cfg.tv_weight > 0 else None
         self.env_tv_idx = _neighbour_index_wrapped(ts.env_h) if ts.learn_env and cfg.env_tv_weight > 0 else None
-        self.lo = {"basecolor": 0.0, "metallic": 0.0, "roughness": cfg.roughness_min}
+        self.lo = _floors(cfg)
         self.n_views = len(capture.cameras)
         self.per_step = max(1, min(int(cfg.views_per_step), self.n_views))
         self.meta = {"format": SNAPSHOT_FORMAT, "world": capture.world,
@@ -380,7 +386,7 @@ class _TexelFit:
         dr.backward(loss)
         opt.step()
         for name in TEXTURES:
-            opt[name] = dr.clip(opt[name], self.lo[name], 1.0)
+            opt[name] = dr.clip(opt[name], self.lo[name], brdf.get(name).high)
         rec_value = _mean(rec)
         self.loss_first = rec_value if self.loss_first is None else self.loss_first
         self.loss_ema = rec_value if self.loss_ema is None else 0.95 * self.loss_ema + 0.05 * rec_value
@@ -481,7 +487,7 @@ class TexelRenderer:
         h, w = camera.height, camera.width
         n = h * w
         rng = np.random.default_rng(seed)
-        acc = np.zeros((n, 8), np.float64)  # basecolor 3, metallic, roughness, normal 3
+        acc = np.zeros((n, brdf.CHANNELS + 3), np.float64)  # the inputs' channels, then the normal's 3
         hits = np.zeros(n, np.float64)
         for a in range(aa):
             jitter = np.full((n, 2), 0.5) if aa == 1 else pixel_jitter(n, a, aa, rng)
@@ -491,23 +497,26 @@ class TexelRenderer:
                                mi.Vector3f(*[mi.Float(d[:, i]) for i in range(3)]))
                 si = scene.ray_intersect(ray)
                 valid = si.is_valid()
-                bc = self.textures["basecolor"].eval(si, valid)
-                me = self.textures["metallic"].eval_1(si, valid)
-                ro = self.textures["roughness"].eval_1(si, valid)
+                cols = []
+                for i in brdf.INPUTS:
+                    if i.colour:
+                        c = self.textures[i.name].eval(si, valid)
+                        cols += [c.x, c.y, c.z]
+                    else:
+                        cols.append(self.textures[i.name].eval_1(si, valid))
                 nrm = si.sh_frame.n
                 nrm = dr.select(dr.dot(nrm, -ray.d) < 0, -nrm, nrm)
-                cols = [bc.x, bc.y, bc.z, me, ro, nrm.x, nrm.y, nrm.z]
+                cols += [nrm.x, nrm.y, nrm.z]
                 cols = [dr.select(valid, c, 0.0) for c in cols]
                 dr.eval(valid, *cols)
             acc += np.stack([np.array(c, dtype=np.float64) for c in cols], -1)
             hits += np.array(valid, dtype=np.float64)
         safe = np.maximum(hits, 1.0)[:, None]
         maps = acc / safe
-        nrm = maps[:, 5:8]
+        out, at = {"rgb": img[..., :3], "alpha": (hits / aa).reshape(h, w).astype(np.float32)}, 0
+        for i in brdf.INPUTS:
+            out[i.name] = maps[:, at:at + i.channels].reshape((h, w, 3) if i.colour else (h, w)).astype(np.float32)
+            at += i.channels
+        nrm = maps[:, at:at + 3]
         nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-8)
-        return {"rgb": img[..., :3],
-                "alpha": (hits / aa).reshape(h, w).astype(np.float32),
-                "basecolor": maps[:, 0:3].reshape(h, w, 3).astype(np.float32),
-                "metallic": maps[:, 3].reshape(h, w).astype(np.float32),
-                "roughness": maps[:, 4].reshape(h, w).astype(np.float32),
-                "normal": nrm.reshape(h, w, 3).astype(np.float32)}
+        return {**out, "normal": nrm.reshape(h, w, 3).astype(np.float32)}
