@@ -11,6 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.run.outputs import check_output_folder
 from vq_mitsuba.run.run_dir import RunDir
@@ -72,7 +73,8 @@ def parse_changes(sets: Sequence[str] = (), scales: Sequence[str] = (), hue_shif
         key = key.strip()
         if not sep:
             raise InputError(None, f"--{op} {text}: expected KEY=VALUE, e.g. --{op} roughness=0.5")
-        if op == "set" and key == "basecolor":
+        inp = brdf.get(key)
+        if op == "set" and inp is not None and inp.colour:
             parsed = parse_basecolor(value)
         else:
             parsed = parse_numbers(value, 1, f"--{op} {text}")[0]
@@ -83,7 +85,7 @@ def parse_changes(sets: Sequence[str] = (), scales: Sequence[str] = (), hue_shif
     if hue_shift is not None:
         if not np.isfinite(hue_shift):
             raise InputError(None, f"--hue-shift must be finite, got {hue_shift}")
-        changes.append(Change("hue_shift", "basecolor", float(hue_shift)))
+        changes.append(Change("hue_shift", brdf.BASECOLOR, float(hue_shift)))  # --hue-shift turns the basecolor
     if not changes:
         raise InputError(None, "no change given: use --set, --scale, --hue-shift or --preset")
     return changes

@@ -2,8 +2,20 @@
 
 from __future__ import annotations
 
+from vq_mitsuba import brdf
 from vq_mitsuba.cli.common import finite, output_option, refuse_file_output
 from vq_mitsuba.errors import InputError
+
+
+def _either(words: list[str]) -> str:
+    """"a, b or c"."""
+    return ", ".join(words[:-1]) + " or " + words[-1] if len(words) > 1 else "".join(words)
+
+
+def _set_forms() -> str:
+    """What --set takes, input by input, e.g. "basecolor=R,G,B (linear, 0..1) or basecolor=#RRGGBB (sRGB), ..."."""
+    return _either([f"{i.name}=R,G,B (linear, 0..1) or {i.name}=#RRGGBB (sRGB)" if i.colour else f"{i.name}=V"
+                    for i in brdf.INPUTS])
 
 
 def add_parser(sub, shared) -> None:
@@ -14,8 +26,8 @@ def add_parser(sub, shared) -> None:
                     "world-space box (material and box selections intersect), and change their BRDF. Writes "
                     "NEW_RUN with run.json naming RUN_DIR's fitted run and edits.json, the edit list (RUN_DIR's "
                     "edits plus this one); render, export and eval of NEW_RUN show the edit. --set takes "
-                    "basecolor=R,G,B (linear, 0..1) or basecolor=#RRGGBB (sRGB), metallic=V or roughness=V; "
-                    "--scale multiplies basecolor, metallic or roughness by F, keeping the texture (clamped to 0..1).")
+                    f"{_set_forms()}; --scale multiplies {_either(list(brdf.NAMES))} by F, keeping the texture "
+                    "(clamped to 0..1).")
     d.add_argument("run_dir", nargs="?", help="a fitted (or already edited) run directory")
     d.add_argument("--material", type=int, action="append", default=[], metavar="K",
                    help="select the K-th ranked material (materials.json; repeatable)")
@@ -24,9 +36,9 @@ def add_parser(sub, shared) -> None:
     d.add_argument("--box", action="append", default=[], metavar="x0,y0,z0,x1,y1,z1",
                    help="keep only points inside this world-space box (the capture's coordinates; repeatable)")
     d.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="set basecolor, metallic or roughness of the selection (see above)")
+                   help=f"set {_either(list(brdf.NAMES))} of the selection (see above)")
     d.add_argument("--scale", action="append", default=[], metavar="KEY=F",
-                   help="multiply basecolor, metallic or roughness by F (see above)")
+                   help=f"multiply {_either(list(brdf.NAMES))} by F (see above)")
     d.add_argument("--hue-shift", type=finite(1e6), metavar="DEG", help="rotate the basecolor's hue by DEG degrees")
     d.add_argument("--preset", metavar="NAME", help="a named material of the library (see --list-presets)")
     d.add_argument("--list-presets", action="store_true", help="list the library's materials")
@@ -49,7 +61,8 @@ def run(args) -> int:
 
     if args.list_presets:
         for name, m in sorted(material_library().items()):
-            print(f"{name:14s} basecolor {m['basecolor']} metallic {m['metallic']} roughness {m['roughness']}  ({m['note']})")
+            values = " ".join(f"{i.name} {m[i.name]}" for i in brdf.INPUTS)
+            print(f"{name:14s} {values}  ({m['note']})")
         return 0
     if args.output is None:
         raise InputError(None, "edit writes a new run: give it a folder with -o NEW_RUN")

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from vq_mitsuba import brdf
 from vq_mitsuba.brdf import NAMES
 from vq_mitsuba.errors import InputError
 
@@ -40,7 +41,7 @@ def material_library() -> dict[str, dict]:
 @dataclass
 class Change:
     op: str  # "set", "scale" or "hue_shift"
-    key: str  # "basecolor", "metallic", "roughness" ("basecolor" for hue_shift)
+    key: str  # a BRDF input's name (brdf.NAMES); a colour's for hue_shift
     value: float | tuple[float, float, float]  # degrees for hue_shift
 
     def to_dict(self) -> dict:
@@ -49,13 +50,13 @@ class Change:
 
 
 def preset_changes(name: str) -> list[Change]:
-    """The three `set` changes of a library material."""
+    """The `set` changes of a library material, one per BRDF input."""
     lib = material_library()
     if name not in lib:
         raise InputError(None, f"unknown material preset '{name}' (library: {', '.join(sorted(lib))})")
     m = lib[name]
-    return [Change("set", "basecolor", tuple(float(c) for c in m["basecolor"])),
-            Change("set", "metallic", float(m["metallic"])), Change("set", "roughness", float(m["roughness"]))]
+    return [Change("set", i.name, tuple(float(c) for c in m[i.name]) if i.colour else float(m[i.name]))
+            for i in brdf.INPUTS]
 
 
 def check_change(change: Change) -> Change:
@@ -63,22 +64,24 @@ def check_change(change: Change) -> Change:
     op, key, v = change.op, change.key, change.value
     if op not in OPS:
         raise ValueError(f"unknown edit operation '{op}' (one of {', '.join(OPS)})")
-    if key not in KEYS or (op == "hue_shift" and key != "basecolor"):
-        raise ValueError(f"cannot {op} '{key}' (keys: {', '.join(KEYS)}; hue_shift acts on basecolor)")
-    if op == "set" and key == "basecolor":
+    inp = brdf.get(key)
+    if inp is None or (op == "hue_shift" and not inp.colour):
+        colours = " or ".join(i.name for i in brdf.INPUTS if i.colour)
+        raise ValueError(f"cannot {op} '{key}' (keys: {', '.join(brdf.NAMES)}; hue_shift acts on {colours})")
+    if op == "set" and inp.colour:
         if not isinstance(v, (tuple, list)) or len(v) != 3:
-            raise ValueError(f"basecolor needs three values R,G,B, got {v!r}")
+            raise ValueError(f"{key} needs three values R,G,B, got {v!r}")
         v = tuple(float(c) for c in v)
-        if not all(0.0 <= c <= 1.0 for c in v):
-            raise ValueError(f"basecolor values must lie in [0, 1] (linear RGB), got {v}")
+        if not all(inp.low <= c <= inp.high for c in v):
+            raise ValueError(f"{key} values must lie in [{inp.low:g}, {inp.high:g}] (linear RGB), got {v}")
     else:
         if isinstance(v, (tuple, list)):
             raise ValueError(f"{op} {key} takes one number, got {v!r}")
         v = float(v)
         if not math.isfinite(v):
             raise ValueError(f"{op} {key}: value must be finite, got {v}")
-        if op == "set" and not 0.0 <= v <= 1.0:
-            raise ValueError(f"{key} must lie in [0, 1], got {v}")
+        if op == "set" and not inp.low <= v <= inp.high:
+            raise ValueError(f"{key} must lie in [{inp.low:g}, {inp.high:g}], got {v}")
         if op == "scale" and not 0.0 <= v <= MAX_SCALE:
             raise ValueError(f"scale {key}: factor must lie in [0, {MAX_SCALE:g}], got {v:g}")
         if op == "hue_shift" and abs(v) > MAX_HUE_SHIFT:
@@ -175,26 +178,27 @@ def hue_shift(rgb: torch.Tensor, degrees: float) -> torch.Tensor:
     return hsv_to_rgb(hsv)
 
 
-def apply_change(brdf: dict[str, torch.Tensor], change: Change, mask: torch.Tensor,
+def apply_change(values: dict[str, torch.Tensor], change: Change, mask: torch.Tensor,
                  roughness_min: float = 0.0) -> None:
-    """Change `brdf` (basecolor (N, 3), metallic (N,), roughness (N,)) in place where mask (N,) holds."""
-    key, old = change.key, brdf[change.key]
+    """Change `values` (a BRDF dict: a colour (N, 3), a scalar (N,)) in place where mask (N,) holds,
+    clamped to the input's range (roughness's floor raised to `roughness_min`)."""
+    key, old = change.key, values[change.key]
     if change.op == "set":
         new = torch.as_tensor(change.value, dtype=old.dtype, device=old.device).expand_as(old)
     elif change.op == "scale":
         new = old * change.value
     else:
         new = hue_shift(old, float(change.value))
-    lo = roughness_min if key == "roughness" else 0.0
-    new = new.clamp(lo, 1.0)
+    inp = brdf.get(key)
+    new = new.clamp(roughness_min if key == brdf.ROUGHNESS else inp.low, inp.high)
     m = mask if old.dim() == 1 else mask[:, None]
-    brdf[key] = torch.where(m, new, old)
+    values[key] = torch.where(m, new, old)
 
 
-def apply_edits(edits: list[Edit], points: torch.Tensor, brdf: dict[str, torch.Tensor],
+def apply_edits(edits: list[Edit], points: torch.Tensor, values: dict[str, torch.Tensor],
                 material_id: torch.Tensor | None, roughness_min: float = 0.0) -> dict[str, torch.Tensor]:
-    """`brdf` with every edit applied in order at world points (N, 3) of material ids (N,)."""
-    out = dict(brdf)
+    """`values` (a BRDF dict) with every edit applied in order at world points (N, 3) of material ids (N,)."""
+    out = dict(values)
     for edit in edits:
         mask = edit.selection.mask(points, material_id)
         if not bool(mask.any()):

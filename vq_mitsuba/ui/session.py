@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vq_mitsuba.brdf import NAMES
+from vq_mitsuba import brdf
 from vq_mitsuba.data.cameras import Camera
 from vq_mitsuba.data.imageio import linear_to_srgb
 from vq_mitsuba.edit import parse_basecolor
@@ -28,7 +28,7 @@ from vq_mitsuba.models.material_edits import Change, Edit, Selection, apply_edit
     preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
 
-MODES = ("render", "segmentation", "basecolor", "metallic", "roughness", "normal")
+MODES = ("render", "segmentation", *brdf.NAMES, "normal")  # a BRDF input's mode shows its map
 PREVIEW = (2, 1)  # (spp, primary rays per pixel) of the first pass after a change
 REFINE = (32, 4)  # the same for every later pass; passes average, weighted by their spp
 MAX_SPP = 1024  # refining stops here
@@ -61,7 +61,7 @@ class _Accum:
     images: dict = field(default_factory=dict)
 
     def add(self, images: dict, spp: int, aa: int) -> None:
-        keys = ["rgb", "alpha", "basecolor", "metallic", "roughness", "normal"]
+        keys = ["rgb", "alpha", *brdf.NAMES, "normal"]
         for k in keys:
             v = images[k].astype(np.float64)
             self.images[k] = v * spp if k not in self.images else self.images[k] + v * spp
@@ -306,9 +306,9 @@ class EditorSession:
             rgb = linear_to_srgb(np.clip(straight, 0, None)) * a + back * (1 - a)
         elif mode == "segmentation" and "material" in images:
             rgb = segmentation_overlay(images["rgb"], alpha, images["material"]) * a + back * (1 - a)
-        elif mode == "basecolor":
-            rgb = linear_to_srgb(np.clip(images["basecolor"], 0, 1)) * a + back * (1 - a)
-        elif mode in ("metallic", "roughness"):
+        elif brdf.get(mode) is not None and brdf.get(mode).colour:
+            rgb = linear_to_srgb(np.clip(images[mode], 0, 1)) * a + back * (1 - a)
+        elif brdf.get(mode) is not None:  # a scalar, shown grey
             rgb = np.repeat(np.clip(images[mode], 0, 1)[..., None], 3, -1) * a + back * (1 - a)
         elif mode == "normal":
             rgb = (images["normal"] * 0.5 + 0.5) * a + back * (1 - a)
@@ -339,6 +339,7 @@ class EditorSession:
                 "mode": self.mode,
                 "envmaps": self.envmaps(), "lighting": vars(self.lighting),
                 "materials": self._materials_now(materials, edits, self.selection),
+                "inputs": editor_inputs(),
                 "presets": sorted(material_library()),
                 "selection": self.selection.to_dict(),
                 "bounds": self.bounds.tolist(),
@@ -365,7 +366,7 @@ class EditorSession:
         for k in range(1, self.num_materials + 1):
             c = colours[k - 1]
             out.append({"id": k, "colour": "#%02x%02x%02x" % tuple(int(round(x * 255)) for x in c),
-                        **{key: listed.get(k, {}).get(key) for key in NAMES}})
+                        **{key: listed.get(k, {}).get(key) for key in brdf.NAMES}})
         return out
 
     def _materials_now(self, materials: list[dict], edits: list[Edit], selection: Selection) -> list[dict]:
@@ -375,8 +376,7 @@ class EditorSession:
         not count: they change part of a material only)."""
         import torch
 
-        keys = ("basecolor", "metallic", "roughness")
-        known = [m for m in materials if all(m.get(k) is not None for k in keys)]
+        known = [m for m in materials if all(m.get(k) is not None for k in brdf.NAMES)]
         if not edits or not known:
             return materials
         if selection.boxes:
@@ -384,14 +384,12 @@ class EditorSession:
             point = [(a + b) / 2 for a, b in zip(lo, hi)]
         else:
             point = [math.nan] * 3  # inside no box
-        brdf = {"basecolor": torch.tensor([m["basecolor"] for m in known], dtype=torch.float64),
-                "metallic": torch.tensor([m["metallic"] for m in known], dtype=torch.float64),
-                "roughness": torch.tensor([m["roughness"] for m in known], dtype=torch.float64)}
+        values = {i.name: torch.tensor([m[i.name] for m in known], dtype=torch.float64) for i in brdf.INPUTS}
         ids = torch.tensor([m["id"] for m in known])
         points = torch.tensor([point] * len(known), dtype=torch.float64)
-        now = apply_edits(edits, points, brdf, ids, self.fitted.cfg.field.roughness_min)
-        values = {m["id"]: {"basecolor": now["basecolor"][i].tolist(), "metallic": float(now["metallic"][i]),
-                            "roughness": float(now["roughness"][i])} for i, m in enumerate(known)}
+        now = apply_edits(edits, points, values, ids, self.fitted.cfg.field.roughness_min)
+        values = {m["id"]: {i.name: now[i.name][k].tolist() if i.colour else float(now[i.name][k])
+                            for i in brdf.INPUTS} for k, m in enumerate(known)}
         return [{**m, **values.get(m["id"], {})} for m in materials]
 
     def set_view(self, name: str) -> None:
@@ -479,8 +477,9 @@ class EditorSession:
         for c in changes or []:
             try:
                 value = c["value"]
-                if isinstance(value, str) and c.get("key") == "basecolor":  # "#RRGGBB" from a colour picker
-                    as_typed["basecolor"] = value.strip()
+                inp = brdf.get(c.get("key"))
+                if isinstance(value, str) and inp is not None and inp.colour:  # "#RRGGBB" from a colour picker
+                    as_typed[inp.name] = value.strip()
                     value = parse_basecolor(value)
                 value = _numbers(c.get("key"), value)
                 parsed.append(check_change(Change(str(c.get("op", "set")), str(c["key"]), value)))
@@ -574,6 +573,13 @@ class EditorSession:
             self.message = f"exporting {fmt} to {out} ..."
             self._jobs.append(("export", job))
             self._cond.notify_all()
+
+
+def editor_inputs() -> list[dict]:
+    """The BRDF inputs as the page builds its controls from them: name, channels, range, a
+    slider's step and first value."""
+    return [{"name": i.name, "channels": i.channels, "low": i.low, "high": i.high, "step": i.step,
+             "default": i.default} for i in brdf.INPUTS]
 
 
 def _numbers(key, value):

@@ -66,6 +66,7 @@ function applyState(s) {
   fillSelect($("mode"), s.modes, s.mode);
   fillSelect($("envmap"), s.envmaps, s.lighting.envmap);
   fillSelect($("preset"), s.presets);
+  buildInputs(s.inputs);
   const ul = $("materials");
   if (!ul.dataset.filled) {
     for (const m of s.materials) {
@@ -95,6 +96,32 @@ function applyState(s) {
   if (s.job && s.job.state === "running") showMessage(s.message);
 }
 
+// One control per BRDF input, as the server declares them (state.inputs), its id the input's name:
+// a colour picker for a colour, a slider and its value (id NAME-out) for a scalar.
+function buildInputs(inputs) {
+  const box = $("inputs");
+  if (box.dataset.filled) return;
+  for (const inp of inputs) {
+    const label = document.createElement("label");
+    const el = document.createElement("input");
+    el.id = inp.name;
+    label.append(inp.name[0].toUpperCase() + inp.name.slice(1) + " ", el);
+    if (inp.channels === 3) {
+      el.type = "color";
+      el.value = "#808080";
+    } else {
+      Object.assign(el, { type: "range", min: inp.low, max: inp.high, step: inp.step });
+      el.value = inp.default ?? inp.low;
+      const out = document.createElement("output");
+      out.id = inp.name + "-out";
+      out.textContent = el.value;
+      label.append(" ", out);
+    }
+    box.appendChild(label);
+  }
+  box.dataset.filled = "1";
+}
+
 function currentBox() {
   if (!$("use-box").checked) return null;
   const v = [0, 1, 2, 3, 4, 5].map((i) => parseFloat($("b" + i).value));
@@ -114,10 +141,17 @@ function showSelectedMaterial() {
 
 function setControlsFromMaterial(id) {
   const m = state && state.materials.find((x) => x.id === id);
-  if (!m || !m.basecolor) return;
-  const srgb = m.basecolor.map((c) => (c <= 0.0031308 ? 12.92 * c : 1.055 * Math.pow(c, 1 / 2.4) - 0.055));
-  $("basecolor").value = "#" + srgb.map((c) => Math.round(Math.min(1, Math.max(0, c)) * 255).toString(16).padStart(2, "0")).join("");
-  for (const k of ["metallic", "roughness"]) { $(k).value = m[k]; $(k + "-out").textContent = (+m[k]).toFixed(2); }
+  if (!m || state.inputs.some((inp) => m[inp.name] == null)) return;
+  for (const inp of state.inputs) {
+    const k = inp.name;
+    if (inp.channels === 3) {
+      const srgb = m[k].map((c) => (c <= 0.0031308 ? 12.92 * c : 1.055 * Math.pow(c, 1 / 2.4) - 0.055));
+      $(k).value = "#" + srgb.map((c) => Math.round(Math.min(1, Math.max(0, c)) * 255).toString(16).padStart(2, "0")).join("");
+    } else {
+      $(k).value = m[k];
+      $(k + "-out").textContent = (+m[k]).toFixed(2);
+    }
+  }
 }
 
 // --- frames: long-poll for the newest one --------------------------------------------------------
@@ -198,14 +232,15 @@ function setupControls() {
   };
   for (const id of ["envmap", "rotate", "exposure"]) $(id).addEventListener(id === "envmap" ? "change" : "input", lighting);
 
-  const change = (key, live) => {
-    const value = key === "basecolor" ? $("basecolor").value : +$(key).value;
-    if (key !== "basecolor") $(key + "-out").textContent = value.toFixed(2);
+  const change = (inp, live) => {
+    const key = inp.name;
+    const value = inp.channels === 3 ? $(key).value : +$(key).value;
+    if (inp.channels !== 3) $(key + "-out").textContent = value.toFixed(2);
     sendLatest("edit", "edit", { changes: [{ op: "set", key, value }], live });
   };
-  for (const key of ["basecolor", "metallic", "roughness"]) {
-    $(key).addEventListener("input", () => change(key, true));
-    $(key).addEventListener("change", () => change(key, false));
+  for (const inp of state.inputs) {
+    $(inp.name).addEventListener("input", () => change(inp, true));
+    $(inp.name).addEventListener("change", () => change(inp, false));
   }
   $("preset").addEventListener("change", () => {
     if ($("preset").value) sendLatest("edit", "edit", { preset: $("preset").value });
