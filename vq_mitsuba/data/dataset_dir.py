@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
 from vq_mitsuba.data.imageio import write_exr, write_png, written
 from vq_mitsuba.errors import InputError
@@ -49,8 +50,8 @@ def write_rgba(stem: str | Path, rgba: np.ndarray) -> None:
 
 
 def write_gt(stem: str | Path, gt: dict) -> None:
-    """A test view's ground-truth maps: STEM_basecolor/metallic/roughness/normal.exr, STEM_material.png
-    (ids), STEM_alpha.png (coverage)."""
+    """A test view's ground-truth maps: STEM_<input>.exr of each BRDF input, STEM_normal.exr,
+    STEM_material.png (ids), STEM_alpha.png (coverage)."""
     for kind in DatasetDir.GT_EXR:
         write_exr(f"{stem}_{kind}.exr", gt[kind])
     write_png(f"{stem}_material.png", gt["material"])
@@ -78,7 +79,7 @@ class DatasetDir:
     CYCLES_WORK = "_cycles"  # the Cycles worker's job file and raw multilayer EXRs (removed unless kept)
     CYCLES_JOB = "job.json"
     SUBDIRS = (IMAGES, GT, MESHES, ENVMAPS, RELIT)  # a dataset's folders, emptied by each make-scene
-    GT_EXR = ("basecolor", "metallic", "roughness", "normal")  # gt/<id>_<kind>.exr
+    GT_EXR = (*brdf.NAMES, "normal")  # gt/<id>_<kind>.exr: each BRDF input's map and the normal
     GT_PNG = ("material", "alpha")  # gt/<id>_<kind>.png
     PHOTO_FORMATS = ("neus", "colmap", "colmap_opencv", "nerfstudio", "llff")  # --photo-formats' folders
     # Everything make-scene writes at the top of a dataset folder: an earlier dataset is replaced whole.

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.data import envmaps
 from vq_mitsuba.data.dataset_dir import DatasetDir
@@ -126,10 +127,10 @@ def build_job(spec: dict, shapes: list[dict], cameras: list, renders: list[dict]
     job_mats = []
     for k, m in enumerate(spec["materials"]):
         tex = synthetic.is_textured(m)
-        job_mats.append({"name": m["name"], "id": k + 1,
-                         "base_color": None if tex else [float(c) for c in m["base_color"]],
-                         "vertex_colors": tex, "metallic": float(m["metallic"]),
-                         "roughness": float(m["roughness"])})
+        values = {i.principled: None if tex and i.principled == synthetic.BASE_COLOR  # baked per vertex
+                  else [float(c) for c in m[i.principled]] if i.colour else float(m[i.principled])
+                  for i in brdf.INPUTS}
+        job_mats.append({"name": m["name"], "id": k + 1, **values, "vertex_colors": tex})
     job_shapes = []
     for s in shapes:
         mat = mats.get(s["material"])
@@ -142,7 +143,7 @@ def build_job(spec: dict, shapes: list[dict], cameras: list, renders: list[dict]
             raise InputError(None, f"shape {s['name']}: vertices/normals must be (V, 3) and faces (F, 3)")
         if len(f) and (f.min() < 0 or f.max() >= len(v)):
             raise InputError(None, f"shape {s['name']}: face index out of range")
-        colors = synthetic.eval_base_color(mat["base_color"], v) if synthetic.is_textured(mat) else None
+        colors = synthetic.eval_base_color(mat[synthetic.BASE_COLOR], v) if synthetic.is_textured(mat) else None
         job_shapes.append({"name": s["name"], "material": s["material"], "vertices": _round(v),
                            "faces": f.tolist(), "normals": _round(n),
                            "colors": None if colors is None else _round(colors, 6)})
@@ -158,6 +159,8 @@ def build_job(spec: dict, shapes: list[dict], cameras: list, renders: list[dict]
     return {"version": 1,
             "render": {"samples": int(spp), "seed": int(seed), "max_bounces": MAX_BOUNCES, "denoise": bool(denoise),
                        "filter_width": 1.0, "threads": int(threads)},
+            "inputs": [{"name": i.name, "channels": i.channels, "principled": i.principled, "blender": i.blender,
+                        "patterned": i.principled == synthetic.BASE_COLOR} for i in brdf.INPUTS],
             "materials": job_mats, "shapes": job_shapes, "cameras": job_cams,
             "renders": [{"camera": r["camera"], "envmap": str(r["envmap"]), "output": str(r["output"])}
                         for r in renders]}
@@ -197,7 +200,7 @@ def run_worker(job: dict, job_path: Path, progress=None, python: Path | None = N
 def read_passes(path: str | Path) -> dict[str, np.ndarray]:
     """Passes of a Cycles multilayer EXR (one part per pass in Blender 5) as float32 arrays keyed
     by pass name: {'Combined': (H,W,4), 'Normal': (H,W,3), 'Material Index': (H,W),
-    'basecolor': (H,W,3 or 4), 'metallic': (H,W), 'roughness': (H,W), ...}."""
+    and one AOV per BRDF input: a colour's (H,W,3 or 4), a scalar's (H,W), ...}."""
     import OpenEXR
 
     path = Path(path)
@@ -232,7 +235,7 @@ def gt_maps(passes: dict[str, np.ndarray], n_materials: int) -> dict[str, np.nda
     Coverage-weighted AOVs are divided by the coverage (the Mitsuba generator averages over the
     rays that hit); the material id is the material index pass where the coverage is at least
     one half, 0 elsewhere."""
-    missing = [p for p in ("Combined", "Normal", INDEX_PASS, "basecolor", "metallic", "roughness") if p not in passes]
+    missing = [p for p in ("Combined", "Normal", INDEX_PASS, *brdf.NAMES) if p not in passes]
     if missing:
         raise InputError(None, f"Cycles render lacks the passes {missing} (found {sorted(passes)})")
     alpha = np.clip(passes["Combined"][..., 3].astype(np.float64), 0.0, 1.0)
@@ -245,9 +248,8 @@ def gt_maps(passes: dict[str, np.ndarray], n_materials: int) -> dict[str, np.nda
         c = covered if x.ndim == 2 else covered[..., None]
         return np.where(c, x / d, 0.0)
 
-    basecolor = np.clip(per_cov(passes["basecolor"][..., :3]), 0.0, 1.0)
-    metallic = np.clip(per_cov(passes["metallic"]), 0.0, 1.0)
-    roughness = np.clip(per_cov(passes["roughness"]), 0.0, 1.0)
+    maps = {i.name: np.clip(per_cov(passes[i.name][..., :3] if i.colour else passes[i.name]), i.low, i.high)
+            .astype(np.float32) for i in brdf.INPUTS}
     normal = passes["Normal"][..., :3].astype(np.float64)
     norm = np.linalg.norm(normal, axis=-1, keepdims=True)
     normal = np.where(norm > 1e-12, normal / np.maximum(norm, 1e-12), 0.0)
@@ -255,9 +257,7 @@ def gt_maps(passes: dict[str, np.ndarray], n_materials: int) -> dict[str, np.nda
     if ids.min() < 0 or ids.max() > n_materials:
         raise InputError(None, f"material index pass holds ids outside 0..{n_materials}")
     material = np.where(alpha >= 0.5, ids, 0).astype(np.uint8)
-    return {"basecolor": basecolor.astype(np.float32), "metallic": metallic.astype(np.float32),
-            "roughness": roughness.astype(np.float32), "normal": normal.astype(np.float32),
-            "material": material, "alpha": alpha.astype(np.float32)}
+    return {**maps, "normal": normal.astype(np.float32), "material": material, "alpha": alpha.astype(np.float32)}
 
 
 # --------------------------------------------------------------------------------------------

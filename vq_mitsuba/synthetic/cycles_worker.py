@@ -7,15 +7,17 @@ bpy, numpy and the standard library. The job file (written by `vq_mitsuba.synthe
 holds everything in Blender world (Z up):
 
     render     samples, seed, max_bounces, denoise, filter_width, threads
-    materials  [{name, id, base_color (RGB or null), vertex_colors, metallic, roughness}]
+    inputs     [{name, channels, principled, blender, patterned}]: the BRDF inputs (vq_mitsuba.brdf)
+    materials  [{name, id, vertex_colors, and each input's value under its principled name (the
+                patterned colour's null where vertex_colors)}]
     shapes     [{name, material, vertices, faces, normals, colors (per-vertex RGB or null)}]
     cameras    [{name, transform_matrix (camera-to-world, OpenGL axes), camera_angle_x, width, height}]
     renders    [{camera, envmap (lat-long EXR path), output (multilayer EXR path)}]
 
 Every render is written as one multilayer OpenEXR (32-bit float) holding the view layer's
 passes: Combined (RGBA, linear, premultiplied, transparent film), Normal (world), Material
-Index (IndexMA: the material pass index = the material's id, 0 = background) and the shader AOVs `basecolor`
-(colour), `metallic` and `roughness` (values). The calling process turns them into the dataset
+Index (IndexMA: the material pass index = the material's id, 0 = background) and one shader AOV per
+BRDF input, named as the input (a colour's COLOR, a scalar's VALUE). The calling process turns them into the dataset
 layout. One line `rendered I/N NAME` is printed per finished render.
 """
 
@@ -34,9 +36,6 @@ sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _HERE]
 import bpy  # noqa: E402
 import mathutils  # noqa: E402  (ships with bpy)
 import numpy as np  # noqa: E402
-
-AOVS = (("basecolor", "COLOR"), ("metallic", "VALUE"), ("roughness", "VALUE"))
-
 
 def _reset() -> bpy.types.Scene:
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -88,13 +87,13 @@ def _setup_render(scene, job: dict) -> None:
     vl.use_pass_combined = True
     vl.use_pass_normal = True
     vl.use_pass_material_index = True
-    for name, kind in AOVS:
+    for inp in job["inputs"]:
         aov = vl.aovs.add()
-        aov.name = name
-        aov.type = kind
+        aov.name = inp["name"]
+        aov.type = "COLOR" if inp["channels"] == 3 else "VALUE"
 
 
-def _material(m: dict) -> bpy.types.Material:
+def _material(m: dict, inputs: list[dict]) -> bpy.types.Material:
     mat = bpy.data.materials.new(m["name"])
     mat.use_nodes = True
     mat.pass_index = int(m["id"])
@@ -106,27 +105,26 @@ def _material(m: dict) -> bpy.types.Material:
     bsdf.distribution = "GGX"  # single-scatter GGX, as Mitsuba's principled
     bsdf.inputs["IOR"].default_value = 1.5
     bsdf.inputs["Specular IOR Level"].default_value = 0.5  # F0 = 0.04, Mitsuba's specular 0.5
-    bsdf.inputs["Metallic"].default_value = float(m["metallic"])
-    bsdf.inputs["Roughness"].default_value = float(m["roughness"])
     nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-    if m.get("vertex_colors"):
-        attr = nt.nodes.new("ShaderNodeAttribute")  # the mesh's "vertex_color" attribute
-        attr.attribute_type = "GEOMETRY"
-        attr.attribute_name = "vertex_color"
-        color_socket = attr.outputs["Color"]
-        nt.links.new(color_socket, bsdf.inputs["Base Color"])
-    else:
-        rgb = nt.nodes.new("ShaderNodeRGB")
-        rgb.outputs["Color"].default_value = (*map(float, m["base_color"]), 1.0)
-        color_socket = rgb.outputs["Color"]
-        nt.links.new(color_socket, bsdf.inputs["Base Color"])
-    aov_c = nt.nodes.new("ShaderNodeOutputAOV")
-    aov_c.aov_name = "basecolor"
-    nt.links.new(color_socket, aov_c.inputs["Color"])
-    for name in ("metallic", "roughness"):
+    for inp in inputs:  # each BRDF input feeds its Principled socket and its AOV
+        value = m[inp["principled"]]
+        if inp["channels"] == 3:
+            if inp["patterned"] and m.get("vertex_colors"):
+                node = nt.nodes.new("ShaderNodeAttribute")  # the mesh's "vertex_color" attribute
+                node.attribute_type = "GEOMETRY"
+                node.attribute_name = "vertex_color"
+            else:
+                node = nt.nodes.new("ShaderNodeRGB")
+                node.outputs["Color"].default_value = (*map(float, value), 1.0)
+            nt.links.new(node.outputs["Color"], bsdf.inputs[inp["blender"]])
+        else:
+            bsdf.inputs[inp["blender"]].default_value = float(value)
         aov = nt.nodes.new("ShaderNodeOutputAOV")
-        aov.aov_name = name
-        aov.inputs["Value"].default_value = float(m[name])
+        aov.aov_name = inp["name"]
+        if inp["channels"] == 3:
+            nt.links.new(node.outputs["Color"], aov.inputs["Color"])
+        else:
+            aov.inputs["Value"].default_value = float(value)
     return mat
 
 
@@ -190,7 +188,7 @@ def _world(scene) -> bpy.types.ShaderNode:
 def run(job: dict) -> None:
     scene = _reset()
     _setup_render(scene, job)
-    mats = {m["name"]: _material(m) for m in job["materials"]}
+    mats = {m["name"]: _material(m, job["inputs"]) for m in job["materials"]}
     for s in job["shapes"]:
         _mesh_object(scene, s, mats[s["material"]])
     cams = {c["name"]: (_camera_object(scene, c), c) for c in job["cameras"]}

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data import envmaps
 from vq_mitsuba.backend import init_mitsuba
 from vq_mitsuba.config import read_yaml
@@ -37,6 +38,10 @@ from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.formats import mitsuba_xml, nerf_synthetic
 from vq_mitsuba.data.imageio import written
 from vq_mitsuba.errors import InputError, WriteError, as_write_error
+
+# A scene's material gives each BRDF input under its principled name; the base colour's may be a
+# pattern (a dict), baked into per-vertex colours.
+BASE_COLOR = brdf.get(brdf.BASECOLOR).principled
 
 SCENES_DIR = Path(str(resources.files("vq_mitsuba.synthetic") / "scenes"))  # package data, installed with the wheel
 R_BLENDER_FROM_MITSUBA = BLENDER_ENV_TO_WORLD[:3, :3].copy()  # Blender_world = R @ Mitsuba_world
@@ -81,8 +86,9 @@ def load_scene_spec(name: str) -> dict:
         if not _NAME_RE.match(str(m.get("name", ""))) or m["name"] in names:
             raise InputError(path, f"bad or duplicate material name {m.get('name')!r}")
         names.add(m["name"])
-        m.setdefault("metallic", 0.0)
-        m.setdefault("roughness", 0.5)
+        for i in brdf.INPUTS:
+            if i.default is not None:
+                m.setdefault(i.principled, i.default)
     shape_names = set()
     for s in shapes:
         if not _NAME_RE.match(str(s.get("name", ""))) or s["name"] in shape_names or s["name"] in names:
@@ -94,7 +100,7 @@ def load_scene_spec(name: str) -> dict:
 
 
 def is_textured(material: dict) -> bool:
-    return isinstance(material["base_color"], dict)
+    return isinstance(material[BASE_COLOR], dict)
 
 
 def _smoothstep(e0, e1, x):
@@ -306,7 +312,7 @@ def write_scene_xml(path: Path, spec: dict, cameras_mi: list[Camera], spp: int, 
         f'     Blender world = R @ this world, R = {r.astype(int).tolist()}. No emitter: the lighting',
         '     is unknown to a fit. A lat-long map in Blender\'s convention lights this scene through an',
         '     envmap with identity to_world, exactly as it lights the Blender-world capture.'])
-    materials = [{**m, "base_color": None if is_textured(m) else m["base_color"]} for m in spec["materials"]]
+    materials = [{**m, BASE_COLOR: None if is_textured(m) else m[BASE_COLOR]} for m in spec["materials"]]
     shapes = [{"name": s["name"], "material": s["material"], "file": DatasetDir.shape_file(s["name"])}
               for s in spec["shapes"]]
     mitsuba_xml.write_capture(path, cameras_mi, materials, shapes, spp, SAMPLER, note)
@@ -356,9 +362,7 @@ def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.rando
 
     mat_index = {m["name"]: k for k, m in enumerate(spec["materials"])}
     mat_id = np.zeros(n, dtype=np.int64)  # per sample, 0 = miss
-    base = np.zeros((n, 3))
-    metal = np.zeros(n)
-    rough = np.zeros(n)
+    values = {i.name: np.zeros((n, 3) if i.colour else n) for i in brdf.INPUTS}  # per sample
     for shape in scene.shapes():
         info = shape_info[shape.id()]
         mask = valid & np.array(si.shape == mi.ShapePtr(shape), dtype=bool)
@@ -366,8 +370,9 @@ def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.rando
             continue
         mat = spec["materials"][mat_index[info["material"]]]
         mat_id[mask] = mat_index[info["material"]] + 1
-        metal[mask] = mat["metallic"]
-        rough[mask] = mat["roughness"]
+        for i in brdf.INPUTS:
+            if not (i.principled == BASE_COLOR and is_textured(mat)):
+                values[i.name][mask] = np.asarray(mat[i.principled], dtype=np.float64)
         if is_textured(mat):
             # Interpolate the vertex colours Mitsuba renders with (barycentric, from the hit point).
             params = mi.traverse(shape)
@@ -377,9 +382,7 @@ def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.rando
             tri = faces[prim[mask]]
             a, b, c = verts[tri[:, 0]], verts[tri[:, 1]], verts[tri[:, 2]]
             bary = _barycentric(p_mi[mask], a, b, c)
-            base[mask] = np.einsum("nk,nkc->nc", bary, cols[tri])
-        else:
-            base[mask] = np.asarray(mat["base_color"], dtype=np.float64)
+            values[brdf.BASECOLOR][mask] = np.einsum("nk,nkc->nc", bary, cols[tri])
 
     def per_pixel(x):  # (n_sub^2 * H * W, ...) -> (n_sub^2, H, W, ...)
         return x.reshape((n_sub * n_sub, h, w) + x.shape[1:])
@@ -388,18 +391,15 @@ def render_gt(scene, cam_mi: Camera, spec: dict, shape_info: dict, rng: np.rando
     cnt = hits.sum(0)
     alpha = cnt / (n_sub * n_sub)
     denom = np.maximum(cnt, 1.0)
-    basecolor = (per_pixel(base) * hits[..., None]).sum(0) / denom[..., None]
-    metallic = (per_pixel(metal) * hits).sum(0) / denom
-    roughness = (per_pixel(rough) * hits).sum(0) / denom
+    maps = {i.name: ((per_pixel(values[i.name]) * hits[..., None]).sum(0) / denom[..., None] if i.colour
+                     else (per_pixel(values[i.name]) * hits).sum(0) / denom).astype(np.float32) for i in brdf.INPUTS}
     normal = (per_pixel(n_bl) * hits[..., None]).sum(0)
     normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
     ids = per_pixel(mat_id)
     k = len(spec["materials"])
     votes = np.stack([(ids == j).sum(0) for j in range(k + 1)], -1)
     material = np.argmax(votes, -1).astype(np.uint8)
-    return {"basecolor": basecolor.astype(np.float32), "metallic": metallic.astype(np.float32),
-            "roughness": roughness.astype(np.float32), "normal": normal.astype(np.float32),
-            "material": material, "alpha": alpha.astype(np.float32)}
+    return {**maps, "normal": normal.astype(np.float32), "material": material, "alpha": alpha.astype(np.float32)}
 
 
 def _barycentric(p, a, b, c) -> np.ndarray:
@@ -420,6 +420,22 @@ def _barycentric(p, a, b, c) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # The whole scene
 # --------------------------------------------------------------------------------------------
+def _material_values(m: dict, verts: np.ndarray) -> dict:
+    """A scene.json material's BRDF inputs under their principled names; the base colour also as
+    its pattern (None when plain) and its mean over `verts`."""
+    out = {}
+    for i in brdf.INPUTS:
+        key = i.principled
+        if key == BASE_COLOR:
+            out[key] = m[key] if not is_textured(m) else None
+            out[f"{key}_pattern"] = m[key] if is_textured(m) else None
+            out[f"mean_{key}"] = eval_base_color(m[key], verts).mean(0).tolist() if is_textured(m) \
+                else list(map(float, m[key]))
+        else:
+            out[key] = [float(c) for c in m[key]] if i.colour else float(m[key])
+    return out
+
+
 def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train_name: str, relights: list,
                       r: np.ndarray, center: np.ndarray, radius: float, dist: float, envmap_convention: str) -> dict:
     """The scene.json entries every generator (Mitsuba, Cycles) writes alike: cameras' frame,
@@ -428,13 +444,8 @@ def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train
         "fov_x_deg": FOV_X_DEG,
         "camera_distance": dist,
         "bounding_sphere": {"center": center.tolist(), "radius": radius},
-        "materials": [{"id": k + 1, "name": m["name"],
-                       "base_color": m["base_color"] if not is_textured(m) else None,
-                       "base_color_pattern": m["base_color"] if is_textured(m) else None,
-                       "mean_base_color": eval_base_color(m["base_color"], verts).mean(0).tolist()
-                       if is_textured(m) else list(map(float, m["base_color"])),
-                       "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
-                       "textured": is_textured(m)} for k, m in enumerate(spec["materials"])],
+        "materials": [{"id": k + 1, "name": m["name"], **_material_values(m, verts), "textured": is_textured(m)}
+                      for k, m in enumerate(spec["materials"])],
         "shapes": [dict(name=k, **v) for k, v in shape_info.items()],
         "envmap": {"train": DatasetDir.envmap_file(DatasetDir.TRAIN_ENVMAP), "preset": env_train_name,
                    "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
@@ -488,7 +499,7 @@ def write_geometry(spec: dict, out: Path) -> SceneGeometry:
     for s in spec["shapes"]:
         v, f, nrm = build_shape(s)
         mat = mats[s["material"]]
-        colors = eval_base_color(mat["base_color"], v) if is_textured(mat) else None
+        colors = eval_base_color(mat[BASE_COLOR], v) if is_textured(mat) else None
         shape_mesh = _mi_mesh(s["name"], v @ r, f, nrm @ r, colors)
         written(dataset.shape_mesh(s["name"]), lambda: shape_mesh.write_ply(str(dataset.shape_mesh(s["name"]))))
         shapes.append({"name": s["name"], "material": s["material"], "vertices": v, "faces": f, "normals": nrm})
@@ -583,10 +594,14 @@ def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
     """The Mitsuba scene (path tracer, materials, the meshes of out/meshes/) without its envmap."""
     base = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True}}
     for m in spec["materials"]:
-        bsdf = {"type": "principled", "metallic": float(m["metallic"]), "roughness": float(m["roughness"]),
-                "specular": 0.5}
-        bsdf["base_color"] = ({"type": "mesh_attribute", "name": "vertex_color"} if is_textured(m)
-                              else {"type": "rgb", "value": [float(c) for c in m["base_color"]]})
+        bsdf = {"type": "principled", **brdf.FIXED}
+        for i in brdf.INPUTS:
+            if i.principled == BASE_COLOR and is_textured(m):
+                bsdf[i.principled] = {"type": "mesh_attribute", "name": "vertex_color"}
+            elif i.colour:
+                bsdf[i.principled] = {"type": "rgb", "value": [float(c) for c in m[i.principled]]}
+            else:
+                bsdf[i.principled] = float(m[i.principled])
         base["mat_" + m["name"]] = bsdf
     for s in spec["shapes"]:
         base[s["name"]] = {"type": "ply", "filename": str(DatasetDir(out).shape_mesh(s["name"]).resolve()),

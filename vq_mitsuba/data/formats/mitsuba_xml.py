@@ -20,6 +20,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.cameras import Camera, principal_xml
 from vq_mitsuba.data.checks import check_camera, finite_number
 from vq_mitsuba.data.envmaps import check_envmap, load_envmap
@@ -333,8 +334,8 @@ def _scene_mesh(xml: Path, scene):
 # --------------------------------------------------------------------------------------------
 def write_capture(path: Path, cameras: list[Camera], materials: list[dict], shapes: list[dict], spp: int,
                   sampler: str, note: str) -> None:
-    """A scene XML: principled `materials` ({"name", "base_color": RGB, or None for the meshes'
-    vertex_color attribute, "metallic", "roughness"}; bsdf id "mat_NAME"), ply `shapes` ({"name",
+    """A scene XML: principled `materials` ({"name", and each BRDF input's value under its principled
+    parameter: an RGB, or None for the meshes' vertex_color attribute, or a float}; bsdf id "mat_NAME"), ply `shapes` ({"name",
     "material", "file" relative to the XML}), one perspective sensor per camera (its RGBA film, a
     `sampler` of `spp` samples), no emitter; `note` is its opening comment."""
     parts = ['<?xml version="1.0" encoding="utf-8"?>', f"<!-- {note} -->", '<scene version="3.0.0">']
@@ -355,16 +356,18 @@ def _fmt(x) -> str:
 
 def _bsdf_xml(mat: dict) -> str:
     lines = [f'    <bsdf type="principled" id={quoteattr("mat_" + mat["name"])}>']
-    if mat["base_color"] is None:
-        lines += ['        <texture type="mesh_attribute" name="base_color">',
-                  '            <string name="name" value="vertex_color"/>',
-                  '        </texture>']
-    else:
-        lines.append(f'        <rgb name="base_color" value="{", ".join(_fmt(c) for c in mat["base_color"])}"/>')
-    lines += [f'        <float name="metallic" value="{_fmt(mat["metallic"])}"/>',
-              f'        <float name="roughness" value="{_fmt(mat["roughness"])}"/>',
-              '        <float name="specular" value="0.5"/>',
-              '    </bsdf>']
+    for i in brdf.INPUTS:
+        key, value = i.principled, mat[i.principled]
+        if i.colour and value is None:
+            lines += [f'        <texture type="mesh_attribute" name="{key}">',
+                      '            <string name="name" value="vertex_color"/>',
+                      '        </texture>']
+        elif i.colour:
+            lines.append(f'        <rgb name="{key}" value="{", ".join(_fmt(c) for c in value)}"/>')
+        else:
+            lines.append(f'        <float name="{key}" value="{_fmt(value)}"/>')
+    lines += [f'        <float name="{key}" value="{_fmt(value)}"/>' for key, value in brdf.FIXED.items()]
+    lines.append('    </bsdf>')
     return "\n".join(lines)
 
 
