@@ -30,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.unposed import capture_name
 from vq_mitsuba.errors import InputError, UserError
@@ -346,7 +347,7 @@ def figures(run: RunDir) -> dict:
         out["materials"] = materials.get("num_materials")
     metrics = run.metrics()
     if metrics is not None:
-        for key in ("novel_view", "basecolor"):
+        for key in ("novel_view", brdf.BASECOLOR):  # the view's and the albedo's headline PSNR
             value = metrics.get(key, {}).get("psnr") if isinstance(metrics.get(key), dict) else None
             if value is not None:
                 out[f"{key}_psnr"] = value

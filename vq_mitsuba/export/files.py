@@ -48,9 +48,12 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def texture_images(baked: BakedMesh) -> dict[str, np.ndarray]:
-    """8-bit images: basecolor (sRGB), metallic, roughness (linear grey) and glTF's combined
-    metallic-roughness (R unused, G roughness, B metallic)."""
-    mr = np.stack([np.zeros_like(baked.roughness), baked.roughness, baked.metallic], -1)
+    """8-bit images: each BRDF input's (a colour sRGB, a scalar linear grey) and glTF's combined
+    metallic-roughness (each input at its `gltf_channel`: G roughness, B metallic; R unused)."""
+    mr = np.zeros(baked.roughness.shape + (3,), np.float32)
+    for i in INPUTS:
+        if i.gltf_channel is not None:
+            mr[..., i.gltf_channel] = getattr(baked, i.name)
     return {**{i.name: (srgb8 if i.colour else unit8)(getattr(baked, i.name)) for i in INPUTS},
             "metallic_roughness": unit8(mr)}
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vq_mitsuba import brdf
 from vq_mitsuba.data.imageio import written
 from vq_mitsuba.export.bake import BakedMesh
 from vq_mitsuba.export.files import png_bytes, texture_images
@@ -37,7 +38,7 @@ def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
     indices = baked.faces.astype(np.uint32)
     images = texture_images(baked)
     blobs = [positions.tobytes(), normals.tobytes(), uvs.tobytes(), indices.tobytes(),
-             png_bytes(images["basecolor"]), png_bytes(images["metallic_roughness"])]
+             png_bytes(images[brdf.BASECOLOR]), png_bytes(images["metallic_roughness"])]  # glTF's two slots
     views, body, offset = [], b"", 0
     targets = [ARRAY_BUFFER, ARRAY_BUFFER, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, None, None]
     for blob, target in zip(blobs, targets):
@@ -59,7 +60,7 @@ def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
             "baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1},
             "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 1.0, "roughnessFactor": 1.0}}],
         "textures": [{"sampler": 0, "source": 0}, {"sampler": 0, "source": 1}],
-        "images": [{"bufferView": 4, "mimeType": "image/png", "name": "basecolor"},
+        "images": [{"bufferView": 4, "mimeType": "image/png", "name": brdf.BASECOLOR},
                    {"bufferView": 5, "mimeType": "image/png", "name": "metallic_roughness"}],
         "samplers": [{"magFilter": LINEAR, "minFilter": LINEAR_MIPMAP_LINEAR, "wrapS": CLAMP_TO_EDGE,
                       "wrapT": CLAMP_TO_EDGE}],

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import nn
 
+from vq_mitsuba import brdf
 from vq_mitsuba.config import FieldConfig
 
 
@@ -86,10 +87,10 @@ class BRDFDecoder(nn.Module):
         r0 = self.roughness_min
         logit = self.metallic(z)[..., 0]
         return {
-            "basecolor": torch.sigmoid(self.basecolor(z)),
-            "roughness": r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
+            brdf.BASECOLOR: torch.sigmoid(self.basecolor(z)),
+            brdf.ROUGHNESS: r0 + (1.0 - r0) * torch.sigmoid(self.roughness(z))[..., 0],
             "metallic_logit": logit,
-            "metallic": torch.sigmoid(logit),
+            brdf.METALLIC: torch.sigmoid(logit),
         }
 
 

@@ -66,7 +66,7 @@ def write_material_sheet(materials: list[dict], envmap: np.ndarray, env_to_world
         over_grey = linear_to_srgb(np.clip(img[..., :3], 0, None)) * a + 0.5 * (1 - a)
         ax.imshow(np.clip(over_grey, 0, 1))
         ax.set_title(f"{m['id']}: {100 * m['pixel_fraction']:.1f} % of pixels\n"
-                     f"metallic {m['metallic']:.2f}, roughness {m['roughness']:.2f}", fontsize=8)
+                     + ", ".join(f"{i.name} {m[i.name]:.2f}" for i in brdf.INPUTS if not i.colour), fontsize=8)
     fig.suptitle("materials, ranked (sphere under the fitted light)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
