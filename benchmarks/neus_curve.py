@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     from vq_mitsuba.data.captures import open_capture
     from vq_mitsuba.geometry.neus import reconstruct
     from vq_mitsuba.geometry.neus.training import view_psnr
-    from vq_mitsuba.geometry.stage import neus_psnr, surface_points
+    from vq_mitsuba.geometry.neus.method import neus_psnr, surface_points
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

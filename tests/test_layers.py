@@ -68,24 +68,40 @@ def test_render_command_imports_no_training_code(tmp_path):
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True)
     loaded = eval(out.stdout.strip().splitlines()[-1])
     assert "vq_mitsuba.run.run_dir" in loaded and "vq_mitsuba.render.views" in loaded
-    assert not [m for m in loaded if m.startswith(("vq_mitsuba.engine", "vq_mitsuba.geometry.neus"))], loaded
+    # NeuS's package and its registration as a geometry method (the CLI's --geometry choices) import no
+    # training code; its rooms do
+    registration = {"vq_mitsuba.geometry.neus", "vq_mitsuba.geometry.neus.method"}
+    assert not [m for m in loaded if m.startswith(("vq_mitsuba.engine", "vq_mitsuba.geometry.neus"))
+                and m not in registration], loaded
 
 
 def test_only_run_dir_names_run_files():
-    """Every JSON and torch file of a run folder is named once, in RunDir: no other module spells one
-    out. (mesh.ply is also a capture's file name, so the capture loaders may say it.)"""
+    """Every JSON and torch file of a run folder is named once, in RunDir, or, for a geometry method's
+    own files (its checkpoint), once in the method's package: no other module spells one out.
+    (mesh.ply is also a capture's file name, so the capture loaders may say it.)"""
+    import inspect
+
+    from vq_mitsuba.geometry import methods
     from vq_mitsuba.run.run_dir import RunDir
 
     names = {v for k, v in vars(RunDir).items() if k.isupper() and isinstance(v, str) and v.endswith((".json", ".pt"))}
-    assert {"run.json", "checkpoint.pt", "neus.pt", "geometry.json", "metrics.json"} <= names
-    found = []
+    assert {"run.json", "checkpoint.pt", "geometry.json", "metrics.json"} <= names
+    package_of = {f: Path(inspect.getfile(type(methods.get(n)))).resolve().parent
+                  for n in methods.names() for f in methods.get(n).files}
+    assert "neus.pt" in package_of
+    found, own = [], {f: [] for f in package_of}
     for path in PACKAGE.rglob("*.py"):
-        if path.name == "run_dir.py":
-            continue
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names:
-                found.append((str(path.relative_to(PACKAGE)), node.lineno, node.value))
+            if not (isinstance(node, ast.Constant) and isinstance(node.value, str)):
+                continue
+            where = (str(path.relative_to(PACKAGE)), node.lineno, node.value)
+            if node.value in names and path.name != "run_dir.py":
+                found.append(where)
+            elif node.value in own:
+                inside = package_of[node.value] in path.resolve().parents
+                (own[node.value] if inside else found).append(where)
     assert not found, found
+    assert all(len(places) == 1 for places in own.values()), own
 
 
 def test_one_basename_per_concept():

@@ -14,6 +14,7 @@ import torch
 
 from tiny_scene import write_sphere_capture
 from vq_mitsuba import cli
+from vq_mitsuba.geometry.neus import CHECKPOINT as NEUS_CHECKPOINT
 from vq_mitsuba.run.run_dir import RunDir
 
 NEUS = ["--set", "neus.iterations=100000", "--set", "neus.time_limit_s=0", "--set", "neus.checkpoint_every=20",
@@ -31,7 +32,7 @@ def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path,
                              *NEUS, *extra], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 120
-        while not (run / RunDir.NEUS_CHECKPOINT).is_file():
+        while not (run / NEUS_CHECKPOINT).is_file():
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
             time.sleep(0.1)
         time.sleep(0.5)
@@ -43,11 +44,11 @@ def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path,
     assert b"SIGTERM" not in err and b"stack trace" not in err and b"Traceback" not in err
     assert b"interrupted; the last checkpoint is kept" in err
     assert not (run / RunDir.LOCK).exists()
-    step = torch.load(run / RunDir.NEUS_CHECKPOINT, weights_only=False)["step"]
+    step = torch.load(run / NEUS_CHECKPOINT, weights_only=False)["step"]
     assert step >= 20
     resumed = [a.replace("100000", str(step + 10)) for a in NEUS]
     assert cli.main([command, str(capture), "-o", str(run), "--resume", "--quiet", *resumed, *extra]) == 0
-    assert torch.load(run / RunDir.NEUS_CHECKPOINT, weights_only=False)["step"] == step + 10
+    assert torch.load(run / NEUS_CHECKPOINT, weights_only=False)["step"] == step + 10
     assert (run / RunDir.MESH).is_file() and (run / RunDir.GEOMETRY).is_file()
 
 

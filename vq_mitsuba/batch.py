@@ -34,6 +34,7 @@ from vq_mitsuba import brdf
 from vq_mitsuba.data.dataset_dir import DatasetDir
 from vq_mitsuba.data.unposed import capture_name
 from vq_mitsuba.errors import InputError, UserError
+from vq_mitsuba.geometry import methods
 from vq_mitsuba.run.outputs import BATCH_MARKER, check_output_folder
 from vq_mitsuba.run.run_dir import RunDir, read_json, write_atomic, write_json
 
@@ -44,7 +45,7 @@ VIEW_SIZE, VIEW_SPP = 256, 16  # the long side and samples per pixel of those vi
 RETRIES = 3  # tries of a run whose process died by a signal
 LOCK_WAIT_S = 300.0  # how long a retry waits for the fit of the try before it to let go of the run
 MAX_SEED = 2 ** 32 - 1  # the seeds numpy, torch and Mitsuba all take
-SEED_KEYS = ("train.seed", "neus.seed")  # the keys the batch sets for each run's seed
+SEED_KEYS = ("train.seed", *methods.seed_keys())  # the keys the batch sets for each run's seed
 REFUSED = "refused"  # the status of a run whose settings differ from the ones a rerun asks for
 
 
@@ -123,8 +124,8 @@ def ground_truth_of(capture: str | Path) -> Path | None:
 def fit_options(spec: RunSpec, fit_args: list[str]) -> list[str]:
     """The options of the run's `fit` after its capture and folder: the batch's, the capture's own,
     its seed and its preset."""
-    return [*fit_args, *spec.args, "--set", f"train.seed={spec.seed}", "--set", f"neus.seed={spec.seed}",
-            *(["--preset", spec.preset] if spec.preset else [])]
+    seeds = [option for key in SEED_KEYS for option in ("--set", f"{key}={spec.seed}")]
+    return [*fit_args, *spec.args, *seeds, *(["--preset", spec.preset] if spec.preset else [])]
 
 
 def _config_options() -> argparse.ArgumentParser:
@@ -275,7 +276,7 @@ def run_one(spec: RunSpec, out: str, fit_args: list[str], threads: int, evaluate
         _wait_while_locked(run, log)
         argv = ["fit", spec.capture, "-o", str(run), "--quiet", "--threads", str(threads),
                 *fit_options(spec, fit_args)]
-        if RunDir(run).holds_run_files():  # an interrupted run: its poses, NeuS and checkpoint go on
+        if RunDir(run).holds_run_files():  # an interrupted run: its poses, geometry and checkpoint go on
             argv.append("--resume")
         code, message = _command(argv, log)
         row = {"status": "done" if code == 0 else "failed", "message": "" if code == 0 else message}

@@ -149,10 +149,10 @@ def test_a_version_1_config_yaml_loads_under_the_new_names(tmp_path):
 def test_a_neus_checkpoint_saved_under_version_1_names_still_resumes(tmp_path):
     """A NeuS checkpoint keeps asdict(NeuSConfig) of its time; resuming compares only the keys that
     shape the networks, so the renamed learning-rate key does not matter."""
-    from vq_mitsuba.geometry.neus import _check_architecture
+    from vq_mitsuba.geometry.neus import check_architecture
 
     saved = {("lr_decay" if k == "lr_end_cosine" else k): v for k, v in dataclasses.asdict(C.NeuSConfig()).items()}
-    _check_architecture(tmp_path / "neus.pt", saved, load_config(overrides=["neus.lr_end_cosine=0.3"]).neus)
+    check_architecture(tmp_path / "neus.pt", saved, load_config(overrides=["neus.lr_end_cosine=0.3"]).neus)
 
 
 def test_texel_config_lives_with_the_baseline():

@@ -53,7 +53,8 @@ def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_ste
                         lambda self: (reads.append(len(self.pending)), read(self))[1])
     neus = neus_for(sphere_capture(n_views=6, size=20), small_cfg(iterations=23))
     assert neus.device == torch.device("cpu")
-    tensors = [neus.rays_o, neus.rays_d, neus.rays_rgb, neus.rays_alpha, neus.hull, neus.hull_dilated, neus.hull_sdf]
+    box = neus.box
+    tensors = [neus.rays_o, neus.rays_d, neus.rays_rgb, neus.rays_alpha, box.hull, box.hull_dilated, box.hull_sdf]
     assert all(t.device == neus.device for t in tensors)
     assert all(p.device == neus.device for p in neus.model.parameters())
     summary = train(neus, None, progress=False)

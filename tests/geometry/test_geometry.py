@@ -21,7 +21,7 @@ from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid,
-                                      NeuSModel, _hull_box, choose_grid, rate_spread, reconstruct, train)
+                                      NeuSModel, hull_box, choose_grid, rate_spread, reconstruct, train)
 from vq_mitsuba.geometry.neus import NeuS, neus_for
 
 RADIUS = 0.5
@@ -67,7 +67,7 @@ def sdf_world(neus: NeuS, points: np.ndarray) -> np.ndarray:
     p = neus.to_box(torch.tensor(points, device=neus.device))
     with torch.no_grad():
         s = neus.model.sdf(p, [1.0] * neus.cfg.levels)[0]
-    return s.cpu().numpy() * neus.half
+    return s.cpu().numpy() * neus.box.half
 
 
 def test_dense_grid_is_trilinear_and_twice_differentiable():
@@ -282,7 +282,7 @@ def test_the_hull_keeps_an_object_wider_than_most_frames():
     assert np.all(framed < 0.75)  # the ends are in the frame of fewer than 3 views in 4
 
     def kept(min_views: float) -> bool:
-        c, h, occ = _hull_box(cams, masks, NeuSConfig(hull_resolution=48, hull_min_views=min_views), "bar")
+        c, h, occ = hull_box(cams, masks, NeuSConfig(hull_resolution=48, hull_min_views=min_views), "bar")
         idx = np.floor(((ends - c) / h + 1) / 2 * occ.shape[0]).astype(int)
         inside = np.all((idx >= 0) & (idx < occ.shape[0]), 1)
         return bool(inside.all() and occ.numpy()[idx[:, 0], idx[:, 1], idx[:, 2]].all())
@@ -442,7 +442,7 @@ def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
 
 def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them():
     from vq_mitsuba.geometry.neus.training import sample_views, view_psnr
-    from vq_mitsuba.geometry.stage import neus_psnr_line
+    from vq_mitsuba.geometry.neus.method import neus_psnr_line
 
     capture = sphere_capture(n_views=8, size=24)
     neus = neus_for(capture, small_cfg(iterations=80))
@@ -603,14 +603,14 @@ def test_reflecting_colour_network_sees_the_mirror_direction():
 
 
 def test_a_checkpoint_from_before_neus_reflect_counts_as_made_without_it(tmp_path):
-    from vq_mitsuba.geometry.neus import _check_architecture
+    from vq_mitsuba.geometry.neus import check_architecture
 
     saved = {k: v for k, v in dataclasses.asdict(small_cfg(reflect=False)).items() if k != "reflect"}
-    _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False))
+    check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False))
     with pytest.raises(InputError, match="neus.reflect=False"):
-        _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=True))
+        check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=True))
     with pytest.raises(InputError, match="neus.max_res=24 \\(now 32\\)"):
-        _check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False, max_res=32))
+        check_architecture(tmp_path / "neus.pt", saved, small_cfg(reflect=False, max_res=32))
 
 
 def test_rate_spread_finds_a_slowed_stretch_of_training():

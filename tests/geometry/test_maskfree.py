@@ -127,7 +127,7 @@ def test_background_model_switches_on_exactly_without_masks_and_background_colou
         assert uses_background_model(capture, tiny_cfg()) is auto
         assert uses_background_model(capture, tiny_cfg(background="model")) is True
         assert uses_background_model(capture, tiny_cfg(background="masks")) is False
-    assert neus_for(bare, tiny_cfg()).mask_free and not neus_for(masked, tiny_cfg()).mask_free
+    assert neus_for(bare, tiny_cfg()).box.mask_free and not neus_for(masked, tiny_cfg()).box.mask_free
     with pytest.raises(InputError, match="neus.background is masks"):
         neus_for(bare, tiny_cfg(background="masks"))
     with pytest.raises(InputError, match="expects one of|must be one of|background"):
@@ -212,7 +212,7 @@ def test_framing_reads_colmap_points_and_the_idr_scale_matrix(tmp_path):
     from vq_mitsuba.data.formats.colmap import read_colmap_points, write_colmap
     from vq_mitsuba.data.formats.idr import write_idr
     from vq_mitsuba.data.captures import open_capture
-    from vq_mitsuba.geometry.stage import framing as framing_of
+    from vq_mitsuba.geometry.neus.method import framing as framing_of
 
     def framing(path, cams):
         return framing_of(open_capture(path), cams)
@@ -253,11 +253,11 @@ def test_a_known_support_bounds_the_foreground_and_starts_the_background():
     capture = unmasked(np.full((6, 16, 16, 3), 0.5, np.float32), cams)
     neus = neus_for(capture, tiny_cfg(), sphere=(np.array([0.0, 0.1, 0.0]), 0.5, "test"),
                 support=(np.array([0.0, 2.0, 0.0]), -0.1))  # the plane y = -0.05, its normal unnormalised
-    n, c = neus.plane
+    n, c = neus.box.plane
     assert torch.allclose(n, torch.tensor([0.0, 1.0, 0.0])) and c == pytest.approx(-0.3)  # box units
-    res = neus.hull.shape[0]
+    res = neus.box.hull.shape[0]
     y = (torch.arange(res) + 0.5) / res * 2 - 1
-    assert not neus.hull[:, y < -0.3, :].any() and neus.hull[:, (y > -0.25) & (y < 0.25), :].any()
+    assert not neus.box.hull[:, y < -0.3, :].any() and neus.box.hull[:, (y > -0.25) & (y < 0.25), :].any()
     o = torch.tensor([[0.0, 2.0, 0.0], [-2.0, 0.5, 0.0], [0.0, -2.0, 0.0]])
     d = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     end = neus._foreground_end(o, d)
@@ -352,7 +352,7 @@ def test_mask_free_export_keeps_the_object_without_its_table(monkeypatch):
 def _mask_free_run(images, true_alpha, cams, iterations: int):
     capture = unmasked(images, cams)
     neus = neus_for(capture, tiny_cfg(iterations=iterations, seed=0))
-    assert neus.mask_free and neus.sphere_source == "cameras"
+    assert neus.box.mask_free and neus.box.sphere_source == "cameras"
     summary = train(neus, None, progress=False)
     mesh, _ = extract_mesh(neus)
     derived = mesh_coverage(mesh, cams) > 0.5
@@ -513,7 +513,7 @@ def test_a_checkpoint_resumes_only_in_its_own_mode(tmp_path):
     result = reconstruct(bare, tmp_path, cfg, progress=False)
     summary = result.summary
     assert summary["background"] == "model" and summary["bounding_sphere"]["from"] == "cameras"
-    assert summary["bounding_sphere"]["radius"] == pytest.approx(result.neus.half)
+    assert summary["bounding_sphere"]["radius"] == pytest.approx(result.neus.box.half)
     masked = dataclasses.replace(bare, alpha=(images[..., 0] > 0.5).astype(np.float32), has_alpha=True)
     with pytest.raises(InputError, match="made without masks"):
         reconstruct(masked, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True, progress=False)

@@ -127,15 +127,15 @@ def test_triangulated_points_are_used_where_they_are_dense_enough(monkeypatch):
     from types import SimpleNamespace
 
     from vq_mitsuba.config import NeuSConfig
-    from vq_mitsuba.geometry import stage as pipeline
+    from vq_mitsuba.geometry.neus import method as neus_method
 
     source = SimpleNamespace(framing=lambda: (None, None))  # a capture without points of its own
     cap = textured_sphere()
-    points, info = pipeline.surface_points(source, cap, NeuSConfig())
+    points, info = neus_method.surface_points(source, cap, NeuSConfig())
     n = info["given"]
-    assert info["source"] == "triangulated" and n < pipeline.MIN_POINTS_PER_VIEW * len(cap.cameras)
+    assert info["source"] == "triangulated" and n < neus_method.MIN_POINTS_PER_VIEW * len(cap.cameras)
     assert points is None and info["used"] == 0 and f"{n} points over 16 views" in info["skipped"]
-    monkeypatch.setattr(pipeline, "MIN_POINTS_PER_VIEW", 2)
-    points, info = pipeline.surface_points(source, cap, NeuSConfig())
+    monkeypatch.setattr(neus_method, "MIN_POINTS_PER_VIEW", 2)
+    points, info = neus_method.surface_points(source, cap, NeuSConfig())
     assert len(points) == n and "skipped" not in info and info["seconds"] > 0
-    assert pipeline.surface_points(source, cap, NeuSConfig(w_points=0.0)) == (None, None)
+    assert neus_method.surface_points(source, cap, NeuSConfig(w_points=0.0)) == (None, None)

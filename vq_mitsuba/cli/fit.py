@@ -7,6 +7,9 @@ from vq_mitsuba.cli.common import (CAPTURE_FORMATS, CaptureFormatsHelp, command_
 
 
 def add_parser(sub, shared) -> None:
+    from vq_mitsuba.geometry import methods
+
+    modes = methods.fit_modes()
     f = sub.add_parser(
         "fit", parents=run_parents(shared), help="decompose a capture into materials and lighting (VQ-NeRF)",
         formatter_class=CaptureFormatsHelp,
@@ -19,8 +22,9 @@ def add_parser(sub, shared) -> None:
                     "reconstructs the mesh with NeuS first (RUN_DIR/mesh.ply, reused on --resume); neus always "
                     "reconstructs it from the images (with their masks when they have any); given never does.")
     f.add_argument("--mesh", help="known geometry (PLY/OBJ) in the capture's world, for any posed capture")
-    f.add_argument("--geometry", choices=["auto", "neus", "given"], default="auto",
-                   help="where the mesh comes from: auto (default), neus or given (see above)")
+    f.add_argument("--geometry", choices=list(modes), default="auto",
+                   help=f"where the mesh comes from: {modes[0]} (default), {', '.join(modes[1:-1])} or {modes[-1]} "
+                        "(see above)")
     f.set_defaults(func=run)
 
 

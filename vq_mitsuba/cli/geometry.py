@@ -1,4 +1,5 @@
-"""`vq-mitsuba geometry`: NeuS and mesh export into a run (`vq_mitsuba.engine.pipeline.geometry_capture`)."""
+"""`vq-mitsuba geometry`: the geometry method (NeuS) and mesh export into a run
+(`vq_mitsuba.engine.pipeline.geometry_capture`)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ def add_parser(sub, shared) -> None:
 
 def run(args) -> int:
     from vq_mitsuba.engine.pipeline import geometry_capture
-    from vq_mitsuba.geometry.stage import check_geometry_target, neus_psnr_line
+    from vq_mitsuba.geometry import methods
+    from vq_mitsuba.geometry.stage import check_geometry_target
     from vq_mitsuba.run.run_dir import RunDir
 
     if args.help_config:
@@ -28,12 +30,14 @@ def run(args) -> int:
     refuse_file_output(run_dir)
     check_geometry_target(RunDir(run_dir))
     cfg = command_config(args)
-    info = geometry_capture(args.capture, run_dir, cfg, resume=args.resume, progress=not args.quiet,
-                            gt_mesh=args.gt_mesh).summary
-    s = info["seconds"]
-    print(f"NeuS: {info['iterations']} iterations in {s['train']:.1f} s (+{s['setup_and_hull']:.1f} s visual hull, "
-          f"{s['mesh_export']:.1f} s mesh export); mesh with {info['mesh']['faces']} faces in {run_dir}/mesh.ply")
-    print(neus_psnr_line(info["neus_psnr"]))
+    result = geometry_capture(args.capture, run_dir, cfg, resume=args.resume, progress=not args.quiet,
+                              gt_mesh=args.gt_mesh)
+    info = result.summary
+    lines = methods.get(result.method).report(info)  # its training first, then its own scores
+    mesh = f"mesh with {len(result.mesh.faces)} faces in {run_dir}/{RunDir.MESH}"
+    print("; ".join([*lines[:1], mesh]))
+    for line in lines[1:]:
+        print(line)
     if "metrics" in info:
         m = info["metrics"]
         print(f"against {args.gt_mesh}: Chamfer {100 * m['chamfer_rel']:.3f}% of the bounding-box diagonal, "

@@ -1,8 +1,9 @@
 """The pipeline `vq-mitsuba fit` runs, once, from here: the run folder's checks, the capture resolved
 once (`vq_mitsuba.data.captures.open_capture`: the value every stage takes), the camera poses when
 the capture is photos or a video without them (SfM), the geometry stage when the capture brings no
-geometry (NeuS: `vq_mitsuba.geometry.stage`), then the material fit: a resumed run checked against
-the capture, run.json and the warnings about the inputs, the training loop and the residual
+geometry (a geometry method, NeuS by default: `vq_mitsuba.geometry.stage`), then the material fit:
+a resumed run checked against the capture, run.json and the warnings about the inputs, the training
+loop and the residual
 (`vq_mitsuba.engine.trainer.Trainer`) and the results (`vq_mitsuba.engine.products`).
 `vq-mitsuba geometry` runs its pose and geometry stages."""
 
@@ -25,29 +26,37 @@ from vq_mitsuba.engine.mesh_scale import mesh_scale_warning
 from vq_mitsuba.engine.products import write_products
 from vq_mitsuba.engine.trainer import Trainer, parse_snapshot_times
 from vq_mitsuba.errors import InputError, warn
-from vq_mitsuba.geometry.stage import ensure_geometry, masked_by_mesh, neus_psnr_line, run_geometry
+from vq_mitsuba.geometry import methods
+from vq_mitsuba.geometry.stage import ensure_geometry, geometry_report, masked_by_mesh, run_geometry
 from vq_mitsuba.geometry.poses import ensure_poses
 from vq_mitsuba.models.fitted import material_networks
 from vq_mitsuba.run.outputs import check_output_folder, removed_on_refusal
 from vq_mitsuba.run.run_dir import RunDir
 
-GEOMETRY_MODES = ("auto", "neus", "given")
 COVERAGE_WARNING = 0.9  # a share of the opaque pixels hitting the mesh below this is warned about
 
 
+def geometry_method(geometry: str = "auto") -> str:
+    """The geometry method a fit with `--geometry geometry` reconstructs with (when it does): the
+    one named, or the default one for auto and given; a ValueError naming the modes for another."""
+    if geometry not in methods.fit_modes():
+        raise ValueError(f"geometry must be one of {methods.fit_modes()}, got {geometry!r}")
+    return methods.DEFAULT if geometry in methods.MODES else geometry
+
+
 def needs_reconstruction(capture: CaptureSource, geometry: str = "auto") -> bool:
-    """Whether the fit reconstructs the geometry with NeuS first: `neus`, photos or a video without
-    poses, or `auto` on a capture without shapes, mesh.ply or --mesh."""
-    if geometry not in GEOMETRY_MODES:
-        raise ValueError(f"geometry must be one of {GEOMETRY_MODES}, got {geometry!r}")
-    if geometry == "neus" and capture.mesh is not None:
-        raise InputError(capture.mesh, "--mesh gives known geometry but --geometry neus asks to reconstruct it; "
-                                       "drop one")
+    """Whether the fit reconstructs the geometry first: `--geometry METHOD` (a geometry method's
+    name), photos or a video without poses, or `auto` on a capture without shapes, mesh.ply or --mesh."""
+    geometry_method(geometry)  # refuses an unknown mode
+    named = geometry not in methods.MODES
+    if named and capture.mesh is not None:
+        raise InputError(capture.mesh, f"--mesh gives known geometry but --geometry {geometry} asks to reconstruct "
+                                       "it; drop one")
     if not capture.posed:
         return True
     if geometry == "given" or capture.mesh is not None:
         return False
-    return geometry == "neus" or not capture.has_geometry()
+    return named or not capture.has_geometry()
 
 
 def check_fit_target(run: RunDir, resume: bool) -> None:
@@ -75,7 +84,8 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
     """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
     without `resume` before any work; pose photos or a video without poses (RUN_DIR/pose/, a COLMAP
     capture, reused while the inputs are the same) and fit that capture; reconstruct the mesh with
-    NeuS when `needs_reconstruction` (RUN_DIR/mesh.ply, reused on resume); then fit the materials.
+    the geometry method (`geometry_method`) when `needs_reconstruction` (RUN_DIR/mesh.ply, reused on
+    resume); then fit the materials.
     Returns the fit's summary (fit.json).
     The run's lock is held throughout: a second process fitting into RUN_DIR is refused."""
     parse_snapshot_times(cfg.train.snapshot_s)
@@ -89,6 +99,7 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
                                                 "poses: their cameras come from SfM, in a frame and scale of its "
                                                 f"own; drop {'--mesh' if mesh is not None else '--geometry given'}")
     reconstruct = needs_reconstruction(capture, geometry)
+    method = methods.get(geometry_method(geometry))
     with run.lock("fit", log):
         check_fit_target(run, resume)  # once no other process writes here
         # A stage refused once it has read the capture (no pixel hits a --mesh, no geometry) removes
@@ -98,11 +109,11 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
         if reconstruct:
             reused = resume and run.has_mesh()
             with removed_on_refusal(run.dir):
-                mesh = ensure_geometry(capture, run, cfg.neus, resume=resume, progress=progress)
-            log(f"geometry: {'reusing' if reused else 'reconstructed with NeuS:'} {mesh}")
-            scores = run.neus_scores()
-            if not reused and scores:
-                log(neus_psnr_line(scores))
+                mesh = ensure_geometry(capture, run, cfg, method.name, resume=resume, progress=progress)
+            log(f"geometry: {'reusing' if reused else f'reconstructed with {method.label}:'} {mesh}")
+            if not reused:
+                for line in geometry_report(run, method.name):  # its training and its own scores
+                    log(line)
             capture = capture.with_mesh(mesh)
         with removed_on_refusal(run.dir):
             return fit_materials(capture, run, cfg, resume=resume, progress=progress)
@@ -110,22 +121,24 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
 
 def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
         resume: bool = False, progress: bool = True) -> dict:
-    """`vq-mitsuba fit --geometry given`: the capture's own geometry or `mesh_path`, no NeuS."""
+    """`vq-mitsuba fit --geometry given`: the capture's own geometry or `mesh_path`, no reconstruction."""
     return fit_capture(capture_path, run_dir, cfg, geometry="given", mesh=mesh_path, resume=resume,
                        progress=progress)
 
 
 def geometry_capture(capture: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
-                     progress: bool = True, gt_mesh: str | Path | None = None):
-    """`vq-mitsuba geometry`: NeuS and the mesh into RUN_DIR under the run's lock, photos or a video
-    posed first (`posed_capture`); returns the `Reconstruction`."""
+                     progress: bool = True, gt_mesh: str | Path | None = None,
+                     method: str = methods.DEFAULT) -> methods.Reconstruction:
+    """`vq-mitsuba geometry`: the geometry `method` (NeuS by default) and the mesh into RUN_DIR under
+    the run's lock, photos or a video posed first (`posed_capture`); returns the `Reconstruction`."""
+    methods.get(method)  # an unknown method is refused before any work
     run = RunDir(run_dir)
     if resume and not run.dir.is_dir():
         raise InputError(run.dir, "no run to resume (the folder does not exist)")
     capture = open_capture(capture, options=cfg.capture, cache_dir=run.dir / RunDir.UNDISTORTED)
     with run.lock("geometry"), removed_on_refusal(run.dir):
         capture = posed_capture(capture, run, cfg.pose, progress=progress)
-        return run_geometry(capture, run, cfg.neus, resume=resume, progress=progress, gt_mesh=gt_mesh)
+        return run_geometry(capture, run, cfg, method, resume=resume, progress=progress, gt_mesh=gt_mesh)
 
 
 def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool = False,
@@ -164,12 +177,13 @@ def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool
 
 
 def load_training_capture(source: CaptureSource, run: RunDir) -> Capture:
-    """The training views with their geometry (masked by the mesh when NeuS made it without masks)."""
+    """The training views with their geometry (masked by the mesh when the geometry stage made it
+    without masks)."""
     capture = source.load("train")
     if capture.mesh is None:
         raise InputError(capture.source, "no known geometry: the capture has no shapes and no mesh "
                          "(pass --mesh PATH, put mesh.ply in the capture's folder, or reconstruct it from the images "
-                         "with `fit --geometry neus` or `vq-mitsuba geometry`)")
+                         f"with `fit --geometry {methods.DEFAULT}` or `vq-mitsuba geometry`)")
     if not capture.has_alpha and run.masks_from_mesh():
         capture = masked_by_mesh(capture)
     return capture

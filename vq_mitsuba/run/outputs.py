@@ -3,7 +3,7 @@
 A command writes only into a new folder, an empty one, or a folder of its own kind that it made
 before, known by that kind's marker file:
 
-    run       (fit, geometry)  run.json or another file only a run holds (RunDir.MARKERS)
+    run       (fit, geometry)  run.json or another file only a run holds (RunDir.markers())
     render                     render.json
     export                     export.json naming the same format
     pose                       pose.json, readable and made from the same photos (geometry/poses.py)
@@ -71,7 +71,7 @@ def describe(folder: str | Path) -> str:
             return "a fitted run (run.json, checkpoint.pt)"
         return "a vq-mitsuba run (run.json)"
     if run.holds_run_files():
-        found = [m for m in RunDir.MARKERS if (folder / m).is_file()]
+        found = [m for m in RunDir.markers() if (folder / m).is_file()]
         return f"an unfinished vq-mitsuba run ({', '.join(found)})"
     if (folder / RENDER_MARKER).is_file():
         return "a render (render.json)"
@@ -156,6 +156,7 @@ def check_metrics_file(path: str | Path) -> None:
     if path.is_dir() or folder_named:
         raise InputError(path, "is a folder; eval -o names the metrics JSON file (e.g. -o OUT/metrics.json)")
     run_files = {Path(v).name for k, v in vars(RunDir).items() if k.isupper() and isinstance(v, str)}
+    run_files |= set(RunDir.method_files())
     if path.name in run_files - {RunDir.METRICS} and RunDir(path.parent).holds_run_files():
         raise InputError(path, f"is a file of the run {path.parent}: eval -o names a metrics file of its own "
                                f"(e.g. -o {path.parent / RunDir.METRICS} or a file outside the run)")

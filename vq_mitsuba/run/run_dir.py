@@ -5,8 +5,9 @@ A run directory holds (docs/run_dir.md describes each file and its format):
     run.json             what was fitted: capture, world convention, envmap frame, device, format version
     config.yaml          the fully resolved configuration
     checkpoint.pt        networks, envmap and optimiser state (`fit --resume` continues from it)
-    mesh.ply             the geometry used (given, or reconstructed by NeuS beside geometry.json)
-    neus.pt              the NeuS checkpoint (`--resume` of the geometry stage continues from it)
+    mesh.ply             the geometry used (given, or reconstructed by a geometry method beside geometry.json)
+    neus.pt              a geometry method's own files, named by it (NeuS's checkpoint: `--resume` of the
+                         geometry stage continues from it; `vq_mitsuba.geometry.methods`)
     geometry.json        the geometry stage's summary; geometry_loss.png its training curves
     pose/                photos or a video without poses, posed by SfM: a COLMAP capture and pose.json
     undistorted/         the capture's photos undistorted once (lens-distorted COLMAP captures)
@@ -244,7 +245,6 @@ class RunDir:
     CONFIG = "config.yaml"
     CHECKPOINT = "checkpoint.pt"
     MESH = "mesh.ply"
-    NEUS_CHECKPOINT = "neus.pt"
     GEOMETRY = "geometry.json"
     GEOMETRY_PLOT = "geometry_loss.png"
     POSE = "pose"  # the COLMAP capture SfM made of photos or a video without poses (geometry/poses.py)
@@ -263,7 +263,9 @@ class RunDir:
     EDITS = "edits.json"
     LOCK = "run.lock"  # the command writing into the run (pid, host): RunLock
     # Files only a run of vq-mitsuba holds: a folder with one of them is a run (maybe unfinished).
-    MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, NEUS_CHECKPOINT, POSE_SUMMARY)
+    # `markers()` adds the files of the geometry methods (their checkpoints), which they declare.
+    MARKERS = (INFO, CONFIG, CHECKPOINT, GEOMETRY, POSE_SUMMARY)
+    _method_files: tuple[str, ...] = ()
 
     def __init__(self, path: str | Path):
         self.dir = Path(path)
@@ -293,9 +295,26 @@ class RunDir:
         """run.json is there: the folder holds a fitted (or edited) run."""
         return (self.dir / self.INFO).is_file()
 
+    @classmethod
+    def declare_method_files(cls, names: tuple[str, ...]) -> None:
+        """The names of the files the registered geometry methods keep in a run (their checkpoints;
+        `vq_mitsuba.geometry.methods` declares them as methods register): markers of a run, and names
+        no other command writes there."""
+        cls._method_files = tuple(dict.fromkeys(names))
+
+    @classmethod
+    def method_files(cls) -> tuple[str, ...]:
+        """The files the geometry methods registered so far keep in a run."""
+        return cls._method_files
+
+    @classmethod
+    def markers(cls) -> tuple[str, ...]:
+        """MARKERS and the geometry methods' files: a folder with one of them is a run."""
+        return cls.MARKERS + cls._method_files
+
     def holds_run_files(self) -> bool:
         """Any file that only a run writes is there (a run, or one interrupted early)."""
-        return any((self.dir / name).is_file() for name in self.MARKERS)
+        return any((self.dir / name).is_file() for name in self.markers())
 
     def lock(self, command: str, log: Callable[[str], None] = messages.note) -> RunLock:
         """`with run.lock("fit"):` this process alone writes into the run (the folder is made if
@@ -463,19 +482,15 @@ class RunDir:
         path = self.dir / self.GEOMETRY
         return read_json(path, "") if path.is_file() else {}
 
-    def neus_scores(self) -> dict | None:
-        """geometry.json's `neus_psnr` (NeuS's own renders scored), None where NeuS has not scored."""
-        return self._geometry_summary().get("neus_psnr")
+    def geometry_summary(self) -> dict:
+        """geometry.json, the geometry stage's record ({} where the stage has not written one)."""
+        return self._geometry_summary()
 
     def masks_from_mesh(self) -> bool:
-        """Whether the run's mesh comes from NeuS without masks (geometry.json's background is
-        "model"): the capture then has no masks, and its views are masked by the mesh's coverage.
-        (An edited run: ask its source().)"""
+        """Whether the run's mesh was reconstructed without masks (geometry.json's background is
+        "model", which the stage writes from `Reconstruction.masks_from_mesh`): the capture then has
+        no masks, and its views are masked by the mesh's coverage. (An edited run: ask its source().)"""
         return self._geometry_summary().get("background") == "model"
-
-    @property
-    def neus_checkpoint_path(self) -> Path:
-        return self.dir / self.NEUS_CHECKPOINT
 
     # --- network states -----------------------------------------------------------------------
     def save_state(self, state: dict, path: Path | None = None) -> None:

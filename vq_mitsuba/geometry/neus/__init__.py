@@ -35,23 +35,42 @@ The rooms: `framing` (where the object is without masks), `hull` (the visual hul
 grid and the networks; `grid_kernel` its CPU lookup), `renderer` (the model: its box, occupancy and
 volume rendering of rays; it takes rays, not a capture), `rays` (a capture's box, training rays and
 camera renders: `neus_for` builds the model), `mesh_export` (the surface as a mesh) and `training`
-(the training loop and `reconstruct`; the geometry stage around it is `vq_mitsuba.geometry.stage`).
+(the training loop and `reconstruct`) and `method` (NeuS as the geometry method "neus" of
+`vq_mitsuba.geometry.methods`: its framing, sparse points and scores; the stage around it is
+`vq_mitsuba.geometry.stage`).
+
+The names below are imported from their rooms when first asked for, so that importing `method` (to
+register NeuS) loads no training code.
 """
 
-from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, HASH_PRIMES, MASKED_GRID,
-                                             BackgroundNetwork, ColorNetwork, DenseGrid, NeuSModel, SDFNetwork,
-                                             trilinear)
-from vq_mitsuba.geometry.neus.training import (NeuSTraining, Reconstruction, _check_architecture, rate_spread,
-                                               reconstruct, train)
-from vq_mitsuba.geometry.neus.framing import (bounding_sphere, box_footprint_px, support_from_points,
-                                              uses_background_model, well_seen)
-from vq_mitsuba.geometry.neus.hull import _hull_box, carve, hull_sdf
-from vq_mitsuba.geometry.neus.mesh_export import extract_mesh
-from vq_mitsuba.geometry.neus.rays import choose_grid, neus_for, render_view
-from vq_mitsuba.geometry.neus.renderer import Box, NeuS, TrainingRays, encode_srgb
+import importlib
 
-__all__ = ['COARSE_GRID', 'FINE_GRID', 'FINE_GRID_FROM_PX', 'HASH_PRIMES', 'MASKED_GRID', 'BackgroundNetwork',
-           'ColorNetwork', 'DenseGrid', 'NeuSModel', 'SDFNetwork', 'choose_grid', 'trilinear', 'NeuSTraining',
-           'Reconstruction', '_check_architecture', 'rate_spread', 'reconstruct', 'train', 'bounding_sphere',
-           'box_footprint_px', 'support_from_points', 'uses_background_model', 'well_seen', '_hull_box', 'carve', 'hull_sdf', 'NeuS',
-           'Box', 'TrainingRays', 'neus_for', 'render_view', 'extract_mesh', 'encode_srgb']
+CHECKPOINT = "neus.pt"  # NeuS's checkpoint in a run: `--resume` of the geometry stage continues from it
+
+# each public name and the room that defines it
+_ROOMS = {
+    "networks": ("COARSE_GRID", "FINE_GRID", "FINE_GRID_FROM_PX", "HASH_PRIMES", "MASKED_GRID", "BackgroundNetwork",
+                 "ColorNetwork", "DenseGrid", "NeuSModel", "SDFNetwork", "trilinear"),
+    "training": ("NeuSTraining", "NeuSResult", "check_architecture", "rate_spread", "reconstruct", "train"),
+    "framing": ("bounding_sphere", "box_footprint_px", "support_from_points", "uses_background_model", "well_seen"),
+    "hull": ("hull_box", "carve", "hull_sdf"),
+    "mesh_export": ("extract_mesh",),
+    "rays": ("choose_grid", "neus_for", "render_view"),
+    "renderer": ("Box", "NeuS", "TrainingRays", "encode_srgb"),
+    "method": ("NeuSMethod",),
+}
+_ROOM_OF = {name: room for room, names in _ROOMS.items() for name in names}
+__all__ = list(_ROOM_OF)
+
+
+def __getattr__(name: str):
+    room = _ROOM_OF.get(name)
+    if room is None:  # a room itself (`from vq_mitsuba.geometry.neus import training`) is imported by Python
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{room}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -47,7 +47,7 @@ def carve(cameras, masks: torch.Tensor, lo, hi, res: int, min_views: float,
     return keep.reshape(res, res, res)
 
 
-def _hull_box(cameras, masks: torch.Tensor, cfg: NeuSConfig, source) -> tuple[np.ndarray, float, torch.Tensor]:
+def hull_box(cameras, masks: torch.Tensor, cfg: NeuSConfig, source) -> tuple[np.ndarray, float, torch.Tensor]:
     """(centre, half-size, hull grid) of the cube around the visual hull, found in two passes."""
     center = _look_center(cameras)
     dist = min(float(np.linalg.norm(c.origin - center)) for c in cameras)

@@ -24,8 +24,8 @@ def sdf_volume(neus: NeuS, res: int, chunk: int = 131072) -> np.ndarray:
     tol = 2.0 * 2.0 / hull_res
     for i in range(res):
         p = torch.stack(torch.meshgrid(axis[i:i + 1], axis, axis, indexing="ij"), -1).reshape(-1, 3)
-        hs = trilinear(neus.hull_sdf.reshape(-1, 1), hull_res, p)[:, 0]
-        inside = neus._lookup(neus.hull_dilated, p)
+        hs = trilinear(neus.box.hull_sdf.reshape(-1, 1), hull_res, p)[:, 0]
+        inside = neus._lookup(neus.box.hull_dilated, p)
         s = hs.clone()
         if bool(inside.any()):
             q = p[inside]
@@ -43,8 +43,8 @@ def _without_support(neus: NeuS, vol: np.ndarray, mesh):
 
     res = vol.shape[0]
     cell = 2.0 / (res - 1)
-    if neus.plane is not None:
-        plane = (neus.plane[0].cpu().numpy().astype(np.float64), neus.plane[1])
+    if neus.box.plane is not None:
+        plane = (neus.box.plane[0].cpu().numpy().astype(np.float64), neus.box.plane[1])
     else:
         views = neus.to_box(torch.from_numpy(neus.views)).numpy()
         points = None if neus.points is None else neus.to_box(torch.from_numpy(neus.points)).numpy()
@@ -60,7 +60,7 @@ def _without_support(neus: NeuS, vol: np.ndarray, mesh):
     except ValueError:  # nothing stands on the plane: keep the surface as it is
         return mesh, None
     return cut, {"normal": [float(v) for v in n], "point": neus.to_world(n * c).tolist(),
-                 "from": "sparse points" if neus.plane is not None else "mesh"}
+                 "from": "sparse points" if neus.box.plane is not None else "mesh"}
 
 
 def extract_mesh(neus: NeuS, res: int | None = None, clean: bool = True):
@@ -73,7 +73,7 @@ def extract_mesh(neus: NeuS, res: int | None = None, clean: bool = True):
     support = None
     try:
         mesh = marching_cubes(vol, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-        if neus.mask_free and clean:
+        if neus.box.mask_free and clean:
             mesh, support = _without_support(neus, vol, mesh)
     except ValueError as exc:
         raise InputError(neus.source, f"NeuS produced no surface ({exc}); check the masks and cameras") from exc
@@ -81,7 +81,7 @@ def extract_mesh(neus: NeuS, res: int | None = None, clean: bool = True):
     if clean:
         c = neus.cfg
         # without masks only the largest piece is the object (the rest: background the SDF took)
-        mesh = clean_mesh(mesh, c.min_component, c.keep_largest or neus.mask_free, c.smooth_iterations,
+        mesh = clean_mesh(mesh, c.min_component, c.keep_largest or neus.box.mask_free, c.smooth_iterations,
                           c.max_faces)
         if c.normal_smoothing > 0:
             mesh = smooth_vertex_normals(mesh, c.normal_smoothing, c.normal_smoothing_angle)

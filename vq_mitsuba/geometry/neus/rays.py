@@ -18,7 +18,7 @@ from vq_mitsuba.config import check as validate
 from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus.framing import bounding_sphere, box_footprint_px, uses_background_model
-from vq_mitsuba.geometry.neus.hull import _hull_box, hull_sdf
+from vq_mitsuba.geometry.neus.hull import hull_box, hull_sdf
 from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, MASKED_GRID, SDF_LAYERS,
                                              SDF_LAYERS_FINE)
 from vq_mitsuba.geometry.neus.renderer import Box, NeuS, TrainingRays, _threads, encode_srgb
@@ -125,7 +125,7 @@ def _hull_box_rays(capture, cfg: NeuSConfig, alpha: torch.Tensor) -> tuple[Box, 
     # Carve with masks dilated by one pixel, so the hull stays conservative at silhouettes.
     dil = F.max_pool2d(masks.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0.5
     t0 = time.perf_counter()
-    center, half, occ = _hull_box(capture.cameras, dil, cfg, capture.source)
+    center, half, occ = hull_box(capture.cameras, dil, cfg, capture.source)
     sdf, dilated = hull_sdf(occ).to(device), _dilated(occ, device)
     box = Box(np.asarray(center, dtype=np.float64), float(half), occ, sdf, dilated, False,
               seconds=time.perf_counter() - t0)

@@ -132,18 +132,14 @@ class NeuS:
         self.device = torch_device()  # the model, its training rays and its grids live there
         self.points = None if points is None else np.asarray(points, np.float64).reshape(-1, 3)
         self.views = np.zeros((0, 3)) if views is None else np.asarray(views, np.float64).reshape(-1, 3)
-        self.center, self.half, self.mask_free = box.center, box.half, box.mask_free
-        self.hull, self.hull_sdf, self.hull_dilated = box.hull, box.hull_sdf, box.hull_dilated
-        self.plane, self.sphere_source, self.hull_seconds = box.plane, box.sphere_source, box.seconds
         torch.manual_seed(cfg.seed)
         # built on the CPU (the same initial weights on every device), then moved
-        init = self.hull_sdf.cpu() if not self.mask_free and cfg.init == "hull" else None
-        self.model = NeuSModel(cfg, init, background=self.mask_free).to(self.device)
-        self.deep = torch.zeros_like(self.hull)  # cells the current SDF marks as well inside the object
+        init = self.box.hull_sdf.cpu() if not self.box.mask_free and cfg.init == "hull" else None
+        self.model = NeuSModel(cfg, init, background=self.box.mask_free).to(self.device)
+        self.deep = torch.zeros_like(self.box.hull)  # cells the current SDF marks as well inside the object
         self.rays_o, self.rays_d, self.rays_rgb, self.rays_alpha = rays.origins, rays.dirs, rays.rgb, rays.alpha
         self.cfg, self.steps = choose_iterations(cfg, len(self.rays_o))
         self.surface_points = self._surface_points(self.cfg)
-        self.support = None  # the supporting plane the mesh export cut away (without masks)
         # the training step's fixed-shape form compiled (`training_step` under `vq_mitsuba.compiled`),
         # or None: every step runs `_foreground` eagerly (NeuSTraining decides)
         self.compiled_step = None
@@ -155,15 +151,15 @@ class NeuS:
         if self.points is None or len(self.points) == 0 or cfg.w_points <= 0:
             return None
         p = self.to_box(torch.from_numpy(self.points)).to(self.device)
-        if self.mask_free:
+        if self.box.mask_free:
             inside = p.norm(dim=1) < 1.0
-            if self.plane is not None:
-                inside &= p @ self.plane[0] > self.plane[1]
+            if self.box.plane is not None:
+                inside &= p @ self.box.plane[0] > self.box.plane[1]
         else:
-            res = self.hull_dilated.shape[0]
+            res = self.box.hull_dilated.shape[0]
             inside = (p.abs() < 1.0).all(1)
             cell = ((p + 1.0) * 0.5 * res).long().clamp(0, res - 1)
-            inside &= self.hull_dilated[cell[:, 0], cell[:, 1], cell[:, 2]]
+            inside &= self.box.hull_dilated[cell[:, 0], cell[:, 1], cell[:, 2]]
         p = p[inside]
         return p if len(p) else None
 
@@ -189,15 +185,15 @@ class NeuS:
     def refresh_occupancy(self, level_weights, chunk: int = 65536) -> None:
         """Mark hull cells whose SDF is below -margin as deep inside (ray intervals end there)."""
         res = self.cfg.hull_resolution
-        cells = self.hull.nonzero()
+        cells = self.box.hull.nonzero()
         p = (cells.float() + 0.5) / res * 2.0 - 1.0
         sdf = torch.cat([self.model.sdf(p[i:i + chunk], level_weights)[0] for i in range(0, len(p), chunk)])
         margin = 3.0 * 2.0 / res
-        deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.hull.device)
+        deep = torch.zeros(res ** 3, dtype=torch.bool, device=self.box.hull.device)
         flat = (cells[:, 0] * res + cells[:, 1]) * res + cells[:, 2]
         deep[flat] = sdf < -margin
         self.deep = deep.reshape(res, res, res)
-        self.codes = self.hull_dilated.to(torch.uint8) + (self.deep & self.hull_dilated).to(torch.uint8)
+        self.codes = self.box.hull_dilated.to(torch.uint8) + (self.deep & self.box.hull_dilated).to(torch.uint8)
         # Each batch's ray intervals are marched when drawn: caching them for every training ray
         # costs minutes and gigabytes per refresh on a capture of many large photos.
 
@@ -246,7 +242,7 @@ class NeuS:
         far = t_in + (end + 1) * dt + dt
         near = torch.where(any_occ, near.clamp(min=0), t_in)
         far = torch.where(any_occ, far, near)
-        if self.plane is not None:  # the foreground ends where the ray meets the support
+        if self.box.plane is not None:  # the foreground ends where the ray meets the support
             far = torch.maximum(torch.minimum(far, self._foreground_end(o, d)), near)
         return near, far
 
@@ -256,8 +252,8 @@ class NeuS:
         b = (o * d).sum(-1)
         disc = b * b - ((o * o).sum(-1) - 1.0)
         t = torch.where(disc > 0, -b + disc.clamp(min=0.0).sqrt(), (-b).clamp(min=0.0))
-        if self.plane is not None:
-            n, c = self.plane
+        if self.box.plane is not None:
+            n, c = self.box.plane
             nd = d @ n
             t_plane = (c - o @ n) / torch.where(nd.abs() < 1e-9, torch.full_like(nd, -1e-9), nd)
             t = torch.where((nd < 0) & (t_plane > 0) & (t_plane < t), t_plane, t)

@@ -17,7 +17,7 @@ from vq_mitsuba.backend import device_record
 from vq_mitsuba.compiled import Compiled
 from vq_mitsuba.config import NeuSConfig
 from vq_mitsuba.errors import InputError
-from vq_mitsuba.geometry.neus import grid_kernel
+from vq_mitsuba.geometry.neus import CHECKPOINT, grid_kernel
 from vq_mitsuba.geometry.neus.mesh_export import extract_mesh
 from vq_mitsuba.geometry.neus.rays import neus_for, render_view
 from vq_mitsuba.geometry.neus.renderer import NeuS, _threads, encode_srgb
@@ -58,7 +58,7 @@ _ARCHITECTURE = {"levels": None, "base_res": None, "max_res": None, "features": 
                  "geo_features": None, "reflect": False, "hash_log2": None, "sdf_layers": 2}
 
 
-def _check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
+def check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
     diff = []
     for key, before in _ARCHITECTURE.items():
         now = getattr(cfg, key)
@@ -104,7 +104,7 @@ class NeuSTraining:
         # (step, seconds, the step's losses as one device tensor): read into history every
         # HISTORY_EVERY steps, so that a step never waits for the device
         self.pending: list[tuple[int, float, torch.Tensor]] = []
-        self.ckpt = run.neus_checkpoint_path if run is not None else None
+        self.ckpt = run / CHECKPOINT if run is not None else None
         self.sampler = RaySampler(len(neus.rays_o), HELD_ASIDE if cfg.plateau_s > 0 else 0, self.gen, self.device)
         # the plateau check: [(training seconds, held-aside PSNR)], the next check's time, and once
         # the plateau is reached (seconds, schedule share) where the final decay started
@@ -116,8 +116,8 @@ class NeuSTraining:
         if self.ckpt is None or not self.ckpt.is_file():
             return
         state = RunDir(self.ckpt.parent).load_state(self.ckpt, "cpu")
-        _check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
-        if state.get("background_model", False) != self.neus.mask_free:
+        check_architecture(self.ckpt, state.get("config") or {}, self.cfg)
+        if state.get("background_model", False) != self.neus.box.mask_free:
             made = "without masks (neus.background model)" if state.get("background_model") else "with masks"
             raise InputError(self.ckpt, f"this NeuS checkpoint was made {made}, this capture and neus.background "
                                         "ask for the other; resume with the same setting, or start over without "
@@ -153,7 +153,7 @@ class NeuSTraining:
             save_torch({"model": self.model.state_dict(), "optim": self.optim.state_dict(),
                         "generator": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "step": p.step,
                         "elapsed": p.seconds, "history": self.history, "config": asdict(self.cfg),
-                        "background_model": self.neus.mask_free,
+                        "background_model": self.neus.box.mask_free,
                         "plateau": {"checks": self.checks, "next_check": self.next_check, "anneal": self.anneal},
                         **extra}, self.ckpt)
 
@@ -318,7 +318,7 @@ def points_report(neus: NeuS) -> dict | None:
         return out
     levels = neus.level_weights(1.0)
     sdf = torch.cat([neus.model.sdf(chunk, levels)[0] for chunk in pts.split(65536)]).abs()
-    out.update(used=int(len(pts)), median_abs_sdf=float(sdf.median()) * neus.half,
+    out.update(used=int(len(pts)), median_abs_sdf=float(sdf.median()) * neus.box.half,
                far=int((sdf >= POINTS_FAR).sum()))
     return out
 
@@ -380,9 +380,9 @@ def sample_views(count: int, at_most: int) -> list[int]:
 
 
 @dataclass
-class Reconstruction:
-    """What NeuS made: the extracted mesh, the trained model and its summary (the geometry stage,
-    `geometry/stage.py`, writes them as mesh.ply and geometry.json)."""
+class NeuSResult:
+    """What `reconstruct` made: the extracted mesh, the trained model and its summary (NeuS's
+    geometry method, `method.py`, makes them a `Reconstruction` for the geometry stage)."""
 
     mesh: object  # trimesh.Trimesh, in the capture's world
     neus: NeuS
@@ -392,7 +392,7 @@ class Reconstruction:
 def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
                 progress: bool = True, callback=None, callback_every_s: float = 0.0,
                 sphere: tuple | None = None, support: tuple | None = None,
-                points: np.ndarray | None = None) -> Reconstruction:
+                points: np.ndarray | None = None) -> NeuSResult:
     """NeuS on a loaded capture, then mesh extraction: writes the run's NeuS checkpoint neus.pt and
     geometry_loss.png, and returns the mesh and the summary. `sphere`, `support`, `points`: the
     bounding sphere, a known supporting plane and the sparse points when NeuS runs without masks
@@ -404,7 +404,7 @@ def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None
 
 
 def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
-                 sphere=None, support=None, points=None) -> Reconstruction:
+                 sphere=None, support=None, points=None) -> NeuSResult:
     t0 = time.perf_counter()
     neus = neus_for(capture, cfg, sphere, support, points)
     run.create()
@@ -412,11 +412,12 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
     summary = train(neus, run, resume=resume, progress=progress, callback=callback,
                     callback_every_s=callback_every_s)
     t1 = time.perf_counter()
-    mesh, neus.support = extract_mesh(neus)
+    mesh, support_plane = extract_mesh(neus)
     export_s = time.perf_counter() - t1
     if summary["history"]:
         run.write_file(run.GEOMETRY_PLOT, lambda path: _plot_history(summary["history"], path))
     last = summary["history"][-1] if summary["history"] else {}
+    box = neus.box
     info = {
         "capture": str(Path(capture.source).resolve()),
         "world": capture.world,
@@ -424,19 +425,19 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "stopped_by_time_limit": summary["stopped_by_time"],
         "stopped_by_plateau": summary["stopped_by_plateau"],
         "plateau": summary["plateau"],
-        "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(neus.hull_seconds, 2),
+        "seconds": {"setup_and_hull": round(setup_s, 2), "hull": round(box.seconds, 2),
                     "train": round(summary["train_seconds"], 2), "mesh_export": round(export_s, 2),
                     "total": round(time.perf_counter() - t0, 2)},
         "iterations_per_s": summary["iterations"] / max(summary["train_seconds"], 1e-9),
         "iterations_per_s_spread": rate_spread(summary["history"]),
         "final_train_psnr": last.get("psnr"),
         "final_sharpness_s": last.get("s"),
-        "box_center": neus.center.tolist(),
-        "box_half_size": neus.half,
-        "background": "model" if neus.mask_free else "masks",
-        "bounding_sphere": {"center": neus.center.tolist(), "radius": neus.half, "from": neus.sphere_source}
-        if neus.mask_free else None,
-        "support_plane": neus.support,
+        "box_center": box.center.tolist(),
+        "box_half_size": box.half,
+        "background": "model" if box.mask_free else "masks",
+        "bounding_sphere": {"center": box.center.tolist(), "radius": box.half, "from": box.sphere_source}
+        if box.mask_free else None,
+        "support_plane": support_plane,
         "training_rays": len(neus.rays_o),
         "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
                  "watertight": bool(mesh.is_watertight)},
@@ -449,4 +450,4 @@ def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callba
         "training_step": summary["step"],
         "device": device_record(),
     }
-    return Reconstruction(mesh, neus, info)
+    return NeuSResult(mesh, neus, info)
