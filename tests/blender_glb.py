@@ -20,7 +20,8 @@ def main(job_path: str) -> None:
     with open(job_path) as f:
         job = json.load(f)
     scene = worker._reset()
-    worker._setup_render(scene, {"render": {"samples": job["samples"], "max_bounces": job["max_bounces"], "seed": 0}})
+    worker._setup_render(scene, {"render": {"samples": job["samples"], "max_bounces": job["max_bounces"], "seed": 0},
+                                  "inputs": []})  # no AOVs: the glTF importer builds the material
     bpy.ops.preferences.addon_enable(module="io_scene_gltf2")
     bpy.ops.import_scene.gltf(filepath=job["glb"])
     meshes = [o for o in scene.objects if o.type == "MESH"]

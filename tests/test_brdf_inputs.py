@@ -68,12 +68,31 @@ def test_handles_name_declared_inputs():
 SHEEN = brdf.BrdfInput("sheen", 1, "sheen", "Sheen", high=0.8, step=0.05, default=0.1)
 
 
+def _import_package():
+    """Every module of the package, imported before the declaration is patched, so that none binds
+    the patched tuple for good (a module first imported under the patch would keep it)."""
+    import importlib
+    import pkgutil
+
+    import vq_mitsuba
+
+    for info in pkgutil.walk_packages(vq_mitsuba.__path__, "vq_mitsuba."):
+        if not info.name.endswith(("cycles_worker", "__main__")):
+            importlib.import_module(info.name)
+
+
 @pytest.fixture
 def four_inputs(monkeypatch):
+    import sys
+
+    _import_package()
     inputs = (*brdf.INPUTS, SHEEN)
-    monkeypatch.setattr(brdf, "INPUTS", inputs)
-    monkeypatch.setattr(brdf, "NAMES", tuple(i.name for i in inputs))
-    monkeypatch.setattr(brdf, "CHANNELS", sum(i.channels for i in inputs))
+    patched = {"INPUTS": inputs, "NAMES": tuple(i.name for i in inputs), "CHANNELS": sum(i.channels for i in inputs)}
+    original = {attr: getattr(brdf, attr) for attr in patched}
+    for module in [m for name, m in sys.modules.items() if name.startswith("vq_mitsuba")]:
+        for attr, value in patched.items():  # brdf's own and each `from vq_mitsuba.brdf import ...`
+            if getattr(module, attr, None) is original[attr]:
+                monkeypatch.setattr(module, attr, value)
     return inputs
 
 

@@ -40,7 +40,12 @@ _PLUGINS_READY = False
 # Differentiable inputs per shading lane: the BRDF's channels and the bounce's RGB radiance; then,
 # where the envmap is differentiated, its RGB radiance along the emitter sample and along the BSDF
 # sample where it escapes (LIGHT_LANES).
-LANE_INPUTS, LIGHT_LANES = brdf.CHANNELS + 3, 6
+LIGHT_LANES = 6
+
+
+def lane_inputs() -> int:
+    """Differentiable inputs per shading lane besides the light's: the BRDF's channels and RGB."""
+    return brdf.CHANNELS + 3
 
 
 def _register_plugins() -> None:
@@ -352,7 +357,8 @@ class ShadingScene:
         sampling kernel's results (so the backward pass traces no ray). The envmap's radiance comes
         as lanes with `light_lanes` (a differentiated envmap), else from the scene's emitter."""
         bsdf, ctx, textures, emitter = self.bsdf, self.ctx, self.textures, self.emitter
-        width = LANE_INPUTS + (LIGHT_LANES if light_lanes else 0)
+        inputs = lane_inputs()
+        width = inputs + (LIGHT_LANES if light_lanes else 0)
         f = _flat
 
         @dr.wrap(source="torch", target="drjit")
@@ -366,7 +372,7 @@ class ShadingScene:
             # the default mode's per-thread copies bake the array size in: a compile per size.
             lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * width
             values = [dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(width)]
-            chans, (lr, lg, lb), light = values[:brdf.CHANNELS], values[brdf.CHANNELS:LANE_INPUTS], values[LANE_INPUTS:]
+            chans, (lr, lg, lb), light = values[:brdf.CHANNELS], values[brdf.CHANNELS:inputs], values[inputs:]
             si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
             sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
             d_em, pdf_em = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), sm["ds_pdf"]

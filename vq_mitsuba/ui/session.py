@@ -28,13 +28,18 @@ from vq_mitsuba.models.material_edits import Change, Edit, Selection, apply_edit
     preset_changes
 from vq_mitsuba.render.views import Renderer, material_colours, segmentation_overlay
 
-MODES = ("render", "segmentation", *brdf.NAMES, "normal")  # a BRDF input's mode shows its map
+
 PREVIEW = (2, 1)  # (spp, primary rays per pixel) of the first pass after a change
 REFINE = (32, 4)  # the same for every later pass; passes average, weighted by their spp
 MAX_SPP = 1024  # refining stops here
 FRAME_TIMEOUT_S = 20.0  # a frame request waits at most this long for a newer frame
 IDLE_S = 10.0  # refining pauses once no page has asked for a frame for this long
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+
+
+def display_modes() -> tuple[str, ...]:
+    """The editor's display modes: a BRDF input's mode shows its map."""
+    return ("render", "segmentation", *brdf.NAMES, "normal")
 
 
 @dataclass
@@ -335,7 +340,7 @@ class EditorSession:
                 "run": self.run.dir.name, "world": self.fitted.world,
                 "views": [{"name": n, "split": self.view_splits[n]} for n in names],
                 "view": self.view_name, "width": self.camera.width, "height": self.camera.height,
-                "modes": [m for m in MODES if m != "segmentation" or self.num_materials],
+                "modes": [m for m in display_modes() if m != "segmentation" or self.num_materials],
                 "mode": self.mode,
                 "envmaps": self.envmaps(), "lighting": vars(self.lighting),
                 "materials": self._materials_now(materials, edits, self.selection),
@@ -411,8 +416,8 @@ class EditorSession:
             self._changed()
 
     def set_mode(self, mode: str) -> None:
-        if mode not in MODES:
-            raise InputError(None, f"display mode '{mode}' is not one of {', '.join(MODES)}")
+        if mode not in display_modes():
+            raise InputError(None, f"display mode '{mode}' is not one of {', '.join(display_modes())}")
         with self._cond:
             self.mode = mode
             self._redraw()
