@@ -169,7 +169,7 @@ def material_loop(args) -> dict:
     import torch
 
     trainer, take_step, folder = demo_trainer(args.material_capture)
-    eager_model = trainer.model
+    eager_model = trainer.model.field
     compiled_model = torch.compile(eager_model, dynamic=False)
 
     class StepModel:
@@ -179,14 +179,14 @@ def material_loop(args) -> dict:
             return getattr(eager_model, name)
 
         def __call__(self, x):
-            sizes = (trainer.batch, max(trainer.batch // 4, 1))
+            sizes = (trainer.data.batch, max(trainer.data.batch // 4, 1))
             return compiled_model(x) if x.shape[0] in sizes else eager_model(x)
 
     def run_with(model):
         def step(i):
-            trainer.model = model
+            trainer.model.field = model
             take_step(0.6)
-            trainer.model = eager_model
+            trainer.model.field = eager_model
         return step
 
     t0 = time.perf_counter()
@@ -195,7 +195,7 @@ def material_loop(args) -> dict:
     first = time.perf_counter() - t0
     out = alternate({"eager": run_with(eager_model), "compiled": run_with(StepModel())}, args.rounds, args.steps)
     shutil.rmtree(folder, ignore_errors=True)
-    return {"capture": args.material_capture, "batch_rays": trainer.batch, "first_compiled_calls_s": first,
+    return {"capture": args.material_capture, "batch_rays": trainer.data.batch, "first_compiled_calls_s": first,
             "kept": "eager (within the noise of the step)", **out}
 
 

@@ -196,16 +196,16 @@ def step_rates(scene: Path, device: str, neus_batches: list[int], fit_batches: l
         trainer = Trainer(capture, RunDir(Path(tmp) / "run"), cfg)
         trainer.step = 1000  # past train.bounce_after: the bounce is simulated, as in most steps
         for batch in fit_batches:
-            trainer.batch = min(batch, len(trainer.pool))
+            trainer.data.batch = min(batch, len(trainer.data))
             seconds = _timed(lambda: trainer.train_step(schedule_at(cfg, Progress(
                 step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync, warmup, steps)
-            out["fit"].append({"batch_rays": trainer.batch, "seconds_per_step": seconds,
-                               "rays_per_s": trainer.batch / seconds})
+            out["fit"].append({"batch_rays": trainer.data.batch, "seconds_per_step": seconds,
+                               "rays_per_s": trainer.data.batch / seconds})
             if batch == out["default"]["fit"] and profile:
                 out["fit_profile"] = _profile(lambda: trainer.train_step(schedule_at(cfg, Progress(
                     step=trainer.step, seconds=0.0, step_share=0.5, time_share=0.5))), sync)
-            print(f"material fit batch {trainer.batch}: {seconds * 1000:.1f} ms a step, "
-                  f"{trainer.batch / seconds:,.0f} rays/s", flush=True)
+            print(f"material fit batch {trainer.data.batch}: {seconds * 1000:.1f} ms a step, "
+                  f"{trainer.data.batch / seconds:,.0f} rays/s", flush=True)
     return out
 
 

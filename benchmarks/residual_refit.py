@@ -32,7 +32,6 @@ def main(argv: list[str] | None = None) -> int:
     from vq_mitsuba.cli import main as cli_main
     from vq_mitsuba.data.captures import open_capture
     from vq_mitsuba.engine.pipeline import load_training_capture
-    from vq_mitsuba.engine.residual_fit import residual_stage
     from vq_mitsuba.engine.trainer import Trainer
     from vq_mitsuba.run.run_dir import RunDir
 
@@ -45,8 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     trainer = Trainer(capture, run, cfg)
     trainer.resume(run.load_state(run.checkpoint_path))
     t0 = time.perf_counter()
-    info = residual_stage(run, trainer.scene, trainer.model, trainer.pool, trainer.envmap().detach(),
-                          capture.mesh.bounds, cfg, trainer.step)
+    info = trainer.model.fit_residual(run, trainer.data, trainer.step)
     seconds = time.perf_counter() - t0
     metrics_path = Path(args.output).with_suffix(".metrics.json")
     eval_args = ["eval", str(run.dir), "--quiet", "-o", str(metrics_path)]

@@ -124,10 +124,10 @@ def test_latents_that_are_not_finite_stop_the_codebook_with_a_numerical_error(ca
     cfg = load_config(None, ["train.iterations=6", "train.batch_rays=128"])
     trainer = Trainer(load_capture(capture, split="train"), RunDir(tmp_path / "run"), cfg)
     with torch.no_grad():
-        for p in trainer.model.parameters():
+        for p in trainer.model.field.parameters():
             p.fill_(1e30)
     with pytest.raises(NumericalError, match="latents are not finite"):
-        trainer.start_discrete()
+        trainer.model.start_discrete(trainer.data.pool.position, trainer.gen, trainer.step, trainer.run.dir)
 
 
 # --- files read back -----------------------------------------------------------------------------------

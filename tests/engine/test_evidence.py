@@ -183,20 +183,20 @@ def test_where_the_images_say_metal_the_metallic_term_is_off_and_the_roughness_t
     decision = trainer.decisions["prior"]
     assert decision["choice"] == "weighed" and decision["hits_with_highlight"] > 0
     hits = torch.arange(64)
-    pos = trainer.pool.position[hits]
-    off = trainer.prior_grid(pos) == 0
+    pos = trainer.data.pool.position[hits]
+    off = trainer.model.prior_grid(pos) == 0
     assert bool(off.any())
-    out = trainer.model(pos)
+    out = trainer.model.field(pos)
     s = schedule_at(trainer.cfg, Progress(0, 0.0, 0.5, 0.0))  # after the barrier: the linear terms
-    term = trainer._lambertian(out, s, None, trainer.prior_grid(pos))
+    term = trainer.model.lambertian(out, s, None, trainer.model.prior_grid(pos))
     lam_m = trainer.cfg.loss.lam_metallic
     expected = torch.mean(torch.where(off, 0.0, lam_m * out["metallic"]) + 1.0 - out["roughness"])
     assert float(term.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
-    whole = trainer._lambertian(out, s)
+    whole = trainer.model.lambertian(out, s)
     assert float(whole.detach()) > float(term.detach())  # the metallic term of the hits where it is off is gone
     # the term's gradient no longer reaches the metallic of those hits
     metallic = out["metallic"].detach().requires_grad_(True)
-    losses_term = trainer._lambertian({**out, "metallic": metallic}, s, None, trainer.prior_grid(pos))
+    losses_term = trainer.model.lambertian({**out, "metallic": metallic}, s, None, trainer.model.prior_grid(pos))
     losses_term.backward()
     assert bool((metallic.grad[off] == 0).all()) and bool((metallic.grad[~off] > 0).all())
     # the same grid after a resume: decided again from the same seed and images
@@ -204,4 +204,4 @@ def test_where_the_images_say_metal_the_metallic_term_is_off_and_the_roughness_t
     trainer.checkpoint(1.0)
     again = _trainer(learned_light_gold, tmp_path)
     again.resume()
-    assert torch.equal(again.prior_grid.values, trainer.prior_grid.values)
+    assert torch.equal(again.model.prior_grid.values, trainer.model.prior_grid.values)

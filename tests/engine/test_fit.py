@@ -322,7 +322,7 @@ def test_resume_with_more_iterations_follows_the_resumed_schedule(five_step_run,
     heights = []
     step = Trainer.train_step
     monkeypatch.setattr(Trainer, "train_step", lambda self, s: (step(self, s), heights.append(
-        self.env_module.log_radiance.shape[0]))[0])
+        self.model.envmap_rows))[0])
     before = torch.exp(torch.load(run / "checkpoint.pt", weights_only=False)["envmap"]["log_radiance"])
     assert main(["fit", str(capture), "-o", str(run), *base, "--set", "train.iterations=40", "--resume"]) == 0
     assert heights[0] == 32 and heights[-1] == 128 and heights == sorted(heights)

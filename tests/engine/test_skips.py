@@ -78,12 +78,13 @@ def _rung_reads(monkeypatch, roughness_at) -> None:
     real = Trainer.envmap_height
 
     def reading(self, progress):
-        forward, rough = self.model.forward, roughness_at(self.step)
-        self.model.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), rough)}
+        field = self.model.field
+        forward, rough = field.forward, roughness_at(self.step)
+        field.forward = lambda x: {**forward(x), "roughness": torch.full((len(x),), rough)}
         try:
             return real(self, progress)
         finally:
-            del self.model.forward
+            del field.forward
 
     monkeypatch.setattr(Trainer, "envmap_height", reading)
 
@@ -202,11 +203,11 @@ def test_held_aside_pixels_are_never_drawn(small_sphere, tmp_path):
     cfg = load_config(None, QUICK + ["train.iterations=10", "train.stop=auto"])
     capture = load_capture(small_sphere, split="train")
     trainer = Trainer(capture, RunDir(tmp_path / "run"), cfg)
-    pool = trainer.pool
+    pool, data = trainer.data.pool, trainer.data
     key = pool.view * capture.width * capture.height + pool.pixel
-    held = set(key[trainer.held.cpu()].tolist())
-    assert len(held) == len(trainer.held) > 0
-    drawn = torch.cat([trainer.draw()[0] for _ in range(50)])
+    held = set(key[data.held.cpu()].tolist())
+    assert len(held) == len(data.held) > 0
+    drawn = torch.cat([data.draw(step, trainer.gen)[0] for step in range(50)])
     assert not held & set(key[drawn.cpu()].tolist())
 
 
@@ -220,7 +221,7 @@ def test_the_held_aside_loss_scores_each_pixels_mean(small_sphere, tmp_path, mon
     capture = load_capture(small_sphere, split="train")
     trainer = Trainer(capture, RunDir(tmp_path / "run"), load_config(None, QUICK + ["train.iterations=10",
                                                                                    "train.stop=auto"]))
-    pool, shaded = trainer.pool, []
+    pool, shaded = trainer.data.pool, []
     key = pool.view * capture.width * capture.height + pool.pixel
 
     def shade(position, normal, wi, material, env, spp, **kw):
@@ -228,10 +229,10 @@ def test_the_held_aside_loss_scores_each_pixels_mean(small_sphere, tmp_path, mon
         shaded.append(hit)
         return pool.rgb[hit] * scale.repeat(len(hit) // 4)[:, None]
 
-    monkeypatch.setattr(trainer.scene, "shade", shade)
+    monkeypatch.setattr(trainer.model.scene, "shade", shade)
     scale = torch.tensor([1.2, 0.8, 1.1, 0.9])  # each pixel's mean is its colour
     assert trainer.held_loss() == pytest.approx(0.0, abs=1e-9)
-    assert torch.equal(key[shaded[0]].reshape(-1, 4), key[trainer.held][:, None].expand(-1, 4))
+    assert torch.equal(key[shaded[0]].reshape(-1, 4), key[trainer.data.held][:, None].expand(-1, 4))
     scale = torch.tensor([1.2, 1.2, 1.2, 1.2])
     assert trainer.held_loss() > 1e-4
 
@@ -247,7 +248,7 @@ def test_the_training_pool_keeps_to_its_hit_budget(small_sphere, tmp_path):
     def pool(max_hits):
         cfg = load_config(None, QUICK + ["train.iterations=10", f"train.max_hits={max_hits}"])
         trainer = Trainer(capture, RunDir(tmp_path / f"run{max_hits}"), cfg)
-        return trainer.pool, trainer.pool_stats
+        return trainer.data.pool, trainer.data.stats
 
     full, stats = pool(0)
     n = stats["opaque_pixels"]
@@ -306,33 +307,34 @@ def test_a_step_shades_whole_pixels_and_scores_their_means(small_sphere, tmp_pat
     pixel; the reconstruction scores each pixel's mean: shading that varies inside a pixel around
     its colour costs nothing, where scoring hit by hit would ask every hit for the pixel's colour."""
     from vq_mitsuba.data.captures import load_capture
+    from vq_mitsuba.engine.material_model import MaterialModel
     from vq_mitsuba.engine.schedule import StepSchedule
     from vq_mitsuba.run.run_dir import RunDir
 
     capture = load_capture(small_sphere, split="train")
     trainer = Trainer(capture, RunDir(tmp_path / "run"), load_config(None, QUICK + ["train.iterations=10"]))
-    pool = trainer.pool
+    pool = trainer.data.pool
     key = pool.view * capture.width * capture.height + pool.pixel
-    table = trainer.pixel_hits.cpu()
-    assert trainer.copies == 4 and table.shape == (len(torch.unique(key)), 4)
+    table = trainer.data.pixel_hits.cpu()
+    assert trainer.data.copies == 4 and table.shape == (len(torch.unique(key)), 4)
     for row in table[torch.randperm(len(table))[:200]]:  # a pixel's row: its own hits, each of them
         assert len(set(key[row].tolist())) == 1
         assert set(row.tolist()) == set(torch.nonzero(key == key[row[0]])[:, 0].tolist())
     spread = torch.tensor([1.2, 0.8, 1.1, 0.9])  # the mean of each pixel's four hits is its colour
     shaded = []
 
-    def render(self, idx, material, env, bounce_fn, fixed_light=None):
+    def render(self, data, idx, material, env, gen, bounce_fn, fixed_light=None):
         shaded.append(idx)
         return (pool.rgb[idx] * spread.repeat(len(idx) // 4)[:, None])[:, None, :].expand(-1, 8, -1)
 
-    monkeypatch.setattr(Trainer, "_render", render)
-    schedule = StepSchedule(done=0.0, progress=0.0, lr_factor=1.0, w_lam=0.0, w_lam_d=0.0,
-                            metallic_barrier=False, discrete=False)
-    idx, _ = trainer.draw()
+    monkeypatch.setattr(MaterialModel, "_render", render)
+    schedule = StepSchedule(done=0.0, progress=0.0, lr_factor=1.0, metallic_barrier=False, discrete=False)
+    idx, _ = trainer.data.draw(0, trainer.gen)
     terms, rgb, _ = trainer.loss_terms(idx, schedule, bounce=False)
     assert len(idx) == 16 and len(shaded[0]) == 64
     assert torch.equal(key[shaded[0]].reshape(16, 4), key[idx][:, None].expand(-1, 4))
     assert float(terms["rec_c"]) == pytest.approx(0.0, abs=1e-9) and torch.allclose(rgb, pool.rgb[idx])
-    per_hit = losses.reconstruction_l2_decorrelated(render(trainer, shaded[0], None, None, None), pool.rgb[shaded[0]],
+    per_hit = losses.reconstruction_l2_decorrelated(render(None, None, shaded[0], None, None, None, None),
+                                                    pool.rgb[shaded[0]],
                                                     trainer.cfg.loss.gamma)
     assert float(per_hit) > 1e-4

@@ -53,7 +53,7 @@ def test_a_restored_copy_repeats_the_same_steps_bit_for_bit(learned_light_sphere
     the random generator, the step."""
     trainer = _trainer(learned_light_sphere, tmp_path)
     _steps(trainer, 6)  # past the discrete start
-    assert bool(trainer.discrete.initialised)
+    assert trainer.model.discrete_on
     saved = trials.copy_fit(trainer)
     drawn = torch.rand(3)  # the global generator too (the codebook's dead codes are re-seeded from it)
     _steps(trainer, 4)
@@ -96,16 +96,16 @@ def test_the_held_aside_pixels_choose_which_explanation_goes_on(learned_light_sp
     copy_fit = trials.copy_fit
     monkeypatch.setattr(trials, "copy_fit", lambda t: copies.append(copy_fit(t)) or copies[-1])
     seen = {}
-    finish = Trainer.finish_trial
+    finish = trials.Trials.finish
 
     def finish_and_look(self):
-        seen["fit"] = _params(self)
+        seen["fit"] = _params(self.trainer)
         finish(self)
-        seen["after"] = _params(self)
+        seen["after"] = _params(self.trainer)
         seen["copy"] = [p.clone() for p in copies[1]["model"].values()]
-        seen["model_after"] = [p.clone() for p in self.model.state_dict().values()]
+        seen["model_after"] = [p.clone() for p in self.trainer.model.field.state_dict().values()]
 
-    monkeypatch.setattr(Trainer, "finish_trial", finish_and_look)
+    monkeypatch.setattr(trials.Trials, "finish", finish_and_look)
     out = tmp_path / "run"
     fit(learned_light_sphere, out, load_config(None, QUICK), progress=False)
     decision = json.loads((out / "fit.json").read_text())["decisions"]["trials"]
@@ -137,15 +137,36 @@ def test_a_checkpoint_between_the_copy_and_the_choice_keeps_the_copy(learned_lig
     monkeypatch.setattr(trials, "METAL", -1.0)
     trainer = _trainer(learned_light_sphere, tmp_path)
     _steps(trainer, 20)  # every stage of the schedule has begun
-    trainer.trial_after_step(Progress(trainer.step, 0.0, 0.5, 0.0))
-    pending = trainer.trial
+    trainer.trials.after_step(Progress(trainer.step, 0.0, 0.5, 0.0))
+    pending = trainer.trials.pending
     assert pending is not None and pending["until"] == 24 and trainer.step == 20
     trainer.run.create()
     trainer.checkpoint(1.0)
     again = _trainer(learned_light_sphere, tmp_path)
     again.resume()
-    assert again.trial_checked and again.step == 20
-    assert again.trial["record"] == pending["record"] and again.trial["until"] == 24
-    assert all(torch.equal(a, b) for a, b in zip(again.trial["copy"]["model"].values(),
+    assert again.trials.checked and again.step == 20
+    assert again.trials.pending["record"] == pending["record"] and again.trials.pending["until"] == 24
+    assert all(torch.equal(a, b) for a, b in zip(again.trials.pending["copy"]["model"].values(),
                                                  pending["copy"]["model"].values()))
-    assert torch.equal(again.trial["probe"], pending["probe"])
+    assert torch.equal(again.trials.pending["probe"], pending["probe"])
+
+
+def test_the_model_returns_only_declared_terms_each_weighted_by_its_key(learned_light_sphere, tmp_path):
+    """Past the discrete start the model returns both branches' terms by name; each is declared in
+    losses.TERMS, and the trainer's loss is each term times its config weight."""
+    from vq_mitsuba.models import losses
+
+    trainer = _trainer(learned_light_sphere, tmp_path)
+    _steps(trainer, 6)
+    s = schedule_at(trainer.cfg, Progress(trainer.step, 0.0, 0.5, 0.0))
+    idx, weight = trainer.data.draw(trainer.step, trainer.gen)
+    returned = []
+    loss_dict = trainer.model.loss_dict
+    trainer.model.loss_dict = lambda *a: returned.append(loss_dict(*a)) or returned[-1]
+    weighted, _, _ = trainer.loss_terms(idx, s, False, weight)
+    raw = returned[0][0]
+    assert {"rec_c", "rec_d", "vq", "chr", "lam_c", "lam_d"} <= set(raw) <= set(losses.TERMS)
+    assert set(weighted) == set(raw)
+    for name, value in raw.items():
+        w = losses.weight_of(trainer.cfg, name, s.progress)
+        assert float(weighted[name].detach()) == pytest.approx(w * float(value.detach()), rel=1e-5, abs=1e-9), name

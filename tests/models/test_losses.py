@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from vq_mitsuba.models import losses
@@ -68,3 +69,29 @@ def test_metallic_barrier_is_minus_log_one_minus_metallic_and_keeps_pulling_at_s
     assert float(g_barrier[3]) > 0.49 and float(g_linear[3]) < 1e-5
     # Near metallic 0 the two agree to first order.
     assert abs(float(g_barrier[0]) - float(g_linear[0])) < 0.05 * float(g_linear[0])
+
+
+def test_every_declared_term_reads_a_weight_the_config_has():
+    """Each term of losses.TERMS names config keys that exist and hold finite weights; a decaying
+    weight is its key's value at the start and value times factor at the end."""
+    import math
+
+    from vq_mitsuba.config import load_config
+
+    cfg = load_config(None, [])
+    for name, term in losses.TERMS.items():
+        assert term.name == name
+        if term.fixed is None:
+            assert math.isfinite(losses.config_value(cfg, term.weight)), name
+        start, end = losses.weight_of(cfg, name, 0.0), losses.weight_of(cfg, name, 1.0)
+        if term.decay is None:
+            assert start == end
+        else:
+            factor = losses.config_value(cfg, term.decay)
+            assert start == pytest.approx(losses.config_value(cfg, term.weight))
+            assert end == pytest.approx(start * factor)
+    with pytest.raises(KeyError, match="no declaration"):
+        losses.weight_of(cfg, "undeclared", 0.5)
+    terms = losses.weighted({"rec_c": torch.tensor(2.0), "sm": torch.tensor(3.0)}, cfg, 0.0)
+    assert float(terms["rec_c"]) == pytest.approx(2.0 * cfg.loss.w_rec_c)
+    assert float(terms["sm"]) == pytest.approx(3.0 * cfg.loss.w_sm)

@@ -167,3 +167,41 @@ class WeightGrid:
     def full(self) -> bool:
         """Every voxel keeps the whole term."""
         return bool((self.values >= 1.0).all())
+
+
+def weigh_prior(scene, capture, pool, cfg) -> tuple[WeightGrid | None, dict]:
+    """The metallic term's weight over the object from the highlights of the images, before the
+    first step: (the grid, None where the prior stays whole; fit.json's `decisions.prior`)."""
+    from vq_mitsuba import messages
+    from vq_mitsuba.engine import skips
+
+    t, setting = cfg.train, cfg.loss.prior_evidence
+    if setting != "auto" or cfg.loss.w_lam <= 0 or cfg.loss.lam_metallic <= 0:
+        return None, skips.decision(setting, "whole", f"loss.prior_evidence = {setting}" if setting != "auto"
+                                    else "no metallic prior to weigh (loss.w_lam or loss.lam_metallic is 0)")
+    gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 5))
+    pick = torch.randperm(len(pool), generator=gen)[:HITS].to(pool.position.device)
+    pos = pool.position[pick]
+    views = sample_views(scene, capture, pos, pool.normal[pick], t.alpha_threshold, skips.np_seed(t.seed, 6))
+    tint = highlight_tint(views)
+    bounds = torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32)
+    grid = WeightGrid.of_tints(pos, tint, bounds)
+    shown = ~torch.isnan(tint)
+    weight = grid(pos).cpu()
+    record = {"hits": len(pick), "hits_with_highlight": int(shown.sum()),
+              "tint_median": float(tint[shown].median()) if bool(shown.any()) else None,
+              "share_weakened": float((weight < 1).float().mean()), "share_off": float((weight == 0).float().mean()),
+              "mean_weight": float(weight.mean())}
+    seen = (f"{record['hits_with_highlight']} of {len(pick)} training hits show a highlight (in {RANK + 1} "
+            f"views at least {HIGHLIGHT:g} x their median view's luminance) on a coloured surface")
+    if grid.full:
+        return None, {**skips.decision(setting, "whole", f"{seen}; no voxel's highlights keep more than "
+                                       f"{DIELECTRIC:g} of its colour (median "
+                                       + ("none" if record["tint_median"] is None else f"{record['tint_median']:.2f}")
+                                       + "): the metallic prior is whole"), **record}
+    reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
+              f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
+              f"(off on {100 * record['share_off']:.0f} %, from a tint of {METAL:g}), mean weight "
+              f"{record['mean_weight']:.2f}")
+    messages.note(f"prior: {reason}")
+    return grid, {**skips.decision(setting, "weighed", reason), **record}

@@ -162,10 +162,10 @@ def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool
         run.write_config(cfg)
     run.write_mesh(capture.mesh)
     trainer = Trainer(capture, run, cfg)
-    _warn_about_inputs(capture, trainer.pool_stats)
+    _warn_about_inputs(capture, trainer.data.stats)
     run.write_info({"capture": str(Path(capture.source).resolve()), "world": capture.world,
                     "envmap_to_world": np.asarray(capture.envmap_to_world).tolist(),
-                    "learned_envmap": trainer.learn_env, "n_views": len(capture.cameras), **trainer.pool_stats,
+                    "learned_envmap": trainer.model.learn_env, "n_views": len(capture.cameras), **trainer.data.stats,
                     "device": device_record()})
     if resume:
         _resume_trainer(trainer, state, run)
@@ -241,7 +241,7 @@ def _resume_trainer(trainer: Trainer, state: dict, run: RunDir) -> None:
         raise InputError(run.checkpoint_path, f"cannot be resumed with the config now ({type(exc).__name__}: "
                                               f"{str(exc).splitlines()[0][:200] if str(exc) else ''}); resume "
                                               "with the run's own settings, or choose another -o") from None
-    if trainer.step >= trainer.cfg.train.iterations or trainer.pace.finished:
+    if trainer.finished:
         messages.note(f"{run.dir}: {trainer.step} iterations were done before; writing the run's results")
 
 

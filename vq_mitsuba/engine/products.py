@@ -5,8 +5,6 @@ the loss plot and fit.json."""
 from __future__ import annotations
 
 from vq_mitsuba.engine.plots import plot_err_k, plot_history
-from vq_mitsuba.engine.ranking import rank_materials
-from vq_mitsuba.engine.residual_fit import residual_stage
 from vq_mitsuba.engine.trainer import Trainer
 from vq_mitsuba.errors import warn
 from vq_mitsuba.run.run_dir import RunDir
@@ -17,9 +15,9 @@ def write_products(trainer: Trainer, summary: dict) -> None:
     (`residual.iterations`) and write the run's results; `summary` becomes fit.json."""
     from vq_mitsuba.render.sheet import write_material_sheet
 
-    run, cfg, env = trainer.run, trainer.cfg, trainer.envmap().detach()
-    if trainer.discrete is not None and bool(trainer.discrete.initialised):
-        info = rank_materials(trainer.scene, trainer.model, trainer.discrete, trainer.pool, env, cfg)
+    run, cfg, model, env = trainer.run, trainer.cfg, trainer.model, trainer.envmap().detach()
+    if model.discrete_on:
+        info = model.rank_materials(trainer.data)
         trainer.checkpoint(summary["seconds"])  # with the ranked codebook and M
         run.write_materials(info)
         run.write_file(RunDir.ERR_PLOT, lambda path: plot_err_k(info["err_k"], info["num_materials"],
@@ -31,7 +29,6 @@ def write_products(trainer: Trainer, summary: dict) -> None:
              "no materials.json was written")
     run.write_envmap(env.cpu().numpy())
     if cfg.residual.iterations > 0:  # VQ-NeRF Sec. 4: materials and light frozen from here
-        summary["residual"] = residual_stage(run, trainer.scene, trainer.model, trainer.pool, env,
-                                             trainer.capture.mesh.bounds, cfg, trainer.step)
+        summary["residual"] = model.fit_residual(run, trainer.data, trainer.step)
     run.write_file(RunDir.LOSS_PLOT, lambda path: plot_history(trainer.history, path))
     run.write_fit_summary(summary)

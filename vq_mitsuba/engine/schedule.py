@@ -1,4 +1,5 @@
-"""Per-step schedules of a fit: training progress, learning rate, prior weights, discrete start."""
+"""Per-step schedules of a fit: training progress, learning rate, metallic barrier, discrete start
+(the loss weights that decay follow `progress`: `vq_mitsuba.models.losses.weight_of`)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,6 @@ class StepSchedule:
     done: float  # share of train.iterations done
     progress: float  # training progress in [0, 1]: `done`, or under a time limit the share of time used if larger
     lr_factor: float  # learning-rate multiplier (exponential decay with `done`)
-    w_lam: float  # weight of the continuous branch's Lambertian prior
-    w_lam_d: float  # weight of the discrete branch's Lambertian prior
     metallic_barrier: bool  # the metallic prior is -log(1 - metallic) (else the paper's linear term)
     discrete: bool  # the discrete branch trains (after its warm-up)
 
@@ -22,7 +21,7 @@ class StepSchedule:
 def schedule_at(cfg: Config, p: Progress) -> StepSchedule:
     """The schedule of the step at `p` (the loop's step and time shares).
 
-    The encoding frequencies, the prior's decay and the discrete warm-up follow the larger share,
+    The encoding frequencies, the loss weights' decay and the discrete warm-up follow the larger share,
     so a fit stopped by train.time_limit_s has run its whole schedule; the learning rate follows the
     step share alone, so a short budget's few steps keep a large rate.
     """
@@ -31,8 +30,6 @@ def schedule_at(cfg: Config, p: Progress) -> StepSchedule:
         done=done,
         progress=progress,
         lr_factor=cfg.train.lr_end_exponential ** done,
-        w_lam=cfg.loss.w_lam * cfg.loss.lam_decay ** progress,
-        w_lam_d=cfg.loss.w_lam * cfg.vq.lam_decay ** progress,
         metallic_barrier=progress < cfg.loss.metallic_barrier_until,
         discrete=cfg.vq.enabled and progress >= cfg.vq.warmup_frac,
     )

@@ -1,13 +1,13 @@
-"""The training loop: both branches of VQ-NeRF on known geometry, their losses, checkpoints,
-time limit.
+"""The training loop of a fit: the material model (`vq_mitsuba.engine.material_model`) trained on
+the pixel data (`vq_mitsuba.engine.pixel_data`) by Adam, with the rules that decide as the fit
+goes (`vq_mitsuba.engine.skips`, `ladder`, `trials`, `evidence`), its checkpoints and time limit.
 
-Primary hits of every training pixel are traced once (`vq_mitsuba.data.pixels`); each step
-draws a random batch of foreground pixels across all views, evaluates the material field once
-per hit and shades through Mitsuba (`vq_mitsuba.render.shading`). After `vq.warmup_frac` of
-training the discrete branch starts from k-means of the latents and trains beside the
-continuous one. The fit around the loop (checks, loading, resuming) is `vq_mitsuba.engine.pipeline`;
-what is written at its end (ranked materials, residual, plots) is `vq_mitsuba.engine.products`.
-Every file is written through `RunDir`; a run resumes from its last checkpoint.
+Each step draws a batch of foreground pixels across all views, asks the model for its named loss
+terms, weighs them by their config keys (`vq_mitsuba.models.losses.weighted`) and steps. After
+`vq.warmup_frac` of training the discrete branch starts from k-means of the latents and trains
+beside the continuous one. The fit around the loop (checks, loading, resuming) is
+`vq_mitsuba.engine.pipeline`; what is written at its end is `vq_mitsuba.engine.products`. Every
+file is written through `RunDir`; a run resumes from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -18,26 +18,21 @@ import numpy as np
 import torch
 
 from vq_mitsuba import messages
-from vq_mitsuba import brdf
 from vq_mitsuba.backend import init_mitsuba, shading_threads, torch_device
 from vq_mitsuba.config import Config, to_dict
 from vq_mitsuba.data.captures import Capture
-from vq_mitsuba.data.pixels import (ErrorSampler, hold_aside, neighbour_pairs, pixel_hit_table, sampler_tile,
-                                    trace_training_pixels)
-from vq_mitsuba.run.run_dir import RunDir
-from vq_mitsuba.engine import evidence, skips, trials
+from vq_mitsuba.engine import evidence, skips
+from vq_mitsuba.engine.ladder import EnvmapLadder, envmap_height_at, envmap_ladder  # noqa: F401 (re-exported)
+from vq_mitsuba.engine.material_model import MaterialModel, mean_foreground
+from vq_mitsuba.engine.pixel_data import PixelData
 from vq_mitsuba.engine.schedule import StepSchedule, schedule_at
-from vq_mitsuba.run.loop import Budget, Loop, Progress
+from vq_mitsuba.engine.trials import Trials
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models import losses
-from vq_mitsuba.models.fields import EnvironmentMap
-from vq_mitsuba.models.fitted import material_networks
-from vq_mitsuba.models.vq import dropout_rates, kmeans_codebook, sample_drop_mask, scale_gradient
-from vq_mitsuba.render.shading import scene_for_mesh
+from vq_mitsuba.run.loop import Budget, Loop, Progress
+from vq_mitsuba.run.run_dir import RunDir
 
 MAX_NONFINITE_RUN = 20  # non-finite steps in a row that stop a fit
-KMEANS_LATENTS = 20000  # latents clustered to start the codebook
-ENVMAP_START_HEIGHT = 32  # rows of the learned envmap at the start of a fit
 
 
 def parse_snapshot_times(text: str) -> list[float]:
@@ -60,184 +55,74 @@ def check_opaque_pixels(capture: Capture, alpha_threshold: float) -> None:
                                          "alpha masks, or lower train.alpha_threshold")
 
 
-def envmap_ladder(cfg: Config) -> list[int]:
-    """The learned envmap's rungs: envmap.height halved while it stays at least 32 rows."""
-    ladder = [cfg.envmap.height]
-    while ladder[0] % 2 == 0 and ladder[0] // 2 >= ENVMAP_START_HEIGHT:
-        ladder.insert(0, ladder[0] // 2)
-    return ladder
-
-
-def envmap_height_at(cfg: Config, progress: float) -> int:
-    """Rows of the learned envmap at this training progress: the ladder (`envmap_ladder`) climbed
-    at even steps over the first field.pe_anneal share of training (the sharp light is fitted
-    after the coarse light and materials, as the encoding's frequencies open)."""
-    ladder = envmap_ladder(cfg)
-    anneal = cfg.field.pe_anneal
-    if anneal <= 0:
-        return ladder[-1]
-    return ladder[min(len(ladder) - 1, int(progress / anneal * len(ladder)))]
-
-
 class Trainer:
-    """The networks, the optimiser and the pixel pool of one fit, and one training step."""
+    """One fit: the model, the pixel data, the optimiser, the rules, the step and the loop."""
 
     def __init__(self, capture: Capture, run: RunDir, cfg: Config):
         self.cfg, self.run, self.capture = cfg, run, capture
-        check_opaque_pixels(capture, cfg.train.alpha_threshold)
-        torch.manual_seed(cfg.train.seed)
-        np.random.seed(cfg.train.seed)
+        t = cfg.train
+        check_opaque_pixels(capture, t.alpha_threshold)
+        torch.manual_seed(t.seed)
+        np.random.seed(t.seed)
         init_mitsuba()
-        self.device = device = torch_device()
-        mean_fg = float(np.mean(capture.images[capture.alpha >= cfg.train.alpha_threshold])) if capture.has_alpha \
-            else float(np.mean(capture.images))
-        self.learn_env = capture.envmap is None
-        if self.learn_env:
-            self.env_module = EnvironmentMap(envmap_height_at(cfg, 0.0), cfg.envmap.init_scale * max(mean_fg, 1e-3))
-            self.env_module.to(device)
-            env_init = self.env_module().detach().cpu().numpy()
-        else:
-            self.fixed_env = torch.as_tensor(capture.envmap, device=device)
-            env_init = capture.envmap
-        self.scene = scene_for_mesh(capture.mesh, env_init, capture.envmap_to_world)
-        self.pool, self.pool_stats = trace_training_pixels(self.scene, capture, cfg.train.alpha_threshold,
-                                                           cfg.train.pixel_jitter, cfg.train.seed, cfg.train.max_hits)
-        stats = self.pool_stats
-        if stats["hits_per_pixel"] < max(cfg.train.pixel_jitter, 1) or stats["pixel_share"] < 1.0:
+        self.device = torch_device()
+        self.model = MaterialModel(capture, cfg, self.device, mean_foreground(capture, t.alpha_threshold))
+        # no speed-up before every stage of the schedule has begun
+        stages = [cfg.field.pe_anneal, cfg.loss.metallic_barrier_until] + ([cfg.vq.warmup_frac] if cfg.vq.enabled
+                                                                           else [])
+        self.pace = skips.Pace(t.iterations, t.stop == "auto", start_share=max(stages))
+        trials_on = self.model.learn_env and t.trials == "auto"
+        self.data = PixelData(self.model.scene, capture, cfg, self.device, hold=self.pace.active or trials_on)
+        stats = self.data.stats
+        if stats["hits_per_pixel"] < max(t.pixel_jitter, 1) or stats["pixel_share"] < 1.0:
             messages.note(f"training pixels: {stats['opaque_pixels']:,} opaque pixels, {stats['hits_per_pixel']} "
-                          f"hit(s) each instead of {max(cfg.train.pixel_jitter, 1)}"
+                          f"hit(s) each instead of {max(t.pixel_jitter, 1)}"
                           + (f", {100 * stats['pixel_share']:.0f} % of them" if stats["pixel_share"] < 1.0 else "")
-                          + f" (train.max_hits {cfg.train.max_hits:,})")
-        if len(self.pool) == 0:
-            raise InputError(capture.source, "no training pixel hits the geometry: check the cameras, the mesh "
-                                             "and the alpha masks")
-        self.model, self.discrete = material_networks(cfg, capture.mesh, device)
-        groups = [{"params": self.model.parameters(), "lr": cfg.train.lr}]
-        if self.discrete is not None:
-            groups.append({"params": self.discrete.parameters(), "lr": cfg.train.lr})
-        if self.learn_env:
-            groups.append({"params": self.env_module.parameters(), "lr": cfg.envmap.lr})
-        self.optim = torch.optim.Adam(groups, fused=True)
+                          + f" (train.max_hits {t.max_hits:,})")
+        self.optim = torch.optim.Adam(self.model.parameter_groups(), fused=True)
         self.base_lrs = [g["lr"] for g in self.optim.param_groups]
-        self.gen = torch.Generator(device=device).manual_seed(cfg.train.seed)
-        self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
-        self.pairs = neighbour_pairs(self.pool, capture.width, capture.height).to(device) \
-            if cfg.loss.w_sm > 0 else None
-        self.batch = min(cfg.train.batch_rays, len(self.pool))
-        # a pixel's colour is the mean over its footprint: its jittered hits are shaded together and
-        # their mean is scored, so the loss does not also ask each hit for the pixel's mean colour
-        self.copies = int(self.pool_stats["hits_per_pixel"])  # 1 without jitter
-        self.hit_row = self.pixel_hits = None
-        if self.copies > 1:
-            self.hit_row, self.pixel_hits = pixel_hit_table(self.pool, capture.width, capture.height, self.copies)
+        self.gen = torch.Generator(device=self.device).manual_seed(t.seed)
         self.history: list[dict] = []
         self.step, self.elapsed_before = 0, 0.0
-        self._decide_at_start()
-
-    def _decide_at_start(self) -> None:
-        """The rules of `vq_mitsuba.engine.skips` that the scene decides before the first step: the
-        bounce, the held-aside pixels of the pace, the pixel sampler; the envmap's rung is decided
-        as the ladder would grow."""
-        cfg, pool, t = self.cfg, self.pool, self.cfg.train
-        seed = t.seed
-        self.bounce_on, bounce = skips.decide_bounce(t.bounce, t.bounces, self.scene, pool.position, pool.wi,
-                                                     skips.np_seed(seed, 1))
+        pool = self.data.pool
+        self.bounce_on, bounce = skips.decide_bounce(t.bounce, t.bounces, self.model.scene, pool.position, pool.wi,
+                                                     skips.np_seed(t.seed, 1))
         self.decisions = {"bounce": bounce}
-        w, h = self.capture.width, self.capture.height
-        n_pixels = int((pool.copy == 0).sum())
-        # no speed-up before every stage of the schedule has begun
-        stages = [cfg.field.pe_anneal, cfg.loss.metallic_barrier_until] + ([cfg.vq.warmup_frac] if cfg.vq.enabled else [])
-        self.pace = skips.Pace(t.iterations, t.stop == "auto", start_share=max(stages))
-        self.held = self.train_idx = None
-        self.trials_on = self.learn_env and t.trials == "auto"
-        if self.pace.active or self.trials_on:
-            self.held, self.train_idx = hold_aside(pool, w, h, skips.stop_pixels(n_pixels), skips.np_seed(seed, 2))
-        self.sampler = None
-        if t.sampling == "auto":
-            candidates = self.train_idx if self.train_idx is not None else torch.arange(len(pool))
-            drawable = n_pixels - (0 if self.held is None else len(self.held))
-            tile = sampler_tile(drawable, self.pixels_per_step * t.iterations, skips.SAMPLER_VISITS)
-            self.sampler = ErrorSampler(pool, candidates, w, h, tile, skips.SAMPLER_FLOOR)
-        self.env_auto = self.learn_env and cfg.envmap.final_height == "auto"
-        ladder = envmap_ladder(cfg)
-        self.env_cap, self.env_decided, self.env_choices = ladder[0], 0, []
-        gen = torch.Generator().manual_seed(skips.np_seed(seed, 3))
-        self.rough_idx = torch.randperm(len(pool), generator=gen)[:skips.ROUGHNESS_HITS].to(self.device)
-        self.trial_checked, self.trial, self.pull = False, None, None
+        self.ladder = EnvmapLadder(cfg, self.model.learn_env and cfg.envmap.final_height == "auto")
+        gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 3))
+        # fixed hits whose roughness the ladder and the trials read
+        self.fixed_hits = torch.randperm(len(pool), generator=gen)[:skips.ROUGHNESS_HITS].to(self.device)
+        self.trials = None if not trials_on else Trials(self, t.trials, skips.decision(
+            t.trials, "none", "the fit ended before the trial's check"))
         self.decisions["trials"] = skips.decision(
-            t.trials, "none", "no learned light: nothing to trade a surface's roughness against" if not self.learn_env
-            else f"train.trials = {t.trials}" if not self.trials_on else "the fit ended before the trial's check")
-        self.prior_grid = None
-        self.decisions["prior"] = self._weigh_prior()
-
-    def _weigh_prior(self) -> dict:
-        """The metallic term's weight over the object from the highlights of the images
-        (`vq_mitsuba.engine.evidence`), before the first step; its decision."""
-        cfg, pool, t = self.cfg, self.pool, self.cfg.train
-        setting = cfg.loss.prior_evidence
-        if setting != "auto" or cfg.loss.w_lam <= 0 or cfg.loss.lam_metallic <= 0:
-            return skips.decision(setting, "whole", f"loss.prior_evidence = {setting}" if setting != "auto"
-                                  else "no metallic prior to weigh (loss.w_lam or loss.lam_metallic is 0)")
-        gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 5))
-        pick = torch.randperm(len(pool), generator=gen)[:evidence.HITS].to(self.device)
-        pos = pool.position[pick]
-        views = evidence.sample_views(self.scene, self.capture, pos, pool.normal[pick], t.alpha_threshold,
-                                      skips.np_seed(t.seed, 6))
-        tint = evidence.highlight_tint(views)
-        bounds = torch.tensor(np.array(self.capture.mesh.bounds), dtype=torch.float32)
-        grid = evidence.WeightGrid.of_tints(pos, tint, bounds)
-        shown = ~torch.isnan(tint)
-        weight = grid(pos).cpu()
-        record = {"hits": len(pick), "hits_with_highlight": int(shown.sum()),
-                  "tint_median": float(tint[shown].median()) if bool(shown.any()) else None,
-                  "share_weakened": float((weight < 1).float().mean()), "share_off": float((weight == 0).float().mean()),
-                  "mean_weight": float(weight.mean())}
-        seen = (f"{record['hits_with_highlight']} of {len(pick)} training hits show a highlight (in {evidence.RANK + 1} "
-                f"views at least {evidence.HIGHLIGHT:g} x their median view's luminance) on a coloured surface")
-        if grid.full:
-            return {**skips.decision(setting, "whole", f"{seen}; no voxel's highlights keep more than "
-                                     f"{evidence.DIELECTRIC:g} of its colour (median "
-                                     + ("none" if record["tint_median"] is None else f"{record['tint_median']:.2f}")
-                                     + "): the metallic prior is whole"), **record}
-        self.prior_grid = grid
-        reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
-                  f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
-                  f"(off on {100 * record['share_off']:.0f} %, from a tint of {evidence.METAL:g}), mean weight "
-                  f"{record['mean_weight']:.2f}")
-        messages.note(f"prior: {reason}")
-        return {**skips.decision(setting, "weighed", reason), **record}
+            t.trials, "none", "no learned light: nothing to trade a surface's roughness against"
+            if not self.model.learn_env else f"train.trials = {t.trials}")
+        self.model.prior_grid, self.decisions["prior"] = evidence.weigh_prior(self.model.scene, capture, pool, cfg)
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
-        return self.env_module() if self.learn_env else self.fixed_env
+        return self.model.envmap()
+
+    @property
+    def finished(self) -> bool:
+        """The schedule is done (train.iterations, or sooner at the pace of train.stop = auto)."""
+        return self.step >= self.cfg.train.iterations or self.pace.finished
 
     def set_envmap_height(self, height: int, resample: bool = True) -> None:
-        """Bring the learned envmap to `height` rows (resampled, or a blank parameter of that shape
-        that a checkpoint fills); its Adam state restarts. It grows as the schedule goes on, and
-        shrinks only when a run resumes with more iterations, at an earlier point of the ladder."""
-        env = self.env_module
-        old = env.log_radiance
-        if old.shape[0] == height:
+        """Bring the learned envmap to `height` rows; its Adam state restarts. It grows as the
+        schedule goes on, and shrinks only when a run resumes with more iterations, at an earlier
+        point of the ladder."""
+        swapped = self.model.resize_envmap(height, resample)
+        if swapped is None:
             return
-        if resample and height < old.shape[0]:  # the mean radiance of each coarser texel
-            radiance = torch.nn.functional.adaptive_avg_pool2d(torch.exp(old.detach()).permute(2, 0, 1),
-                                                               (height, 2 * height))
-            env.log_radiance = torch.nn.Parameter(torch.log(radiance).permute(1, 2, 0).contiguous())
-        elif resample:
-            env.resize(height)
-        else:
-            env.log_radiance = torch.nn.Parameter(torch.zeros(height, 2 * height, 3, device=old.device))
+        old, new = swapped
         group = next(g for g in self.optim.param_groups if any(q is old for q in g["params"]))
-        group["params"] = [env.log_radiance]
+        group["params"] = [new]
         self.optim.state.pop(old, None)
 
     def fitted_state(self, elapsed: float) -> dict:
         """What rendering and scoring need."""
-        return {"model": self.model.state_dict(),
-                "discrete": self.discrete.state_dict() if self.discrete is not None else None,
-                "envmap": self.env_module.state_dict() if self.learn_env else None,
-                "envmap_fixed": None if self.learn_env else torch.as_tensor(self.capture.envmap),
-                "step": self.step, "elapsed_s": elapsed, "config": to_dict(self.cfg)}
+        return {**self.model.state_dict(), "step": self.step, "elapsed_s": elapsed, "config": to_dict(self.cfg)}
 
     def training_state(self, elapsed: float) -> dict:
         """The fitted state plus what resuming needs (`resume` reads it back)."""
@@ -255,12 +140,9 @@ class Trainer:
     def resume(self, state: dict | None = None) -> None:
         """Continue from the run's checkpoint (`state`: that checkpoint, when already loaded)."""
         state = self.run.load_state(device=self.device) if state is None else state
-        self.model.load_state_dict(state["model"])
-        if self.discrete is not None:
-            self.discrete.load_state_dict(state["discrete"])
-        if self.learn_env:
+        if self.model.learn_env:
             self.set_envmap_height(state["envmap"]["log_radiance"].shape[0], resample=False)
-            self.env_module.load_state_dict(state["envmap"])
+        self.model.load_state_dict(state)
         self.optim.load_state_dict(state["optim"])
         self.gen.set_state(state["generator"].cpu())  # CPU bytes on any device
         self.history, self.step, self.elapsed_before = state["history"], state["step"], state["elapsed_s"]
@@ -268,10 +150,12 @@ class Trainer:
 
     def skips_state(self) -> dict:
         """What the rules decided and measured so far (`vq_mitsuba.engine.skips`), for resuming."""
-        return {"bounce_on": self.bounce_on, "decisions": self.decisions, "pace": self.pace.state_dict(),
-                "sampler": self.sampler.state_dict() if self.sampler is not None else None,
-                "envmap": {"cap": self.env_cap, "decided": self.env_decided, "choices": self.env_choices},
-                "trial": {"checked": self.trial_checked, "pending": self.trial}}
+        decisions = dict(self.decisions)
+        if self.trials is not None:
+            decisions["trials"] = self.trials.decision
+        return {"bounce_on": self.bounce_on, "decisions": decisions, "pace": self.pace.state_dict(),
+                "sampler": self.data.state_dict(), "envmap": self.ladder.state_dict(),
+                "trial": self.trials.state_dict() if self.trials is not None else {"checked": False, "pending": None}}
 
     def load_skips_state(self, state: dict | None) -> None:
         """Resume the rules: a run keeps the bounce decided at its start, the pace, the envmap's
@@ -288,181 +172,31 @@ class Trainer:
         self.pace.load_state_dict(state["pace"])
         if not self.pace.active:
             self.pace.rate = 1
-        if self.sampler is not None and state["sampler"] is not None:
-            self.sampler.load_state_dict(state["sampler"])
-        env = state["envmap"]
-        self.env_cap, self.env_decided, self.env_choices = int(env["cap"]), int(env["decided"]), list(env["choices"])
-        trial = state.get("trial") or {"checked": False, "pending": None}
-        self.trial_checked, self.trial = bool(trial["checked"]), trial["pending"]
-        if "trials" in state["decisions"]:
-            self.decisions["trials"] = state["decisions"]["trials"]
+        self.data.load_state_dict(state["sampler"])
+        self.ladder.load_state_dict(state["envmap"])
+        if self.trials is not None:
+            self.trials.load_state_dict(state.get("trial"), state["decisions"].get("trials"))
 
     # --- one step -------------------------------------------------------------------------------
-    @torch.no_grad()
-    def start_discrete(self) -> None:
-        """The codebook from k-means of the warmed-up latents; the discrete decoder as a copy of
-        the continuous one."""
-        pool = self.pool
-        sub = torch.randint(0, len(pool), (min(KMEANS_LATENTS, len(pool)),), generator=self.gen, device=self.device)
-        z_warm = self.model(pool.position[sub])["z"]
-        if not bool(torch.isfinite(z_warm).all()):
-            raise NumericalError(self.run.dir, f"step {self.step}: the material field's latents are not finite, so "
-                                               "the codebook cannot start from them; try a lower train.lr, or "
-                                               "--resume with another train.seed")
-        self.discrete.vq.init_codebook(kmeans_codebook(z_warm, self.cfg.vq.num_codes, self.cfg.train.seed))
-        self.discrete.warm_start(self.model.decoder, z_warm)
-        self.discrete.initialised.fill_(True)
-
-    def _render(self, idx, material: dict, env, bounce_fn, fixed_light=None):
-        """Per-pixel Monte Carlo samples (B, spp, 3) of the pixels `idx` with `material`'s BRDF,
-        in two independent halves for the decorrelated loss."""
-        p = self.pool
-        return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material, env, self.cfg.train.spp,
-                                generator=self.gen, reduce=False, material_fn=bounce_fn, groups=2,
-                                fixed_light=fixed_light)
-
-    def _lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None,
-                    metallic_scale: torch.Tensor | None = None) -> torch.Tensor:
-        """Eq. (9), L_lam, with the metallic barrier early in training; `weight` (N,): the hits'
-        importance weights, `metallic_scale` (N,): their metallic term's weight."""
-        logit = out["metallic_logit"] if s.metallic_barrier else None
-        return losses.lambertian_prior(out["metallic"], out["roughness"], self.cfg.loss.lam_metallic, logit, weight,
-                                       metallic_scale)
-
     def loss_terms(self, idx: torch.Tensor, s: StepSchedule, bounce: bool,
                    weight: torch.Tensor | None = None) -> tuple[dict, torch.Tensor, torch.Tensor | None]:
-        """The weighted loss terms of one batch (Eq. 10: their sum is the loss), the continuous
-        branch's pixel colours and, when the sampler needs them, its per-pixel squared errors.
-        `weight`: importance weights of the pixels (the error-driven sampler's), applied to the
-        reconstruction terms; the priors, chromaticity and VQ terms are means over the batch."""
-        cfg, pool, ab = self.cfg, self.pool, self.cfg.ablation
-        gamma = cfg.loss.gamma
-        # shaded, priors and VQ per hit; the reconstruction per pixel of `idx`, with its weight
-        target, hits = pool.rgb[idx], self.footprint(idx)
-        hit_weight = None if weight is None else weight.repeat_interleave(self.copies)
-        out = self.model(pool.position[hits])
-        # the metallic term of the prior weighed by the images' highlights (`evidence`)
-        metal_w = None if self.prior_grid is None else self.prior_grid(pool.position[hits])
-        env = self.envmap()
-        bounce_fn = self.model if bounce else None
-        discrete_on = self.discrete is not None and bool(self.discrete.initialised)
-        single = discrete_on and ab.single_branch
-        if not discrete_on:
-            samples = self._render(hits, out, env, bounce_fn)
-        else:
-            z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
-            drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, self.gen)
-            od = self.discrete(z, drop, weight=hit_weight)
-            # Both branches are shaded in one call. The discrete branch is lit by the envmap and
-            # bounce that the continuous branch fits, without training them: a few materials
-            # cannot explain a texture, and their residual would otherwise bend the shared light
-            # (ablation.shared_light lets it).
-            n = len(hits)
-            both = {k: torch.cat([out[k], od[k]]) for k in brdf.NAMES}
-            fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
-            samples_both = self._render(torch.cat([hits, hits]), both, env, bounce_fn, fixed)
-            samples, samples_d = samples_both[:n], samples_both[n:]
-            samples_d = self._pixel_means(samples_d, len(target))
-        samples = self._pixel_means(samples, len(target))
-        per_pixel = None
-        if self.sampler is not None:
-            with torch.no_grad():
-                per_pixel = losses.decorrelated_error(samples, target, gamma)
-        terms = {
-            "rec_c": (0.0 if single else cfg.loss.w_rec_c) * losses.reconstruction_l2_decorrelated(samples, target,
-                                                                                                     gamma, weight),
-            "lam_c": s.w_lam * self._lambertian(out, s, hit_weight, metal_w),
-        }
-        if discrete_on:
-            terms["rec_d"] = cfg.loss.w_rec_d * losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
-            terms["chr"] = (0.0 if single else cfg.loss.w_chr) * losses.chromaticity_loss(od["basecolor"],
-                                                                                           out["basecolor"], hit_weight)
-            terms["vq"] = cfg.loss.w_vq * od["vq_loss"]
-            terms["lam_d"] = s.w_lam_d * self._lambertian(od, s, hit_weight, metal_w)
-        if self.pairs is not None and len(self.pairs) > 0:
-            pick = self.pairs[torch.randint(0, len(self.pairs), (max(self.batch // 4, 1),), generator=self.gen,
-                                            device=self.device)]
-            oa, ob = self.model(pool.position[pick[:, 0]]), self.model(pool.position[pick[:, 1]])
-            ia = losses.encode_gamma(pool.rgb[pick[:, 0]], gamma)
-            ib = losses.encode_gamma(pool.rgb[pick[:, 1]], gamma)
-            terms["sm"] = cfg.loss.w_sm * losses.colour_aware_smoothness(oa, ob, ia, ib, cfg.loss.sm_alpha,
-                                                                         cfg.loss.sm_beta)
-        if self.learn_env and cfg.envmap.tv_weight > 0:
-            terms["env_tv"] = cfg.envmap.tv_weight * self.env_module.smoothness()
-        if self.pull is not None:  # a trial's copy: the flagged surfaces pulled to their other explanation
-            flags, glossy = self.pull
-            branches = [out] + ([od] if discrete_on else [])
-            terms["trial"] = trials.PULL_WEIGHT * sum(trials.pull_term(o["roughness"], flags[hits], glossy)
-                                                      for o in branches)
-        return terms, samples.mean(1), per_pixel
-
-    @staticmethod
-    def _pixel_means(samples: torch.Tensor, n_pixels: int) -> torch.Tensor:
-        """(n_pixels, spp, 3): the mean of each pixel's hits' samples (hits in pixel order)."""
-        return samples.reshape(n_pixels, -1, *samples.shape[1:]).mean(1)
-
-    def draw(self) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The step's pixels (pool indices) and their importance weights (None: drawn uniformly)."""
-        if self.sampler is not None:
-            if self.step % skips.SAMPLER_REFRESH == 0:
-                self.sampler.refresh()
-            return self.sampler.draw(self.pixels_per_step, self.gen)
-        if self.train_idx is not None:  # all but the held-aside pixels
-            pick = torch.randint(0, len(self.train_idx), (self.pixels_per_step,), generator=self.gen,
-                                 device=self.device)
-            return self.train_idx[pick], None
-        return torch.randint(0, len(self.pool), (self.pixels_per_step,), generator=self.gen, device=self.device), None
-
-    @property
-    def pixels_per_step(self) -> int:
-        """Pixels a step draws: train.batch_rays hits, all the jittered hits of each pixel."""
-        return max(1, self.batch // self.copies)
-
-    def footprint(self, idx: torch.Tensor) -> torch.Tensor:
-        """(len(idx) * copies,) the jittered hits of the pixels of the hits `idx`, pixel by pixel."""
-        if self.pixel_hits is None:
-            return idx
-        return self.pixel_hits[self.hit_row[idx]].reshape(-1)
-
-    def envmap_height(self, progress: float) -> int:
-        """The ladder's rows at `progress` (`envmap_height_at`), no higher than the rung the fitted
-        roughness asks for when envmap.final_height is auto: decided each time the ladder reaches
-        a rung it has not reached before, and read again every `skips.ENVMAP_RECHECK_EVERY` steps
-        while the ladder is above it, so a roughness that falls later still grows the light (the
-        rung kept never goes down). A decision is recorded when the ladder reaches a rung or the
-        rung grows."""
-        want = envmap_height_at(self.cfg, progress)
-        if not self.env_auto:
-            return want
-        ladder = envmap_ladder(self.cfg)
-        k = ladder.index(want)
-        reached = k > self.env_decided
-        if reached or (want > self.env_cap and self.step % skips.ENVMAP_RECHECK_EVERY == 0):
-            self.env_decided = max(self.env_decided, k)
-            with torch.no_grad():
-                roughness = self.model(self.pool.position[self.rough_idx])["roughness"]
-            rows, why = skips.envmap_rung(ladder, roughness)
-            grows = rows > self.env_cap
-            if rows < self.env_cap:
-                why += f"; kept at {self.env_cap} rows (a rung reached is kept)"
-            self.env_cap = max(self.env_cap, rows)
-            if reached or grows:
-                self.env_choices.append({"step": self.step, "ladder_rows": want, "rows": min(want, self.env_cap),
-                                         "reason": why})
-                messages.note(f"envmap: {min(want, self.env_cap)} rows at step {self.step} (the ladder's {want}): {why}")
-        return min(want, self.env_cap)
+        """The weighted loss terms of the pixels `idx` (Eq. 10: their sum is the loss), the
+        continuous branch's pixel colours and the per-pixel squared errors (`MaterialModel.loss_dict`)."""
+        terms, rgb, per_pixel = self.model.loss_dict(self.data, idx, s, bounce, self.gen, weight)
+        return losses.weighted(terms, self.cfg, s.progress), rgb, per_pixel
 
     def train_step(self, s: StepSchedule) -> tuple[bool, float, float]:
         """One optimisation step; (finite, loss, sRGB MSE of the continuous branch). A step whose
         loss or gradients are not finite is not applied."""
+        model, data = self.model, self.data
         for g, lr in zip(self.optim.param_groups, self.base_lrs):
             g["lr"] = lr * s.lr_factor
-        if s.discrete and not bool(self.discrete.initialised):
-            self.start_discrete()
-        self.model.set_progress(s.progress, self.cfg.field.pe_anneal)
-        if self.learn_env:
+        if s.discrete and not model.discrete_on:
+            model.start_discrete(data.pool.position, self.gen, self.step, self.run.dir)
+        model.field.set_progress(s.progress, self.cfg.field.pe_anneal)
+        if model.learn_env:
             self.set_envmap_height(self.envmap_height(s.progress))
-        idx, weight = self.draw()
+        idx, weight = data.draw(self.step, self.gen)
         terms, rgb, per_pixel = self.loss_terms(idx, s, self.bounce_active(), weight)
         loss = sum(terms.values())
         self.optim.zero_grad(set_to_none=True)
@@ -473,113 +207,24 @@ class Trainer:
         if not finite:
             return False, math.nan, math.nan
         self.optim.step()
-        if self.sampler is not None:
-            self.sampler.update(idx, per_pixel)
+        data.observe(idx, per_pixel)
         with torch.no_grad():
-            mse = float(losses.srgb_mse(rgb.detach(), self.pool.rgb[idx], weight))  # of all pixels, by weight
+            mse = float(losses.srgb_mse(rgb.detach(), data.pool.rgb[idx], weight))  # of all pixels, by weight
         return True, float(loss.detach()), mse
+
+    def envmap_height(self, progress: float) -> int:
+        """The learned envmap's rows at `progress` (`EnvmapLadder.height`)."""
+        return self.ladder.height(progress, self.step, lambda: self.model.roughness(
+            self.data.pool.position[self.fixed_hits]))
 
     def bounce_active(self) -> bool:
         """The bounce is simulated at this step: decided on (`skips.decide_bounce`) and past
         train.bounce_after."""
         return self.bounce_on and self.step >= self.cfg.train.bounce_after
 
-    @torch.no_grad()
     def held_loss(self) -> float:
-        """The reconstruction loss (gamma-encoded L2) of the held-aside pixels, each pixel's mean over
-        its jittered hits against its colour as in a step, with the same light samples each time: the
-        continuous branch's, plus the discrete branch's once it trains."""
-        cfg, pool = self.cfg, self.pool
-        idx = hits = self.footprint(self.held)  # idx: the hits shaded, once per branch
-        out = self.model(pool.position[hits])
-        mats = brdf.select(out)
-        discrete_on = self.discrete is not None and bool(self.discrete.initialised)
-        if discrete_on:
-            was_training = self.discrete.training
-            self.discrete.eval()  # no codebook (EMA) update from a measurement
-            od = self.discrete(out["z"])
-            self.discrete.train(was_training)
-            mats = {k: torch.cat([mats[k], od[k]]) for k in mats}
-            idx = torch.cat([idx, idx])
-        gen = torch.Generator(device=self.device).manual_seed(skips.np_seed(cfg.train.seed, 4))
-        rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats, self.envmap().detach(),
-                               cfg.train.spp,
-                               generator=gen, material_fn=self.model if self.bounce_active() else None)
-        target = pool.rgb[self.held]
-        return sum(float(losses.reconstruction_l2(self._pixel_means(branch, len(target)), target, cfg.loss.gamma))
-                   for branch in rgb.split(len(hits)))
-
-    # --- the trial (`vq_mitsuba.engine.trials`) ---------------------------------------------------
-    def trial_after_step(self, p: Progress) -> None:
-        """After a step: the trial's choice when its steps are done, or its check once every stage of
-        the schedule has begun."""
-        if self.trial is not None:
-            if self.step >= self.trial["until"]:
-                self.finish_trial()
-        elif not self.trial_checked and self.pace.share() >= self.pace.start_share:
-            self.trial_checked = True
-            self.start_trial(p)
-
-    def start_trial(self, p: Progress) -> None:
-        """Flag the metals at the roughness floor on the fixed hits; where enough are flagged, train
-        a copy of the fit with them pulled glossier, measure it on the held-aside pixels and keep it
-        aside while the fit itself trains as many steps."""
-        cfg, pool = self.cfg, self.pool
-        floor, glossy = cfg.field.roughness_min, trials.glossy_roughness(ENVMAP_START_HEIGHT)
-        with torch.no_grad():
-            fixed = trials.flag(self.model(pool.position[self.rough_idx]), floor)
-        share = float(fixed.float().mean())
-        seen = (f"{100 * share:.1f} % of {len(self.rough_idx)} fixed training hits at step {self.step} metal (metallic "
-                f"> {trials.METAL:g}) within {trials.FLOOR_BAND:g} of the roughness floor {floor:g}")
-        if share < trials.MIN_SHARE:
-            self.decisions["trials"] = skips.decision(cfg.train.trials, "none",
-                                                      f"{seen} (a trial from {100 * trials.MIN_SHARE:g} %)")
-            return
-        flags = trials.flag_hits(self.model, pool.position, floor)
-        probe = self.rough_idx[fixed]  # the fixed hits flagged, read again at the choice
-        steps = max(2, round(trials.TRIAL_SHARE * cfg.train.iterations))
-        messages.note(f"trial: {seen}; a copy of the fit tries them at roughness >= {glossy:.2f} for {steps} steps")
-        start = trials.copy_fit(self)
-        self.pull = (flags.to(self.device), glossy)
-        for i in range(steps):
-            if i == steps // 2:
-                self.pull = None  # the second half free: the copy settles where the images want it
-            self.train_step(schedule_at(cfg, Progress(self.step, p.seconds, self.pace.share(), p.time_share)))
-            self.pace.advance()
-        self.pull = None
-        record = {"step": int(start["step"]), "steps": steps, "share_at_floor": share, "glossy": glossy,
-                  "hits_flagged": int(flags.sum()), "held_loss_copy": self.held_loss(),
-                  "roughness_copy": self._median_roughness(probe)}
-        until, copied = self.step, trials.copy_fit(self)
-        trials.restore_fit(self, start)
-        self.trial = {"until": until, "copy": copied, "record": record, "probe": probe}
-
-    def finish_trial(self) -> None:
-        """Keep whichever of the fit and its copy has the lower held-aside loss."""
-        cfg, trial = self.cfg, self.trial
-        record = trial["record"]
-        record["held_loss_fit"] = self.held_loss()
-        record["roughness_fit"] = self._median_roughness(trial["probe"])
-        keep_copy = record["held_loss_copy"] < record["held_loss_fit"]
-        if keep_copy:
-            trials.restore_fit(self, trial["copy"])
-        fmt = lambda r: "none" if r is None else f"{r:.3f}"  # noqa: E731
-        reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits metal at the "
-                  f"roughness floor; after {record['steps']} steps the held-aside loss is "
-                  f"{record['held_loss_copy']:.5g} for the copy pulled to >= {record['glossy']:.2f} (median roughness "
-                  f"{fmt(record['roughness_copy'])}) against {record['held_loss_fit']:.5g} for the fit "
-                  f"({fmt(record['roughness_fit'])}): " + ("the copy goes on" if keep_copy else "the fit goes on"))
-        self.decisions["trials"] = {**skips.decision(cfg.train.trials, "swapped" if keep_copy else "kept", reason),
-                                    "trials": [record]}
-        messages.note(f"trial: {reason}")
-        self.trial = None
-
-    @torch.no_grad()
-    def _median_roughness(self, idx: torch.Tensor) -> float | None:
-        """Median fitted roughness of the training hits `idx` (None without any)."""
-        if len(idx) == 0:
-            return None
-        return float(self.model(self.pool.position[idx.to(self.device)])["roughness"].median())
+        """The reconstruction loss of the held-aside pixels (`MaterialModel.held_loss`)."""
+        return self.model.held_loss(self.data, skips.np_seed(self.cfg.train.seed, 4), self.bounce_active())
 
     # --- the loop -------------------------------------------------------------------------------
     def train(self, progress: bool = True) -> dict:
@@ -607,47 +252,27 @@ class Trainer:
         return {"iterations": self.step, "seconds": result.seconds,
                 "iterations_per_s": self.step / result.seconds if result.seconds > 0 else math.nan,
                 "final_psnr_train_batch": self.history[-1]["psnr"] if self.history else None,
-                "batch_rays": self.batch, "training_pixels": len(self.pool), "steps_this_call": result.steps_this_call,
+                "batch_rays": self.data.batch, "training_pixels": len(self.data), "steps_this_call": result.steps_this_call,
                 "nonfinite_steps_skipped": self._acc["nonfinite"], "decisions": self.final_decisions()}
 
     def _stage(self) -> tuple[bool, bool]:
         """(the discrete branch trains, the bounce is on): a change starts a new phase of the pace."""
-        return self.discrete is not None and bool(self.discrete.initialised), self.bounce_active()
+        return self.model.discrete_on, self.bounce_active()
 
     def final_decisions(self) -> dict:
         """fit.json's `decisions`: each rule's setting, choice and reason."""
         cfg = self.cfg
         out = dict(self.decisions)
-        held = 0 if self.held is None else len(self.held)
+        if self.trials is not None:
+            out["trials"] = self.trials.decision
+        held = 0 if self.data.held is None else len(self.data.held)
         out["stop"] = self.pace.decision(cfg.train.stop, self.step, held)
         out["stop"]["pace"] = self.pace.state_dict()
-        setting = cfg.envmap.final_height
-        if not self.learn_env:
-            out["envmap"] = skips.decision(setting, "known", "the capture's envmap lights the fit")
+        if not self.model.learn_env:
+            out["envmap"] = skips.decision(cfg.envmap.final_height, "known", "the capture's envmap lights the fit")
         else:
-            rows, top = int(self.env_module.log_radiance.shape[0]), envmap_ladder(cfg)[-1]
-            if not self.env_auto:
-                reason = f"envmap.final_height = {setting}: the ladder's {top} rows"
-            elif self.env_choices:
-                last = self.env_choices[-1]
-                reason = f"decided at step {last['step']}: {last['reason']}"
-            else:
-                reason = "the fit ended before the ladder grew"
-            out["envmap"] = skips.decision(setting, rows, reason)
-            out["envmap"]["ladder"] = envmap_ladder(cfg)
-            out["envmap"]["checks"] = list(self.env_choices)
-        if self.sampler is None:
-            out["sampling"] = skips.decision(cfg.train.sampling, "uniform", f"train.sampling = {cfg.train.sampling}")
-        else:
-            info = self.sampler.summary()
-            share = info["top10_tiles_draw_share"]
-            out["sampling"] = skips.decision(
-                cfg.train.sampling, "error",
-                f"by the running error of {info['tiles']} tiles of {info['tile_px']} x {info['tile_px']} px, "
-                f"{100 * skips.SAMPLER_FLOOR:g} % uniform, importance-weighted"
-                + ("" if share is None else f"; the 10 % of tiles with the largest error drew {100 * share:.0f} % "
-                                             "of the rays"))
-            out["sampling"].update(info)
+            out["envmap"] = self.ladder.decision(self.model.envmap_rows)
+        out["sampling"] = self.data.sampling_decision(cfg.train.sampling)
         return out
 
     def _loop_step(self, p: Progress) -> dict | None:
@@ -657,8 +282,8 @@ class Trainer:
         p = Progress(p.step, p.seconds, self.pace.share(), p.time_share)
         finite, loss, mse = self.train_step(schedule_at(self.cfg, p))
         self.pace.advance()
-        if self.trials_on:
-            self.trial_after_step(p)
+        if self.trials is not None:
+            self.trials.after_step(p)
         stage = self._stage()
         if stage != self._phase:
             self._phase = stage
@@ -692,9 +317,9 @@ class Trainer:
     def progress_notes(self) -> dict:
         """The rules' state for the progress line: bounce, envmap rows, sampling, pace."""
         notes = {"bounce": "on" if self.bounce_on else "off"}
-        if self.learn_env:
-            notes["env"] = f"{self.env_module.log_radiance.shape[0]}/{envmap_ladder(self.cfg)[-1]}"
-        notes["rays"] = "error" if self.sampler is not None else "uniform"
+        if self.model.learn_env:
+            notes["env"] = f"{self.model.envmap_rows}/{self.ladder.rungs[-1]}"
+        notes["rays"] = "error" if self.data.sampler is not None else "uniform"
         if self.pace.active:
             notes["pace"] = f"{self.pace.rate}x"
         return notes

@@ -29,13 +29,16 @@ import math
 
 import torch
 
+from vq_mitsuba import brdf, messages
 from vq_mitsuba.engine import skips
+from vq_mitsuba.engine.ladder import ENVMAP_START_HEIGHT
+from vq_mitsuba.engine.schedule import schedule_at
+from vq_mitsuba.run.loop import Progress
 
 FLOOR_BAND = 0.02  # roughness within this of field.roughness_min counts as at the floor
 METAL = 0.5  # metallic above this: a surface whose look is its specular lobe alone
 MIN_SHARE = 0.01  # share of the fixed hits flagged that starts a trial
 TRIAL_SHARE = 0.1  # the copy's steps, as a share of train.iterations
-PULL_WEIGHT = 1.0  # weight of the pull (squared shortfall of the roughness below the glossy value)
 CHUNK = 1 << 16  # hits a flag pass evaluates at once
 
 
@@ -47,7 +50,7 @@ def glossy_roughness(rows: int) -> float:
 
 def flag(out: dict, floor: float) -> torch.Tensor:
     """(N,) bool of the field's outputs `out`: a metal at the roughness floor."""
-    return (out["roughness"].detach() < floor + FLOOR_BAND) & (out["metallic"].detach() > METAL)
+    return (out[brdf.ROUGHNESS].detach() < floor + FLOOR_BAND) & (out[brdf.METALLIC].detach() > METAL)
 
 
 @torch.no_grad()
@@ -61,6 +64,100 @@ def pull_term(roughness: torch.Tensor, flags: torch.Tensor, glossy: float) -> to
     if not bool(flags.any()):
         return roughness.sum() * 0.0
     return torch.relu(glossy - roughness[flags]).square().mean()
+
+
+class Trials:
+    """The trial of one fit: its check once every stage of the schedule has begun, the copy's
+    steps, and the choice when the fit has trained as many; it drives the trainer through its
+    steps, its held-aside loss and its checkpoint state."""
+
+    def __init__(self, trainer, setting: str, decision: dict):
+        """`decision`: fit.json's `decisions.trials` until the trial decides."""
+        self.trainer, self.setting, self.decision = trainer, setting, decision
+        self.checked, self.pending = False, None  # pending: the copy kept aside until the choice
+
+    def after_step(self, p: Progress) -> None:
+        """After a step: the choice when the trial's steps are done, or its check once every stage
+        of the schedule has begun."""
+        trainer = self.trainer
+        if self.pending is not None:
+            if trainer.step >= self.pending["until"]:
+                self.finish()
+        elif not self.checked and trainer.pace.share() >= trainer.pace.start_share:
+            self.checked = True
+            self.start(p)
+
+    def start(self, p: Progress) -> None:
+        """Flag the metals at the roughness floor on the fixed hits; where enough are flagged, train
+        a copy of the fit with them pulled glossier, measure it on the held-aside pixels and keep it
+        aside while the fit itself trains as many steps."""
+        trainer = self.trainer
+        cfg, model, pool = trainer.cfg, trainer.model, trainer.data.pool
+        floor, glossy = cfg.field.roughness_min, glossy_roughness(ENVMAP_START_HEIGHT)
+        probe_idx = trainer.fixed_hits
+        with torch.no_grad():
+            fixed = flag(model.field(pool.position[probe_idx]), floor)
+        share = float(fixed.float().mean())
+        seen = (f"{100 * share:.1f} % of {len(probe_idx)} fixed training hits at step {trainer.step} metal (metallic "
+                f"> {METAL:g}) within {FLOOR_BAND:g} of the roughness floor {floor:g}")
+        if share < MIN_SHARE:
+            self.decision = skips.decision(self.setting, "none", f"{seen} (a trial from {100 * MIN_SHARE:g} %)")
+            return
+        flags = flag_hits(model.field, pool.position, floor)
+        probe = probe_idx[fixed]  # the fixed hits flagged, read again at the choice
+        steps = max(2, round(TRIAL_SHARE * cfg.train.iterations))
+        messages.note(f"trial: {seen}; a copy of the fit tries them at roughness >= {glossy:.2f} for {steps} steps")
+        start = copy_fit(trainer)
+        model.pull = (flags.to(trainer.device), glossy)
+        for i in range(steps):
+            if i == steps // 2:
+                model.pull = None  # the second half free: the copy settles where the images want it
+            trainer.train_step(schedule_at(cfg, Progress(trainer.step, p.seconds, trainer.pace.share(),
+                                                         p.time_share)))
+            trainer.pace.advance()
+        model.pull = None
+        record = {"step": int(start["step"]), "steps": steps, "share_at_floor": share, "glossy": glossy,
+                  "hits_flagged": int(flags.sum()), "held_loss_copy": trainer.held_loss(),
+                  "roughness_copy": median_roughness(model, pool, probe)}
+        until, copied = trainer.step, copy_fit(trainer)
+        restore_fit(trainer, start)
+        self.pending = {"until": until, "copy": copied, "record": record, "probe": probe}
+
+    def finish(self) -> None:
+        """Keep whichever of the fit and its copy has the lower held-aside loss."""
+        trainer, pending = self.trainer, self.pending
+        record = pending["record"]
+        record["held_loss_fit"] = trainer.held_loss()
+        record["roughness_fit"] = median_roughness(trainer.model, trainer.data.pool, pending["probe"])
+        keep_copy = record["held_loss_copy"] < record["held_loss_fit"]
+        if keep_copy:
+            restore_fit(trainer, pending["copy"])
+        fmt = lambda r: "none" if r is None else f"{r:.3f}"  # noqa: E731
+        reason = (f"at step {record['step']}, {100 * record['share_at_floor']:.1f} % of the fixed hits metal at the "
+                  f"roughness floor; after {record['steps']} steps the held-aside loss is "
+                  f"{record['held_loss_copy']:.5g} for the copy pulled to >= {record['glossy']:.2f} (median roughness "
+                  f"{fmt(record['roughness_copy'])}) against {record['held_loss_fit']:.5g} for the fit "
+                  f"({fmt(record['roughness_fit'])}): " + ("the copy goes on" if keep_copy else "the fit goes on"))
+        self.decision = {**skips.decision(self.setting, "swapped" if keep_copy else "kept", reason),
+                         "trials": [record]}
+        messages.note(f"trial: {reason}")
+        self.pending = None
+
+    def state_dict(self) -> dict:
+        return {"checked": self.checked, "pending": self.pending}
+
+    def load_state_dict(self, state: dict | None, decision: dict | None) -> None:
+        state = state or {"checked": False, "pending": None}
+        self.checked, self.pending = bool(state["checked"]), state["pending"]
+        if decision is not None:
+            self.decision = decision
+
+
+def median_roughness(model, pool, idx: torch.Tensor) -> float | None:
+    """Median fitted roughness of the training hits `idx` (None without any)."""
+    if len(idx) == 0:
+        return None
+    return float(model.roughness(pool.position[idx.to(pool.position.device)]).median())
 
 
 def copy_fit(trainer) -> dict:

@@ -1,10 +1,67 @@
-"""Losses: pure functions of tensors (weights come from LossConfig)."""
+"""Losses: pure functions of tensors, and the declaration of the fit's named loss terms with the
+config key of each one's weight (`TERMS`, `weighted`).
+
+A material model returns its terms unweighted, by name (`MaterialModel.loss_dict`); `weighted`
+reads each one's weight from the config by the name's declaration. A new loss is its function, its
+entry in `TERMS` and its config key.
+"""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 
 from vq_mitsuba.brdf import INPUTS
+
+
+@dataclass(frozen=True)
+class Term:
+    """A named loss term: the config key of its weight ("section.key") and, for a weight that
+    decays over training, the key of its factor at the end (the weight times factor ** progress)."""
+
+    name: str
+    weight: str
+    decay: str | None = None
+    fixed: float | None = None  # a weight that no config key sets (an internal term)
+
+
+TRIAL_PULL_WEIGHT = 1.0  # the trials' pull (`vq_mitsuba.engine.trials`): a squared roughness shortfall
+
+TERMS = {t.name: t for t in (
+    Term("rec_c", "loss.w_rec_c"),  # w1: L2 reconstruction of the continuous branch
+    Term("lam_c", "loss.w_lam", decay="loss.lam_decay"),  # w5: Lambertian prior, continuous branch
+    Term("rec_d", "loss.w_rec_d"),  # w2: L2 reconstruction of the discrete branch
+    Term("chr", "loss.w_chr"),  # w3: chromaticity
+    Term("vq", "loss.w_vq"),  # w4: VQ (commitment) loss
+    Term("lam_d", "loss.w_lam", decay="vq.lam_decay"),  # w5: Lambertian prior, discrete branch
+    Term("sm", "loss.w_sm"),  # w6: colour-aware smoothness
+    Term("env_tv", "envmap.tv_weight"),  # smoothness of the learned envmap
+    Term("trial", "", fixed=TRIAL_PULL_WEIGHT),
+)}
+
+
+def config_value(cfg, key: str) -> float:
+    """The config's value at "section.key"."""
+    section, name = key.split(".")
+    return float(getattr(getattr(cfg, section), name))
+
+
+def weight_of(cfg, name: str, progress: float) -> float:
+    """The weight of the term `name` at training progress `progress` (0..1)."""
+    term = TERMS.get(name)
+    if term is None:
+        raise KeyError(f"loss term '{name}' has no declaration in vq_mitsuba.models.losses.TERMS")
+    if term.fixed is not None:
+        return term.fixed
+    w = config_value(cfg, term.weight)
+    return w if term.decay is None else w * config_value(cfg, term.decay) ** progress
+
+
+def weighted(terms: dict, cfg, progress: float) -> dict:
+    """Each term of `terms` (name: unweighted tensor) times its weight (Eq. 10: their sum is the
+    loss)."""
+    return {name: weight_of(cfg, name, progress) * value for name, value in terms.items()}
 
 
 def encode_gamma(rgb_linear: torch.Tensor, gamma: float) -> torch.Tensor:
