@@ -64,6 +64,7 @@ def test_wheel_and_sdist_hold_the_presets_and_scenes(dist):
     assert not any(n.startswith(("tests/", "benchmarks/")) for n in wheel)
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_the_installed_wheel_runs_outside_the_checkout(venv, tmp_path):
     code = "import vq_mitsuba; print(vq_mitsuba.__file__)"
     where = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=tmp_path, capture_output=True, text=True,

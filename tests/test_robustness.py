@@ -284,6 +284,7 @@ def _wait_for(predicate, seconds: float = 300.0) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_two_concurrent_fits_on_one_folder(tmp_path, capsys):
     """The second `fit` into a folder that a running fit writes is refused (exit 2, naming the
     owner), with or without --resume; the first finishes with its results intact."""

@@ -21,6 +21,7 @@ NEUS = ["--set", "neus.iterations=100000", "--set", "neus.time_limit_s=0", "--se
         "--set", "neus.mesh_resolution=32", "--set", "neus.hull_resolution=32", "--set", "neus.normal_smoothing=0"]
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @pytest.mark.parametrize("command", ["geometry", "fit"])
 def test_a_signal_during_neus_keeps_its_checkpoint_and_the_run_resumes(tmp_path, command):
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=6, spp=8)

@@ -81,6 +81,7 @@ def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(loca
         assert len(_fits_started(out, name)) == (2 if name.startswith("broken") else 1), name
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_batch_evaluates_held_out_views_and_shows_one(local_ray, captures, tmp_path):
     """--eval on a capture fitted with held-out views: eval scores them, the summary holds the
     score, and the run's picture is its first held-out view."""
@@ -99,6 +100,7 @@ def test_a_batch_evaluates_held_out_views_and_shows_one(local_ray, captures, tmp
     assert (out / "views" / "sphere_a-s0.png").is_file()
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_rerun_with_other_settings_refuses_the_runs_it_would_change_and_the_summary_shows_each_runs_own(
         local_ray, captures, tmp_path):
     """A rerun asking for other settings than a run's own (here train.iterations) leaves that run as
@@ -160,6 +162,7 @@ def _parent_pid(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the worker through /proc")
 @pytest.mark.parametrize("target, sig", [("worker", signal.SIGKILL), ("fit", signal.SIGTERM)])
 def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures, tmp_path, target, sig):

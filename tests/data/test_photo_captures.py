@@ -247,6 +247,7 @@ def test_fit_with_holdout_scores_the_held_out_views(tmp_path, three_materials):
     assert [v["view"] for v in scored["views"]] == ["view_03", "view_07"] and scored["novel_view"]["psnr"] > 15.0
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_the_same_scene_fits_alike_from_every_photo_format(tmp_path):
     """COLMAP, COLMAP with a distorting lens, nerfstudio (per-frame distorting lenses, masks, read
     with --max-size) and LLFF (centred crops): the fitted basecolor at the same surface points agrees

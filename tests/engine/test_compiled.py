@@ -33,6 +33,7 @@ def _gradients(field):
     return step
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_the_compiled_step_gives_the_eager_values_and_gradients_and_caches_in_the_user_folder(tmp_path,
                                                                                              monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

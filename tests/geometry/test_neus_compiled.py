@@ -61,6 +61,7 @@ def test_the_fixed_shape_step_gives_the_eager_values_and_gradients(neus):
     _assert_same(_step(neus, neus.training_step), eager, 1e-5)
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_the_compiled_step_gives_the_eager_values_and_gradients(neus, tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)

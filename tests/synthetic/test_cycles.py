@@ -216,6 +216,7 @@ def _interior(mask):
     return out
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_layout_matches_the_mitsuba_generator(rendered):
     cy, mi = rendered
@@ -245,6 +246,7 @@ def test_layout_matches_the_mitsuba_generator(rendered):
     assert (cy / "scene.xml").read_text() == (mi / "scene.xml").read_text()
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_alpha_and_material_ids_agree_with_mitsuba(rendered):
     cy, mi = rendered
@@ -263,6 +265,7 @@ def test_alpha_and_material_ids_agree_with_mitsuba(rendered):
         assert (a & b).sum() / (a | b).sum() > 0.95
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_aov_maps_equal_the_scene_materials(rendered):
     import imageio.v3 as iio
@@ -285,6 +288,7 @@ def test_aov_maps_equal_the_scene_materials(rendered):
         np.testing.assert_allclose(np.linalg.norm(normal[inside], axis=-1), 1.0, atol=1e-3)
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_normals_agree_with_mitsuba(rendered):
     cy, mi = rendered
@@ -304,6 +308,7 @@ MEAN_TOL = 0.15
 MIN_CORR = 0.9
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_images_match_mitsuba_renders_of_the_same_views(rendered):
     cy, mi = rendered
@@ -319,6 +324,7 @@ def test_images_match_mitsuba_renders_of_the_same_views(rendered):
         assert np.all(a[..., :3][a[..., 3] == 0] == 0)  # transparent film: premultiplied black background
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_capture_loads_for_fit(rendered):
     from vq_mitsuba.data.captures import load_capture
@@ -329,6 +335,7 @@ def test_capture_loads_for_fit(rendered):
         assert cap.images.shape == (N_TRAIN, RES, RES, 3) and cap.mesh is not None and cap.has_alpha
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @needs_bpy
 def test_patterned_basecolor_matches_the_mitsuba_generator(tmp_path):
     """The texture scene's striped basecolor (baked per vertex) reaches Cycles' shading and AOV:
