@@ -1,7 +1,8 @@
 """The BRDF inputs are declared once (vq_mitsuba/brdf.py): no other module spells an input's name,
-and an input added to the declaration flows through scoring, the report, edits and the editor."""
+and an input added to the declaration flows through scoring, the report, edits, the editor and a fit.
 
 import ast
+import json
 import re
 from pathlib import Path
 
@@ -151,3 +152,39 @@ def test_a_declared_input_reaches_the_synthetic_scene_writers(four_inputs):
 
     xml = _bsdf_xml({"name": "m", "base_color": [0.1, 0.2, 0.3], "metallic": 0.0, "roughness": 0.5, "sheen": 0.25})
     assert '<float name="sheen" value="0.25"/>' in xml
+
+
+def test_a_declared_input_with_its_decoder_is_fitted(four_inputs, monkeypatch, tmp_path):
+    """The declaration and a decoder head are all a fit needs: Mitsuba's principled BSDF takes the
+    input by its parameter, its gradient reaches the head, and both branches' materials carry it."""
+    import torch
+
+    from tiny_scene import write_sphere_capture
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine.pipeline import fit
+    from vq_mitsuba.models import fields
+    from vq_mitsuba.run.run_dir import RunDir
+
+    grads = []
+    init, forward = fields.BRDFDecoder.__init__, fields.BRDFDecoder.forward
+
+    def with_head(self, cfg):
+        init(self, cfg)
+        self.sheen = fields.SkipMLP(cfg.latent, cfg.decoder_hidden, 1, n_layers=3, skip_at=2)
+        for p in self.sheen.parameters():
+            p.register_hook(lambda g: grads.append(float(g.abs().sum())))
+
+    monkeypatch.setattr(fields.BRDFDecoder, "__init__", with_head)
+    monkeypatch.setattr(fields.BRDFDecoder, "forward",
+                        lambda self, z: {**forward(self, z), "sheen": SHEEN.high * torch.sigmoid(self.sheen(z))[..., 0]})
+    xml = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
+    cfg = load_config(None, ["train.batch_rays=64", "residual.iterations=0", "train.iterations=40",
+                             "vq.warmup_frac=0.1"])
+    fit(xml, tmp_path / "run", cfg, progress=False)
+    assert grads and max(grads) > 0  # shading differentiates the new input
+    materials = json.loads((tmp_path / "run" / "materials.json").read_text())["materials"]
+    assert all(0.0 <= m["sheen"] <= SHEEN.high for m in materials)
+    fitted = RunDir(tmp_path / "run").load()
+    with torch.no_grad():
+        out = fitted.model(torch.zeros(4, 3, device=fitted.model.center.device))
+    assert out["sheen"].shape == (4,)
