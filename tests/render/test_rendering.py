@@ -603,3 +603,57 @@ def test_shading_and_its_gradients_are_the_same_every_run():
                "roughness": torch.full((len(p),), 0.3)}
         plain = scene.shade(p, nrm, wi, mat, torch.tensor(_env(16)), 16, torch.Generator().manual_seed(0))
     torch.testing.assert_close(plain, first[0], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.cpu_inputs
+def test_the_shading_steps_run_alone_give_what_shade_gives():
+    """`lanes`, `set_light`, `sample`, `bounce_light` and `radiance` called one by one, with the
+    same random numbers, give `shade`'s samples bit for bit, bounce and light gradients included."""
+    from vq_mitsuba.render.shading import stratified_samples
+
+    env = torch.tensor(_env(), requires_grad=True)
+    both = _two_spheres(subdivisions=3)
+    scene = ShadingScene(both.vertices, both.faces, env.detach().numpy(), np.eye(4), normals=both.vertex_normals)
+    hits = scene.trace(*camera_rays(_two_spheres_camera(24)))
+    v = hits.valid
+    n, spp = int(v.sum()), 4
+
+    def material(points):
+        m = points.shape[0]
+        return {"basecolor": torch.full((m, 3), 0.6), "metallic": torch.full((m,), 0.3),
+                "roughness": torch.full((m,), 0.4)}
+
+    whole = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], material(hits.position[v]), env, spp,
+                        torch.Generator().manual_seed(3), reduce=False, material_fn=material)
+    gen = torch.Generator().manual_seed(3)
+    rep = lambda t: t.repeat_interleave(spp, dim=0)  # noqa: E731
+    lanes = scene.lanes(rep(hits.position[v]), rep(hits.normal[v]), rep(hits.wi[v]),
+                        {k: rep(t) for k, t in material(hits.position[v]).items()})
+    scene.set_light(env)
+    sampled = scene.sample(lanes, stratified_samples(n, spp, 1, gen, lanes.chans.device))
+    bounce = scene.bounce_light(sampled, material, env, gen)
+    steps = scene.radiance(lanes, sampled, env, bounce)
+    assert torch.equal(steps.view(n, spp, 3), whole)
+    assert bool((bounce.abs().sum(1) > 0).any())  # some samples meet the other sphere
+    (g_whole,) = torch.autograd.grad(whole.sum(), env)
+    (g_steps,) = torch.autograd.grad(steps.sum(), env)
+    assert torch.equal(g_whole, g_steps) and float(g_whole.abs().sum()) > 0
+
+
+@pytest.mark.cpu_inputs
+def test_the_sampling_step_alone_shadows_what_the_sphere_hides():
+    """On a convex sphere an emitter sample is lit exactly when it leaves the surface outwards, and
+    no BSDF sample meets the object."""
+    scene = _scene(_env())
+    p, nrm, wi = _points(512)
+    m = len(p)
+    lanes = scene.lanes(p, nrm, wi, {"basecolor": torch.full((m, 3), 0.5), "metallic": torch.zeros(m),
+                                     "roughness": torch.full((m,), 0.5)})
+    scene.set_light(torch.tensor(_env()))
+    at = dict(zip(scene.SAMPLED, scene.sample(lanes, torch.rand(5, m, generator=torch.Generator().manual_seed(0)))))
+    d = torch.stack([at["dx"], at["dy"], at["dz"]], -1)
+    cos = (d * nrm).sum(-1)
+    sure = (cos.abs() > 0.1) & (at["ds_pdf"] > 0)  # away from the horizon, where facets and normals differ
+    assert int(sure.sum()) > 300
+    assert torch.equal(at["lit"][sure] > 0.5, cos[sure] > 0)
+    assert float(at["hit"].sum()) == 0.0

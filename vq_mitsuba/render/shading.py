@@ -188,6 +188,15 @@ class Hits:
     wi: torch.Tensor  # (N, 3) world, unit vector from the point towards the ray origin
 
 
+@dataclass
+class Lanes:
+    """Shading lanes: the points' position, normal and direction towards the viewer, as nine flat
+    arrays (x, y, z each), and their BRDF inputs' channels (N, brdf.CHANNELS)."""
+
+    geometry: tuple
+    chans: torch.Tensor
+
+
 class ShadingScene:
     """Fixed geometry + an envmap emitter + a `principled` BSDF fed by lane textures."""
 
@@ -406,16 +415,6 @@ class ShadingScene:
 
         return shade
 
-    def _set_light(self, env_linear: torch.Tensor) -> None:
-        """The envmap the sampling kernel draws emitter samples from (its distribution rebuilt, unless
-        these values are already set: the bounce's shading and the step's share one light)."""
-        if self._light_set is not None and self._light_set[0] is env_linear \
-                and self._light_set[1] == env_linear._version:
-            return
-        self.params[self.env_key] = mi.TensorXf(envmap_padded(env_linear.detach()).contiguous())
-        self.params.update()
-        self._light_set = (env_linear, env_linear._version)
-
     def _light_lanes(self, env_linear: torch.Tensor, sampled: list, fixed: torch.Tensor) -> tuple:
         """The envmap's radiance (lanes, 3) along each lane's emitter sample (at the texture
         coordinates it was drawn at) and along its BSDF sample (where that escapes: the direction
@@ -428,6 +427,66 @@ class ShadingScene:
         le_bs = envmap_lookup(padded, direction_uv(-wi2, self.world_to_env.to(wi2.device)))
         keep = fixed[:, None] > 0.5
         return tuple(torch.where(keep, le.detach(), le) for le in (le_em, le_bs))
+
+    # Shading in steps, as `shade` runs them: `lanes` (the points and their BRDF), `set_light`,
+    # `sample` (where each lane's emitter and BSDF samples go, traced without gradients),
+    # `bounce_light` (the radiance arriving along BSDF samples that meet the object) and `radiance`
+    # (the differentiable estimate). Each can be called alone.
+    def lanes(self, position: torch.Tensor, normal: torch.Tensor, wi: torch.Tensor, material: dict) -> "Lanes":
+        """The shading lanes of points (N, 3) seen from `wi` with their BRDF inputs (`vq_mitsuba.brdf`)."""
+        n = position.shape[0]
+        chans = torch.cat([material[i.name].reshape(n, i.channels) for i in brdf.INPUTS], 1)
+        geometry = tuple(t[:, k] for t in (position, normal, wi) for k in range(3))
+        return Lanes(geometry, chans)
+
+    def set_light(self, env_linear: torch.Tensor) -> None:
+        """The envmap `sample` draws emitter samples from (its distribution rebuilt, unless these
+        values are already set: the bounce's shading and the step's share one light)."""
+        if self._light_set is not None and self._light_set[0] is env_linear \
+                and self._light_set[1] == env_linear._version:
+            return
+        self.params[self.env_key] = mi.TensorXf(envmap_padded(env_linear.detach()).contiguous())
+        self.params.update()
+        self._light_set = (env_linear, env_linear._version)
+
+    def sample(self, lanes: "Lanes", u: torch.Tensor) -> list[torch.Tensor]:
+        """Each lane's emitter sample (with its shadow ray) and BSDF sample (with the ray it casts)
+        from the uniform numbers `u` (5, N), without gradients, under the light `set_light` set:
+        the arrays named by `SAMPLED`."""
+        with torch.no_grad():
+            return list(self._sample(*lanes.geometry, [lanes.chans[:, c].detach() for c in range(brdf.CHANNELS)],
+                                     [u[i] for i in range(5)]))
+
+    def bounce_light(self, sampled: list[torch.Tensor], material_fn, env_linear: torch.Tensor,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+        """Radiance (N, 3) arriving along each lane's BSDF sample where it meets the object: that
+        point's direct light, shaded with `material_fn` (world points (M, 3) -> BRDF inputs); zero
+        elsewhere. Incoming light for the step, without gradients."""
+        hit = torch.nonzero(sampled[self.SAMPLED.index("hit")] > 0.5)[:, 0]
+        li = torch.zeros(len(sampled[0]), 3, device=sampled[0].device)
+        if len(hit) > 0:
+            first = self.SAMPLED.index("p2x")
+            p2, n2, wi2 = (torch.stack(sampled[a:a + 3], -1)[hit] for a in (first, first + 3, first + 6))
+            # The bounce light is incoming light for this step, not trained through: its
+            # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
+            with torch.no_grad():
+                li = li.index_put((hit,), self.shade(p2, n2, wi2, material_fn(p2), env_linear, 1, generator))
+        return li
+
+    def radiance(self, lanes: "Lanes", sampled: list[torch.Tensor], env_linear: torch.Tensor,
+                 bounce: torch.Tensor | None = None, fixed: torch.Tensor | None = None) -> torch.Tensor:
+        """Each lane's outgoing radiance (N, 3) from its samples: the emitter sample and the BSDF
+        sample (lit by the envmap where it escapes, by `bounce` where it meets the object),
+        differentiable in the lanes' BRDF and, where `fixed` (N,) is not set, in `env_linear`."""
+        n = lanes.chans.shape[0]
+        li = torch.zeros(n, 3, device=lanes.chans.device) if bounce is None else bounce
+        if torch.is_grad_enabled() and env_linear.requires_grad:
+            fixed = torch.zeros(n, device=lanes.chans.device) if fixed is None else fixed
+            flat = torch.cat([lanes.chans, li, *self._light_lanes(env_linear, sampled, fixed)], 1).reshape(-1)
+            rgb = self._shade(*lanes.geometry, flat, list(sampled))
+        else:  # the light set for sampling lights the lanes in the kernel (no gradient to add up)
+            rgb = self._shade_lit(*lanes.geometry, torch.cat([lanes.chans, li], 1).reshape(-1), list(sampled))
+        return torch.stack(rgb, -1)
 
     def shade(self, hits_position, hits_normal, hits_wi, material: dict,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
@@ -450,32 +509,13 @@ class ShadingScene:
         """
         n = hits_position.shape[0]
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()  # noqa: E731
-        p, nrm, wi = rep(hits_position), rep(hits_normal), rep(hits_wi)
-        chans = torch.cat([rep(material[i.name]).reshape(n * spp, i.channels) for i in brdf.INPUTS], 1)
-        u = stratified_samples(n, spp, groups, generator, p.device)
-        geo = (p[:, 0], p[:, 1], p[:, 2], nrm[:, 0], nrm[:, 1], nrm[:, 2], wi[:, 0], wi[:, 1], wi[:, 2])
-        li = torch.zeros(n * spp, 3, device=p.device)
-        fixed = torch.zeros(n * spp, device=p.device) if fixed_light is None else rep(fixed_light.float())
-        self._set_light(env_linear)
-        with torch.no_grad():
-            sampled = self._sample(*geo, [chans[:, c].detach() for c in range(brdf.CHANNELS)],
-                                   [u[i] for i in range(5)])
-        if material_fn is not None:
-            hit = torch.nonzero(sampled[self.SAMPLED.index("hit")] > 0.5)[:, 0]
-            if len(hit) > 0:
-                first = self.SAMPLED.index("p2x")
-                p2, n2, wi2 = (torch.stack(sampled[a:a + 3], -1)[hit] for a in (first, first + 3, first + 6))
-                # The bounce light is incoming light for this step, not trained through: its
-                # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
-                with torch.no_grad():
-                    mat2 = material_fn(p2)
-                    li = li.index_put((hit,), self.shade(p2, n2, wi2, mat2, env_linear, 1, generator))
-        if torch.is_grad_enabled() and env_linear.requires_grad:
-            lanes = torch.cat([chans, li, *self._light_lanes(env_linear, sampled, fixed)], 1).reshape(-1)
-            rgb = self._shade(*geo, lanes, list(sampled))
-        else:  # the light set for sampling lights the lanes in the kernel (no gradient to add up)
-            rgb = self._shade_lit(*geo, torch.cat([chans, li], 1).reshape(-1), list(sampled))
-        samples = torch.stack(rgb, -1).view(n, spp, 3)
+        lanes = self.lanes(rep(hits_position), rep(hits_normal), rep(hits_wi),
+                           {i.name: rep(material[i.name]) for i in brdf.INPUTS})
+        fixed = None if fixed_light is None else rep(fixed_light.float())
+        self.set_light(env_linear)
+        sampled = self.sample(lanes, stratified_samples(n, spp, groups, generator, lanes.geometry[0].device))
+        bounce = None if material_fn is None else self.bounce_light(sampled, material_fn, env_linear, generator)
+        samples = self.radiance(lanes, sampled, env_linear, bounce, fixed).view(n, spp, 3)
         return samples.mean(1) if reduce else samples
 
 
