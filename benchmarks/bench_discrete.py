@@ -27,6 +27,7 @@ from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 from vq_mitsuba.eval.evaluate import evaluate, format_table, json_safe
 from vq_mitsuba.engine.pipeline import fit
+from vq_mitsuba.messages import quiet
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -73,8 +74,8 @@ def run_one(scene: str, variant: str, data: Path, args, out: Path) -> dict:
     if run_dir.exists():
         shutil.rmtree(run_dir)
     print(f"[{scene}/{variant}] fitting ({cfg.train.iterations} iterations; {' '.join(overrides)})")
-    summary = fit(data / "scene.xml", run_dir, cfg, progress=not args.quiet)
-    m = evaluate(run_dir, data, spp=args.spp, progress=not args.quiet, meanshift_bandwidths=(0.2, 0.3, 0.5))
+    summary = fit(data / "scene.xml", run_dir, cfg)
+    m = evaluate(run_dir, data, spp=args.spp, meanshift_bandwidths=(0.2, 0.3, 0.5))
     print(format_table(m))
     row = {"scene": scene, "variant": variant, "overrides": overrides, "run": str(run_dir),
            "figures": figures(m, summary)}
@@ -135,7 +136,7 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra override for every run")
     p.add_argument("--out", default=str(REPO / "benchmarks" / "out"))
     p.add_argument("--compare", help="previous bench_discrete.json (default: OUT/bench_discrete.json)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or notes")
     args = p.parse_args(argv)
     args.command = command_line(argv, __file__)
 
@@ -145,11 +146,12 @@ def main(argv=None) -> int:
     old_path = Path(args.compare) if args.compare else json_path
     old = json.loads(old_path.read_text()) if old_path.is_file() else None
     rows = []
-    for scene in args.scenes:
-        data = ensure_dataset(scene, out / f"data_{args.resolution}" / scene, args.resolution, not args.quiet)
-        for v in args.variants:
-            rows.append(run_one(scene, v, data, args, out))
-            write_results(args, rows, json_path, out)  # after every run: an interrupted benchmark keeps its rows
+    with quiet(args.quiet):
+        for scene in args.scenes:
+            data = ensure_dataset(scene, out / f"data_{args.resolution}" / scene, args.resolution)
+            for v in args.variants:
+                rows.append(run_one(scene, v, data, args, out))
+                write_results(args, rows, json_path, out)  # after every run: an interrupted benchmark keeps its rows
     result = write_results(args, rows, json_path, out)
     print(markdown(result))
     if old is not None:

@@ -125,6 +125,7 @@ def main() -> None:
     from vq_mitsuba.run.run_dir import RunDir
     from vq_mitsuba.eval import metrics as M
     from vq_mitsuba.export.formats import export_run
+    from vq_mitsuba.messages import quiet
     from vq_mitsuba.render.views import Renderer
 
     out_dir = Path(args.output)
@@ -138,7 +139,8 @@ def main() -> None:
             bakes = []
             for r in range(args.repeats):
                 t0 = time.perf_counter()
-                summary = export_run(run.dir, "mitsuba", tmp / "mitsuba", args.texture_size, progress=False)
+                with quiet():
+                    summary = export_run(run.dir, "mitsuba", tmp / "mitsuba", args.texture_size)
                 bakes.append({"total": time.perf_counter() - t0, **summary["seconds"]})
             cams = run.cameras()
             views = (cams.get("test") or cams["train"])[:args.views]
@@ -161,7 +163,8 @@ def main() -> None:
                                  "noise_floor_psnr": floor["psnr"], "noise_floor_ssim": floor["ssim"],
                                  "alpha_mae": float(np.abs(theirs[..., 3] - ours["alpha"]).mean())})
             ours_s = (time.perf_counter() - t0) / 2
-            gltf = export_run(run.dir, "gltf", tmp / "gltf", args.texture_size, progress=False)
+            with quiet():
+                gltf = export_run(run.dir, "gltf", tmp / "gltf", args.texture_size)
             report = json.loads(subprocess.run(["node", str(ROOT / "tools" / "validate_gltf.js"),
                                                 str(tmp / "gltf" / gltf["files"][0])],
                                                check=True, capture_output=True, text=True).stdout)

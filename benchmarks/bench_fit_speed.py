@@ -35,6 +35,7 @@ from bench_scenes import figure_text
 from bench_time_error import figures
 from provenance import command_line, write_result
 from vq_mitsuba.eval.evaluate import evaluate, json_safe
+from vq_mitsuba.messages import quiet
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -64,7 +65,8 @@ def run_variant(data: Path, name: str, overrides: list[str], args, out: Path) ->
     subprocess.run(cmd, check=True, cwd=REPO, env=env)
     wall = time.perf_counter() - t0
     summary = json.loads((run_dir / "fit.json").read_text())
-    m = evaluate(run_dir, data, spp=args.eval_spp, progress=False, output=run_dir / "metrics.json")
+    with quiet():
+        m = evaluate(run_dir, data, spp=args.eval_spp, output=run_dir / "metrics.json")
     row = {"variant": name, "overrides": overrides, "wall_s": wall, "loop_s": summary["seconds"],
            "startup_s": summary.get("startup_s"), **figures(m, summary["seconds"], summary["iterations"])}
     row["per_material"] = m.get("per_material")

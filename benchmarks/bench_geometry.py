@@ -42,7 +42,7 @@ from provenance import describe, provenance, write_json, write_result
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_root: Path | None = None) -> Path:
+def find_dataset(name: str, resolution: int, n_train: int, data_root: Path | None = None) -> Path:
     def ok(folder: Path) -> bool:
         meta = folder / "scene.json"
         if not meta.is_file():
@@ -63,7 +63,7 @@ def find_dataset(name: str, resolution: int, n_train: int, progress: bool, data_
 
     out = ROOT / "data" / f"geom_{name}"
     print(f"[{name}] generating {out} ({n_train} views at {resolution}x{resolution})")
-    synthetic.make_scene(name, out, resolution=resolution, n_train=n_train, progress=progress)
+    synthetic.make_scene(name, out, resolution=resolution, n_train=n_train)
     return out
 
 
@@ -118,8 +118,8 @@ def material_runs(name: str, data: Path, neus_mesh: Path, args) -> list[dict]:
             if run_dir.exists():
                 shutil.rmtree(run_dir)
             print(f"[{name}] materials on the {geometry} mesh (seed {seed}) -> {run_dir}", flush=True)
-            summary = fit(data / "transforms_train.json", run_dir, cfg, mesh_path=mesh, progress=not args.quiet)
-            m = evaluate(run_dir, data, spp=args.eval_spp, progress=not args.quiet, meanshift_bandwidths=())
+            summary = fit(data / "transforms_train.json", run_dir, cfg, mesh_path=mesh)
+            m = evaluate(run_dir, data, spp=args.eval_spp, meanshift_bandwidths=())
             row[geometry] = {
                 "run": str(run_dir), "fit_s": summary["seconds"], "iterations": summary["iterations"],
                 "basecolor_psnr": m["basecolor"]["psnr"], "novel_psnr": m["novel_view"]["psnr"],
@@ -165,7 +165,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
         if args.materials:
             result["materials"] = material_runs(name, Path(result["dataset"]), ROOT / args.out / name / "mesh.ply", args)
         return result
-    data = find_dataset(name, args.resolution, args.n_train, not args.quiet, args.data)
+    data = find_dataset(name, args.resolution, args.n_train, args.data)
     run_dir = ROOT / args.out / name
     for stale in ("neus.pt", "mesh.ply", "geometry.json"):
         (run_dir / stale).unlink(missing_ok=True)
@@ -186,7 +186,7 @@ def run_scene(name: str, args, overrides: list[str]) -> dict:
               f"NC {m['normal_consistency']:.4f} (scored in {time.perf_counter() - t:.0f} s)", flush=True)
 
     print(f"[{name}] NeuS on {data}/transforms_train.json, training limit {args.time_limit:g} s", flush=True)
-    result = reconstruct(capture, run_dir, cfg, progress=not args.quiet, callback=checkpoint,
+    result = reconstruct(capture, run_dir, cfg, callback=checkpoint,
                          callback_every_s=args.checkpoint_every)
     info, neus = result.summary, result.neus
     result.mesh.export(run_dir / "mesh.ply")
@@ -295,7 +295,7 @@ def main() -> int:
     p.add_argument("--out", default="benchmarks/out/geometry")
     p.add_argument("--results", default="benchmarks/out/geometry", help="folder for the report (JSON and markdown)")
     p.add_argument("--set", action="append", default=[], metavar="neus.KEY=VALUE")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or notes")
     p.add_argument("--reuse", action="store_true", help="take the NeuS mesh already in OUT/NAME instead of training")
     p.add_argument("--materials", action="store_true",
                    help="fit and score the material stage on the NeuS mesh and on the true mesh")
@@ -312,6 +312,7 @@ def main() -> int:
     import torch
 
     from vq_mitsuba.config import load_config
+    from vq_mitsuba.messages import quiet
 
     cfg = load_config(None, args.set).neus
     report = {**provenance(), "threads": cfg.threads or torch.get_num_threads(),
@@ -320,10 +321,11 @@ def main() -> int:
     results = ROOT / args.results
     results.mkdir(parents=True, exist_ok=True)
     stem = results / f"geometry_{report['commit']}"
-    for name in args.scenes:
-        report["scenes"].append(run_scene(name, args, args.set))
-        write_result(stem.with_suffix(".json"), report)  # partial results survive a stop
-        write_markdown(report, stem.with_suffix(".md"))
+    with quiet(args.quiet):
+        for name in args.scenes:
+            report["scenes"].append(run_scene(name, args, args.set))
+            write_result(stem.with_suffix(".json"), report)  # partial results survive a stop
+            write_markdown(report, stem.with_suffix(".md"))
     print(stem.with_suffix(".md").read_text())
     return 0
 

@@ -38,6 +38,7 @@ def main() -> None:
     from vq_mitsuba.data.envmaps import load_envmap
     from vq_mitsuba.data.imageio import read_exr
     from vq_mitsuba.run.run_dir import RunDir
+    from vq_mitsuba.messages import quiet
     from vq_mitsuba.render.views import render_views
 
     run = RunDir(args.run_dir)
@@ -52,19 +53,19 @@ def main() -> None:
     envs = envs[: args.lightings]
     if len(envs) < args.lightings:
         sys.exit(f"need {args.lightings} lightings, found {len(envs)} in {folder}")
-    render_views(fitted, cams[:1], fitted.world, Path(tempfile.mkdtemp()), envmap=envs[0][1], spp=16,
-                 progress=False)  # warm-up: kernels compiled once
+    with quiet():  # no bars: the renders are timed
+        render_views(fitted, cams[:1], fitted.world, Path(tempfile.mkdtemp()), envmap=envs[0][1],
+                     spp=16)  # warm-up: kernels compiled once
     separate, shared = [], []
     for _ in range(args.repeats):
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp, quiet():
             tmp = Path(tmp)
             t0 = time.perf_counter()
             for name, env in envs:
-                render_views(fitted, cams, fitted.world, tmp / "separate" / name, envmap=env, progress=False)
+                render_views(fitted, cams, fitted.world, tmp / "separate" / name, envmap=env)
             separate.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            render_views(fitted, cams, fitted.world, tmp / "shared", envmap=envs[0][1], progress=False,
-                         more_envmaps=envs[1:])
+            render_views(fitted, cams, fitted.world, tmp / "shared", envmap=envs[0][1], more_envmaps=envs[1:])
             shared.append(time.perf_counter() - t0)
             for i, (name, _) in enumerate(envs):
                 for cam in cams:

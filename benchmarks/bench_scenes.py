@@ -30,6 +30,7 @@ from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 from vq_mitsuba.batch import run_batch
 from vq_mitsuba.config import load_config, preset_path, presets
 from vq_mitsuba.eval.evaluate import format_table, json_safe
+from vq_mitsuba.messages import quiet
 from vq_mitsuba.run.run_dir import RunDir
 
 REPO = Path(__file__).resolve().parent.parent
@@ -54,13 +55,13 @@ def scene_config(name: str, overrides: list[str], preset: str | None = None):
     return load_config(path, overrides, preset=preset), path
 
 
-def ensure_dataset(name: str, out: Path, resolution: int, progress: bool) -> Path:
+def ensure_dataset(name: str, out: Path, resolution: int) -> Path:
     meta = out / "scene.json"
     if meta.is_file() and json.loads(meta.read_text()).get("resolution") == [resolution, resolution]:
         print(f"[{name}] reusing dataset {out}")
         return out
     print(f"[{name}] generating dataset {out} at {resolution}x{resolution}")
-    return synthetic.make_scene(name, out, resolution=resolution, progress=progress)
+    return synthetic.make_scene(name, out, resolution=resolution)
 
 
 def headline(m: dict, fit_summary: dict) -> dict:
@@ -85,7 +86,7 @@ def headline(m: dict, fit_summary: dict) -> dict:
 
 def run_scenes(args, out: Path) -> list[dict]:
     """Fit and evaluate every scene as one batch; each scene's record, in the order of --scenes."""
-    data = {name: ensure_dataset(name, out / "data" / name, args.resolution, not args.quiet) for name in args.scenes}
+    data = {name: ensure_dataset(name, out / "data" / name, args.resolution) for name in args.scenes}
     common = [x for item in [f"train.time_limit_s={args.time_limit}", *args.set] for x in ("--set", item)]
     own, planned = {}, {}
     for name in args.scenes:
@@ -100,8 +101,7 @@ def run_scenes(args, out: Path) -> list[dict]:
     print(f"fitting {', '.join(args.scenes)} as one batch into {runs} ({threads} threads a run, time limit "
           f"{args.time_limit:g} s)")
     rows = run_batch(list(own), runs, fit_args=common, capture_args=own, threads=threads, evaluate=True,
-                     eval_args=["--spp", str(args.spp)] if args.spp else [], address=args.address,
-                     progress=not args.quiet)
+                     eval_args=["--spp", str(args.spp)] if args.spp else [], address=args.address)
     failed = [f"{r['run']}: {r.get('message')}" for r in rows if r.get("status") != "done"]
     if failed:
         raise SystemExit("runs failed:\n" + "\n".join(failed))
@@ -187,7 +187,7 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, help="evaluation render spp (default: the run's render.spp)")
     p.add_argument("--out", default=str(REPO / "benchmarks" / "out"), help="output folder (default benchmarks/out)")
     p.add_argument("--compare", help="previous bench_scenes.json (default: OUT/bench_scenes.json if it exists)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or notes")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override for every scene, e.g. --set vq.enabled=false (ablations; repeatable)")
     p.add_argument("--threads-per-run", type=int, help="CPU threads each fit reserves (default: every core)")
@@ -200,7 +200,8 @@ def main(argv=None) -> int:
     old_path = Path(args.compare) if args.compare else json_path
     old = json.loads(old_path.read_text()) if old_path.is_file() else None
 
-    scenes = run_scenes(args, out)
+    with quiet(args.quiet):
+        scenes = run_scenes(args, out)
     result = {
         **provenance(command_line(argv, __file__)),
         "settings": {"scenes": args.scenes, "time_limit_s": args.time_limit, "iterations": args.iterations,

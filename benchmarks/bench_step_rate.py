@@ -47,6 +47,10 @@ def child(args) -> int:
         from vq_mitsuba.engine.pipeline import fit
     except ImportError:  # revisions before the pipeline module's name
         from vq_mitsuba.engine.fit import fit
+    try:
+        from vq_mitsuba.messages import quiet
+    except ImportError:  # revisions before the one reporter: their bars go to the captured stderr
+        from contextlib import nullcontext as quiet
 
     if not Path(vq_mitsuba.__file__).resolve().is_relative_to(Path(args.src).resolve()):
         raise SystemExit(f"imported {vq_mitsuba.__file__}, not the revision's copy in {args.src}")
@@ -61,7 +65,8 @@ def child(args) -> int:
         overrides.append("train.bounce_after=0")
     cfg = load_config(preset if preset.is_file() else None, overrides)
     run = Path(args.run)
-    summary = fit(Path(args.data) / "transforms_train.json", run, cfg, progress=False)
+    with quiet():
+        summary = fit(Path(args.data) / "transforms_train.json", run, cfg)
     import torch
 
     hist = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["history"]
@@ -76,7 +81,8 @@ def child(args) -> int:
         from vq_mitsuba.eval.evaluate import evaluate
 
         t0 = time.perf_counter()
-        m = evaluate(run, Path(args.data), spp=args.eval_spp, progress=False, meanshift_bandwidths=())
+        with quiet():
+            m = evaluate(run, Path(args.data), spp=args.eval_spp, meanshift_bandwidths=())
         result.update({"eval_s": time.perf_counter() - t0, "eval_novel_psnr": m["novel_view"]["psnr"],
                        "eval_basecolor_psnr": m["basecolor"]["psnr"],
                        "eval_relit_psnr": m["relighting"]["albedo_scale"]["mean"]["psnr"]})
@@ -115,7 +121,7 @@ def main(argv=None) -> int:
     init_mitsuba()  # the variant the children pick, for the provenance record
 
     data = args.data or ensure_dataset(args.scene, REPO / "benchmarks" / "out" / "data" / args.scene,
-                                       args.resolution, progress=True)
+                                       args.resolution)
     if not (Path(data) / "transforms_train.json").is_file():
         p.error(f"{data}: no transforms_train.json (not a dataset folder)")
     commits = {}

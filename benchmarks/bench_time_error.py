@@ -43,6 +43,7 @@ from bench_scenes import figure_text, scene_config
 from provenance import command_line, describe, provenance, write_result
 from vq_mitsuba.eval.evaluate import evaluate, evaluate_predictor, json_safe
 from vq_mitsuba.engine.pipeline import fit
+from vq_mitsuba.messages import quiet
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -121,7 +122,7 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
     capture, run_dir = fresh_run(name, data, method + tag, args, out)
     print(f"[{name}/{method}] fitting {capture} -> {run_dir} ({cfg.train.iterations} iterations planned, "
           f"time limit {max(budgets):g} s)")
-    summary = fit(capture, run_dir, cfg, progress=not args.quiet)
+    summary = fit(capture, run_dir, cfg)
     states = []
     for snap in sorted((run_dir / "snapshots").glob("*.pt")):
         st = torch.load(snap, map_location="cpu", weights_only=False)
@@ -137,7 +138,7 @@ def run_ours(name: str, data: Path, method: str, budgets: list[float], args, out
     for i, (sec, step, snap) in enumerate(states):
         last = i == len(states) - 1
         print(f"[{name}/{method}] scoring the state at {sec:.0f} s ({step} iterations)")
-        m = evaluate(run_dir, data, spp=args.eval_spp, progress=not args.quiet, checkpoint=snap,
+        m = evaluate(run_dir, data, spp=args.eval_spp, checkpoint=snap,
                      meanshift_bandwidths=(0.2, 0.3, 0.5) if last and method == "vqnerf" else (),
                      output=run_dir / f"metrics_{sec:07.1f}s.json")
         rows.append({"scene": name, "method": method, "final": last, **figures(m, sec, step)})
@@ -154,11 +155,13 @@ def warm_up(name: str, data: Path, method: str, args, out: Path) -> None:
     if method == "texel":
         from vq_mitsuba.eval.texel import fit_texel
 
-        fit_texel(capture, run_dir, texel_config(args), time_limit_s=args.warmup, progress=False)
+        with quiet():
+            fit_texel(capture, run_dir, texel_config(args), time_limit_s=args.warmup)
     else:
         # Every kernel of the timed fits is built here: the bounce from the first step on.
         cfg = ours_config(name, method, args, [f"train.time_limit_s={args.warmup}"], ["train.bounce_after=0"])
-        fit(capture, run_dir, cfg, progress=False)
+        with quiet():
+            fit(capture, run_dir, cfg)
     shutil.rmtree(run_dir)
 
 
@@ -185,13 +188,12 @@ def run_texel(name: str, data: Path, budgets: list[float], args, out: Path, tag:
 
     capture, run_dir = fresh_run(name, data, "texel" + tag, args, out)
     print(f"[{name}/texel] fitting {capture} -> {run_dir} (time limit {max(budgets):g} s)")
-    result = fit_texel(capture, run_dir, texel_config(args), time_limit_s=max(budgets), snapshot_s=budgets,
-                       progress=not args.quiet)
+    result = fit_texel(capture, run_dir, texel_config(args), time_limit_s=max(budgets), snapshot_s=budgets)
     rows = []
     snaps = result["snapshots"]
     for i, (sec, its, path) in enumerate(snaps):
         print(f"[{name}/texel] scoring the state at {sec:.0f} s ({its} iterations)")
-        m = evaluate_predictor(TexelPredictor(path), data, spp=args.eval_spp, progress=not args.quiet,
+        m = evaluate_predictor(TexelPredictor(path), data, spp=args.eval_spp,
                                meanshift_bandwidths=(), run_label=str(path),
                                output=run_dir / f"metrics_{sec:07.1f}s.json")
         rows.append({"scene": name, "method": "texel", "final": i == len(snaps) - 1, **figures(m, sec, its)})
@@ -308,7 +310,7 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", type=Path, help="an earlier time_error.json (default: the one in OUT)")
     ap.add_argument("--append", action="store_true",
                     help="keep the rows of OUT/time_error.json for other scenes and methods (re-run or extend a part)")
-    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars or notes")
     args = ap.parse_args(argv)
     budgets = sorted(float(b) for b in args.budgets.split(",") if b.strip())
     args.out.mkdir(parents=True, exist_ok=True)
@@ -332,24 +334,25 @@ def main(argv=None) -> int:
         result["scenes"] = list(dict.fromkeys(old["scenes"] + args.scenes))
         result["methods"] = list(dict.fromkeys(old["methods"] + args.methods))
         result["command"] += f" (appended to the results of `{old['command']}`)"
-    for name in args.scenes:
-        data = ensure_cycles_dataset(name, args.data / name, args.resolution)
-        for method in args.methods:
-            if args.warmup > 0:
-                warm_up(name, data, method, args, args.out)
-            runner = (lambda bs, tag: run_texel(name, data, bs, args, args.out, tag)) if method == "texel" else \
-                (lambda bs, tag: run_ours(name, data, method, bs, args, args.out, tag))
-            if args.fit_per_budget:
-                rows = []
-                for b in budgets:
-                    rows += [{**r, "budget": b} for r in runner([b], f"_{b:g}s")]
-            else:
-                rows = runner(budgets, "")
-            result["rows"] += rows
-            # Written after every method: an interrupted benchmark keeps what it measured.
-            write_result(json_path, json_safe(result))
-            (args.out / "time_error.md").write_text(markdown(result))
-            plot(result, args.out / "time_error.png")
+    with quiet(args.quiet):
+        for name in args.scenes:
+            data = ensure_cycles_dataset(name, args.data / name, args.resolution)
+            for method in args.methods:
+                if args.warmup > 0:
+                    warm_up(name, data, method, args, args.out)
+                runner = (lambda bs, tag: run_texel(name, data, bs, args, args.out, tag)) if method == "texel" else \
+                    (lambda bs, tag: run_ours(name, data, method, bs, args, args.out, tag))
+                if args.fit_per_budget:
+                    rows = []
+                    for b in budgets:
+                        rows += [{**r, "budget": b} for r in runner([b], f"_{b:g}s")]
+                else:
+                    rows = runner(budgets, "")
+                result["rows"] += rows
+                # Written after every method: an interrupted benchmark keeps what it measured.
+                write_result(json_path, json_safe(result))
+                (args.out / "time_error.md").write_text(markdown(result))
+                plot(result, args.out / "time_error.png")
     print(markdown(result))
     print(f"wrote {json_path}, {args.out / 'time_error.md'}, {args.out / 'time_error.png'}")
     if old is not None:

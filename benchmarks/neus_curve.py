@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     from vq_mitsuba.geometry.neus import reconstruct
     from vq_mitsuba.geometry.neus.training import view_psnr
     from vq_mitsuba.geometry.neus.method import neus_psnr, surface_points
+    from vq_mitsuba.messages import quiet
 
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -90,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
               f"(scored in {time.perf_counter() - t:.0f} s)", flush=True)
 
     t0 = time.perf_counter()
-    result = reconstruct(train, run, cfg, progress=False, callback=score, callback_every_s=args.every, points=points)
+    with quiet():
+        result = reconstruct(train, run, cfg, callback=score, callback_every_s=args.every, points=points)
     wall = time.perf_counter() - t0
     info = result.summary
     final = neus_psnr(result.neus, train, source)

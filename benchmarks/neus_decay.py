@@ -23,6 +23,7 @@ from provenance import write_result
 from vq_mitsuba.config import load_config
 from vq_mitsuba.data.captures import load_capture, load_mesh
 from vq_mitsuba.geometry import neus as neus_module
+from vq_mitsuba.messages import quiet
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -33,8 +34,8 @@ def run(variant: str, data: Path, out: Path, overrides: list[str], gt) -> dict:
     if variant == "step_share":
         neus_module.lr_factor = lambda c, step, share: original(c, step, min(step / c.iterations, 1.0))
     try:
-        result = neus_module.reconstruct(load_capture(data / "transforms_train.json"), out / variant, cfg,
-                                         progress=False)
+        with quiet():
+            result = neus_module.reconstruct(load_capture(data / "transforms_train.json"), out / variant, cfg)
     finally:
         neus_module.lr_factor = original
     s = result.summary

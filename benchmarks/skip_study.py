@@ -122,6 +122,7 @@ def fit_batch(datasets: dict[str, Path], variant: str, seed: int, args) -> dict[
     run on every core so that on one machine they run, and are timed, one at a time; returns
     {scene: (run folder, the fit's wall seconds, its overrides)}."""
     from vq_mitsuba.batch import run_batch
+    from vq_mitsuba.messages import quiet
 
     out = args.out / "runs" / variant / f"s{seed}"
     if out.exists():
@@ -131,8 +132,9 @@ def fit_batch(datasets: dict[str, Path], variant: str, seed: int, args) -> dict[
         ["--preset", name] if name in presets() else [])
         for name, data in datasets.items()}
     print(f"[{variant}/s{seed}] batch of {', '.join(datasets)}: {' '.join(overrides) or 'no key forced'}", flush=True)
-    rows = run_batch(list(own), out, seeds=[seed], fit_args=[x for kv in overrides for x in ("--set", kv)],
-                     capture_args=own, threads=len(os.sched_getaffinity(0)), address=args.address, progress=False)
+    with quiet():
+        rows = run_batch(list(own), out, seeds=[seed], fit_args=[x for kv in overrides for x in ("--set", kv)],
+                         capture_args=own, threads=len(os.sched_getaffinity(0)), address=args.address)
     failed = [f"{r['run']}: {r.get('message')}" for r in rows if r.get("status") != "done"]
     if failed:
         raise SystemExit("fits failed:\n" + "\n".join(failed))
@@ -144,11 +146,12 @@ def fit_batch(datasets: dict[str, Path], variant: str, seed: int, args) -> dict[
 def score_one(name: str, data: Path, variant: str, seed: int, fitted: dict, args) -> dict:
     """The row of one fitted scene: its wall time, figures on the test views and decisions."""
     from vq_mitsuba.eval.evaluate import evaluate
+    from vq_mitsuba.messages import quiet
 
     run_dir = fitted["run_dir"]
     summary = json.loads((run_dir / "fit.json").read_text())
-    m = evaluate(run_dir, data, spp=args.eval_spp, progress=False, meanshift_bandwidths=(),
-                 output=run_dir / "metrics.json")
+    with quiet():
+        m = evaluate(run_dir, data, spp=args.eval_spp, meanshift_bandwidths=(), output=run_dir / "metrics.json")
     decisions = summary.get("decisions", {})
     row = {"scene": name, "variant": variant, "seed": seed, "overrides": fitted["overrides"],
            "wall_s": fitted["wall_s"], "startup_s": summary.get("startup_s"), "loop_s": summary["seconds"],

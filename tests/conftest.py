@@ -42,5 +42,5 @@ def three_materials(tmp_path_factory):
     out = tmp_path_factory.mktemp("three")
     capture = write_three_material_capture(out)
     run = out / "run"
-    fit(capture, run, load_config(None, THREE_MATERIAL_SETTINGS), progress=False)
+    fit(capture, run, load_config(None, THREE_MATERIAL_SETTINGS))
     return capture, RunDir(run)

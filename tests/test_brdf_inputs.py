@@ -180,7 +180,7 @@ def test_a_declared_input_with_its_decoder_is_fitted(four_inputs, monkeypatch, t
     xml = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8)
     cfg = load_config(None, ["train.batch_rays=64", "residual.iterations=0", "train.iterations=40",
                              "vq.warmup_frac=0.1"])
-    fit(xml, tmp_path / "run", cfg, progress=False)
+    fit(xml, tmp_path / "run", cfg)
     assert grads and max(grads) > 0  # shading differentiates the new input
     materials = json.loads((tmp_path / "run" / "materials.json").read_text())["materials"]
     assert all(0.0 <= m["sheen"] <= SHEEN.high for m in materials)

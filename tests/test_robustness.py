@@ -88,7 +88,7 @@ def test_render_at_exposure_extremes_is_finite(three_materials, tmp_path):
     fitted = run.load()
     cams, world, _ = load_cameras(capture)
     for ev in (-64.0, 64.0):
-        render_views(fitted, cams[:1], world, tmp_path, exposure_ev=ev, spp=4, progress=False)
+        render_views(fitted, cams[:1], world, tmp_path, exposure_ev=ev, spp=4)
         rgb = read_image(tmp_path / f"{cams[0].name}_rgb.exr")[0]
         assert np.isfinite(rgb).all() and rgb.max() > 0
 
@@ -270,8 +270,8 @@ def tiny_run(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("tiny")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
-    fit(capture, folder / "run", load_config(None, ["train.iterations=6", "train.batch_rays=128", "vq.warmup_frac=0.3"]),
-        progress=False)
+    fit(capture, folder / "run", load_config(None, ["train.iterations=6", "train.batch_rays=128",
+                                                    "vq.warmup_frac=0.3"]))
     return capture, folder / "run"
 
 
@@ -426,7 +426,7 @@ def test_make_scene_leaves_no_half_written_dataset(tmp_path, monkeypatch):
         raise RuntimeError("the renderer ran out of memory")
 
     monkeypatch.setattr(synthetic, "_render_views", fail)
-    settings = dict(resolution=8, n_train=1, n_test=1, spp=1, progress=False)
+    settings = dict(resolution=8, n_train=1, n_test=1, spp=1)
     with pytest.raises(RuntimeError, match="out of memory"):
         synthetic.make_scene("demo", tmp_path / "new", **settings)
     assert not (tmp_path / "new").exists()
@@ -459,7 +459,7 @@ def test_eval_of_a_1x1_dataset_is_refused_before_rendering(tiny_run, tmp_path, m
     from vq_mitsuba.synthetic import mitsuba_scenes as synthetic
 
     monkeypatch.setattr(synthetic, "RESOLUTION_RANGE", (1, 4096))  # make-scene refuses it now; others may not
-    data = synthetic.make_scene("demo", tmp_path / "tiny", resolution=1, n_train=1, n_test=1, spp=1, progress=False)
+    data = synthetic.make_scene("demo", tmp_path / "tiny", resolution=1, n_train=1, n_test=1, spp=1)
     monkeypatch.setattr(Renderer, "render", lambda *a, **kw: pytest.fail("rendered"))
     _, run = tiny_run
     assert cli.main(["eval", str(run), "--gt", str(data), "-o", str(tmp_path / "m.json"), "--quiet"]) == 2

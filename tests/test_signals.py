@@ -111,7 +111,7 @@ def test_a_signal_during_structure_from_motion_leaves_no_half_pose_and_says_how_
     monkeypatch.setattr(pipeline, "ensure_geometry", lambda capture, run, *a, **k: seen.append(capture) or
                         run / RunDir.MESH)
     monkeypatch.setattr(pipeline, "fit_materials", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
-    pipeline.fit_capture(photos, out, load_config(None, []), progress=False, log=lambda line: None)
+    pipeline.fit_capture(photos, out, load_config(None, []), log=lambda line: None)
     assert [c.source for c in seen] == [out / RunDir.POSE] * 2 and (out / RunDir.POSE_SUMMARY).is_file()
 
 

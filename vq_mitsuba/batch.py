@@ -318,14 +318,14 @@ def write_preview(run: RunDir, png: Path) -> None:
     write_atomic(png, lambda tmp: write_rgb_png(tmp, images))
 
 
-def write_previews(out: Path, specs: list[RunSpec], status: dict, progress: bool) -> None:
+def write_previews(out: Path, specs: list[RunSpec], status: dict) -> None:
     """OUT/views/<run>.png of every finished run that has none yet; a run that cannot be shown gets
     its reason in the summary's message instead."""
     from vq_mitsuba import messages
 
     todo = [s for s in specs if status.get(s.name, {}).get("status") == "done"
             and not (out / VIEWS / f"{s.name}.png").is_file()]
-    for spec in messages.progress(todo, desc="views", unit="run", disable=not progress or not todo):
+    for spec in messages.progress(todo, desc="views", unit="run", disable=not todo):
         try:
             write_preview(RunDir(out / spec.name), out / VIEWS / f"{spec.name}.png")
         except UserError as exc:
@@ -493,7 +493,7 @@ def _watch_ray():
 
 def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), presets: list[str | None] = (None,),
               fit_args: list[str] = (), threads: int = 1, evaluate: bool = False, address: str | None = None,
-              cpus: int | None = None, progress: bool = True, capture_args: dict[str, list[str]] | None = None,
+              cpus: int | None = None, capture_args: dict[str, list[str]] | None = None,
               eval_args: list[str] = ()) -> list[dict]:
     """Fit every planned run as a Ray task (skipping those OUT/batch.json records as done) and write
     the summary. `fit_args` go to every fit, `capture_args[capture]` to that capture's, `eval_args`
@@ -513,22 +513,22 @@ def run_batch(captures: list[str], out: str | Path, seeds: list[int] = (0,), pre
         call = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"  # this call's tries in the runs' logs
         pending = {task.remote(s, str(out.resolve()), list(fit_args), threads, evaluate, list(eval_args), call): s
                    for s in todo}
-        _gather(ray, pending, out, specs, status, progress, skipped=len(specs) - len(todo))
+        _gather(ray, pending, out, specs, status, skipped=len(specs) - len(todo))
     finally:
         if started:
             ray.shutdown()
         if watchdog is not None:
             watchdog.kill()
             watchdog.wait()
-    write_previews(out, specs, status, progress)
+    write_previews(out, specs, status)
     write_summary(out, specs, status)
     return [{"run": s.name, **status.get(s.name, {})} for s in specs]
 
 
-def _gather(ray, pending: dict, out: Path, specs: list[RunSpec], status: dict, progress: bool, skipped: int) -> None:
+def _gather(ray, pending: dict, out: Path, specs: list[RunSpec], status: dict, skipped: int) -> None:
     from vq_mitsuba import messages
 
-    bar = messages.progress(total=len(specs), initial=skipped, desc="batch", unit="run", disable=not progress)
+    bar = messages.progress(total=len(specs), initial=skipped, desc="batch", unit="run")
     failed = 0
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)

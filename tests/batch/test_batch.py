@@ -47,7 +47,7 @@ def _fits_started(out: Path, run: str) -> list[str]:
 @pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(local_ray, captures, tmp_path):
     out = tmp_path / "batch"
-    rows = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
+    rows = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK)
     status = {r["run"]: r for r in rows}
     assert set(status) == {f"{c}-s{s}" for c in ("sphere_a", "sphere_b", "broken") for s in (0, 1)}
     for name, row in status.items():
@@ -75,7 +75,7 @@ def test_a_batch_fits_every_capture_and_seed_and_a_rerun_skips_the_finished(loca
             assert rgb.shape[:2] == (16, 16) and np.isfinite(rgb).all() and alpha is not None and alpha.max() > 0.5
             assert f'src="views/{name}.png"' in summary_md
 
-    again = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK, progress=False)
+    again = run_batch(captures, out, seeds=[0, 1], fit_args=QUICK)
     assert [r["status"] for r in again] == [r["status"] for r in rows]
     for name in status:
         assert len(_fits_started(out, name)) == (2 if name.startswith("broken") else 1), name
@@ -88,8 +88,7 @@ def test_a_batch_evaluates_held_out_views_and_shows_one(local_ray, captures, tmp
     from vq_mitsuba.batch import preview_camera
 
     out = tmp_path / "batch"
-    rows = run_batch(captures[:1], out, seeds=[0], fit_args=[*QUICK, "--set", "capture.holdout=2"], evaluate=True,
-                     progress=False)
+    rows = run_batch(captures[:1], out, seeds=[0], fit_args=[*QUICK, "--set", "capture.holdout=2"], evaluate=True)
     assert rows[0]["status"] == "done", rows
     with open(out / "summary.csv") as f:
         row = next(csv.DictReader(f))
@@ -107,9 +106,9 @@ def test_a_rerun_with_other_settings_refuses_the_runs_it_would_change_and_the_su
     it is and says so, naming the key; a new run takes the new settings; the summary shows each
     run's own iterations and a digest of its settings."""
     out = tmp_path / "batch"
-    assert run_batch(captures[:1], out, seeds=[0], fit_args=QUICK, progress=False)[0]["status"] == "done"
+    assert run_batch(captures[:1], out, seeds=[0], fit_args=QUICK)[0]["status"] == "done"
     fewer = [*QUICK, "--set", "train.iterations=4"]
-    rows = {r["run"]: r for r in run_batch(captures[:2], out, seeds=[0], fit_args=fewer, progress=False)}
+    rows = {r["run"]: r for r in run_batch(captures[:2], out, seeds=[0], fit_args=fewer)}
     kept = rows["sphere_a-s0"]
     assert kept["status"] == "refused", kept
     assert "train.iterations=6 (asked 4)" in kept["message"] and "batch_rays" not in kept["message"]
@@ -127,7 +126,7 @@ def test_a_rerun_with_other_settings_refuses_the_runs_it_would_change_and_the_su
     assert "| sphere_a-s0 | refused: its settings differ" in summary_md and "| 6 of 6 |" in summary_md
     assert "| 4 of 4 |" in summary_md
     # asked again with its own settings, the run is done again, as it was
-    again = {r["run"]: r for r in run_batch(captures[:1], out, seeds=[0], fit_args=QUICK, progress=False)}
+    again = {r["run"]: r for r in run_batch(captures[:1], out, seeds=[0], fit_args=QUICK)}
     assert again["sphere_a-s0"]["status"] == "done" and RunDir(out / "sphere_a-s0").load_state()["step"] == 6
 
 
@@ -185,7 +184,7 @@ def test_a_run_whose_worker_is_killed_is_retried_and_resumes(local_ray, captures
     watcher.start()
     settings = ["--set", "train.iterations=400", "--set", "train.checkpoint_every=5", "--set", "train.batch_rays=128",
                 "--set", "vq.enabled=false"]
-    rows = run_batch(captures[:1], out, seeds=[0], fit_args=settings, progress=False)
+    rows = run_batch(captures[:1], out, seeds=[0], fit_args=settings)
     watcher.join()
     assert killed and rows[0]["status"] == "done", rows
     starts = _fits_started(out, "sphere_a-s0")

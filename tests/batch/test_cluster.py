@@ -54,7 +54,7 @@ def test_a_batch_on_a_two_node_cluster_loses_a_node_and_nothing_else(tmp_path):
 
         watcher = threading.Thread(target=remove_the_second_node_once_its_run_has_a_checkpoint)
         watcher.start()
-        rows = run_batch(captures, out, seeds=[0], fit_args=SETTINGS, address=cluster.address, progress=False)
+        rows = run_batch(captures, out, seeds=[0], fit_args=SETTINGS, address=cluster.address)
         watcher.join()
     finally:
         cluster.shutdown()

@@ -162,9 +162,9 @@ def test_fit_capture_refuses_a_fitted_run_before_neus(tmp_path, no_geometry_stag
     run.create()
     (run / RunDir.CHECKPOINT).write_bytes(b"a fitted run")
     with pytest.raises(InputError, match="already holds a fitted run"):
-        fit_capture(capture, run.dir, load_config(None, []), progress=False)
+        fit_capture(capture, run.dir, load_config(None, []))
     with pytest.raises(InputError, match="already holds a fitted run"):
-        fit_capture(capture, run.dir, load_config(None, []), geometry="neus", progress=False)
+        fit_capture(capture, run.dir, load_config(None, []), geometry="neus")
     assert cli.main(["fit", str(capture), "-o", str(run.dir), "--quiet"]) == 2
     assert "already holds a fitted run" in capsys.readouterr().err
     assert sorted(p.name for p in run.dir.iterdir()) == [RunDir.CHECKPOINT]
@@ -181,12 +181,12 @@ def test_fit_capture_refuses_an_edited_run_and_other_files_before_neus(tmp_path,
     edited.write_info({"capture": str(capture), "world": "blender", "envmap_to_world": np.eye(4).tolist(),
                        "edit_of": {"relative": "../run", "absolute": str(tmp_path / "run")}})
     with pytest.raises(InputError, match="holds an edited run"):
-        fit_capture(capture, edited.dir, load_config(None, []), progress=False)
+        fit_capture(capture, edited.dir, load_config(None, []))
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("mine")
     with pytest.raises(InputError, match="no vq-mitsuba run"):
-        fit_capture(capture, mine, load_config(None, []), progress=False)
+        fit_capture(capture, mine, load_config(None, []))
     with pytest.raises(InputError, match="--geometry neus"):
         fit_capture(capture, tmp_path / "new", load_config(None, []), geometry="neus", mesh=tmp_path / "m.ply")
     assert not (tmp_path / "new").exists()
@@ -351,7 +351,7 @@ def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
     monkeypatch.setattr(fit_module, "ensure_geometry", lambda capture, run, *a, **k: run / RunDir.MESH)
     monkeypatch.setattr(fit_module, "fit_materials", lambda *a, **k: {"iterations": 1})
     capture = _capture_without_geometry(tmp_path / "cap")
-    fit_module.fit_capture(capture, tmp_path / "run", load_config(None, []), progress=False, log=lambda line: None)
+    fit_module.fit_capture(capture, tmp_path / "run", load_config(None, []), log=lambda line: None)
     assert calls == ["check", "poses"]
     package = Path(cli.__file__).resolve().parent.parent
     callers = {str(path.relative_to(package)) for path in package.rglob("*.py") for node in ast.walk(ast.parse(

@@ -49,7 +49,7 @@ def dataset(tmp_path_factory):
     from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
     out = tmp_path_factory.mktemp("formats") / "demo"
-    make_scene("demo", out, resolution=16, n_train=5, n_test=1, spp=4, progress=False, photo_formats=True)
+    make_scene("demo", out, resolution=16, n_train=5, n_test=1, spp=4, photo_formats=True)
     return out
 
 

@@ -152,11 +152,11 @@ def test_render_views_keeps_any_callers_names_inside_the_folder(tmp_path, monkey
     monkeypatch.setattr(views, "Renderer", Flat)
     cams = [Camera(n, c.to_world, 42.0, 8, 6) for n, c in zip(["../up", "/abs/x", "../up"], _cameras(3))]
     out = tmp_path / "x" / "out"
-    views.render_views(Fitted(), cams, "mitsuba", out, progress=False)
+    views.render_views(Fitted(), cams, "mitsuba", out)
     assert all(out in p.parents for p in _files_under(tmp_path))
     assert {p.name for p in out.glob("*_rgb.exr")} == {"up_rgb.exr", "abs_x_rgb.exr", "up_2_rgb.exr"}
     with pytest.raises(InputError, match="cannot name a folder"):
-        views.render_views(Fitted(), cams, "mitsuba", out, progress=False, more_envmaps=[("..", None)])
+        views.render_views(Fitted(), cams, "mitsuba", out, more_envmaps=[("..", None)])
 
 
 # --------------------------------------------------------------------------------------------

@@ -69,7 +69,7 @@ def tiny(tmp_path_factory):
     folder = tmp_path_factory.mktemp("tiny")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
     fit(capture, folder / "run", load_config(None, ["train.iterations=4", "train.batch_rays=128",
-                                                    "vq.warmup_frac=0.3"]), progress=False)
+                                                    "vq.warmup_frac=0.3"]))
     return capture, folder / "run"
 
 
@@ -381,12 +381,12 @@ def test_a_file_without_a_video_stream_is_refused_in_a_sentence(tmp_path):
     subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "lavfi", "-i", "sine=d=0.3",
                     "-c:a", "aac", str(sound)], check=True)
     with pytest.raises(InputError, match=r"holds no video stream \(only audio\)") as refused:
-        pick_frames(sound, tmp_path / "frames", 3, progress=False)
+        pick_frames(sound, tmp_path / "frames", 3)
     assert refused.value.path == sound
     junk = tmp_path / "junk.mp4"
     junk.write_bytes(np.random.default_rng(1).bytes(200))
     with pytest.raises(InputError, match="ffmpeg cannot read the video: it holds no streams") as refused:
-        pick_frames(junk, tmp_path / "frames", 3, progress=False)
+        pick_frames(junk, tmp_path / "frames", 3)
     assert refused.value.path == junk and not (tmp_path / "frames").exists()
 
 

@@ -169,7 +169,7 @@ def test_a_capture_that_keeps_the_whole_prior_fits_as_without_the_rule(learned_l
 
     monkeypatch.setattr(losses, "lambertian_prior", spy)
     out = tmp_path / "auto"
-    fit(learned_light_gold, out, load_config(None, QUICK), progress=False)
+    fit(learned_light_gold, out, load_config(None, QUICK))
     decision = json.loads((out / "fit.json").read_text())["decisions"]["prior"]
     assert decision["choice"] == "whole" and decision["hits_with_highlight"] > 0 and decision["mean_weight"] == 1.0
     assert len(scales) >= 40 and all(s is None for s in scales)

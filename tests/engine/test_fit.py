@@ -91,7 +91,7 @@ def test_resume_without_checkpoint_starts_the_fit(sphere_capture, tmp_path, caps
     run = tmp_path / "run"
     run.mkdir()
     cfg = load_config(None, ["train.iterations=2", "train.batch_rays=64"])
-    summary = fit(sphere_capture, run, cfg, resume=True, progress=False)
+    summary = fit(sphere_capture, run, cfg, resume=True)
     assert summary["iterations"] == 2 and (run / "checkpoint.pt").is_file()
     assert "no checkpoint yet" in capsys.readouterr().out
 
@@ -102,7 +102,7 @@ def test_snapshots_keep_earlier_states(sphere_capture, tmp_path):
 
     run = tmp_path / "run"
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.snapshot_s=1e-6,1e-5"])
-    fit(sphere_capture, run, cfg, progress=False)
+    fit(sphere_capture, run, cfg)
     snaps = sorted((run / "snapshots").glob("*.pt"))
     assert len(snaps) == 1  # both times had passed after the first step: one copy, not two
     state = torch.load(snaps[0], weights_only=False)
@@ -130,7 +130,7 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     cfg = load_config(None, ["train.iterations=100000", "train.batch_rays=64", "train.time_limit_s=2",
                              "train.lr=0.002", "train.lr_end_exponential=0.01", "field.pe_anneal=0.5",
                              "vq.enabled=false"])
-    summary = fit(sphere_capture, run, cfg, progress=False)
+    summary = fit(sphere_capture, run, cfg)
     state = torch.load(run / "checkpoint.pt", weights_only=False)
     assert 10 < summary["iterations"] < 100000  # stopped by the clock
     assert float(state["model"]["encoder.pe.progress"]) == float(cfg.field.pe_freqs)
@@ -140,7 +140,7 @@ def test_time_limit_drives_the_schedules(sphere_capture, tmp_path, monkeypatch):
     # Without a time limit the schedule follows the iterations.
     cfg = load_config(None, ["train.iterations=4", "train.batch_rays=64", "train.lr=0.01",
                              "train.lr_end_exponential=0.1"])
-    fit(sphere_capture, tmp_path / "r2", cfg, progress=False)
+    fit(sphere_capture, tmp_path / "r2", cfg)
     lr_end = torch.load(tmp_path / "r2" / "checkpoint.pt", weights_only=False)["optim"]["param_groups"][0]["lr"]
     assert lr_end == pytest.approx(0.01 * 0.1 ** 0.75)
 
@@ -150,7 +150,7 @@ def test_fit_recovers_uniform_sphere_material(tmp_path):
     xml = write_sphere_capture(tmp_path / "cap", base_color=(0.7, 0.35, 0.2), roughness=0.3, size=32,
                                n_views=12, spp=64)
     cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8"], preset="continuous")
-    fit(xml, tmp_path / "run", cfg, progress=False)
+    fit(xml, tmp_path / "run", cfg)
     from vq_mitsuba.run.run_dir import RunDir
 
     fitted = RunDir(tmp_path / "run").load()
@@ -272,7 +272,7 @@ def test_bounce_starts_after_its_number_of_steps(sphere_capture, tmp_path, monke
     cfg = load_config(None, ["train.iterations=12", "train.batch_rays=64", "train.spp=8", "train.bounces=1",
                              f"train.bounce_after={bounce_after}", "train.bounce=on", "train.stop=iterations"],
                       preset="continuous")
-    fit(sphere_capture, tmp_path / "run", cfg, progress=False)
+    fit(sphere_capture, tmp_path / "run", cfg)
     assert len(calls) == 12
     assert sum(calls) == with_bounce
     assert calls == sorted(calls)  # once on, it stays on
@@ -368,10 +368,10 @@ def test_a_mesh_far_too_large_for_the_cameras_is_warned_about(tmp_path, capsys):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        fit(capture, tmp_path / "right", cfg, progress=False)
+        fit(capture, tmp_path / "right", cfg)
     assert not [w for w in caught if "the mesh" in str(w.message)]
     trimesh.creation.icosphere(subdivisions=3, radius=500.0).export(capture.parent / "sphere.ply")  # mm, not m
     with pytest.warns(Notice, match=r"the mesh's bounding sphere \(radius 866\) encloses every camera"):  # 500 * sqrt(3)
-        fit(capture, tmp_path / "huge", cfg, progress=False)
+        fit(capture, tmp_path / "huge", cfg)
     assert "the mesh" not in capsys.readouterr().out  # a warning, not a result on stdout
 

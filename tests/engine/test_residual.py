@@ -80,7 +80,7 @@ def view_dependent_run(tmp_path_factory):
         write_exr(path, rgba)
     run = out / "run"
     fit(xml, run, load_config(None, ["train.iterations=80", "train.batch_rays=512", "train.bounce_after=1000",
-                                     "vq.enabled=false", "residual.iterations=400"]), progress=False)
+                                     "vq.enabled=false", "residual.iterations=400"]))
     return xml, run
 
 
@@ -191,7 +191,7 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
     (copy / RunDir.FIT).write_text(json.dumps({**json.loads((copy / RunDir.FIT).read_text()), "residual": None}))
     cfg = load_config(copy / "config.yaml", [])
     with pytest.warns(Notice, match="earlier version of the field"):
-        fit(xml, copy, cfg, resume=True, progress=False)
+        fit(xml, copy, cfg, resume=True)
     assert "fitting it again" in capsys.readouterr().out
     refitted = torch.load(copy / RunDir.RESIDUAL, weights_only=False)
     assert refitted["step"] == state["step"] and "finest" in refitted["field"]
@@ -199,7 +199,7 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
     assert info["psnr_check_hits_after"] > info["psnr_check_hits_before"] + 3.0
     assert RunDir(copy).load().residual is not None
     before = (copy / RunDir.RESIDUAL).stat().st_mtime_ns
-    fit(xml, copy, cfg, resume=True, progress=False)
+    fit(xml, copy, cfg, resume=True)
     assert "nothing to do" in capsys.readouterr().out
     assert (copy / RunDir.RESIDUAL).stat().st_mtime_ns == before
 

@@ -95,7 +95,7 @@ def test_a_fit_records_its_envmap_rung_and_keeps_it_on_resume(tmp_path, monkeypa
     capture = write_sphere_capture(tmp_path / "cap", size=16, n_views=4, spp=8, known_envmap=False)
     cfg = load_config(None, QUICK + ["train.iterations=8", "envmap.height=64", "field.pe_anneal=1.0"])
     _rung_reads(monkeypatch, lambda step: 0.9)  # matte whatever the field has learned in 4 steps
-    summary = fit(capture, tmp_path / "run", cfg, progress=False)
+    summary = fit(capture, tmp_path / "run", cfg)
     env = summary["decisions"]["envmap"]
     assert env["choice"] == 32 and env["ladder"] == [32, 64] and env["checks"][0]["step"] == 4
     state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
@@ -110,7 +110,7 @@ def test_a_roughness_that_falls_after_the_first_decision_still_grows_the_envmap(
     cfg = load_config(None, QUICK + ["train.iterations=12", "envmap.height=64", "field.pe_anneal=1.0"])
     monkeypatch.setattr(skips, "ENVMAP_RECHECK_EVERY", 2)
     _rung_reads(monkeypatch, lambda step: 0.9 if step < 8 else 0.1)
-    summary = fit(capture, tmp_path / "run", cfg, progress=False)
+    summary = fit(capture, tmp_path / "run", cfg)
     env = summary["decisions"]["envmap"]
     first, second = env["checks"]
     assert (first["step"], first["rows"], first["ladder_rows"]) == (6, 32, 64)
@@ -166,7 +166,7 @@ def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path
     run = tmp_path / "run"
     settings = QUICK + ["train.stop=auto", "train.iterations=60", "train.lr=1e-9", "train.checkpoint_every=1000", "field.pe_anneal=0.1",
                         "loss.metallic_barrier_until=0.1"]
-    summary = fit(small_sphere, run, load_config(None, settings), progress=False)
+    summary = fit(small_sphere, run, load_config(None, settings))
     stop = json.loads((run / "fit.json").read_text())["decisions"]["stop"]
     # measured from step 10 (the stages begin at 10 % of the schedule): 2x at step 35, done at 48
     assert summary["iterations"] == 48 and stop["choice"] == "early"
@@ -176,9 +176,9 @@ def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path
     assert state["skips"]["pace"]["position"] >= 60 and state["step"] == summary["iterations"]
     # the schedule ran to its end: the last step's learning rate is the decayed one
     assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-9 * 0.1, rel=0.2)
-    again = fit(small_sphere, run, load_config(None, settings), resume=True, progress=False)
+    again = fit(small_sphere, run, load_config(None, settings), resume=True)
     assert again["iterations"] == summary["iterations"] and "nothing to do" in capsys.readouterr().out
-    more = fit(small_sphere, run, load_config(None, settings + ["train.iterations=120"]), resume=True, progress=False)
+    more = fit(small_sphere, run, load_config(None, settings + ["train.iterations=120"]), resume=True)
     # on at 2x with the two measurements it had since: 4x from step 65, done at 72
     assert more["iterations"] == 72 and more["decisions"]["stop"]["pace"]["speedups"] == [[35, 2], [65, 4]]
 
@@ -186,13 +186,12 @@ def test_a_converged_fit_stops_early_says_why_and_resumes(small_sphere, tmp_path
 def test_a_fit_that_keeps_improving_runs_every_step(small_sphere, tmp_path, monkeypatch):
     losses = iter(0.9 ** k for k in range(1000))
     monkeypatch.setattr(Trainer, "held_loss", lambda self: next(losses))
-    summary = fit(small_sphere, tmp_path / "run", load_config(None, QUICK + ["train.iterations=40", "train.stop=auto"]),
-                  progress=False)
+    summary = fit(small_sphere, tmp_path / "run", load_config(None, QUICK + ["train.iterations=40", "train.stop=auto"]))
     stop = summary["decisions"]["stop"]
     assert summary["iterations"] == 40 and stop["choice"] == "iterations" and stop["pace"]["speedups"] == []
     assert len(stop["pace"]["evals"]) == 4
     off = fit(small_sphere, tmp_path / "off", load_config(None, QUICK + ["train.iterations=12", "train.stop=iterations",
-                                                                        "train.sampling=uniform"]), progress=False)
+                                                                        "train.sampling=uniform"]))
     assert off["decisions"]["stop"]["pace"]["evals"] == [] and off["decisions"]["sampling"]["choice"] == "uniform"
 
 

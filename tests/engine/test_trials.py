@@ -107,7 +107,7 @@ def test_the_held_aside_pixels_choose_which_explanation_goes_on(learned_light_sp
 
     monkeypatch.setattr(trials.Trials, "finish", finish_and_look)
     out = tmp_path / "run"
-    fit(learned_light_sphere, out, load_config(None, QUICK), progress=False)
+    fit(learned_light_sphere, out, load_config(None, QUICK))
     decision = json.loads((out / "fit.json").read_text())["decisions"]["trials"]
     record = decision["trials"][0]
     assert decision["choice"] == ("swapped" if copy_wins else "kept")
@@ -123,11 +123,11 @@ def test_the_held_aside_pixels_choose_which_explanation_goes_on(learned_light_sp
 
 def test_no_trial_without_a_surface_at_the_floor_or_without_a_learned_light(learned_light_sphere, tmp_path):
     out = tmp_path / "matte"
-    fit(learned_light_sphere, out, load_config(None, QUICK), progress=False)
+    fit(learned_light_sphere, out, load_config(None, QUICK))
     decision = json.loads((out / "fit.json").read_text())["decisions"]["trials"]
     assert decision["choice"] == "none" and "within 0.02 of the roughness floor" in decision["reason"]
     known = write_sphere_capture(tmp_path / "known", size=16, n_views=4, spp=8)
-    fit(known, tmp_path / "known_run", load_config(None, QUICK), progress=False)
+    fit(known, tmp_path / "known_run", load_config(None, QUICK))
     decision = json.loads((tmp_path / "known_run" / "fit.json").read_text())["decisions"]["trials"]
     assert decision["choice"] == "none" and "no learned light" in decision["reason"]
 

@@ -13,8 +13,7 @@ from vq_mitsuba.cli import main
 def tiny_dataset(tmp_path_factory):
     from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
-    return make_scene("demo", tmp_path_factory.mktemp("data") / "demo", resolution=16, n_train=4, n_test=2, spp=8,
-                      progress=False)
+    return make_scene("demo", tmp_path_factory.mktemp("data") / "demo", resolution=16, n_train=4, n_test=2, spp=8)
 
 
 def test_eval_writes_every_block(tiny_dataset, tmp_path, capsys):
@@ -135,7 +134,7 @@ def test_ground_truth_scored_as_the_prediction_is_perfect(tiny_dataset):
     zero metallic/roughness error and unbounded PSNR everywhere."""
     from vq_mitsuba.eval.evaluate import evaluate_predictor
 
-    m = evaluate_predictor(_GroundTruthPredictor(tiny_dataset), tiny_dataset, progress=False, meanshift_bandwidths=())
+    m = evaluate_predictor(_GroundTruthPredictor(tiny_dataset), tiny_dataset, meanshift_bandwidths=())
     assert m["alignment"]["scales"] == pytest.approx([1.0, 1.0, 1.0], abs=1e-6)
     seg = m["segmentation"]
     assert seg["micro_f1"] == 1.0 and seg["macro_f1"] == 1.0 and seg["num_materials_found"] == 2

@@ -70,8 +70,7 @@ def test_same_surface_ignores_triangulation_but_not_an_offset():
 def dataset(tmp_path_factory):
     from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
-    return make_scene("demo", tmp_path_factory.mktemp("data") / "demo", resolution=20, n_train=4, n_test=2, spp=8,
-                      progress=False)
+    return make_scene("demo", tmp_path_factory.mktemp("data") / "demo", resolution=20, n_train=4, n_test=2, spp=8)
 
 
 FIT = ["--set", "train.iterations=30", "--set", "train.batch_rays=256", "--set", "residual.iterations=0",

@@ -23,7 +23,7 @@ def sphere(tmp_path_factory):
 def fitted(sphere, tmp_path_factory):
     out = tmp_path_factory.mktemp("texel_fit")
     cfg = TexelConfig(resolution=32, spp=8, iterations=40, lr_texture=0.05)
-    return fit_texel(sphere, out, cfg, time_limit_s=0, snapshot_s=(1e-9,), progress=False)
+    return fit_texel(sphere, out, cfg, time_limit_s=0, snapshot_s=(1e-9,))
 
 
 def _constant_values(ts, base, metallic, roughness):
@@ -207,12 +207,12 @@ def test_evaluate_predictor_scores_a_texel_snapshot(tmp_path):
     from vq_mitsuba.eval.evaluate import evaluate_predictor
     from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
-    data = make_scene("demo", tmp_path / "demo", resolution=16, n_train=4, n_test=2, spp=8, progress=False)
+    data = make_scene("demo", tmp_path / "demo", resolution=16, n_train=4, n_test=2, spp=8)
     res = fit_texel(data / "transforms_train.json", tmp_path / "fit", TexelConfig(resolution=32, iterations=3),
-                    time_limit_s=0, progress=False)
+                    time_limit_s=0)
     pred = TexelPredictor(res["snapshots"][-1][2])
     assert pred.world == "blender"
-    m = evaluate_predictor(pred, data, spp=4, aa=1, progress=False, meanshift_bandwidths=())
+    m = evaluate_predictor(pred, data, spp=4, aa=1, meanshift_bandwidths=())
     assert m["n_views"] == 2
     for v in (m["novel_view"]["psnr"], m["basecolor"]["psnr"], m["roughness"]["psnr"], m["normal"]["mae_deg"]):
         assert math.isfinite(v)

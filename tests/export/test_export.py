@@ -64,7 +64,7 @@ def nerf_run(tmp_path_factory):
     from vq_mitsuba.synthetic.mitsuba_scenes import make_scene
 
     root = tmp_path_factory.mktemp("nerf")
-    data = make_scene("demo", root / "demo", resolution=16, n_train=4, n_test=2, spp=8, progress=False)
+    data = make_scene("demo", root / "demo", resolution=16, n_train=4, n_test=2, spp=8)
     assert cli.main(["fit", str(data / "transforms_train.json"), "-o", str(root / "run"), *FIT_BRIEFLY]) == 0
     return data, RunDir(root / "run")
 
@@ -121,7 +121,7 @@ def test_rasteriser_covers_each_triangle_once():
 
 
 def test_textures_hold_the_field_values(fitted):
-    baked = bake(fitted, 256, progress=False)
+    baked = bake(fitted, 256)
     # At the mesh's vertices (inside charts, on their borders too) a bilinear lookup of the
     # textures gives what the field gives there.
     pts = torch.as_tensor(baked.vertices)
@@ -136,7 +136,7 @@ def test_textures_hold_the_field_values(fitted):
 
 
 def test_discrete_branch_bakes_one_brdf_per_material(fitted):
-    baked = bake(fitted, 128, branch="discrete", progress=False)
+    baked = bake(fitted, 128, branch="discrete")
     covered = baked.coverage
     colours = np.round(baked.basecolor[covered], 4)
     assert len(np.unique(colours, axis=0)) == fitted.num_materials
@@ -145,7 +145,7 @@ def test_discrete_branch_bakes_one_brdf_per_material(fitted):
 def test_mitsuba_export_renders_like_vq_mitsuba_in_plain_mitsuba(three_materials, tmp_path):
     _, run = three_materials
     out = tmp_path / "mitsuba"
-    summary = export_run(run.dir, "mitsuba", out, texture_size=512, progress=False)
+    summary = export_run(run.dir, "mitsuba", out, texture_size=512)
     assert set(summary["files"]) <= set(_planned_files("mitsuba", run.dir.name)), summary["files"]
     fitted = run.load()
     cam = run.cameras()["train"][0]
@@ -175,7 +175,7 @@ def test_glb_passes_the_khronos_validator_and_reimports(three_materials, tmp_pat
     import trimesh
 
     _, run = three_materials
-    summary = export_run(run.dir, "gltf", tmp_path, texture_size=256, progress=False)
+    summary = export_run(run.dir, "gltf", tmp_path, texture_size=256)
     glb = tmp_path / summary["files"][0]
     report = json.loads(subprocess.run(["node", str(ROOT / "tools" / "validate_gltf.js"), str(glb)], check=True,
                                        capture_output=True, text=True).stdout)
@@ -192,7 +192,7 @@ def test_glb_passes_the_khronos_validator_and_reimports(three_materials, tmp_pat
     assert np.allclose(np.sort(mesh.bounds, 0), np.sort(expect, 0), atol=1e-5)
     # The metallic-roughness texture carries roughness in G and metallic in B.
     mr = np.asarray(material.metallicRoughnessTexture.convert("RGB"), np.float32) / 255
-    baked = bake(fitted, 256, progress=False)
+    baked = bake(fitted, 256)
     cov = baked.coverage
     assert np.abs(mr[..., 1][cov] - baked.roughness[cov]).max() <= 0.5 / 255 + 1e-6
     assert np.abs(mr[..., 2][cov] - baked.metallic[cov]).max() <= 0.5 / 255 + 1e-6
@@ -202,7 +202,7 @@ def test_obj_export_reimports_with_its_pbr_material(three_materials, tmp_path):
     import trimesh
 
     _, run = three_materials
-    summary = export_run(run.dir, "obj", tmp_path, texture_size=128, progress=False)
+    summary = export_run(run.dir, "obj", tmp_path, texture_size=128)
     obj = tmp_path / summary["files"][0]
     mtl = obj.with_suffix(".mtl").read_text()
     for key in ("map_Kd", "map_Pr", "map_Pm"):
@@ -255,7 +255,7 @@ def test_gltf_and_obj_of_a_nerf_capture_lie_in_its_own_world(nerf_run, tmp_path)
     scale = float(np.ptp(own.vertices, 0).max())
     meshes = {}
     for fmt in ("gltf", "obj"):
-        summary = export_run(run.dir, fmt, tmp_path / fmt, texture_size=16, progress=False)
+        summary = export_run(run.dir, fmt, tmp_path / fmt, texture_size=16)
         assert summary["world"] == "blender"
         assert set(summary["files"]) | {"export.json"} <= set(_planned_files(fmt, run.dir.name)), summary["files"]
         loaded = trimesh.load(tmp_path / fmt / summary["files"][0], process=False, force="mesh")
@@ -330,7 +330,7 @@ def test_glb_renders_in_blender_cycles_like_vq_mitsuba(three_materials, tmp_path
 
     _, run = three_materials
     fitted = run.load()
-    summary = export_run(run.dir, "gltf", tmp_path, texture_size=256, progress=False)
+    summary = export_run(run.dir, "gltf", tmp_path, texture_size=256)
     cam = run.cameras()["train"][0]
     to_blender = np.eye(4)
     to_blender[:3, :3] = Y_UP_TO_BLENDER @ export_axes(fitted.world, summary["world"])
@@ -365,7 +365,7 @@ def test_glb_of_a_nerf_capture_renders_in_blender_from_the_captures_own_camera(n
     from vq_mitsuba.synthetic.cycles import read_passes
 
     data, run = nerf_run
-    summary = export_run(run.dir, "gltf", tmp_path, texture_size=64, progress=False)
+    summary = export_run(run.dir, "gltf", tmp_path, texture_size=64)
     path, camera, frame = _own_test_camera(data)
     job = {"glb": str(tmp_path / summary["files"][0]), "envmap": str(tmp_path / "envmap.exr"),
            "camera": {"name": camera.name, "transform_matrix": frame["transform_matrix"],

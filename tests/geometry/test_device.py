@@ -57,7 +57,7 @@ def test_neus_trains_on_the_chosen_cpu_device_and_reads_its_losses_every_ten_ste
     tensors = [neus.rays_o, neus.rays_d, neus.rays_rgb, neus.rays_alpha, box.hull, box.hull_dilated, box.hull_sdf]
     assert all(t.device == neus.device for t in tensors)
     assert all(p.device == neus.device for p in neus.model.parameters())
-    summary = train(neus, None, progress=False)
+    summary = train(neus, None)
     history = summary["history"]
     assert [h["step"] for h in history] == list(range(1, 24))
     assert set(history[0]) == {"step", "seconds", "loss", "color", "eikonal", "mask", "psnr", "s", "points"}
@@ -69,11 +69,11 @@ def test_a_neus_checkpoint_of_the_other_device_kind_resumes(cpu_device, tmp_path
     """A checkpoint is read onto the CPU and copied to the model's device; a random generator of the
     other kind (CUDA's Philox state on a CPU, or the reverse) cannot continue, and a new stream starts."""
     capture = sphere_capture(n_views=6, size=20)
-    reconstruct(capture, tmp_path, small_cfg(iterations=3, checkpoint_every=3), progress=False)
+    reconstruct(capture, tmp_path, small_cfg(iterations=3, checkpoint_every=3))
     state = torch.load(tmp_path / "neus.pt", weights_only=False)
     state["generator"] = torch.zeros(16, dtype=torch.uint8)  # the size of a CUDA generator's state
     torch.save(state, tmp_path / "neus.pt")
-    again = reconstruct(capture, tmp_path, small_cfg(iterations=5), resume=True, progress=False)
+    again = reconstruct(capture, tmp_path, small_cfg(iterations=5), resume=True)
     assert again.summary["iterations"] == 5
     assert len(torch.load(tmp_path / "neus.pt", weights_only=False)["history"]) == 5
     record = again.summary["device"]

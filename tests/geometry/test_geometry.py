@@ -406,7 +406,7 @@ def test_neus_moves_a_wrong_sphere_to_the_true_surface():
     d = np.random.default_rng(0).normal(size=(500, 3))
     on_surface = RADIUS * d / np.linalg.norm(d, axis=1, keepdims=True)
     before = np.abs(sdf_world(neus, on_surface)).mean()
-    train(neus, None, progress=False)
+    train(neus, None)
     after = np.abs(sdf_world(neus, on_surface)).mean()
     assert before > 0.05
     assert after < 0.02 and after < before / 3
@@ -417,7 +417,7 @@ def test_neus_moves_a_wrong_sphere_to_the_true_surface():
 
 def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
     capture = sphere_capture(n_views=8, size=24)
-    result = reconstruct(capture, tmp_path, small_cfg(iterations=4, checkpoint_every=2), progress=False)
+    result = reconstruct(capture, tmp_path, small_cfg(iterations=4, checkpoint_every=2))
     info = result.summary
     assert len(result.mesh.faces) == info["mesh"]["faces"] and result.neus.cfg.iterations == 4
     for name in ("geometry_loss.png", "neus.pt"):
@@ -430,12 +430,12 @@ def test_reconstruct_smoke_makes_a_mesh_and_resumes(tmp_path):
     assert 0.45 < np.median(radii) < 0.65 and mesh.is_watertight
     assert info["iterations"] == 4
     assert info["seconds"]["train"] > 0
-    again = reconstruct(capture, tmp_path, small_cfg(iterations=6), resume=True, progress=False)
+    again = reconstruct(capture, tmp_path, small_cfg(iterations=6), resume=True)
     assert again.summary["iterations"] == 6
     # Resuming under other network shapes is refused by name, and the checkpoint is kept.
     other = not small_cfg().reflect
     with pytest.raises(InputError, match=f"neus.reflect={not other} \\(now {other}\\)") as err:
-        reconstruct(capture, tmp_path, small_cfg(iterations=8, reflect=other), resume=True, progress=False)
+        reconstruct(capture, tmp_path, small_cfg(iterations=8, reflect=other), resume=True)
     assert err.value.path == tmp_path / "neus.pt"
     assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 6
 
@@ -450,7 +450,7 @@ def test_neus_scores_its_own_renders_inside_the_masks_and_training_raises_them()
     assert views == [0, 4, 7] and sample_views(2, 4) == [0, 1] and sample_views(0, 4) == []
     neus.refresh_occupancy(neus.level_weights(1.0))
     before = view_psnr(neus, capture, views)
-    train(neus, None, progress=False)
+    train(neus, None)
     after = view_psnr(neus, capture, views)
     assert set(after) == {capture.cameras[v].name for v in views}
     assert np.mean(list(after.values())) > np.mean(list(before.values())) + 5.0
@@ -641,7 +641,7 @@ def test_train_callback_at_the_start_and_every_interval_outside_the_training_clo
 
     neus = neus_for(capture, small_cfg(iterations=30))
     t0 = time.perf_counter()
-    summary = train(neus, progress=False, callback=callback, callback_every_s=0.05)
+    summary = train(neus, callback=callback, callback_every_s=0.05)
     wall = time.perf_counter() - t0
     assert calls[0] == (0, 0.0) and len(calls) >= 2
     assert [s for s, _ in calls] == sorted(s for s, _ in calls) and calls[-1][0] <= 30
@@ -658,7 +658,7 @@ def test_the_colour_network_skips_samples_of_negligible_weight_and_the_colour_ha
 
     capture = sphere_capture(n_views=8, size=24)
     neus = neus_for(capture, small_cfg(iterations=120, seed=2))
-    train(neus, None, progress=False)
+    train(neus, None)
     lw = [1.0] * neus.cfg.levels
     neus.refresh_occupancy(lw)
     o, d = neus.rays_o[::3], neus.rays_d[::3]

@@ -353,7 +353,7 @@ def _mask_free_run(images, true_alpha, cams, iterations: int):
     capture = unmasked(images, cams)
     neus = neus_for(capture, tiny_cfg(iterations=iterations, seed=0))
     assert neus.box.mask_free and neus.box.sphere_source == "cameras"
-    summary = train(neus, None, progress=False)
+    summary = train(neus, None)
     mesh, _ = extract_mesh(neus)
     derived = mesh_coverage(mesh, cams) > 0.5
     fg_opacity = np.stack([render_view(neus, c)[1] for c in cams])
@@ -434,7 +434,7 @@ def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tm
     for module, name in ((captures, "resolve_capture_path"), (captures, "format_of"), (mitsuba_xml, "detect"),
                          (mitsuba_xml, "has_geometry"), (mitsuba_xml, "cameras"), (mitsuba_xml, "load")):
         counted(module, name)
-    fit_capture(xml, run.dir, cfg, progress=False, log=lambda _: None)
+    fit_capture(xml, run.dir, cfg, log=lambda _: None)
     assert sorted(calls) == ["detect", "format_of", "has_geometry", "load", "resolve_capture_path"], calls
     geometry = json.loads((run.dir / RunDir.GEOMETRY).read_text())
     assert geometry["background"] == "model" and geometry["bounding_sphere"]["from"] == "cameras"
@@ -448,7 +448,7 @@ def test_fit_without_masks_fits_inside_the_reconstructed_mesh(backdrop_views, tm
     # the held-out views are scored inside the mesh's coverage too
     from vq_mitsuba.eval.evaluate import evaluate_holdout
 
-    metrics = evaluate_holdout(run.dir, progress=False)
+    metrics = evaluate_holdout(run.dir)
     assert len(metrics["views"]) == 4 and metrics["coverage_iou"] > 0.9
 
 
@@ -495,7 +495,7 @@ def test_mask_free_neus_on_a_table_with_the_table_known(tmp_path):
     0.69 after 1500 steps)."""
     images, true_alpha, cams = table_scene(tmp_path)
     neus = neus_for(unmasked(images, cams), tiny_cfg(iterations=600), support=(np.array([0.0, 1.0, 0.0]), -0.275))
-    train(neus, None, progress=False)
+    train(neus, None)
     mesh, support = extract_mesh(neus)
     assert support is not None and support["from"] == "sparse points"
     assert np.asarray(mesh.vertices)[:, 1].min() > -0.275
@@ -510,12 +510,12 @@ def test_a_checkpoint_resumes_only_in_its_own_mode(tmp_path):
     images[:, 5:11, 5:11] = 0.8
     bare = unmasked(images, cams)
     cfg = tiny_cfg(iterations=2, checkpoint_every=1, mesh_resolution=24, hull_resolution=24, normal_smoothing=0)
-    result = reconstruct(bare, tmp_path, cfg, progress=False)
+    result = reconstruct(bare, tmp_path, cfg)
     summary = result.summary
     assert summary["background"] == "model" and summary["bounding_sphere"]["from"] == "cameras"
     assert summary["bounding_sphere"]["radius"] == pytest.approx(result.neus.box.half)
     masked = dataclasses.replace(bare, alpha=(images[..., 0] > 0.5).astype(np.float32), has_alpha=True)
     with pytest.raises(InputError, match="made without masks"):
-        reconstruct(masked, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True, progress=False)
-    again = reconstruct(bare, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True, progress=False)
+        reconstruct(masked, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True)
+    again = reconstruct(bare, tmp_path, dataclasses.replace(cfg, iterations=3), resume=True)
     assert again.summary["iterations"] == 3

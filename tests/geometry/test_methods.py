@@ -44,7 +44,7 @@ class Toy:
     seed_key = None
     masks_from_mesh = False
 
-    def reconstruct(self, source, run, cfg, resume=False, progress=True) -> Reconstruction:
+    def reconstruct(self, source, run, cfg, resume=False) -> Reconstruction:
         import trimesh
 
         views = len(source.load("train").cameras)
@@ -89,7 +89,7 @@ def test_a_registered_method_runs_through_the_geometry_stage(tmp_path, toy):
     from vq_mitsuba.engine.pipeline import geometry_capture
 
     capture = _write_capture(tmp_path / "cap")
-    result = geometry_capture(capture, tmp_path / "run", load_config(None, []), progress=False, method="toy")
+    result = geometry_capture(capture, tmp_path / "run", load_config(None, []), method="toy")
     run = RunDir(tmp_path / "run")
     assert result.method == "toy" and result.files == (run / TOY_STATE,) and not result.resumed
     assert run.geometry_summary() == {"views": 3, "background": "masks"}
@@ -99,7 +99,7 @@ def test_a_registered_method_runs_through_the_geometry_stage(tmp_path, toy):
     (run / RunDir.GEOMETRY).unlink()
     (run / RunDir.MESH).unlink()
     assert run.holds_run_files() and TOY_STATE in RunDir.markers()
-    again = geometry_capture(capture, run.dir, load_config(None, []), resume=True, progress=False, method="toy")
+    again = geometry_capture(capture, run.dir, load_config(None, []), resume=True, method="toy")
     assert again.resumed
 
 
@@ -107,7 +107,7 @@ def test_a_method_without_masks_has_the_fit_mask_views_by_its_mesh(tmp_path, toy
     from vq_mitsuba.engine.pipeline import geometry_capture
 
     monkeypatch.setattr(type(toy), "masks_from_mesh", True)
-    geometry_capture(_write_capture(tmp_path / "cap"), tmp_path / "run", load_config(None, []), progress=False,
+    geometry_capture(_write_capture(tmp_path / "cap"), tmp_path / "run", load_config(None, []),
                      method="toy")
     run = RunDir(tmp_path / "run")
     assert run.geometry_summary()["background"] == "model" and run.masks_from_mesh()
@@ -119,7 +119,7 @@ def test_fit_reconstructs_with_the_method_it_names(tmp_path, toy, monkeypatch):
     seen, lines = [], []
     monkeypatch.setattr(pipeline, "fit_materials", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
     capture = _write_capture(tmp_path / "cap")
-    pipeline.fit_capture(capture, tmp_path / "run", load_config(None, []), geometry="toy", progress=False,
+    pipeline.fit_capture(capture, tmp_path / "run", load_config(None, []), geometry="toy",
                          log=lines.append)
     run = RunDir(tmp_path / "run")
     assert seen[0].mesh == run / RunDir.MESH and (run / TOY_STATE).is_file()
@@ -148,9 +148,9 @@ def test_an_unknown_method_is_refused_by_name_before_any_work(tmp_path, capsys):
         methods.get("nope")
     capture = _write_capture(tmp_path / "cap")
     with pytest.raises(ValueError, match="unknown geometry method 'nope'"):
-        geometry_capture(capture, tmp_path / "run", load_config(None, []), progress=False, method="nope")
+        geometry_capture(capture, tmp_path / "run", load_config(None, []), method="nope")
     with pytest.raises(ValueError, match=r"geometry must be one of \('auto', 'neus', 'given'\), got 'nope'"):
-        fit_capture(capture, tmp_path / "run", load_config(None, []), geometry="nope", progress=False)
+        fit_capture(capture, tmp_path / "run", load_config(None, []), geometry="nope")
     assert not (tmp_path / "run").exists()
     with pytest.raises(SystemExit) as info:
         cli.main(["fit", str(capture), "-o", str(tmp_path / "run"), "--geometry", "nope"])

@@ -38,7 +38,7 @@ def test_a_flat_held_aside_score_ends_training_after_a_final_decay(monkeypatch):
         return out
 
     monkeypatch.setattr(NeuSTraining, "loop_step", spy)
-    summary = train(neus, None, progress=False)
+    summary = train(neus, None)
     assert summary["stopped_by_plateau"] and not summary["stopped_by_time"]
     assert summary["train_seconds"] < 10
     plateau = summary["plateau"]
@@ -54,5 +54,5 @@ def test_a_rising_held_aside_score_trains_to_the_time_limit(monkeypatch):
     neus = neus_for(capture, small_cfg(iterations=0, time_limit_s=1.5, plateau_s=0.3, coarse_to_fine=0.0))
     score = iter(range(10 ** 6))
     monkeypatch.setattr(NeuSTraining, "held_aside_psnr", lambda self, lw: float(next(score)))
-    summary = train(neus, None, progress=False)
+    summary = train(neus, None)
     assert summary["stopped_by_time"] and not summary["stopped_by_plateau"]

@@ -65,7 +65,7 @@ def test_photos_are_posed_where_they_were_taken(orbit, tmp_path, monkeypatch):
     (folder / "photo_005.png").unlink()
     out = tmp_path / "posed"
     lines = []
-    summary = poses.pose_capture(folder, out, progress=False, log=lines.append)
+    summary = poses.pose_capture(folder, out, log=lines.append)
     assert summary["registered"] >= N_VIEWS - 1 and summary["images"] == N_VIEWS
     assert summary["mean_reprojection_error_px"] < 1.0 and summary["matcher"] == "exhaustive"
     assert any(f"placed {summary['registered']} of {N_VIEWS} photos" in line for line in lines)
@@ -77,10 +77,10 @@ def test_photos_are_posed_where_they_were_taken(orbit, tmp_path, monkeypatch):
     assert "photo_005" in [c.name for c in capture.cameras]
 
     monkeypatch.setattr(poses, "_sfm", _fails)
-    assert poses.pose_capture(folder, out, progress=False, log=lines.append)["reused"]
+    assert poses.pose_capture(folder, out, log=lines.append)["reused"]
     shutil.copy(photos / "photo_005.png", folder / "photo_005b.png")
     with pytest.raises(AssertionError, match="structure from motion ran"):
-        poses.pose_capture(folder, out, progress=False, log=lines.append)
+        poses.pose_capture(folder, out, log=lines.append)
     assert (out / "pose.json").is_file() and not list(tmp_path.glob(".*pose-tmp"))  # the old result kept
 
 
@@ -143,17 +143,17 @@ def test_photo_folders_and_videos_are_captures_without_poses(tmp_path, monkeypat
         with pytest.raises(InputError, match="vq-mitsuba pose"):
             load_cameras(source)
     with pytest.raises(InputError, match="holds 2 photos"):
-        poses.pose_capture(photos, tmp_path / "out", progress=False)
+        poses.pose_capture(photos, tmp_path / "out")
     write_png(photos / "IMG_2.png", np.full((30, 20, 3), 0.5, np.float32))
     write_png(photos / "IMG_3.png", np.full((30, 20, 3), 0.5, np.float32))
     with pytest.raises(InputError, match=r"differ in size \(30x20: 2 \(IMG_0.png, IMG_1.PNG\); 20x30: 2 \(IMG_2"):
-        poses.pose_capture(photos, tmp_path / "out", progress=False)
+        poses.pose_capture(photos, tmp_path / "out")
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("mine")
     with pytest.raises(InputError, match="holds other files"):
-        poses.pose_capture(photos, tmp_path / "mine", progress=False)
+        poses.pose_capture(photos, tmp_path / "mine")
     with pytest.raises(InputError, match="ffmpeg cannot read the video"):
-        poses.pose_capture(video, tmp_path / "out", progress=False)
+        poses.pose_capture(video, tmp_path / "out")
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".*"))
 
 
@@ -193,16 +193,16 @@ def test_fit_of_photos_poses_them_in_the_run_once(orbit, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "fit_materials", lambda capture, *a, **k: seen.append(capture) or {"iterations": 1})
     run = RunDir(tmp_path / "run")
     cfg = load_config(None, [])
-    pipeline.fit_capture(photos, run.dir, cfg, progress=False, log=lambda line: None)
+    pipeline.fit_capture(photos, run.dir, cfg, log=lambda line: None)
     assert [c.source for c in seen] == [run / RunDir.POSE] * 2 and (run / RunDir.POSE_SUMMARY).is_file()
     assert run.holds_run_files()
     monkeypatch.setattr(poses, "_sfm", _fails)
-    pipeline.fit_capture(photos, run.dir, cfg, resume=True, progress=False, log=lambda line: None)
+    pipeline.fit_capture(photos, run.dir, cfg, resume=True, log=lambda line: None)
     assert [c.source for c in seen[2:]] == [run / RunDir.POSE] * 2
     with pytest.raises(InputError, match="known geometry cannot be used"):
-        pipeline.fit_capture(photos, tmp_path / "other", cfg, mesh=tmp_path / "m.ply", progress=False)
+        pipeline.fit_capture(photos, tmp_path / "other", cfg, mesh=tmp_path / "m.ply")
     with pytest.raises(InputError, match="--geometry given"):
-        pipeline.fit_capture(photos, tmp_path / "other", cfg, geometry="given", progress=False)
+        pipeline.fit_capture(photos, tmp_path / "other", cfg, geometry="given")
 
 
 @pytest.mark.slow

@@ -115,7 +115,7 @@ def test_neus_uses_the_points_inside_its_hull_and_they_pull_the_surface_onto_the
             assert len(neus.surface_points) == len(on_surface)
         else:
             assert neus.surface_points is None  # the term off: no points kept
-        train(neus, None, progress=False)
+        train(neus, None)
         errors[w] = np.abs(sdf_world(neus, on_surface)).mean()
         report = points_report(neus)
         assert report["given"] == len(on_surface) + 2

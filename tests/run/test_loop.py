@@ -12,7 +12,7 @@ from vq_mitsuba.run.loop import Budget, Clock, Interrupted, Loop, interrupt_sign
 
 def test_step_budget_runs_exact_steps_and_reports_shares():
     seen = []
-    result = Loop("t", Budget(steps=5), lambda p: seen.append(p) or None, progress_bar=False).run()
+    result = Loop("t", Budget(steps=5), lambda p: seen.append(p) or None).run()
     assert [p.step for p in seen] == [0, 1, 2, 3, 4]
     assert [p.step_share for p in seen] == [0.0, 0.2, 0.4, 0.6, 0.8]
     assert all(p.time_share == 0.0 and p.share == p.step_share for p in seen)
@@ -21,8 +21,7 @@ def test_step_budget_runs_exact_steps_and_reports_shares():
 
 def test_resumed_loop_continues_from_its_step_and_seconds():
     seen = []
-    result = Loop("t", Budget(steps=4), lambda p: seen.append(p) or None, start_step=2, start_seconds=100.0,
-                  progress_bar=False).run()
+    result = Loop("t", Budget(steps=4), lambda p: seen.append(p) or None, start_step=2, start_seconds=100.0).run()
     assert [p.step for p in seen] == [2, 3]
     assert seen[0].seconds >= 100.0
     assert result.steps == 4 and result.steps_this_call == 2 and result.seconds >= 100.0
@@ -32,7 +31,7 @@ def test_time_budget_stops_the_loop_and_share_is_the_larger():
     def step(p):
         time.sleep(0.02)
 
-    loop = Loop("t", Budget(steps=10_000, seconds=0.1), step, progress_bar=False)
+    loop = Loop("t", Budget(steps=10_000, seconds=0.1), step)
     result = loop.run()
     assert result.stopped_by_time and 2 <= result.steps < 10_000
     assert result.seconds >= 0.1
@@ -58,15 +57,14 @@ def test_writes_are_not_training_time():
         time.sleep(0.05)
 
     result = Loop("t", Budget(steps=6, seconds=0.2), lambda p: None, checkpoint=slow_checkpoint,
-                  checkpoint_every=1, progress_bar=False).run()
+                  checkpoint_every=1).run()
     assert result.steps == 6 and not result.stopped_by_time
     assert result.seconds < 0.1  # 7 checkpoints took 0.35 s of wall time
 
 
 def test_checkpoints_every_n_steps_at_the_end_and_after_an_error():
     saved = []
-    Loop("t", Budget(steps=7), lambda p: None, checkpoint=lambda p: saved.append(p.step), checkpoint_every=3,
-         progress_bar=False).run()
+    Loop("t", Budget(steps=7), lambda p: None, checkpoint=lambda p: saved.append(p.step), checkpoint_every=3).run()
     assert saved == [3, 6, 7]
 
     saved.clear()
@@ -76,7 +74,7 @@ def test_checkpoints_every_n_steps_at_the_end_and_after_an_error():
             raise RuntimeError("step failed")
 
     with pytest.raises(RuntimeError, match="step failed"):
-        Loop("t", Budget(steps=10), failing, checkpoint=lambda p: saved.append(p.step), progress_bar=False).run()
+        Loop("t", Budget(steps=10), failing, checkpoint=lambda p: saved.append(p.step)).run()
     assert saved == [4]  # the state after the last finished step, for --resume
 
 
@@ -87,7 +85,7 @@ def test_snapshots_at_requested_seconds_with_their_labels():
         time.sleep(0.01)
 
     Loop("t", Budget(steps=30), step, snapshot=lambda p, label: taken.append((label, p.seconds)),
-         snapshot_times=[0.05, 0.1, 0.1, 1e6], progress_bar=False).run()
+         snapshot_times=[0.05, 0.1, 0.1, 1e6]).run()
     labels = [label for label, _ in taken]
     assert labels == [0.05, 0.1]
     assert all(seconds >= label for label, seconds in taken)
@@ -99,8 +97,7 @@ def test_periodic_snapshots():
     def step(p):
         time.sleep(0.01)
 
-    Loop("t", Budget(steps=25), step, snapshot=lambda p, label: taken.append(label), snapshot_every_s=0.05,
-         progress_bar=False).run()
+    Loop("t", Budget(steps=25), step, snapshot=lambda p, label: taken.append(label), snapshot_every_s=0.05).run()
     assert len(taken) >= 3 and taken == sorted(taken) and taken[0] == pytest.approx(0.05)
 
 
@@ -127,11 +124,11 @@ def test_a_signal_whose_exception_was_lost_still_stops_the_loop_before_the_next_
     try:
         with pytest.raises(Interrupted) as stop, interrupt_signals():
             Loop("t", Budget(steps=100), step, checkpoint=lambda p: checkpoints.append(p.step),
-                 checkpoint_every=50, progress_bar=False).run()
+                 checkpoint_every=50).run()
     finally:
         sys.unraisablehook = hook
     assert [type(u.exc_value) for u in unraisable] == [Interrupted]  # the first exception was lost...
     assert steps == [0, 1, 2] and checkpoints == [3]  # ...and the loop stopped before step 3, checkpointed
     assert stop.value.signum == signal.SIGTERM and stop_status(stop.value) == 128 + signal.SIGTERM
     with interrupt_signals():  # a later block starts with no signal pending
-        assert Loop("t", Budget(steps=2), lambda p: None, progress_bar=False).run().steps == 2
+        assert Loop("t", Budget(steps=2), lambda p: None).run().steps == 2

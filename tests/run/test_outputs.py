@@ -26,8 +26,7 @@ def tiny(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("outputs")
     capture = write_sphere_capture(folder / "cap", size=16, n_views=4, spp=8)
-    fit(capture, folder / "run", load_config(None, ["train.iterations=6", "train.batch_rays=128", "vq.enabled=false"]),
-        progress=False)
+    fit(capture, folder / "run", load_config(None, ["train.iterations=6", "train.batch_rays=128", "vq.enabled=false"]))
     return capture, folder / "run", folder
 
 
@@ -231,18 +230,18 @@ def test_pose_never_empties_a_folder_it_cannot_tell_it_made(tmp_path, monkeypatc
     (out / "pose.json").write_text("{ not json")
     before = _snapshot(out)
     with pytest.raises(InputError, match="cannot be read") as info:
-        poses.pose_capture(photos, out, progress=False)
+        poses.pose_capture(photos, out)
     assert str(out / "pose.json") in str(info.value)
     (out / "pose.json").write_text(json.dumps({"version": 1, "source": str(tmp_path / "other_photos"),
                                                "inputs": {}}))
     before = _snapshot(out)
     with pytest.raises(InputError, match="poses of other photos"):
-        poses.pose_capture(photos, out, progress=False)
+        poses.pose_capture(photos, out)
     assert _snapshot(out) == before
     # its own photos, posed again (they changed): only a folder of pose's own files is replaced
     (out / "pose.json").write_text(json.dumps({"version": 1, "source": str(photos.resolve()), "inputs": {}}))
     with pytest.raises(InputError, match=r"files pose did not write \(my_notes.txt\)"):
-        poses.pose_capture(photos, out, progress=False)
+        poses.pose_capture(photos, out)
     assert (out / "my_notes.txt").read_text() == "mine"
 
 

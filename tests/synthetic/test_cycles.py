@@ -189,10 +189,8 @@ def rendered(tmp_path_factory):
     if cycles.bpy_dir() is None:
         pytest.skip("no .venv-cycles")
     root = tmp_path_factory.mktemp("cycles")
-    cy = cycles.make_scene_cycles("demo", root / "cy", resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=SPP,
-                                  progress=False)
-    mi = synthetic.make_scene("demo", root / "mi", resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=SPP,
-                              progress=False)
+    cy = cycles.make_scene_cycles("demo", root / "cy", resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=SPP)
+    mi = synthetic.make_scene("demo", root / "mi", resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=SPP)
     return cy, mi
 
 
@@ -342,7 +340,7 @@ def test_patterned_basecolor_matches_the_mitsuba_generator(tmp_path):
     the AOV equals the Mitsuba generator's map inside the striped object (it once came out black)."""
     from vq_mitsuba.data.imageio import read_image
 
-    kw = dict(resolution=24, n_train=1, n_test=1, spp=4, progress=False)
+    kw = dict(resolution=24, n_train=1, n_test=1, spp=4)
     cy = cycles.make_scene_cycles("texture", tmp_path / "cy", **kw)
     mi = synthetic.make_scene("texture", tmp_path / "mi", **kw)
     bc_cy, _ = read_image(cy / "gt" / "test_000_basecolor.exr")

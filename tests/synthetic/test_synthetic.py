@@ -21,7 +21,7 @@ R = BLENDER_ENV_TO_WORLD[:3, :3]
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    synthetic.make_scene("demo", out, resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=16, progress=False)
+    synthetic.make_scene("demo", out, resolution=RES, n_train=N_TRAIN, n_test=N_TEST, spp=16)
     return out
 
 
@@ -222,7 +222,7 @@ def test_patterns_blend_their_colours_and_vary(pattern):
 def test_shapes_sharing_a_material_keep_their_ground_truth(tmp_path):
     """tabletop's aluminium rod and studs share one BSDF (which Mitsuba would merge into one shape
     without an id): every material appears in the material maps of its test views."""
-    synthetic.make_scene("tabletop", tmp_path, resolution=64, n_train=1, n_test=3, spp=4, progress=False)
+    synthetic.make_scene("tabletop", tmp_path, resolution=64, n_train=1, n_test=3, spp=4)
     import imageio.v3 as iio
 
     ids = set()

@@ -407,7 +407,7 @@ def test_a_saved_edit_renders_as_the_editor_showed_it_and_exports(editor, three_
     fitted = run.load()
     fitted.edits = session.edits()
     cams = run.cameras()["train"][:2]
-    render_views(fitted, cams, fitted.world, tmp_path / "ours", spp=16, progress=False)
+    render_views(fitted, cams, fitted.world, tmp_path / "ours", spp=16)
     for cam in cams:
         a, b = read_exr(tmp_path / "cli" / f"{cam.name}_rgb.exr"), read_exr(tmp_path / "ours" / f"{cam.name}_rgb.exr")
         assert np.array_equal(a, b)

@@ -43,7 +43,7 @@ def run(args) -> int:
     fit_args += ["--config", str(Path(args.config).resolve())] if args.config else []
     rows = run_batch(args.captures, args.output, seeds=parse_seeds(args.seeds), presets=[args.preset],
                      fit_args=fit_args, threads=args.threads_per_run, evaluate=args.eval, address=args.address,
-                     progress=not args.quiet, eval_args=device)
+                     eval_args=device)
     done = sum(r.get("status") == "done" for r in rows)
     for row in rows:
         if row.get("status") != "done":

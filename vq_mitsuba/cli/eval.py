@@ -59,12 +59,12 @@ def run(args) -> int:
         raise InputError(None, "--downscale and --max-size resize the held-out photos of a real capture (eval "
                                "without --gt); a synthetic dataset's ground truth is scored at its own size")
     if args.gt is None:  # a real capture: the held-out views
-        metrics = evaluate_holdout(args.run_dir, spp=args.spp, progress=not args.quiet, output=args.output, **size)
+        metrics = evaluate_holdout(args.run_dir, spp=args.spp, output=args.output, **size)
         print(f"held-out views ({len(metrics['views'])}): novel view PSNR {metrics['novel_view']['psnr']:.2f} dB, "
               f"SSIM {metrics['novel_view']['ssim']:.4f} (inside the masks)")
     else:
         metrics = evaluate(args.run_dir, args.gt, spp=args.spp, scale_method=args.scale,
-                           progress=not args.quiet, output=args.output, meanshift_bandwidths=args.meanshift)
+                           output=args.output, meanshift_bandwidths=args.meanshift)
         print(format_table(metrics))
     print(f"metrics written to {args.output or RunDir(args.run_dir) / RunDir.METRICS}")
     return 0

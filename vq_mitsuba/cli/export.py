@@ -33,8 +33,7 @@ def run(args) -> int:
         size = args.texture_size  # refused below, as given
     size = check_texture_size(size, "--texture-size")  # export's one bound and message, naming the option
     refuse_file_output(args.output)
-    summary = export_run(args.run_dir, args.format, args.output, size, args.branch, args.envmap,
-                         progress=not args.quiet)
+    summary = export_run(args.run_dir, args.format, args.output, size, args.branch, args.envmap)
     s = summary["seconds"]
     print(f"exported {summary['format']} ({summary['branch']} branch, {summary['texture_size']}^2 textures, "
           f"baked in {s['bake']:.1f} s) to {args.output}/: {', '.join(summary['files'])}")

@@ -38,8 +38,7 @@ def run(args) -> int:
     refuse_file_output(run_dir)
     check_writable(run_dir)
     cfg = command_config(args, run_dir)  # bad keys and values fail before any work
-    summary = fit_capture(args.capture, run_dir, cfg, geometry=args.geometry, mesh=args.mesh, resume=args.resume,
-                          progress=not args.quiet)
+    summary = fit_capture(args.capture, run_dir, cfg, geometry=args.geometry, mesh=args.mesh, resume=args.resume)
     print(f"fitted {summary['iterations']} iterations in {summary['seconds']:.1f} s "
           f"({summary['iterations_per_s']:.1f} it/s); results in {run_dir}/")
     materials = RunDir(run_dir).materials()

@@ -30,8 +30,7 @@ def run(args) -> int:
     refuse_file_output(run_dir)
     check_geometry_target(RunDir(run_dir))
     cfg = command_config(args)
-    result = geometry_capture(args.capture, run_dir, cfg, resume=args.resume, progress=not args.quiet,
-                              gt_mesh=args.gt_mesh)
+    result = geometry_capture(args.capture, run_dir, cfg, resume=args.resume, gt_mesh=args.gt_mesh)
     info = result.summary
     lines = methods.get(result.method).report(info)  # its training first, then its own scores
     mesh = f"mesh with {len(result.mesh.faces)} faces in {run_dir}/{RunDir.MESH}"

@@ -35,7 +35,7 @@ def run(args) -> int:
     refuse_file_output(args.output)
     check_writable(args.output)
     cfg = command_config(args)
-    summary = pose_capture(args.source, args.output, cfg.pose, progress=not args.quiet)
+    summary = pose_capture(args.source, args.output, cfg.pose)
     print(f"{summary['registered']} of {summary['images']} images posed, mean reprojection error "
           f"{summary['mean_reprojection_error_px']:.2f} px: {args.output}/ (a COLMAP capture and pose.json); "
           f"fit it with: vq-mitsuba fit {args.output}")

@@ -36,6 +36,6 @@ def run(args) -> int:
     refuse_file_output(args.output)
     size = load_config(None, capture_flags(args)).capture  # --downscale, --max-size
     out = render_run(args.run_dir, args.cameras, args.output, args.envmap, size, env_rotate_deg=args.env_rotate,
-                     exposure_ev=args.exposure, spp=args.spp, progress=not args.quiet)
+                     exposure_ev=args.exposure, spp=args.spp)
     print(f"rendered views in {out}/")
     return 0

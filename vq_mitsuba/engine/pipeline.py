@@ -67,19 +67,19 @@ def check_fit_target(run: RunDir, resume: bool) -> None:
         raise InputError(run.dir, "already holds a fitted run: pass --resume to continue it, or choose another -o")
 
 
-def posed_capture(capture: CaptureSource, run: RunDir, cfg: PoseConfig, progress: bool = True,
+def posed_capture(capture: CaptureSource, run: RunDir, cfg: PoseConfig,
                   log: Callable[[str], None] = messages.note) -> CaptureSource:
     """The capture to fit or reconstruct: photos or a video without poses posed into RUN/pose
     (`ensure_poses`, reused while the inputs are the same) and that capture resolved, any other
     capture as it is."""
     if capture.posed:
         return capture
-    posed = ensure_poses(capture, run, cfg, progress=progress, log=log)
+    posed = ensure_poses(capture, run, cfg, log=log)
     return open_capture(posed, options=capture.options, cache_dir=capture.cache_dir)
 
 
 def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry: str = "auto",
-                mesh: str | Path | None = None, resume: bool = False, progress: bool = True,
+                mesh: str | Path | None = None, resume: bool = False,
                 log: Callable[[str], None] = messages.note) -> dict:
     """Fit a capture into RUN_DIR: refuse a folder of other files, an edited run, or a fitted run
     without `resume` before any work; pose photos or a video without poses (RUN_DIR/pose/, a COLMAP
@@ -105,29 +105,28 @@ def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry:
         # A stage refused once it has read the capture (no pixel hits a --mesh, no geometry) removes
         # what it wrote (undistorted/, config.yaml, mesh.ply); the stages finished before are kept.
         with removed_on_refusal(run.dir):
-            capture = posed_capture(capture, run, cfg.pose, progress=progress, log=log)
+            capture = posed_capture(capture, run, cfg.pose, log=log)
         if reconstruct:
             reused = resume and run.has_mesh()
             with removed_on_refusal(run.dir):
-                mesh = ensure_geometry(capture, run, cfg, method.name, resume=resume, progress=progress)
+                mesh = ensure_geometry(capture, run, cfg, method.name, resume=resume)
             log(f"geometry: {'reusing' if reused else f'reconstructed with {method.label}:'} {mesh}")
             if not reused:
                 for line in geometry_report(run, method.name):  # its training and its own scores
                     log(line)
             capture = capture.with_mesh(mesh)
         with removed_on_refusal(run.dir):
-            return fit_materials(capture, run, cfg, resume=resume, progress=progress)
+            return fit_materials(capture, run, cfg, resume=resume)
 
 
 def fit(capture_path: str | Path, run_dir: str | Path, cfg: Config, mesh_path: str | Path | None = None,
-        resume: bool = False, progress: bool = True) -> dict:
+        resume: bool = False) -> dict:
     """`vq-mitsuba fit --geometry given`: the capture's own geometry or `mesh_path`, no reconstruction."""
-    return fit_capture(capture_path, run_dir, cfg, geometry="given", mesh=mesh_path, resume=resume,
-                       progress=progress)
+    return fit_capture(capture_path, run_dir, cfg, geometry="given", mesh=mesh_path, resume=resume)
 
 
 def geometry_capture(capture: str | Path, run_dir: str | Path, cfg: Config, resume: bool = False,
-                     progress: bool = True, gt_mesh: str | Path | None = None,
+                     gt_mesh: str | Path | None = None,
                      method: str = methods.DEFAULT) -> methods.Reconstruction:
     """`vq-mitsuba geometry`: the geometry `method` (NeuS by default) and the mesh into RUN_DIR under
     the run's lock, photos or a video posed first (`posed_capture`); returns the `Reconstruction`."""
@@ -137,12 +136,11 @@ def geometry_capture(capture: str | Path, run_dir: str | Path, cfg: Config, resu
         raise InputError(run.dir, "no run to resume (the folder does not exist)")
     capture = open_capture(capture, options=cfg.capture, cache_dir=run.dir / RunDir.UNDISTORTED)
     with run.lock("geometry"), removed_on_refusal(run.dir):
-        capture = posed_capture(capture, run, cfg.pose, progress=progress)
-        return run_geometry(capture, run, cfg, method, resume=resume, progress=progress, gt_mesh=gt_mesh)
+        capture = posed_capture(capture, run, cfg.pose)
+        return run_geometry(capture, run, cfg, method, resume=resume, gt_mesh=gt_mesh)
 
 
-def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool = False,
-                  progress: bool = True) -> dict:
+def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool = False) -> dict:
     """The material fit on the capture's known geometry (its own, or `capture.mesh`) in a checked,
     locked run: returns the summary written to RUN_DIR/fit.json."""
     t_start = time.perf_counter()
@@ -170,7 +168,7 @@ def fit_materials(capture: CaptureSource, run: RunDir, cfg: Config, resume: bool
     if resume:
         _resume_trainer(trainer, state, run)
     startup = time.perf_counter() - t_start
-    summary = trainer.train(progress)
+    summary = trainer.train()
     summary["startup_s"] = startup
     write_products(trainer, summary)
     return summary

@@ -77,8 +77,7 @@ def physical_radiance(scene, model, pool: PixelPool, idx: torch.Tensor, env: tor
     return torch.cat(parts)
 
 
-def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: Config,
-                 progress: bool = False) -> tuple[ResidualField, dict]:
+def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: Config) -> tuple[ResidualField, dict]:
     """The residual field fitted on the pool's hits (materials `model` and light `env` frozen),
     and its summary: hits, steps, and the sRGB PSNR of the kept-aside hits before and after."""
     device = pool.position.device
@@ -148,7 +147,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
         return best["worse"] >= PATIENCE
 
     t0 = time.perf_counter()
-    done = Loop("residual", Budget(steps), step, progress_bar=progress, done=finished).run()
+    with messages.quiet():  # no bar of its own, as before: `residual_stage`'s note reports the fit
+        done = Loop("residual", Budget(steps), step, done=finished).run()
     field.load_state_dict(best["state"])
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "batch": batch,
@@ -160,11 +160,11 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
 
 
 def residual_stage(run: RunDir, scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: Config,
-                   step: int, progress: bool = False) -> dict:
+                   step: int) -> dict:
     """Fit the residual after the material fit's step `step`, write it (RunDir.RESIDUAL) and
     return its summary for fit.json."""
     t0 = time.perf_counter()
-    field, info = fit_residual(scene, model, pool, env.detach(), bounds, cfg, progress)
+    field, info = fit_residual(scene, model, pool, env.detach(), bounds, cfg)
     run.save_residual(field.state_dict(), step)
     info["seconds"] = time.perf_counter() - t0  # the prediction's render included
     if math.isfinite(info["psnr_check_hits_before"]) and math.isfinite(info["psnr_check_hits_after"]):

@@ -227,7 +227,7 @@ class Trainer:
         return self.model.held_loss(self.data, skips.np_seed(self.cfg.train.seed, 4), self.bounce_active())
 
     # --- the loop -------------------------------------------------------------------------------
-    def train(self, progress: bool = True) -> dict:
+    def train(self) -> dict:
         """Run the remaining steps under train.iterations and train.time_limit_s (the loop skeleton,
         `vq_mitsuba.run.loop`); the learning rate follows the step share, the rest of the schedule
         the larger of the step and time shares (`schedule_at`)."""
@@ -237,7 +237,7 @@ class Trainer:
                     start_step=self.step, start_seconds=self.elapsed_before,
                     checkpoint=lambda p: self.checkpoint(p.seconds), checkpoint_every=cfg.train.checkpoint_every,
                     snapshot=lambda p, label: self.snapshot(p.seconds),
-                    snapshot_times=parse_snapshot_times(cfg.train.snapshot_s), progress_bar=progress,
+                    snapshot_times=parse_snapshot_times(cfg.train.snapshot_s),
                     done=lambda: self.pace.finished)
         self._clock = loop.clock
         self._phase = self._stage()

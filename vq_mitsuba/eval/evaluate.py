@@ -166,7 +166,7 @@ class RunPredictor:
 
 
 def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
-             progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
+             output: str | Path | None = None, aa: int = DEFAULT_AA,
              meanshift_bandwidths=MEANSHIFT_BANDWIDTHS, checkpoint: str | Path | None = None) -> dict:
     """Score the fitted run RUN_DIR on the test views of DATASET_DIR; writes RUN_DIR/metrics.json
     (or `output`) and returns the same nested dict. spp None: the run's render.spp (default 256).
@@ -175,14 +175,14 @@ def evaluate(run_dir: str | Path, dataset_dir: str | Path, spp: int | None = Non
         raise InputError(None, f"unknown scale method '{scale_method}' (use {' or '.join(M.SCALE_METHODS)})")
     dataset_root(dataset_dir)
     predictor = RunPredictor(run_dir, checkpoint)
-    return evaluate_predictor(predictor, dataset_dir, spp=spp, scale_method=scale_method, progress=progress,
+    return evaluate_predictor(predictor, dataset_dir, spp=spp, scale_method=scale_method,
                               output=Path(output) if output is not None else predictor.run / RunDir.METRICS,
                               aa=aa, meanshift_bandwidths=meanshift_bandwidths,
                               run_label=str(Path(run_dir).resolve()), fit_summary=predictor.fit_summary())
 
 
 def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = None, scale_method: str = "lstsq",
-                       progress: bool = True, output: str | Path | None = None, aa: int = DEFAULT_AA,
+                       output: str | Path | None = None, aa: int = DEFAULT_AA,
                        meanshift_bandwidths=MEANSHIFT_BANDWIDTHS, run_label: str = "",
                        fit_summary: dict | None = None) -> dict:
     """The scores of `evaluate` for any predictor: an object with `world` ("mitsuba" or "blender"),
@@ -197,8 +197,7 @@ def evaluate_predictor(predictor, dataset_dir: str | Path, spp: int | None = Non
     t0 = time.perf_counter()
     data = _load_test_views(dataset_dir, predictor.world)
     spp = int(spp or predictor.default_spp)
-    bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view",
-                            disable=not progress)
+    bar = messages.progress(total=len(data.views) * (1 + len(data.envs)), desc="eval", unit="view")
     preds = _render_fitted_lighting(predictor, data, spp, aa, bar)
     per_view, scales = _image_scores(data, preds, scale_method)
     bc_scales = scales[brdf.BASECOLOR]  # the albedo's: relighting and coverage are scored with it too

@@ -42,7 +42,7 @@ def straight_colours(out: dict) -> tuple[np.ndarray, np.ndarray | None]:
     return out["rgb"] / cover, None
 
 
-def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool = True,
+def evaluate_holdout(run_dir: str | Path, spp: int | None = None,
                      output: str | Path | None = None, downscale: int | None = None,
                      max_size: int | None = None) -> dict:
     """Score a run fitted with capture.holdout K on the views it kept out of training: novel-view
@@ -61,8 +61,7 @@ def evaluate_holdout(run_dir: str | Path, spp: int | None = None, progress: bool
     renderer = Renderer(fitted)
     spp = spp or cfg.render.spp
     rows = []
-    for cam, image, alpha in messages.progress(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout",
-                                               disable=not progress):
+    for cam, image, alpha in messages.progress(list(zip(held.cameras, held.images, held.alpha)), desc="eval holdout"):
         out = renderer.render(cam, spp=spp)
         check_finite(out, cam.name)
         mask = alpha > 0.5

@@ -287,8 +287,7 @@ def _write_snapshot(path: Path, arrays: dict, meta: dict) -> None:
 
 
 def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | None = None,
-              time_limit_s: float = 60.0, snapshot_s=(), mesh_path: str | Path | None = None,
-              progress: bool = True) -> dict:
+              time_limit_s: float = 60.0, snapshot_s=(), mesh_path: str | Path | None = None) -> dict:
     """Fit per-texel principled textures (and the envmap unless the capture knows it) for
     `time_limit_s` seconds of optimisation (unwrapping and scene setup not counted, nor snapshot
     writes; 0: no limit, cfg.iterations then stops the fit). Writes `out_dir/snapshot_XXXXs.npz`
@@ -306,7 +305,7 @@ def fit_texel(capture_path: str | Path, out_dir: str | Path, cfg: TexelConfig | 
     setup_seconds = time.perf_counter() - t_setup
     loop = Loop("texel fit", Budget(cfg.iterations, time_limit_s), fit.loop_step,
                 snapshot=fit.snapshot_at,
-                snapshot_times=snapshot_s, progress_bar=progress)
+                snapshot_times=snapshot_s)
     fit.clock = loop.clock
     result = loop.run()
     elapsed, step = result.seconds, result.steps

@@ -134,7 +134,7 @@ def pad_ids(ids: np.ndarray, filled: np.ndarray, iterations: int = 16) -> np.nda
     return v
 
 
-def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous", progress: bool = True) -> BakedMesh:
+def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous") -> BakedMesh:
     """UV-unwrap the run's mesh and bake basecolor, metallic, roughness (of `branch`,
     "continuous" or "discrete", with the run's edits) and the material ids into S x S textures."""
     from vq_mitsuba import messages
@@ -161,7 +161,7 @@ def bake(fitted: FittedModel, size: int = 1024, branch: str = "continuous", prog
     n = len(points)
     values = {i.name: np.zeros((n, i.channels), np.float32) for i in INPUTS}
     ids = np.zeros(n, np.uint8) if fitted.discrete is not None else None
-    for s in messages.progress(range(0, n, CHUNK), desc=f"bake {size}x{size}", disable=not progress):
+    for s in messages.progress(range(0, n, CHUNK), desc=f"bake {size}x{size}"):
         pts = torch.as_tensor(points[s:s + CHUNK], device=dev)
         out = fitted.materials_at(pts, discrete=branch == "discrete")
         src = out["discrete"] if branch == "discrete" else out

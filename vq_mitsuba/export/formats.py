@@ -75,8 +75,7 @@ def check_texture_size(texture_size, name: str = "the texture size") -> int:
 
 
 def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size: int = 1024,
-               branch: str = "continuous", envmap_path: str | Path | None = None,
-               progress: bool = True) -> dict:
+               branch: str = "continuous", envmap_path: str | Path | None = None) -> dict:
     """Write the export into OUT_DIR and return its summary (also OUT_DIR/export.json)."""
     if fmt not in FORMATS:
         raise InputError(None, f"unknown export format '{fmt}' (one of {', '.join(FORMATS)})")
@@ -99,7 +98,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
     from vq_mitsuba.export.bake import bake
 
     t0 = time.perf_counter()
-    baked = bake(fitted, int(texture_size), branch, progress=progress)
+    baked = bake(fitted, int(texture_size), branch)
     bake_s = time.perf_counter() - t0
     missing = [p for p in (out, *out.parents) if not p.exists()]  # made here: removed again if writing fails
     out.mkdir(parents=True, exist_ok=True)

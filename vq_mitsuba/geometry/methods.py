@@ -65,8 +65,7 @@ class GeometryMethod(Protocol):
     files: tuple[str, ...]  # file names it keeps in a run (its checkpoint): markers of a run, what resume continues
     seed_key: str | None  # the config key of its seed (a batch sets it for each run), None without one
 
-    def reconstruct(self, source: CaptureSource, run: RunDir, cfg: Config, resume: bool = False,
-                    progress: bool = True) -> Reconstruction:
+    def reconstruct(self, source: CaptureSource, run: RunDir, cfg: Config, resume: bool = False) -> Reconstruction:
         """Reconstruct `source` (a posed capture) into `run` with its section of `cfg`; `resume`
         continues from its own checkpoint there, if any."""
 

@@ -47,16 +47,16 @@ CAMERA_MODEL = "SIMPLE_RADIAL"  # focal length, principal point, one radial term
 SUMMARY_VERSION = 1
 
 
-def ensure_poses(capture: CaptureSource, run: RunDir, cfg: PoseConfig, progress: bool = True,
+def ensure_poses(capture: CaptureSource, run: RunDir, cfg: PoseConfig,
                  log: Callable[[str], None] = messages.note) -> Path:
     """The run's posed COLMAP capture RUN/pose of an unposed capture (made, or reused when it was
     made from the same inputs); returns its folder."""
-    pose_capture(capture, run / RunDir.POSE, cfg, progress=progress, log=log)
+    pose_capture(capture, run / RunDir.POSE, cfg, log=log)
     return run / RunDir.POSE
 
 
 def pose_capture(capture: str | Path | CaptureSource, out: str | Path, cfg: PoseConfig | None = None,
-                 progress: bool = True, log: Callable[[str], None] = messages.note) -> dict:
+                 log: Callable[[str], None] = messages.note) -> dict:
     """Find the camera poses of a folder of photos or a video and write the COLMAP capture OUT
     (images/, sparse/0/, pose.json); returns pose.json's content (with "reused" true when OUT
     already held the result for the same inputs and settings)."""
@@ -79,10 +79,10 @@ def pose_capture(capture: str | Path | CaptureSource, out: str | Path, cfg: Pose
         t0 = time.perf_counter()
         images = work / colmap.IMAGES
         images.mkdir()
-        names, video = fmt.views_into(source, images, cfg.frames, progress, log)
+        names, video = fmt.views_into(source, images, cfg.frames, log)
         t_images = time.perf_counter() - t0
         matcher = inputs["matcher"]
-        model, seconds = _sfm(work, names, matcher, progress, log)
+        model, seconds = _sfm(work, names, matcher, log)
         registered = model.num_reg_images() if model is not None else 0
         _check_registered(source, registered, len(names), cfg, fmt.NOUN)
         model.write(str(_mkdir(work / colmap.MODEL)))
@@ -207,13 +207,13 @@ def _quiet_colmap():
         pycolmap.logging.minloglevel = level
 
 
-def _sfm(work: Path, names: list[str], matcher: str, progress: bool, log: Callable[[str], None]):
+def _sfm(work: Path, names: list[str], matcher: str, log: Callable[[str], None]):
     """COLMAP on work/images: (the model placing the most images or None, seconds per step)."""
     pycolmap = import_pycolmap()
 
     threads, db, images = _threads(), work / "database.db", work / colmap.IMAGES
     seconds = {}
-    bar = messages.progress(total=3, desc="pose", unit="step", disable=not progress)
+    bar = messages.progress(total=3, desc="pose", unit="step")
     with _quiet_colmap(), bar:
         t = time.perf_counter()
         bar.set_postfix_str(f"SIFT features of {len(names)} images")

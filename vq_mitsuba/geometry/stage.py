@@ -49,7 +49,7 @@ def _read_info(run: RunDir) -> dict | None:
 
 
 def run_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: Config, method: str = methods.DEFAULT,
-                 resume: bool = False, progress: bool = True, gt_mesh=None) -> Reconstruction:
+                 resume: bool = False, gt_mesh=None) -> Reconstruction:
     """The geometry `method` (a registered name) into the run on a posed capture (photos or a video
     are posed first: `vq_mitsuba.engine.pipeline.posed_capture`); score against gt_mesh if given.
     Writes the method's summary as geometry.json, with `background` "model" where the mesh was made
@@ -60,7 +60,7 @@ def run_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: Confi
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     check_geometry_target(run)
     gt = load_mesh(gt_mesh) if gt_mesh is not None else None
-    result = chosen.reconstruct(source, run, cfg, resume=resume, progress=progress)
+    result = chosen.reconstruct(source, run, cfg, resume=resume)
     result.method = chosen.name
     result.summary["background"] = "model" if result.masks_from_mesh else "masks"
     if gt is not None:
@@ -74,11 +74,11 @@ def run_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: Confi
 
 
 def ensure_geometry(source: CaptureSource, run_dir: str | Path | RunDir, cfg: Config, method: str = methods.DEFAULT,
-                    resume: bool = False, progress: bool = True) -> Path:
+                    resume: bool = False) -> Path:
     """The run's mesh.ply from the geometry `method`, reusing an existing one on resume; returns its path."""
     run = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
     if not (resume and run.has_mesh()):
-        run_geometry(source, run, cfg, method, resume=resume, progress=progress)
+        run_geometry(source, run, cfg, method, resume=resume)
     return run / RunDir.MESH
 
 

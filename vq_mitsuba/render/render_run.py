@@ -46,8 +46,7 @@ def new_folder(path: Path):
 
 def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Path | None = None,
                envmap_paths: Sequence[str | Path] = (), size: CaptureConfig | None = None,
-               env_rotate_deg: float = 0.0, exposure_ev: float = 0.0, spp: int | None = None,
-               progress: bool = True) -> Path:
+               env_rotate_deg: float = 0.0, exposure_ev: float = 0.0, spp: int | None = None) -> Path:
     """Render the run's views for every camera of `cameras_path` into `out_dir` (default
     RUN_DIR/renders): the first lighting (the fitted envmap when `envmap_paths` is empty) into it,
     each further one into OUT/<its file name>; then write OUT/render.json. Every input is checked
@@ -66,7 +65,7 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
     names = lighting_names(envmap_paths)
     with new_folder(out):
         views.render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
-                           env_rotate_deg=env_rotate_deg, exposure_ev=exposure_ev, spp=spp, progress=progress,
+                           env_rotate_deg=env_rotate_deg, exposure_ev=exposure_ev, spp=spp,
                            more_envmaps=list(zip(names[1:], envmaps[1:])))
         write_json(out / RENDER_MARKER, {
             "run": str(run.dir.resolve()), "cameras": str(Path(cameras_path).resolve()),

@@ -264,7 +264,7 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
 
 def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: str, out_dir: Path,
                  envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
-                 spp: int | None = None, progress: bool = True,
+                 spp: int | None = None,
                  more_envmaps: Sequence[tuple[str, np.ndarray]] = ()) -> None:
     """Render every camera (given in world `cameras_world`) and write the per-view files.
 
@@ -282,7 +282,7 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     files = view_names([cam.name for cam in cameras])
     renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
     others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
-    for cam, file_name in zip(messages.progress(cameras, desc="render", disable=not progress), files):
+    for cam, file_name in zip(messages.progress(cameras, desc="render"), files):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
         relit = images.pop("relit", [])
         check_finite(images, cam.name)

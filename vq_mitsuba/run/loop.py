@@ -149,7 +149,7 @@ class Loop:
                  start_step: int = 0, start_seconds: float = 0.0,
                  checkpoint: Callable[[Progress], None] | None = None, checkpoint_every: int = 0,
                  snapshot: Callable[[Progress, float], None] | None = None, snapshot_times: Iterable[float] = (),
-                 snapshot_every_s: float = 0.0, progress_bar: bool = True, done: Callable[[], bool] | None = None):
+                 snapshot_every_s: float = 0.0, done: Callable[[], bool] | None = None):
         self.name, self.budget, self.step_fn = name, budget, step
         self.done_fn = done
         self.step, self.start_step = start_step, start_step
@@ -160,7 +160,6 @@ class Loop:
         self.every_s = snapshot_every_s
         self.next_periodic = ((start_seconds // snapshot_every_s) + 1) * snapshot_every_s if snapshot_every_s > 0 \
             else None
-        self.progress_bar = progress_bar
 
     def progress(self) -> Progress:
         seconds = self.clock()
@@ -193,8 +192,7 @@ class Loop:
     def run(self) -> LoopResult:
         from vq_mitsuba import messages
 
-        bar = messages.progress(total=self.budget.steps or None, initial=self.step, desc=self.name,
-                                disable=not self.progress_bar)
+        bar = messages.progress(total=self.budget.steps or None, initial=self.step, desc=self.name)
         stopped_by_time = stopped_early = False
         try:
             while self._steps_left():

@@ -166,8 +166,8 @@ def build_job(spec: dict, shapes: list[dict], cameras: list, renders: list[dict]
                         for r in renders]}
 
 
-def run_worker(job: dict, job_path: Path, progress=None, python: Path | None = None) -> None:
-    """Write the job and render it in the Cycles environment; `progress(i)` after each render."""
+def run_worker(job: dict, job_path: Path, on_view=None, python: Path | None = None) -> None:
+    """Write the job and render it in the Cycles environment; `on_view(1)` after each render."""
     python = python or check_environment()
     job_path = Path(job_path)
     job_path.parent.mkdir(parents=True, exist_ok=True)
@@ -183,8 +183,8 @@ def run_worker(job: dict, job_path: Path, progress=None, python: Path | None = N
         assert proc.stdout is not None
         for line in proc.stdout:
             log.write(line)
-            if line.startswith("rendered ") and progress is not None:
-                progress(1)
+            if line.startswith("rendered ") and on_view is not None:
+                on_view(1)
         rc = proc.wait()
     if rc != 0:
         tail = "".join(log_path.read_text().splitlines(keepends=True)[-15:])
@@ -308,7 +308,7 @@ def _write_dataset_images(out: Path, work: Path, spec: dict, cams: synthetic.Sce
 
 
 def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train: int | None = None,
-                      n_test: int | None = None, spp: int | None = None, seed: int = 0, progress: bool = True,
+                      n_test: int | None = None, spp: int | None = None, seed: int = 0,
                       denoise: bool = False, threads: int = 0, keep_raw: bool = False,
                       probes: bool = True) -> Path:
     """Render the bundled scene `name` with Cycles into out_dir, in synthetic.make_scene's layout.
@@ -344,10 +344,10 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     renders = _render_list(out, work, cams, relights)
     job = build_job(spec, geometry.shapes, cams.train + cams.test, renders, spp, seed=seed, denoise=denoise,
                     threads=threads)
-    bar = messages.progress(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view", disable=not progress)
+    bar = messages.progress(total=len(renders), desc=f"make-scene {name} (cycles)", unit="view")
     t_render = time.time()
     try:
-        run_worker(job, work / DatasetDir.CYCLES_JOB, progress=bar.update, python=python)
+        run_worker(job, work / DatasetDir.CYCLES_JOB, on_view=bar.update, python=python)
     finally:
         bar.close()
     t_rendered = time.time()

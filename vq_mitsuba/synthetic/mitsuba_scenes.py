@@ -636,7 +636,7 @@ def _make_sensors(cameras: list[Camera], spp: int) -> dict:
 
 
 def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, cams: SceneCameras,
-                  env_train: np.ndarray, relights: list[dict], shape_info: dict, seed: int, progress: bool) -> None:
+                  env_train: np.ndarray, relights: list[dict], shape_info: dict, seed: int) -> None:
     """images/ (train and test views under the training envmap), gt/ (test views) and relit/
     (test views under each held-aside envmap, whose "array" is taken from its relights entry)."""
     import mitsuba as mi
@@ -644,7 +644,7 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
 
     train_mi, test_mi = cams.train_mi, cams.test_mi
     total = len(train_mi) + len(test_mi) + len(test_mi) * len(relights)
-    bar = messages.progress(total=total, desc=f"make-scene {name}", unit="view", disable=not progress)
+    bar = messages.progress(total=total, desc=f"make-scene {name}", unit="view")
     counter = [seed * 1_000_003]
 
     dataset = DatasetDir(out)
@@ -680,7 +680,7 @@ def check_seed(seed) -> None:
 
 def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = None, n_train: int | None = None,
                n_test: int | None = None, spp: int | None = None, seed: int = 0,
-               progress: bool = True, photo_formats: bool = False) -> Path:
+               photo_formats: bool = False) -> Path:
     """Render the bundled synthetic scene `name` into out_dir (both capture formats, GT maps,
     relit test views). None for resolution / n_train / n_test / spp takes the scene's default
     (synthetic/scenes/<name>.yaml); resolution is a side or (width, height). `photo_formats` also writes the
@@ -692,7 +692,7 @@ def make_scene(name: str, out_dir, resolution: int | tuple[int, int] | None = No
     spec = load_scene_spec(name)
     res, n_train, n_test, spp = _scene_settings(spec, resolution, n_train, n_test, spp)
     with _complete_or_removed(out_dir) as out:
-        _render_dataset(name, spec, out, res, n_train, n_test, spp, seed, progress, t_start)
+        _render_dataset(name, spec, out, res, n_train, n_test, spp, seed, t_start)
         if photo_formats:
             from vq_mitsuba.data.captures import load_capture
             from vq_mitsuba.data.formats.copies import write_photo_formats
@@ -743,7 +743,7 @@ def _refused_write(exc: BaseException, out: Path, removed: bool) -> WriteError |
 
 
 def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test: int, spp: int, seed: int,
-                    progress: bool, t_start: float) -> None:
+                    t_start: float) -> None:
     """make_scene's views, ground truth and scene.json into the prepared folder `out`."""
     # Geometry and cameras: Blender world for mesh.ply and the json, Mitsuba world (R^-1) for the XML.
     geometry = write_geometry(spec, out)
@@ -755,7 +755,7 @@ def _render_dataset(name: str, spec: dict, out: Path, res, n_train: int, n_test:
     sensors = _make_sensors(cams.train_mi + cams.test_mi, spp)
     spp_used = int(next(iter(sensors.values())).sampler().sample_count())
     t_render = time.time()
-    _render_views(name, spec, out, base, sensors, cams, env_train, relights, geometry.shape_info, seed, progress)
+    _render_views(name, spec, out, base, sensors, cams, env_train, relights, geometry.shape_info, seed)
     t_end = time.time()
 
     meta = {

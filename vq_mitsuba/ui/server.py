@@ -488,6 +488,7 @@ def serve(run_dir: str | Path, host: str = DEFAULT_HOST, port: int = 8080, envma
     server = make_server(session, host, port)
     session.start()
     bound_host, bound_port = server.server_address[:2]
+    # Printed, not notes: the editor's address and state are this command's output, shown even when quiet.
     print(f"vq-mitsuba editor for {session.run.dir} at http://{bound_host}:{bound_port}/  (Ctrl-C stops)", flush=True)
     if not _loopback(bound_host):
         print(f"listening on {bound_host}: anyone who can reach this machine can open the editor", flush=True)

@@ -562,6 +562,7 @@ class EditorSession:
     def export(self, name: str, fmt: str, texture_size: int = 1024) -> None:
         """Save as NAME, then export it as FORMAT into NAME/export-FORMAT (on the render thread)."""
         from vq_mitsuba.export.formats import FORMATS, check_texture_size, export_run
+        from vq_mitsuba.messages import quiet
 
         if fmt not in FORMATS:
             raise InputError(None, f"unknown export format '{fmt}' (one of {', '.join(FORMATS)})")
@@ -570,7 +571,8 @@ class EditorSession:
         out = target.dir / f"export-{fmt}"
 
         def job():
-            summary = export_run(target.dir, fmt, out, texture_size=texture_size, progress=False)
+            with quiet():  # the editor shows the job's state, not the bake's bar
+                summary = export_run(target.dir, fmt, out, texture_size=texture_size)
             return {"message": f"exported {out}", "path": str(out), "files": summary.get("files", [])}
 
         with self._cond:

@@ -41,7 +41,7 @@ def pose_inputs(source: Path, frames: int, fingerprint) -> tuple[dict, int]:
     return {"files": [[p.name, fingerprint(p)] for p in photos]}, len(photos)
 
 
-def views_into(source: Path, images: Path, frames: int, progress: bool, log) -> tuple[list[str], dict | None]:
+def views_into(source: Path, images: Path, frames: int, log) -> tuple[list[str], dict | None]:
     """Copy the photos upright into `images`; all must share one size (one camera). Returns (their
     names, None)."""
     sizes: dict[tuple[int, int], list[str]] = {}

@@ -56,14 +56,14 @@ def pose_inputs(source: Path, frames: int, fingerprint) -> tuple[dict, int]:
     return {"files": [[source.name, fingerprint(source)]], "frames": frames}, frames
 
 
-def views_into(source: Path, images: Path, frames: int, progress: bool, log) -> tuple[list[str], dict]:
+def views_into(source: Path, images: Path, frames: int, log) -> tuple[list[str], dict]:
     """The sharpest frame of each of `frames` time windows into `images`: (their names, what
     `pick_frames` did)."""
-    done = pick_frames(source, images, frames, progress=progress, log=log)
+    done = pick_frames(source, images, frames, log=log)
     return sorted(p.name for p in images.iterdir()), done
 
 
-def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
+def pick_frames(video: Path, folder: Path, count: int,
                 log: Callable[[str], None] = messages.note) -> dict:
     """Decode `video` once, keep the sharpest frame of each of `count` equal time windows and write
     them to folder/frame_NNNNNN.jpg (NNNNNN the frame's index in the video). Returns what was done:
@@ -93,7 +93,7 @@ def pick_frames(video: Path, folder: Path, count: int, progress: bool = True,
             best[window] = (score, index, None)
 
     try:
-        with messages.progress(total=total, desc="video frames", unit="frame", disable=not progress) as bar:
+        with messages.progress(total=total, desc="video frames", unit="frame") as bar:
             for raw in reader:
                 frame = np.frombuffer(raw, np.uint8).reshape(height, width, 3)
                 window = min(count - 1, decoded * count // max(total, 1))

@@ -37,8 +37,7 @@ class NeuSMethod:
     files = (CHECKPOINT,)
     seed_key = "neus.seed"
 
-    def reconstruct(self, source: CaptureSource, run: RunDir, cfg: Config, resume: bool = False,
-                    progress: bool = True) -> Reconstruction:
+    def reconstruct(self, source: CaptureSource, run: RunDir, cfg: Config, resume: bool = False) -> Reconstruction:
         """NeuS and its mesh on the training views of `source`, into `run` (neus.pt,
         geometry_loss.png), scored on its own renders."""
         from vq_mitsuba.geometry.neus.framing import uses_background_model
@@ -53,7 +52,7 @@ class NeuSMethod:
             sphere = support = None
             points, found = surface_points(source, capture, neus_cfg)
         resumed = resume and (run / CHECKPOINT).is_file()
-        trained = reconstruct(capture, run, neus_cfg, resume=resume, progress=progress, sphere=sphere,
+        trained = reconstruct(capture, run, neus_cfg, resume=resume, sphere=sphere,
                               support=support, points=points)
         summary = trained.summary
         if found is not None:

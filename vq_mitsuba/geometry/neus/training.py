@@ -70,13 +70,13 @@ def check_architecture(path: Path, saved: dict, cfg: NeuSConfig) -> None:
                          "the same values (--set neus.KEY=VALUE), or start over without --resume")
 
 
-def train(neus: NeuS, run: RunDir | None = None, resume: bool = False, progress: bool = True,
+def train(neus: NeuS, run: RunDir | None = None, resume: bool = False,
           callback=None, callback_every_s: float = 0.0) -> dict:
     """Optimise the NeuS model; returns a summary. `callback(neus, step, train_seconds)` is called
     every `callback_every_s` seconds of training (its own time is not counted)."""
 
     with _threads(neus.cfg.threads):
-        return NeuSTraining(neus, run).run(resume, progress, callback, callback_every_s)
+        return NeuSTraining(neus, run).run(resume, callback, callback_every_s)
 
 
 class NeuSTraining:
@@ -256,7 +256,7 @@ class NeuSTraining:
             return {"loss": f"{h['loss']:.4f}", "psnr": f"{h['psnr']:.1f}", "s": f"{h['s']:.0f}"}
         return None
 
-    def run(self, resume: bool, progress: bool, callback, callback_every_s: float) -> dict:
+    def run(self, resume: bool, callback, callback_every_s: float) -> dict:
         cfg = self.cfg
         if resume:
             self.resume()
@@ -266,8 +266,7 @@ class NeuSTraining:
         self.loop = Loop("neus", budget, self.loop_step, start_step=self.step, start_seconds=self.elapsed,
                          checkpoint=self.save, checkpoint_every=cfg.checkpoint_every,
                          snapshot=(lambda p, label: callback(self.neus, p.step, p.seconds)) if periodic else None,
-                         snapshot_every_s=callback_every_s if periodic else 0.0, progress_bar=progress,
-                         done=self.done)
+                         snapshot_every_s=callback_every_s if periodic else 0.0, done=self.done)
         with self.loop.clock.paused():  # set-up work is not training time
             self.neus.refresh_occupancy(self.neus.level_weights(self.loop.progress().share))
             if periodic and self.step == 0:
@@ -390,7 +389,7 @@ class NeuSResult:
 
 
 def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None, resume: bool = False,
-                progress: bool = True, callback=None, callback_every_s: float = 0.0,
+                callback=None, callback_every_s: float = 0.0,
                 sphere: tuple | None = None, support: tuple | None = None,
                 points: np.ndarray | None = None) -> NeuSResult:
     """NeuS on a loaded capture, then mesh extraction: writes the run's NeuS checkpoint neus.pt and
@@ -400,16 +399,16 @@ def reconstruct(capture, run: RunDir | str | Path, cfg: NeuSConfig | None = None
     cfg = cfg or NeuSConfig()
     run = run if isinstance(run, RunDir) else RunDir(run)
     with _threads(cfg.threads):
-        return _reconstruct(capture, run, cfg, resume, progress, callback, callback_every_s, sphere, support, points)
+        return _reconstruct(capture, run, cfg, resume, callback, callback_every_s, sphere, support, points)
 
 
-def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, progress, callback, callback_every_s,
+def _reconstruct(capture, run: RunDir, cfg: NeuSConfig, resume, callback, callback_every_s,
                  sphere=None, support=None, points=None) -> NeuSResult:
     t0 = time.perf_counter()
     neus = neus_for(capture, cfg, sphere, support, points)
     run.create()
     setup_s = time.perf_counter() - t0
-    summary = train(neus, run, resume=resume, progress=progress, callback=callback,
+    summary = train(neus, run, resume=resume, callback=callback,
                     callback_every_s=callback_every_s)
     t1 = time.perf_counter()
     mesh, support_plane = extract_mesh(neus)
