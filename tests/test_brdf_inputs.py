@@ -1,5 +1,5 @@
 """The BRDF inputs are declared once (vq_mitsuba/brdf.py): no other module spells an input's name,
-and an input added to the declaration flows through scoring, the report, edits, the editor and a fit.
+and an input added to the declaration flows through scoring, the report, edits, the editor and a fit."""
 
 import ast
 import json
