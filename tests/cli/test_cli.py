@@ -346,8 +346,7 @@ def test_a_fit_checks_its_folder_and_poses_once(tmp_path, monkeypatch):
     check = fit_module.check_fit_target
     monkeypatch.setattr(fit_module, "check_fit_target", lambda *a: calls.append("check") or check(*a))
     monkeypatch.setattr(fit_module.CaptureSource, "posed", property(lambda capture: False))  # photos, say
-    monkeypatch.setattr(fit_module, "ensure_poses", lambda capture, run, *a, **k: calls.append("poses") or
-                        capture.source)
+    monkeypatch.setattr(fit_module, "ensure_poses", lambda capture, run, *a, **k: calls.append("poses") or capture)
     monkeypatch.setattr(fit_module, "ensure_geometry", lambda capture, run, *a, **k: run / RunDir.MESH)
     monkeypatch.setattr(fit_module, "fit_materials", lambda *a, **k: {"iterations": 1})
     capture = _capture_without_geometry(tmp_path / "cap")

@@ -74,8 +74,7 @@ def posed_capture(capture: CaptureSource, run: RunDir, cfg: PoseConfig,
     capture as it is."""
     if capture.posed:
         return capture
-    posed = ensure_poses(capture, run, cfg, log=log)
-    return open_capture(posed, options=capture.options, cache_dir=capture.cache_dir)
+    return ensure_poses(capture, run, cfg, log=log)
 
 
 def fit_capture(capture: str | Path, run_dir: str | Path, cfg: Config, geometry: str = "auto",

@@ -48,11 +48,11 @@ SUMMARY_VERSION = 1
 
 
 def ensure_poses(capture: CaptureSource, run: RunDir, cfg: PoseConfig,
-                 log: Callable[[str], None] = messages.note) -> Path:
+                 log: Callable[[str], None] = messages.note) -> CaptureSource:
     """The run's posed COLMAP capture RUN/pose of an unposed capture (made, or reused when it was
-    made from the same inputs); returns its folder."""
+    made from the same inputs), opened with the capture's options."""
     pose_capture(capture, run / RunDir.POSE, cfg, log=log)
-    return run / RunDir.POSE
+    return open_capture(run / RunDir.POSE, options=capture.options, cache_dir=capture.cache_dir)
 
 
 def pose_capture(capture: str | Path | CaptureSource, out: str | Path, cfg: PoseConfig | None = None,
