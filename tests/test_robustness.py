@@ -184,6 +184,7 @@ def test_eval_names_a_missing_dataset_folder(three_materials, tmp_path, capsys):
     assert f"{missing}: dataset folder not found" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 @pytest.mark.parametrize("checkpoint_every, kill_after_s", [(1, 7.0), (25, 9.0)])
 def test_a_killed_fit_resumes_from_an_intact_checkpoint(tmp_path, checkpoint_every, kill_after_s):
     """kill -9 in the middle of a fit (with checkpoint_every=1, most likely during a checkpoint

@@ -19,6 +19,7 @@ def sphere_capture(tmp_path_factory):
     return write_sphere_capture(tmp_path_factory.mktemp("sphere"), size=24, n_views=8, spp=32)
 
 
+@pytest.mark.slow  # over 10 s: CI runs it after the default suite (.ci/run)
 def test_fit_resume_render_smoke(sphere_capture, tmp_path, capsys):
     run = tmp_path / "run"
     args = ["fit", str(sphere_capture), "-o", str(run), "--set", "vq.warmup_frac=0.3", "--set", "loss.w_sm=0.05",
