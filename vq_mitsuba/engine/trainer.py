@@ -94,7 +94,7 @@ class Trainer:
         self.fixed_hits = torch.randperm(len(pool), generator=gen)[:skips.ROUGHNESS_HITS].to(self.device)
         self.trials = None if not trials_on else Trials(self, t.trials, skips.decision(
             t.trials, "none", "the fit ended before the trial's check"))
-        self.decisions["trials"] = skips.decision(
+        self.decisions["trials"] = self.trials.decision if self.trials is not None else skips.decision(
             t.trials, "none", "no learned light: nothing to trade a surface's roughness against"
             if not self.model.learn_env else f"train.trials = {t.trials}")
         self.model.prior_grid, self.decisions["prior"] = evidence.weigh_prior(self.model.scene, capture, pool, cfg)
@@ -150,12 +150,16 @@ class Trainer:
 
     def skips_state(self) -> dict:
         """What the rules decided and measured so far (`vq_mitsuba.engine.skips`), for resuming."""
-        decisions = dict(self.decisions)
-        if self.trials is not None:
-            decisions["trials"] = self.trials.decision
-        return {"bounce_on": self.bounce_on, "decisions": decisions, "pace": self.pace.state_dict(),
+        return {"bounce_on": self.bounce_on, "decisions": self.decisions_so_far(), "pace": self.pace.state_dict(),
                 "sampler": self.data.state_dict(), "envmap": self.ladder.state_dict(),
                 "trial": self.trials.state_dict() if self.trials is not None else {"checked": False, "pending": None}}
+
+    def decisions_so_far(self) -> dict:
+        """Each rule's decision (setting, choice, reason) made so far; the trial's is the trial's own."""
+        out = dict(self.decisions)
+        if self.trials is not None:
+            out["trials"] = self.trials.decision
+        return out
 
     def load_skips_state(self, state: dict | None) -> None:
         """Resume the rules: a run keeps the bounce decided at its start, the pace, the envmap's
@@ -262,9 +266,7 @@ class Trainer:
     def final_decisions(self) -> dict:
         """fit.json's `decisions`: each rule's setting, choice and reason."""
         cfg = self.cfg
-        out = dict(self.decisions)
-        if self.trials is not None:
-            out["trials"] = self.trials.decision
+        out = self.decisions_so_far()
         held = 0 if self.data.held is None else len(self.data.held)
         out["stop"] = self.pace.decision(cfg.train.stop, self.step, held)
         out["stop"]["pace"] = self.pace.state_dict()
