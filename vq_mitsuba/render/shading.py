@@ -188,6 +188,131 @@ class Hits:
     wi: torch.Tensor  # (N, 3) world, unit vector from the point towards the ray origin
 
 
+def _setup_kernel(textures: tuple):
+    """setup(p, n, wi, the BRDF's channels (brdf.CHANNELS flat arrays, in the order of brdf.INPUTS))
+    -> the SurfaceInteraction3f of the lanes, with the lanes' BRDF loaded into `textures` (the
+    BSDF's lane textures)."""
+    f = _flat
+
+    def setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans):
+        # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
+        px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
+        si.p = mi.Point3f(px, py, pz)
+        normal = mi.Normal3f(nx, ny, nz)
+        si.n = normal
+        si.sh_frame = mi.Frame3f(normal)
+        si.wi = si.sh_frame.to_local(mi.Vector3f(wx, wy, wz))
+        si.t = mi.Float(1.0)
+        at = 0
+        for inp, tex in zip(brdf.INPUTS, textures):
+            tex.values = tuple(f(c) for c in chans[at:at + inp.channels])
+            at += inp.channels
+        return si
+
+    return setup
+
+def _sample_kernel(scene, bsdf, ctx, textures: tuple, setup):
+    """The sampling kernel: each lane's emitter sample with its shadow ray and its BSDF sample
+    with the ray it casts, in one kernel without gradients (the light in the scene must be set).
+    Returns the `SAMPLED` arrays (torch): what shading reads, and where the BSDF sample meets the
+    object (the bounce's points: p2, n2 facing back, wi2)."""
+    f = _flat
+
+    @dr.wrap(source="torch", target="drjit")
+    def sample(px, py, pz, nx, ny, nz, wx, wy, wz, chans, u):
+        with dr.suspend_grad():
+            si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
+            u = [f(x) for x in u]
+            # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
+            ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
+            lit = (ds.pdf > 0) & ~scene.ray_test(si.spawn_ray(ds.d), ds.pdf > 0)
+            # BSDF sampling; the sampled direction is detached, its value differentiated in shading.
+            bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
+            ray = si.spawn_ray(si.to_world(bs.wo))
+            si_next = scene.ray_intersect(ray)
+            miss = ~si_next.is_valid() & (bs.pdf > 0)
+            pdf_em = scene.pdf_emitter_direction(si, mi.DirectionSample3f(scene, si_next, si), miss)
+            w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
+            inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
+            hit = si_next.is_valid() & (bs.pdf > 0)
+            n2 = si_next.sh_frame.n
+            n2 = dr.select(dr.dot(n2, -ray.d) < 0, -n2, n2)
+            out = (ds.d.x, ds.d.y, ds.d.z, ds.uv.x, ds.uv.y, ds.pdf, dr.select(lit, 1.0, 0.0),
+                   bs.wo.x, bs.wo.y, bs.wo.z,
+                   w_bs, inv_pdf, dr.select(miss, 1.0, 0.0), dr.select(hit, 1.0, 0.0),
+                   *(dr.select(hit, v, 0.0) for v in (si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z)),
+                   -ray.d.x, -ray.d.y, -ray.d.z)
+            dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
+        for tex in textures:
+            tex.values = None
+        return out
+
+    return sample
+
+# The sampling kernel's outputs, in order: the emitter sample (direction, the envmap's texture
+# coordinates that Mitsuba's envmap looks its radiance up at, pdf, unoccluded), the
+# BSDF sample (local direction, MIS weight where it escapes, 1 / pdf, escapes, meets the object),
+# the point it meets (p2, n2 facing back) and the world direction back along it (wi2).
+SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit",
+           "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
+           "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
+
+def _shade_kernel(bsdf, ctx, textures: tuple, emitter, setup, light_lanes: bool):
+    """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
+    envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
+    sampling kernel's results (so the backward pass traces no ray). The envmap's radiance comes
+    as lanes with `light_lanes` (a differentiated envmap), else from the scene's emitter."""
+    inputs = lane_inputs()
+    width = inputs + (LIGHT_LANES if light_lanes else 0)
+    f = _flat
+
+    @dr.wrap(source="torch", target="drjit")
+    def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, sampled):
+        # `lanes` holds the differentiable per-lane inputs interleaved (the BRDF's channels,
+        # then the bounce's, the emitter sample's and the escaping BSDF sample's radiance, r, g,
+        # b each): one gradient array, so the backward pass is one kernel instead of one per
+        # input, each tracing the shading again. A differentiated light's radiance comes in as
+        # lanes (`envmap_lookup`), so no Dr.Jit scatter adds into the envmap.
+        # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
+        # the default mode's per-thread copies bake the array size in: a compile per size.
+        lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * width
+        values = [dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(width)]
+        chans, (lr, lg, lb), light = values[:brdf.CHANNELS], values[brdf.CHANNELS:inputs], values[inputs:]
+        si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
+        sm = dict(zip(SAMPLED, (f(v) for v in sampled)))
+        d_em, pdf_em = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), sm["ds_pdf"]
+        lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
+        if light_lanes:
+            le_em, le_bs = mi.Color3f(*light[:3]), mi.Color3f(*light[3:])
+        else:
+            ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
+            ds.d, ds.uv, ds.pdf = d_em, mi.Point2f(sm["ds_u"], sm["ds_v"]), pdf_em
+            escaped = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
+            escaped.wi = mi.Vector3f(sm["wi2x"], sm["wi2y"], sm["wi2z"])  # world, as for a missed ray
+            le_em, le_bs = emitter.eval_direction(si, ds, lit), emitter.eval(escaped, miss)
+        em_weight = dr.select(lit, le_em * dr.rcp(pdf_em), 0.0)
+        f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d_em))
+        # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
+        # pdf cannot overflow a square into inf / inf.
+        w_em = dr.detach(dr.select(pdf_em > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / pdf_em)), 0.0))
+        radiance = f_em * em_weight * w_em
+
+        # The BSDF sample: its direction detached, its value differentiated.
+        f_bs = bsdf.eval(ctx, si, mi.Vector3f(sm["wo_x"], sm["wo_y"], sm["wo_z"]))
+        le = dr.select(miss, le_bs, 0.0)
+        # Radiance arriving from the object itself (one bounce), supplied by the caller; the
+        # emitter sample is occluded in that direction, so its MIS weight is 1.
+        li_obj = mi.Color3f(lr, lg, lb)
+        radiance += f_bs * dr.select(hit_obj, li_obj, le * sm["w_bs"]) * sm["inv_pdf"]
+        dr.eval(radiance)  # one kernel for the three channels, not one each
+        for tex in textures:
+            tex.values = None
+        return radiance.x, radiance.y, radiance.z
+
+    return shade
+
+
 @dataclass
 class Lanes:
     """Shading lanes: the points' position, normal and direction towards the viewer, as nine flat
@@ -199,6 +324,8 @@ class Lanes:
 
 class ShadingScene:
     """Fixed geometry + an envmap emitter + a `principled` BSDF fed by lane textures."""
+
+    SAMPLED = SAMPLED  # the sampling kernel's outputs, in order
 
     def __init__(self, vertices, faces, env_init: np.ndarray, env_to_world: np.ndarray, normals=None):
         init_mitsuba()
@@ -228,7 +355,12 @@ class ShadingScene:
                                   **{i.principled: t for i, t in zip(brdf.INPUTS, self.textures)}})
         self.ctx = mi.BSDFContext()
         self._light_set = None  # (the envmap tensor last set for sampling, its version)
-        self._shade = self._make_shade()
+        # the sampling kernel and the shading kernels (lit by the light given as lanes, and by the
+        # envmap set in the scene), sharing one setup of the shading points
+        setup = _setup_kernel(self.textures)
+        self._sample = _sample_kernel(self.scene, self.bsdf, self.ctx, self.textures, setup)
+        self._shade = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=True)
+        self._shade_lit = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=False)
 
     # -- primary visibility -------------------------------------------------------------
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
@@ -279,142 +411,6 @@ class ShadingScene:
         return np.array(valid, dtype=bool), np.array(hit, dtype=bool)
 
     # -- shading ------------------------------------------------------------------------
-    def _make_shade(self):
-        """The sampling kernel (kept as self._sample) and the shading kernels (returned: lit by the
-        light's radiance given as lanes, and, kept as self._shade_lit, by the envmap set in the
-        scene), sharing one setup of the shading points."""
-        setup = self._make_setup()
-        self._sample = self._make_sample(setup)
-        self._shade_lit = self._make_shade_kernel(setup, light_lanes=False)
-        return self._make_shade_kernel(setup, light_lanes=True)
-
-    def _make_setup(self):
-        """setup(p, n, wi, the BRDF's channels (brdf.CHANNELS flat arrays, in the order of brdf.INPUTS))
-        -> the SurfaceInteraction3f of the lanes, with the lanes' BRDF loaded into the textures of
-        self.bsdf."""
-        textures = self.textures
-        f = _flat
-
-        def setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans):
-            # Flat 1-D inputs keep array sizes out of the kernels (no per-step recompiles).
-            px, py, pz, nx, ny, nz, wx, wy, wz = map(f, (px, py, pz, nx, ny, nz, wx, wy, wz))
-            si = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
-            si.p = mi.Point3f(px, py, pz)
-            normal = mi.Normal3f(nx, ny, nz)
-            si.n = normal
-            si.sh_frame = mi.Frame3f(normal)
-            si.wi = si.sh_frame.to_local(mi.Vector3f(wx, wy, wz))
-            si.t = mi.Float(1.0)
-            at = 0
-            for inp, tex in zip(brdf.INPUTS, textures):
-                tex.values = tuple(f(c) for c in chans[at:at + inp.channels])
-                at += inp.channels
-            return si
-
-        return setup
-
-    def _make_sample(self, setup):
-        """The sampling kernel: each lane's emitter sample with its shadow ray and its BSDF sample
-        with the ray it casts, in one kernel without gradients (the light in the scene must be set).
-        Returns the `SAMPLED` arrays (torch): what shading reads, and where the BSDF sample meets the
-        object (the bounce's points: p2, n2 facing back, wi2)."""
-        scene, bsdf, ctx, textures = self.scene, self.bsdf, self.ctx, self.textures
-        f = _flat
-
-        @dr.wrap(source="torch", target="drjit")
-        def sample(px, py, pz, nx, ny, nz, wx, wy, wz, chans, u):
-            with dr.suspend_grad():
-                si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
-                u = [f(x) for x in u]
-                # Emitter sampling with a shadow ray (unbounded: anything on the way occludes the envmap).
-                ds, _ = scene.sample_emitter_direction(si, mi.Point2f(u[0], u[1]), False)
-                lit = (ds.pdf > 0) & ~scene.ray_test(si.spawn_ray(ds.d), ds.pdf > 0)
-                # BSDF sampling; the sampled direction is detached, its value differentiated in shading.
-                bs, _ = bsdf.sample(ctx, si, u[2], mi.Point2f(u[3], u[4]))
-                ray = si.spawn_ray(si.to_world(bs.wo))
-                si_next = scene.ray_intersect(ray)
-                miss = ~si_next.is_valid() & (bs.pdf > 0)
-                pdf_em = scene.pdf_emitter_direction(si, mi.DirectionSample3f(scene, si_next, si), miss)
-                w_bs = dr.select(miss, dr.rcp(1.0 + dr.square(pdf_em / bs.pdf)), 0.0)
-                inv_pdf = dr.select(bs.pdf > 0, dr.rcp(bs.pdf), 0.0)
-                hit = si_next.is_valid() & (bs.pdf > 0)
-                n2 = si_next.sh_frame.n
-                n2 = dr.select(dr.dot(n2, -ray.d) < 0, -n2, n2)
-                out = (ds.d.x, ds.d.y, ds.d.z, ds.uv.x, ds.uv.y, ds.pdf, dr.select(lit, 1.0, 0.0),
-                       bs.wo.x, bs.wo.y, bs.wo.z,
-                       w_bs, inv_pdf, dr.select(miss, 1.0, 0.0), dr.select(hit, 1.0, 0.0),
-                       *(dr.select(hit, v, 0.0) for v in (si_next.p.x, si_next.p.y, si_next.p.z, n2.x, n2.y, n2.z)),
-                       -ray.d.x, -ray.d.y, -ray.d.z)
-                dr.eval(*out)  # one kernel for all outputs (converted one by one, each would trace again)
-            for tex in textures:
-                tex.values = None
-            return out
-
-        return sample
-
-    # The sampling kernel's outputs, in order: the emitter sample (direction, the envmap's texture
-    # coordinates that Mitsuba's envmap looks its radiance up at, pdf, unoccluded), the
-    # BSDF sample (local direction, MIS weight where it escapes, 1 / pdf, escapes, meets the object),
-    # the point it meets (p2, n2 facing back) and the world direction back along it (wi2).
-    SAMPLED = ("dx", "dy", "dz", "ds_u", "ds_v", "ds_pdf", "lit",
-               "wo_x", "wo_y", "wo_z", "w_bs", "inv_pdf", "miss", "hit",
-               "p2x", "p2y", "p2z", "n2x", "n2y", "n2z", "wi2x", "wi2y", "wi2z")
-
-    def _make_shade_kernel(self, setup, light_lanes: bool):
-        """The shading kernel: the sampled emitter direction (MIS) plus the BSDF sample, lit by the
-        envmap or by the caller's bounce radiance; the differentiable part of shading, reading the
-        sampling kernel's results (so the backward pass traces no ray). The envmap's radiance comes
-        as lanes with `light_lanes` (a differentiated envmap), else from the scene's emitter."""
-        bsdf, ctx, textures, emitter = self.bsdf, self.ctx, self.textures, self.emitter
-        inputs = lane_inputs()
-        width = inputs + (LIGHT_LANES if light_lanes else 0)
-        f = _flat
-
-        @dr.wrap(source="torch", target="drjit")
-        def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes, sampled):
-            # `lanes` holds the differentiable per-lane inputs interleaved (the BRDF's channels,
-            # then the bounce's, the emitter sample's and the escaping BSDF sample's radiance, r, g,
-            # b each): one gradient array, so the backward pass is one kernel instead of one per
-            # input, each tracing the shading again. A differentiated light's radiance comes in as
-            # lanes (`envmap_lookup`), so no Dr.Jit scatter adds into the envmap.
-            # Each lane reads its own entries, so the backward scatter has no conflicts (Permute);
-            # the default mode's per-thread copies bake the array size in: a compile per size.
-            lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(px)) * width
-            values = [dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(width)]
-            chans, (lr, lg, lb), light = values[:brdf.CHANNELS], values[brdf.CHANNELS:inputs], values[inputs:]
-            si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
-            sm = dict(zip(self.SAMPLED, (f(v) for v in sampled)))
-            d_em, pdf_em = mi.Vector3f(sm["dx"], sm["dy"], sm["dz"]), sm["ds_pdf"]
-            lit, miss, hit_obj = sm["lit"] > 0.5, sm["miss"] > 0.5, sm["hit"] > 0.5
-            if light_lanes:
-                le_em, le_bs = mi.Color3f(*light[:3]), mi.Color3f(*light[3:])
-            else:
-                ds = dr.zeros(mi.DirectionSample3f, dr.width(px))
-                ds.d, ds.uv, ds.pdf = d_em, mi.Point2f(sm["ds_u"], sm["ds_v"]), pdf_em
-                escaped = dr.zeros(mi.SurfaceInteraction3f, dr.width(px))
-                escaped.wi = mi.Vector3f(sm["wi2x"], sm["wi2y"], sm["wi2z"])  # world, as for a missed ray
-                le_em, le_bs = emitter.eval_direction(si, ds, lit), emitter.eval(escaped, miss)
-            em_weight = dr.select(lit, le_em * dr.rcp(pdf_em), 0.0)
-            f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(d_em))
-            # Power-heuristic MIS weights as 1 / (1 + (p_other / p)^2): a near-specular lobe's huge
-            # pdf cannot overflow a square into inf / inf.
-            w_em = dr.detach(dr.select(pdf_em > 0, dr.rcp(1.0 + dr.square(pdf_bsdf / pdf_em)), 0.0))
-            radiance = f_em * em_weight * w_em
-
-            # The BSDF sample: its direction detached, its value differentiated.
-            f_bs = bsdf.eval(ctx, si, mi.Vector3f(sm["wo_x"], sm["wo_y"], sm["wo_z"]))
-            le = dr.select(miss, le_bs, 0.0)
-            # Radiance arriving from the object itself (one bounce), supplied by the caller; the
-            # emitter sample is occluded in that direction, so its MIS weight is 1.
-            li_obj = mi.Color3f(lr, lg, lb)
-            radiance += f_bs * dr.select(hit_obj, li_obj, le * sm["w_bs"]) * sm["inv_pdf"]
-            dr.eval(radiance)  # one kernel for the three channels, not one each
-            for tex in textures:
-                tex.values = None
-            return radiance.x, radiance.y, radiance.z
-
-        return shade
-
     def _light_lanes(self, env_linear: torch.Tensor, sampled: list, fixed: torch.Tensor) -> tuple:
         """The envmap's radiance (lanes, 3) along each lane's emitter sample (at the texture
         coordinates it was drawn at) and along its BSDF sample (where that escapes: the direction
