@@ -26,7 +26,8 @@ def test_held_aside_rays_are_never_drawn_and_without_them_the_draws_are_plain():
 
 def test_a_flat_held_aside_score_ends_training_after_a_final_decay(monkeypatch):
     capture = sphere_capture(n_views=6, size=16)
-    cfg = small_cfg(iterations=0, time_limit_s=60, plateau_s=0.4, coarse_to_fine=0.0)
+    # a plateau window long enough that the final decay spans many steps on a slow machine
+    cfg = small_cfg(iterations=0, time_limit_s=60, plateau_s=2.0, coarse_to_fine=0.0)
     neus = neus_for(capture, cfg)
     monkeypatch.setattr(NeuSTraining, "held_aside_psnr", lambda self, lw: 20.0)
     rates = []
@@ -40,7 +41,7 @@ def test_a_flat_held_aside_score_ends_training_after_a_final_decay(monkeypatch):
     monkeypatch.setattr(NeuSTraining, "loop_step", spy)
     summary = train(neus, None)
     assert summary["stopped_by_plateau"] and not summary["stopped_by_time"]
-    assert summary["train_seconds"] < 10
+    assert summary["train_seconds"] < 20
     plateau = summary["plateau"]
     assert plateau["anneal_from_s"] is not None and len(plateau["checks"]) >= 2
     # The rate, still near its start at the plateau (a 60 s budget), ends its decay near where a run
