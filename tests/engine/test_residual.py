@@ -2,6 +2,7 @@
 added by `render` under the capture's own light only."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -70,7 +71,7 @@ def view_dependent_run(tmp_path_factory):
     from vq_mitsuba.engine.pipeline import fit
 
     out = tmp_path_factory.mktemp("residual")
-    xml = write_sphere_capture(out, size=24, n_views=10, spp=32)
+    xml = write_sphere_capture(out, size=24, n_views=24, spp=32)
     for cam in load_capture(xml).cameras:
         direction = cam.to_world[:3, 3] / np.linalg.norm(cam.to_world[:3, 3])
         path = out / "images" / f"{cam.name}.exr"
@@ -96,6 +97,7 @@ def test_the_residual_explains_what_the_materials_cannot(view_dependent_run):
     assert info["planned_iterations"] == min(400, max(MIN_STEPS, -(-MAX_EPOCHS * fitted // min(BATCH, fitted))))
     # it may stop early once the kept-aside hits stop improving; the field kept is the best scored
     assert 0 < info["kept_step"] <= info["iterations"] <= info["planned_iterations"]
+    assert info["learned"] and info["rendered_hits"] == info["hits"]
     assert info["check_hits"] > 100
     # measured on training hits the field was not fitted on
     assert info["psnr_check_hits_after"] > info["psnr_check_hits_before"] + 3.0
@@ -224,17 +226,48 @@ def test_a_residual_with_nothing_to_learn_stops_within_a_few_early_scores(monkey
     normal = unit()
     pool = Pool(position=torch.rand(n, 3, generator=gen), normal=normal,
                 wi=torch.nn.functional.normalize(normal + 0.5 * unit(), dim=-1),
-                rgb=0.05 + 0.9 * torch.rand(n, 3, generator=gen))
-    monkeypatch.setattr(residual_fit, "physical_radiance",
-                        lambda scene, model, pool, idx, env, cfg, generator:
-                        pool.rgb[idx] * (1.0 + 0.02 * torch.randn(len(idx), 3, generator=gen)))
+                rgb=0.05 + 0.9 * torch.rand(n, 3, generator=gen), view=torch.randint(0, 20, (n,), generator=gen))
+    rendered = []
+
+    def physical(scene, model, pool, idx, env, cfg, generator):
+        rendered.append(len(idx))
+        return pool.rgb[idx] * (1.0 + 0.02 * torch.randn(len(idx), 3, generator=gen))
+
+    monkeypatch.setattr(residual_fit, "physical_radiance", physical)
+    monkeypatch.setattr(residual_fit, "FIRST_MIN_HITS", 1000)
 
     field, info = residual_fit.fit_residual(None, None, pool, torch.ones(4, 8, 3),
                                             ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), load_config(None))
     assert not info["learned"] and info["step"] == "eager"
-    assert info["psnr_check_hits_before"] <= info["psnr_check_hits_after"] < (info["psnr_check_hits_before"]
-                                                                             + residual_fit.MIN_GAIN_DB)
     assert info["iterations"] == residual_fit.PATIENCE * residual_fit.FIRST_GAP < info["planned_iterations"]
+    # a gain under MIN_GAIN_DB is not trusted: the untrained field is kept
+    assert info["kept_step"] == 0 and info["psnr_check_hits_after"] == info["psnr_check_hits_before"]
     x = torch.rand(100, 3)
-    if info["kept_step"] == 0:
-        assert torch.equal(field(x, unit()[:100], unit()[:100]), torch.zeros(100, 3))  # the untrained field
+    assert torch.equal(field(x, unit()[:100], unit()[:100]), torch.zeros(100, 3))
+    # only the kept-aside hits and FIRST_SHARE of the others were rendered
+    fitted = n - info["check_hits"]
+    assert rendered == [info["rendered_hits"]] == [info["check_hits"] + math.ceil(residual_fit.FIRST_SHARE * fitted)]
+
+
+def test_the_residual_is_scored_on_whole_views_it_is_not_fitted_on():
+    """The kept-aside hits are hits of CHECK_SHARE of the views (at most CHECK_MAX_HITS), none of
+    whose hits is fitted; with fewer than CHECK_MIN_VIEWS views, CHECK_SHARE of the hits."""
+    from vq_mitsuba.engine.residual_fit import CHECK_MAX_HITS, CHECK_MIN_VIEWS, CHECK_SHARE, split_check_hits
+
+    gen = torch.Generator().manual_seed(0)
+    view = torch.randint(0, 30, (6000,), generator=gen)
+    fit_ids, check_ids = split_check_hits(view, gen)
+    held = torch.unique(view[check_ids])
+    assert len(held) == round(CHECK_SHARE * 30) and not torch.isin(view[fit_ids], held).any()
+    assert len(fit_ids) + len(check_ids) == 6000 and len(torch.unique(torch.cat([fit_ids, check_ids]))) == 6000
+    assert torch.equal(torch.sort(check_ids).values, torch.nonzero(torch.isin(view, held)).squeeze(1))
+    many = torch.randint(0, 30, (1 << 20,), generator=gen)
+    fit_ids, check_ids = split_check_hits(many, gen)
+    assert len(check_ids) == CHECK_MAX_HITS and len(torch.unique(many[check_ids])) == round(CHECK_SHARE * 30)
+    assert not torch.isin(many[fit_ids], many[check_ids]).any()
+    few = torch.randint(0, CHECK_MIN_VIEWS - 1, (1000,), generator=gen)
+    fit_ids, check_ids = split_check_hits(few, gen)
+    assert len(check_ids) == int(CHECK_SHARE * 1000) and len(fit_ids) == 1000 - len(check_ids)
+    one = torch.zeros(1, dtype=torch.long)
+    fit_ids, check_ids = split_check_hits(one, gen)  # a single hit: fitted, none to score
+    assert fit_ids.tolist() == [0] and len(check_ids) == 0
