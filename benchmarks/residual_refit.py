@@ -1,10 +1,11 @@
 """Refit the residual of a finished run with this checkout's residual stage, then score its
 held-out views with and without it (`vq-mitsuba eval`).
 
-    python benchmarks/residual_refit.py RUN [--iterations N] [--spp S] -o OUT.json
+    python benchmarks/residual_refit.py RUN [--iterations N] [--spp S] [--gt DATASET] -o OUT.json
 
 The run's materials and light are those of its checkpoint (frozen, as in the fit); its
-residual.pt is replaced. The run must have held-out views (`fit --holdout K`). Prints and writes
+residual.pt is replaced. The run must have held-out views (`fit --holdout K`), or a synthetic
+dataset's test views are given (`--gt`). Prints and writes
 the training hits' PSNR before and after, the residual's seconds, and the held-out PSNR/SSIM
 without and with the residual.
 """
@@ -25,6 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("run", help="a finished run directory with held-out views")
     ap.add_argument("--iterations", type=int, default=None, help="residual.iterations (default: the config's)")
     ap.add_argument("--spp", type=int, default=None, help="eval samples per pixel (default: render.spp)")
+    ap.add_argument("--gt", help="score on this synthetic dataset's test views (eval --gt)")
     ap.add_argument("-o", "--output", required=True, help="result JSON")
     args = ap.parse_args(argv)
     record = provenance()
@@ -50,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     eval_args = ["eval", str(run.dir), "--quiet", "-o", str(metrics_path)]
     if args.spp:
         eval_args += ["--spp", str(args.spp)]
+    if args.gt:
+        eval_args += ["--gt", args.gt]
     if cli_main(eval_args) != 0:
         print(f"eval of {run.dir} failed", file=sys.stderr)
         return 1

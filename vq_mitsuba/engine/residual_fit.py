@@ -4,9 +4,9 @@ Materials and light are frozen, so the physically based radiance of each trainin
 constant: it is rendered once (`PREDICTION_SPP` sample pairs, the continuous branch with the
 render's bounce, as `render.views.Renderer` shades it) for up to `RESIDUAL_HITS` random hits of
 the trainer's pixel pool (every hit of a capture of a few million pixels): first for the
-kept-aside hits and `FIRST_SHARE` of the others, the rest once there is something to learn. The residual field, a
-surface light field (`vq_mitsuba.models.residual`), is then fitted in torch alone, without
-Mitsuba in the loop, to the gamma-encoded pixel colours:
+kept-aside hits and `FIRST_SHARE` of the others, the rest once there is something to learn. The
+residual field, a surface light field (`vq_mitsuba.models.residual`), is then fitted in torch
+alone, without Mitsuba in the loop, to the gamma-encoded pixel colours:
 
     min_r  mean || enc(L_pbr(x, wi) + r(x, wi)) - enc(target) ||^2,   enc(c) = c^(1/loss.gamma)
 
@@ -196,7 +196,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     field.load_state_dict(best["state"])
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "batch": batch,
-            "check_hits": len(check_ids), "rendered_hits": drawn["rendered"], "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
+            "check_hits": len(check_ids), "rendered_hits": drawn["rendered"], "finest_cells": int(field.finest),
+            "prediction_spp": PREDICTION_SPP,
             "step": compiled.state if state["compiled"] else "eager", "learned": state["learning"],
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"], "checks": curve}
