@@ -124,7 +124,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     physical = torch.zeros(n, 3, device=device)
     head = torch.cat([check_ids, first])
     physical[head] = physical_radiance(scene, model, pool, idx[head], env, cfg, gen)
-    drawn = {"ids": first, "rendered": len(head)}
+    drawn = {"ids": first}  # the fitted hits the steps draw from (all of them once there is something to learn)
     field = ResidualField(*bounds, scale=float(target.mean().clamp_min(1e-4)),
                           finest=finest_for_hits(len(fit_ids))).to(device)
     optim = torch.optim.Adam([{"params": [field.encoding.table], "lr": LR, "base": LR},
@@ -181,7 +181,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
             rest = fit_ids[len(first):]
             if len(rest):
                 physical[rest] = physical_radiance(scene, model, pool, idx[rest], env, cfg, gen)
-                drawn.update(ids=fit_ids, rendered=n)
+                drawn["ids"] = fit_ids
 
     def finished() -> bool:
         if not state["learning"]:  # nothing to learn
@@ -196,8 +196,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     field.load_state_dict(best["state"])
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "batch": batch,
-            "check_hits": len(check_ids), "rendered_hits": drawn["rendered"], "finest_cells": int(field.finest),
-            "prediction_spp": PREDICTION_SPP,
+            "check_hits": len(check_ids), "rendered_hits": len(check_ids) + len(drawn["ids"]),
+            "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
             "step": compiled.state if state["compiled"] else "eager", "learned": state["learning"],
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
             "psnr_check_hits_after": best["psnr"], "checks": curve}
