@@ -23,18 +23,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 from bench_scenes import figure_text
 from bench_time_error import figures
 from provenance import command_line, describe, provenance, write_result
-from skip_study import ensure_cycles_dataset, fit_command
+from skip_study import add_dataset_arguments, ensure_cycles_dataset, fit_command, run_fit, warmup_fit
 
 REPO = Path(__file__).resolve().parent.parent
 COLUMNS = [("wall_s", "wall s", ".0f"), ("startup_s", "start s", ".1f"), ("steps_s", "steps s", ".0f"),
@@ -61,7 +58,7 @@ def fit_one(name: str, data: Path, variant: str, overrides: list[str], seed: int
         shutil.rmtree(run_dir)
     cmd = fit_command(name, data, run_dir, overrides + [f"train.seed={seed}"])
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    run_fit(cmd)
     return {"run_dir": run_dir, "wall_s": time.perf_counter() - t0}
 
 
@@ -125,15 +122,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variants", nargs="+", default=["default"],
                     help="default, or NAME=KEY=VALUE[,KEY=VALUE...]: the --set items of a variant")
-    ap.add_argument("--scenes", nargs="+", default=["tabletop"], help="bundled Cycles scenes to fit")
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0], help="train.seed of each fit")
-    ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles200",
-                    help="folder of the Cycles datasets (DATA/NAME)")
-    ap.add_argument("--resolution", type=int, default=200, help="image side of the rendered scenes, px")
-    ap.add_argument("--n-train", type=int, default=100, help="training views per scene")
-    ap.add_argument("--n-test", type=int, default=10, help="test views per scene")
-    ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
-    ap.add_argument("--warmup", action="store_true", help="a short unscored fit first")
+    add_dataset_arguments(ap, ["tabletop"], [0], 10)
     ap.add_argument("--report", type=Path, nargs="+", metavar="JSON",
                     help="no fit: the table of these fit_minutes.json files, their rows together")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "fit_minutes",
@@ -151,11 +140,7 @@ def main(argv=None) -> int:
     datasets = {name: ensure_cycles_dataset(name, args.data / name, args) for name in args.scenes}
     if args.warmup:
         name = args.scenes[0]
-        warm = args.out / "runs" / "_warmup"
-        shutil.rmtree(warm, ignore_errors=True)
-        subprocess.run(fit_command(name, datasets[name], warm, ["train.iterations=30", "residual.iterations=0"]),
-                       check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
-        shutil.rmtree(warm)
+        warmup_fit(name, datasets[name], args.out, ["train.iterations=30", "residual.iterations=0"])
     rows = []
     path = args.out / "fit_minutes.json"
     result = {**record, "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},

@@ -109,6 +109,32 @@ def fit_command(name: str, data: Path, run_dir: Path, overrides: list[str]) -> l
     return cmd
 
 
+def run_fit(cmd: list[str]) -> None:
+    """Run a `fit_command` with this checkout's code."""
+    subprocess.run(cmd, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def warmup_fit(name: str, data: Path, out: Path, overrides: list[str]) -> None:
+    """One short unscored fit, so that the first timed fit does not pay Dr.Jit's kernel compilation alone."""
+    warm = out / "runs" / "_warmup"
+    shutil.rmtree(warm, ignore_errors=True)
+    run_fit(fit_command(name, data, warm, overrides))
+    shutil.rmtree(warm)
+
+
+def add_dataset_arguments(ap: argparse.ArgumentParser, scenes: list[str], seeds: list[int], n_test: int) -> None:
+    """The options naming the scenes, seeds and Cycles datasets of a study, and how they are scored."""
+    ap.add_argument("--scenes", nargs="+", default=scenes, help="bundled Cycles scenes to fit")
+    ap.add_argument("--seeds", nargs="+", type=int, default=seeds, help="train.seed of each fit")
+    ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles200",
+                    help="folder of the Cycles datasets (DATA/NAME)")
+    ap.add_argument("--resolution", type=int, default=200, help="image side of the rendered scenes, px")
+    ap.add_argument("--n-train", type=int, default=100, help="training views per scene")
+    ap.add_argument("--n-test", type=int, default=n_test, help="test views per scene")
+    ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
+    ap.add_argument("--warmup", action="store_true", help="a short unscored fit first")
+
+
 def training_curve(run_dir: Path) -> list[list[float]]:
     """[seconds, training-batch PSNR] of the run's loss curve (its checkpoint's history)."""
     import torch
@@ -269,18 +295,10 @@ def report(rows: list[dict], out: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES, help="bundled Cycles scenes to fit")
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="train.seed of each fit")
+    add_dataset_arguments(ap, SCENES, [0, 1], 20)
     ap.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS,
                     help="old: every rule off; one rule alone; all: every rule automatic; default: no key forced")
-    ap.add_argument("--data", type=Path, default=REPO / "benchmarks" / "out" / "cycles200",
-                    help="folder of the Cycles datasets (DATA/NAME)")
-    ap.add_argument("--resolution", type=int, default=200, help="image side of the rendered scenes, px")
-    ap.add_argument("--n-train", type=int, default=100, help="training views per scene")
-    ap.add_argument("--n-test", type=int, default=20, help="test views per scene")
     ap.add_argument("--iterations", type=int, default=0, help="train.iterations of every fit (0: the config's)")
-    ap.add_argument("--eval-spp", type=int, default=64, help="samples per pixel of the scored renders")
-    ap.add_argument("--warmup", action="store_true", help="a short unscored fit first")
     ap.add_argument("--plot", type=Path, nargs="+", metavar="JSON",
                     help="no fit: the table and plots of these skip_study.json files, their rows together")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out" / "skip_study",
@@ -296,13 +314,8 @@ def main(argv=None) -> int:
     datasets = {name: ensure_cycles_dataset(name, args.data / name, args) for name in args.scenes}
     if args.warmup:
         name = args.scenes[0]
-        warm = args.out / "runs" / "_warmup"
-        shutil.rmtree(warm, ignore_errors=True)
-        subprocess.run(fit_command(name, datasets[name], warm, ["train.iterations=30", "train.bounce=on",
-                                                               "train.bounce_after=0", "vq.warmup_frac=0.5",
-                                                               "residual.iterations=0"]),
-                       check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
-        shutil.rmtree(warm)
+        warmup_fit(name, datasets[name], args.out, ["train.iterations=30", "train.bounce=on", "train.bounce_after=0",
+                                                    "vq.warmup_frac=0.5", "residual.iterations=0"])
     rows = []
     path = args.out / "skip_study.json"
     result = {**record, "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
