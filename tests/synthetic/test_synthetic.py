@@ -33,7 +33,7 @@ def mi(demo):
 
 
 def test_bundled_scenes_listed():
-    assert {"demo", "texture", "balls", "polished", "tabletop"} <= set(synthetic.SCENES)
+    assert {"demo", "texture", "balls", "polished", "tabletop", "sunlit"} <= set(synthetic.SCENES)
     for name in synthetic.SCENES:
         spec = synthetic.load_scene_spec(name)
         assert spec["materials"] and spec["shapes"]

@@ -37,7 +37,7 @@ from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
 from vq_mitsuba.data.imageio import checked_kind, clamp_tiny_negatives, read_image, write_exr
 from vq_mitsuba.errors import InputError
 
-PRESETS = ("sky", "sunset", "studio", "overcast")
+PRESETS = ("sky", "sunset", "studio", "overcast", "sun")
 
 # Sun of the training preset "sky" (Blender world): elevation above the horizon and azimuth
 # counter-clockwise from +X.
@@ -235,9 +235,13 @@ def studio(width: int = 256, height: int = 128, intensity: float = 1.0, backgrou
 
 
 def named_envmap(name: str, width: int = 256, height: int = 128) -> np.ndarray:
-    """A preset: "sky" (training default: sun at 35 deg elevation), "sunset", "studio", "overcast"."""
+    """A preset: "sky" (training default: sun at 35 deg elevation), "sunset", "studio", "overcast",
+    "sun" (a strong sun high over a pale sky: most of the light from one direction)."""
     if name == "sky":
         return sky(width, height)
+    if name == "sun":
+        return sky(width, height, sun_elevation_deg=50.0, sun_azimuth_deg=-40.0, sun_intensity=7.0,
+                   sun_radius_deg=1.5, turbidity=2.0, sky_intensity=0.6)
     if name == "sunset":
         return sky(width, height, sun_elevation_deg=4.0, sun_azimuth_deg=-120.0, sun_intensity=2.0,
                    sun_radius_deg=2.5, turbidity=6.0, sky_intensity=0.8,
