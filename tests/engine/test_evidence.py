@@ -180,7 +180,7 @@ def test_where_the_images_say_metal_the_metallic_term_is_off_and_the_roughness_t
     monkeypatch.setattr(evidence, "DIELECTRIC", -2.0)  # every highlight counts as a metal's
     monkeypatch.setattr(evidence, "METAL", -1.0)
     trainer = _trainer(learned_light_gold, tmp_path)
-    decision = trainer.decisions["prior"]
+    decision = trainer.decisions_so_far()["prior"]
     assert decision["choice"] == "weighed" and decision["hits_with_highlight"] > 0
     hits = torch.arange(64)
     pos = trainer.data.pool.position[hits]
@@ -204,4 +204,104 @@ def test_where_the_images_say_metal_the_metallic_term_is_off_and_the_roughness_t
     trainer.checkpoint(1.0)
     again = _trainer(learned_light_gold, tmp_path)
     again.resume()
+    assert torch.equal(again.model.prior_grid.values, trainer.model.prior_grid.values)
+
+
+def _block_light(direction, rows=32):
+    """A dark lat-long light (envmaps convention) with one bright block of texels about `direction`."""
+    from vq_mitsuba.data.envmaps import direction_to_uv
+
+    env = np.full((rows, 2 * rows, 3), 0.1, np.float32)
+    u, v = direction_to_uv(np.asarray(direction, float))
+    r, c = int(v * rows), int(u * 2 * rows)
+    env[max(r - 2, 0):r + 2, [(c + k) % (2 * rows) for k in range(-2, 2)]] = 50.0
+    return torch.tensor(env)
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+@pytest.mark.parametrize("mitsuba_world", [False, True])
+def test_the_mirror_direction_looks_up_the_light_a_view_reflects_towards(mitsuba_world):
+    """A hit whose normal halves a camera's direction and the bright block's sees the block about its
+    mirror direction; from another camera it sees the dark light; in a Mitsuba-world capture (Y up,
+    identity to_world) the same world directions are turned into the light's frame."""
+    from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD, MITSUBA_TO_BLENDER
+
+    sun = _unit([0.3, -0.5, 0.8])  # Blender world, the light's frame
+    light = evidence.lobe_light(_block_light(sun))
+    to_world = np.eye(4) if mitsuba_world else BLENDER_ENV_TO_WORLD
+    to_env = BLENDER_ENV_TO_WORLD[:3, :3] @ np.linalg.inv(to_world[:3, :3])
+    world = (lambda d: MITSUBA_TO_BLENDER.T @ d) if mitsuba_world else (lambda d: d)
+    p = np.array([[0.1, 0.2, 0.0]])
+    w = _unit([-0.6, 0.2, 0.5])
+    n = world(_unit(w + sun))[None]
+    towards = evidence.mirror_light(light, world(p[0])[None], n, world(p[0] + 3 * w)[None], to_env)
+    away = evidence.mirror_light(light, world(p[0])[None], n, world(p[0] + 3 * _unit([0.5, 0.6, 0.4]))[None], to_env)
+    assert float(towards[0]) > 10 * float(away[0])
+    assert float(away[0]) == pytest.approx(0.1 * sum(evidence.LUMINANCE), rel=1e-3)
+
+
+def test_a_bright_view_is_a_highlight_only_where_it_mirrors_the_bright_light():
+    """Two hits alike in the images (a bright view in the surface's colour): the one whose bright
+    views look, about the normal, towards the bright block keeps its evidence; the one whose bright
+    views look at the dark light is shading or texture, and its median views' mirror directions do
+    not matter once the bright views' light is no brighter."""
+    sun = _unit([1.0, 0.0, 1.0])
+    env = _block_light(sun)
+    red, bright = [0.4, 0.1, 0.1], [1.6, 0.4, 0.4]
+    samples = _samples([[red] * 5 + [bright] * 2, [red] * 5 + [bright] * 2])
+    positions = torch.zeros(2, 3)
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    # cameras 0-4 low and around (their mirror directions point away from the block), 5 and 6
+    # opposite the block at its elevation (their mirror direction is the block's)
+    origins = np.array([[3 * np.cos(a), 3 * np.sin(a), 1.0] for a in np.linspace(0, 2, 5)]
+                       + [3 * _unit([-1.0, 0.01, 1.0]), 3 * _unit([-1.0, -0.01, 1.0])])
+    kept = evidence.at_mirror(samples, positions, normals, origins, env, np.eye(3))
+    assert kept.tolist()[0]
+    # the second hit's views in another order: its bright views are cameras 0 and 1
+    samples.view[1] = torch.tensor([2, 3, 4, 5, 6, 0, 1])
+    kept = evidence.at_mirror(samples, positions, normals, origins, env, np.eye(3))
+    assert kept.tolist() == [True, False]
+
+
+def test_mitsuba_renders_of_a_gold_s_highlights_sit_about_the_mirror_direction_of_its_light(spheres):
+    """Under its own light (the capture's), most of the gold sphere's hits with a highlight see the
+    sun's lobe about their bright view's mirror direction, and the prior stays off where it was."""
+    capture, scene, pos, nrm, views = _views(spheres["gold"], n=evidence.HITS)
+    tint = evidence.highlight_tint(views)
+    shown = ~torch.isnan(tint)
+    origins = np.array([cam.origin for cam in capture.cameras])
+    kept = evidence.at_mirror(views, pos, nrm, origins, torch.as_tensor(capture.envmap),
+                              evidence.BLENDER_ENV_TO_WORLD[:3, :3] @ np.linalg.inv(capture.envmap_to_world[:3, :3]))
+    assert float(kept[shown].float().mean()) > 0.5
+    tint = torch.where(kept, tint, torch.full((), float("nan")))
+    weight = evidence.WeightGrid.of_tints(pos, tint, torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32))(pos)
+    assert float((weight < 1).float().mean()) > 0.15 and float(weight[weight < 1].median()) == 0.0
+
+
+def test_a_learned_light_is_read_once_at_its_share_of_the_schedule_and_kept_on_resume(learned_light_gold, tmp_path,
+                                                                                       monkeypatch):
+    monkeypatch.setattr(evidence, "DIELECTRIC", -2.0)  # every highlight counts as a metal's
+    monkeypatch.setattr(evidence, "METAL", -1.0)
+    monkeypatch.setattr(evidence, "MIRROR", 0.0)  # and every one sits about the light's mirror direction
+    trainer = _trainer(learned_light_gold, tmp_path)
+    assert trainer.prior.pending and "read_at_step" not in trainer.decisions_so_far()["prior"]
+    reads = []
+    real = trainer.prior.read
+    monkeypatch.setattr(trainer.prior, "read", lambda env, step: (reads.append(step), real(env, step)))
+    trainer.run.create()
+    trainer.train()
+    iterations = trainer.cfg.train.iterations
+    assert reads == [math.ceil(evidence.READ_AT * iterations)]
+    decision = trainer.decisions_so_far()["prior"]
+    assert decision["read_at_step"] == reads[0] and decision["hits_at_mirror"] == decision["hits_with_highlight"] > 0
+    assert decision["hits_not_at_mirror"] == 0
+    trainer.checkpoint(1.0)
+    monkeypatch.setattr(evidence, "MIRROR", 1e9)  # a reading now would keep nothing
+    again = _trainer(learned_light_gold, tmp_path)
+    again.resume()
+    assert not again.prior.pending and again.decisions_so_far()["prior"] == decision
     assert torch.equal(again.model.prior_grid.values, trainer.model.prior_grid.values)

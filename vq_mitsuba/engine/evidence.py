@@ -20,6 +20,15 @@ and 1 where there is no evidence (grey surfaces, no highlight: the images do not
 prior decides as before). Every hit of a step looks its voxel up. The roughness term is left
 whole.
 
+Brightness alone also finds shading: a textured surface's pixel lands on another texel in another
+view, and a rough coloured surface turning towards a strong sun is bright in its own colour. A
+highlight is told by where it sits: about the mirror direction of the bright part of the light.
+Once the light is known (the capture's, or the learned one at `READ_AT` of the schedule, after
+which the light has its bright parts in place), a hit's evidence is kept only where the light
+seen about its bright view's mirror direction (the view reflected about the normal, the light
+averaged over `LOBE_ROWS` rows) is at least `MIRROR` times that about its median view's
+(`at_mirror`); the grid is built again from the hits that keep it (`PriorReading`).
+
 A capture with no voxel below 1 fits exactly as without the rule; `benchmarks/results/prior_evidence/`.
 """
 
@@ -28,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vq_mitsuba.data.cameras import BLENDER_ENV_TO_WORLD
 from vq_mitsuba.data.imageio import LUMINANCE
 
 HITS = 16384  # training hits read in several views
@@ -43,6 +53,9 @@ METAL = 0.8  # highlight tint from which the metallic term is off
 GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
 MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
+READ_AT = 0.2  # schedule share at which the highlights are read again against the learned light
+MIRROR = 2.0  # light about the bright view's mirror direction over the median view's from which it is a highlight
+LOBE_ROWS = 16  # rows of the light averaged for the mirror directions (about 11 deg a texel)
 
 
 class ViewSamples:
@@ -105,18 +118,62 @@ def saturation(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb.clamp_min(0) / total.clamp_min(1e-8) - 1.0 / 3.0).norm(dim=-1)
 
 
+def ranked_views(samples: ViewSamples) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P,) each hit's bright view (at RANK by luminance) and median view, as columns of `samples`."""
+    lum = samples.lum
+    order = torch.argsort(torch.nan_to_num(lum, nan=-1.0), dim=1, descending=True)
+    rows = torch.arange(len(lum))
+    return order[:, RANK], order[rows, samples.valid.sum(1) // 2]
+
+
 def highlight_tint(samples: ViewSamples) -> torch.Tensor:
     """(P,) the saturation each hit's brightest view keeps from its median view, NaN where the hit
     gives no evidence (seen in fewer than MIN_VIEWS views, no highlight, a grey surface)."""
     lum = samples.lum
     n = samples.valid.sum(1)
-    order = torch.argsort(torch.nan_to_num(lum, nan=-1.0), dim=1, descending=True)
+    bright, median = ranked_views(samples)
     rows = torch.arange(len(lum))
-    bright, median = order[:, RANK], order[rows, n // 2]
     l_bright, l_median = lum[rows, bright], lum[rows, median]
     s_bright, s_median = saturation(samples.rgb[rows, bright]), saturation(samples.rgb[rows, median])
     evidence = (n >= MIN_VIEWS) & (l_bright >= HIGHLIGHT * l_median) & (l_median > 0) & (s_median >= COLOURED)
     return torch.where(evidence, s_bright / s_median.clamp_min(1e-8), torch.full((), float("nan")))
+
+
+def lobe_light(env: torch.Tensor, rows: int = LOBE_ROWS) -> np.ndarray:
+    """(rows, 2 rows) luminance of a lat-long light (H, W, 3), averaged over texel blocks."""
+    lum = env.detach().float().cpu() @ torch.tensor(LUMINANCE, dtype=torch.float32)
+    return torch.nn.functional.adaptive_avg_pool2d(lum[None, None], (rows, 2 * rows))[0, 0].numpy()
+
+
+def mirror_light(light: np.ndarray, positions: np.ndarray, normals: np.ndarray, origins: np.ndarray,
+                 to_env: np.ndarray) -> np.ndarray:
+    """(P,) the light's luminance (`lobe_light`) about the mirror direction of the view from camera
+    `origins` (P, 3) to each hit (positions, normals (P, 3)) about its normal; `to_env` (3, 3)
+    turns world directions into the light's (`vq_mitsuba.data.envmaps` convention)."""
+    from vq_mitsuba.data.envmaps import direction_to_uv
+
+    w = origins - positions
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+    n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    r = 2.0 * (n * w).sum(1, keepdims=True) * n - w
+    u, v = direction_to_uv(r @ to_env.T)
+    h, wd = light.shape
+    return light[np.clip((v * h).astype(np.int64), 0, h - 1), np.clip((u * wd).astype(np.int64), 0, wd - 1)]
+
+
+def at_mirror(samples: ViewSamples, positions: torch.Tensor, normals: torch.Tensor, origins: np.ndarray,
+              env: torch.Tensor, to_env: np.ndarray) -> torch.Tensor:
+    """(P,) bool: each hit's bright view looks, about its mirror direction, at light at least MIRROR
+    times as bright as its median view does (`origins` (V, 3): every view's camera; `to_env`:
+    as in `mirror_light`)."""
+    bright, median = ranked_views(samples)
+    rows = torch.arange(len(bright))
+    light = lobe_light(env)
+    p, n = positions.detach().cpu().double().numpy(), normals.detach().cpu().double().numpy()
+    view_b = samples.view[rows, bright].clamp_min(0).numpy()
+    view_m = samples.view[rows, median].clamp_min(0).numpy()
+    l_b, l_m = (mirror_light(light, p, n, origins[v], to_env) for v in (view_b, view_m))
+    return torch.as_tensor(l_b >= MIRROR * np.maximum(l_m, 1e-12))
 
 
 def metallic_weight(tint: torch.Tensor) -> torch.Tensor:
@@ -169,39 +226,96 @@ class WeightGrid:
         return bool((self.values >= 1.0).all())
 
 
-def weigh_prior(scene, capture, pool, cfg) -> tuple[WeightGrid | None, dict]:
-    """The metallic term's weight over the object from the highlights of the images, before the
-    first step: (the grid, None where the prior stays whole; fit.json's `decisions.prior`)."""
-    from vq_mitsuba import messages
-    from vq_mitsuba.engine import skips
+class PriorReading:
+    """The metallic term's weight over a fit (`grid`: None where the prior stays whole; `decision`:
+    fit.json's `decisions.prior`): read from the images' highlights before the first step, with
+    the capture's light at once, with a learned light again at READ_AT of the schedule (`due`,
+    `read`), keeping only the evidence whose highlights sit about the light's mirror direction."""
 
-    t, setting = cfg.train, cfg.loss.prior_evidence
-    if setting != "auto" or cfg.loss.w_lam <= 0 or cfg.loss.lam_metallic <= 0:
-        return None, skips.decision(setting, "whole", f"loss.prior_evidence = {setting}" if setting != "auto"
-                                    else "no metallic prior to weigh (loss.w_lam or loss.lam_metallic is 0)")
-    gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 5))
-    pick = torch.randperm(len(pool), generator=gen)[:HITS].to(pool.position.device)
-    pos = pool.position[pick]
-    views = sample_views(scene, capture, pos, pool.normal[pick], t.alpha_threshold, skips.np_seed(t.seed, 6))
-    tint = highlight_tint(views)
-    bounds = torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32)
-    grid = WeightGrid.of_tints(pos, tint, bounds)
-    shown = ~torch.isnan(tint)
-    weight = grid(pos).cpu()
-    record = {"hits": len(pick), "hits_with_highlight": int(shown.sum()),
-              "tint_median": float(tint[shown].median()) if bool(shown.any()) else None,
-              "share_weakened": float((weight < 1).float().mean()), "share_off": float((weight == 0).float().mean()),
-              "mean_weight": float(weight.mean())}
-    seen = (f"{record['hits_with_highlight']} of {len(pick)} training hits show a highlight (in {RANK + 1} "
-            f"views at least {HIGHLIGHT:g} x their median view's luminance) on a coloured surface")
-    if grid.full:
-        return None, {**skips.decision(setting, "whole", f"{seen}; no voxel's highlights keep more than "
-                                       f"{DIELECTRIC:g} of its colour (median "
-                                       + ("none" if record["tint_median"] is None else f"{record['tint_median']:.2f}")
-                                       + "): the metallic prior is whole"), **record}
-    reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
-              f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
-              f"(off on {100 * record['share_off']:.0f} %, from a tint of {METAL:g}), mean weight "
-              f"{record['mean_weight']:.2f}")
-    messages.note(f"prior: {reason}")
-    return grid, {**skips.decision(setting, "weighed", reason), **record}
+    def __init__(self, scene, capture, pool, cfg, known_env: torch.Tensor | None):
+        from vq_mitsuba.engine import skips
+
+        self.grid, self.pending, self.read_step = None, False, None
+        t, setting = cfg.train, cfg.loss.prior_evidence
+        if setting != "auto" or cfg.loss.w_lam <= 0 or cfg.loss.lam_metallic <= 0:
+            self.decision = skips.decision(setting, "whole", f"loss.prior_evidence = {setting}" if setting != "auto"
+                                           else "no metallic prior to weigh (loss.w_lam or loss.lam_metallic is 0)")
+            return
+        gen = torch.Generator().manual_seed(skips.np_seed(t.seed, 5))
+        pick = torch.randperm(len(pool), generator=gen)[:HITS].to(pool.position.device)
+        self.pos, self.nrm = pool.position[pick].cpu(), pool.normal[pick].cpu()
+        self.views = sample_views(scene, capture, self.pos, self.nrm, t.alpha_threshold, skips.np_seed(t.seed, 6))
+        self.tint = highlight_tint(self.views)
+        self.origins = np.array([cam.origin for cam in capture.cameras], np.float64).reshape(-1, 3)
+        self.bounds = torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32)
+        self.setting = setting
+        # world directions into the lat-long convention of `vq_mitsuba.data.envmaps`
+        self.to_env = (BLENDER_ENV_TO_WORLD[:3, :3] @ np.linalg.inv(np.asarray(capture.envmap_to_world)[:3, :3]))
+        if known_env is not None:
+            self.read(known_env, None)
+        else:
+            self._weigh(self.tint, None)
+            self.pending = self.grid is not None
+
+    def due(self, progress: float) -> bool:
+        """The learned light is to be read now."""
+        return self.pending and progress >= READ_AT
+
+    def read(self, env: torch.Tensor, step: int | None) -> None:
+        """Keep the evidence of the hits whose highlight sits about the mirror direction of the
+        light `env` (`at_mirror`) and weigh the prior again (`step`: the step of a learned light)."""
+        kept = at_mirror(self.views, self.pos, self.nrm, self.origins, env, self.to_env)
+        had = ~torch.isnan(self.tint)
+        self.tint = torch.where(kept, self.tint, torch.full((), float("nan")))
+        self.pending, self.read_step = False, step
+        self._weigh(self.tint, {"hits_at_mirror": int((had & kept).sum()), "hits_not_at_mirror": int((had & ~kept).sum()),
+                                "read_at_step": step})
+
+    def _weigh(self, tint: torch.Tensor, mirror: dict | None) -> None:
+        from vq_mitsuba import messages
+        from vq_mitsuba.engine import skips
+
+        grid = WeightGrid.of_tints(self.pos, tint, self.bounds)
+        shown = ~torch.isnan(tint)
+        weight = grid(self.pos)
+        record = {"hits": len(self.pos), "hits_with_highlight": int(shown.sum()),
+                  "tint_median": float(tint[shown].median()) if bool(shown.any()) else None,
+                  "share_weakened": float((weight < 1).float().mean()), "share_off": float((weight == 0).float().mean()),
+                  "mean_weight": float(weight.mean())}
+        seen = (f"{record['hits_with_highlight']} of {len(self.pos)} training hits show a highlight (in {RANK + 1} "
+                f"views at least {HIGHLIGHT:g} x their median view's luminance) on a coloured surface")
+        if mirror is not None:
+            record.update(mirror)
+            light = "the capture's light" if mirror["read_at_step"] is None else \
+                f"the light learned by step {mirror['read_at_step']}"
+            seen += (f" about the mirror direction of {light} ({mirror['hits_not_at_mirror']} bright elsewhere: "
+                     "shading or texture, not a highlight)")
+        self.grid = None if grid.full else grid
+        if grid.full:
+            self.decision = {**skips.decision(self.setting, "whole", f"{seen}; no voxel's highlights keep more than "
+                                              f"{DIELECTRIC:g} of its colour (median "
+                                              + ("none" if record["tint_median"] is None
+                                                 else f"{record['tint_median']:.2f}")
+                                              + "): the metallic prior is whole"), **record}
+            if mirror is not None:
+                messages.note(f"prior: {self.decision['reason']}")
+            return
+        reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
+                  f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
+                  f"(off on {100 * record['share_off']:.0f} %, from a tint of {METAL:g}), mean weight "
+                  f"{record['mean_weight']:.2f}")
+        messages.note(f"prior: {reason}")
+        self.decision = {**skips.decision(self.setting, "weighed", reason), **record}
+
+    def state_dict(self) -> dict:
+        return {"pending": self.pending, "read_step": self.read_step, "decision": self.decision,
+                "tint": self.tint.clone() if hasattr(self, "tint") else None}
+
+    def load_state_dict(self, state: dict | None) -> None:
+        """Resume: a reading of the learned light done before the checkpoint is kept as it was (the
+        light it read has moved on since)."""
+        if state is None or state["pending"] or state["read_step"] is None or state["tint"] is None:
+            return
+        self.tint, self.pending, self.read_step = state["tint"].cpu(), False, state["read_step"]
+        grid = WeightGrid.of_tints(self.pos, self.tint, self.bounds)
+        self.grid, self.decision = None if grid.full else grid, state["decision"]

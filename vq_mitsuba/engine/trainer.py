@@ -97,7 +97,9 @@ class Trainer:
         self.decisions["trials"] = self.trials.decision if self.trials is not None else skips.decision(
             t.trials, "none", "no learned light: nothing to trade a surface's roughness against"
             if not self.model.learn_env else f"train.trials = {t.trials}")
-        self.model.prior_grid, self.decisions["prior"] = evidence.weigh_prior(self.model.scene, capture, pool, cfg)
+        self.prior = evidence.PriorReading(self.model.scene, capture, pool, cfg,
+                                           None if self.model.learn_env else self.model.envmap())
+        self.model.prior_grid = self.prior.grid
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
@@ -151,12 +153,12 @@ class Trainer:
     def skips_state(self) -> dict:
         """What the rules decided and measured so far (`vq_mitsuba.engine.skips`), for resuming."""
         return {"bounce_on": self.bounce_on, "decisions": self.decisions_so_far(), "pace": self.pace.state_dict(),
-                "sampler": self.data.state_dict(), "envmap": self.ladder.state_dict(),
+                "sampler": self.data.state_dict(), "envmap": self.ladder.state_dict(), "prior": self.prior.state_dict(),
                 "trial": self.trials.state_dict() if self.trials is not None else {"checked": False, "pending": None}}
 
     def decisions_so_far(self) -> dict:
         """Each rule's decision (setting, choice, reason) made so far; the trial's is the trial's own."""
-        out = dict(self.decisions)
+        out = {**self.decisions, "prior": self.prior.decision}
         if self.trials is not None:
             out["trials"] = self.trials.decision
         return out
@@ -178,6 +180,8 @@ class Trainer:
             self.pace.rate = 1
         self.data.load_state_dict(state["sampler"])
         self.ladder.load_state_dict(state["envmap"])
+        self.prior.load_state_dict(state.get("prior"))
+        self.model.prior_grid = self.prior.grid
         if self.trials is not None:
             self.trials.load_state_dict(state.get("trial"), state["decisions"].get("trials"))
 
@@ -200,6 +204,9 @@ class Trainer:
         model.field.set_progress(s.progress, self.cfg.field.pe_anneal)
         if model.learn_env:
             self.set_envmap_height(self.envmap_height(s.progress))
+        if self.prior.due(s.progress):
+            self.prior.read(model.envmap(), self.step)
+            model.prior_grid = self.prior.grid
         idx, weight = data.draw(self.step, self.gen)
         terms, rgb, per_pixel = self.loss_terms(idx, s, self.bounce_active(), weight)
         loss = sum(terms.values())
