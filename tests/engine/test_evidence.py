@@ -244,11 +244,26 @@ def test_the_mirror_direction_looks_up_the_light_a_view_reflects_towards(mitsuba
     assert float(away[0]) == pytest.approx(0.1 * sum(evidence.LUMINANCE), rel=1e-3)
 
 
-def test_a_bright_view_is_a_highlight_only_where_it_mirrors_the_bright_light():
-    """Two hits alike in the images (a bright view in the surface's colour): the one whose bright
-    views look, about the normal, towards the bright block keeps its evidence; the one whose bright
-    views look at the dark light is shading or texture, and its median views' mirror directions do
-    not matter once the bright views' light is no brighter."""
+def test_rank_correlation_over_the_views_a_hit_is_seen_in():
+    a = np.array([[1.0, 2.0, 3.0, 4.0, 5.0, 0.0], [1.0, 2.0, 3.0, 4.0, 5.0, 9.0], [5.0, 4.0, 3.0, 2.0, 1.0, 0.0],
+                  [1.0, 1.0, 1.0, 1.0, 1.0, 1.0], [1.0, 2.0, 3.0, 0.0, 0.0, 0.0]])
+    b = np.array([[10.0, 20.0, 30.0, 40.0, 50.0, -7.0]] * 5)
+    valid = np.ones_like(a, bool)
+    valid[0, 5] = False  # not seen: left out
+    valid[4, 3:] = False  # seen in too few views
+    rho = evidence.rank_correlation(a, b, valid)
+    assert rho[:3].tolist() == pytest.approx([1.0, 1 - 6 * 30 / 210, 1 - 6 * 40 / 210])  # 1 - 6 sum d^2 / (n (n^2 - 1))
+    assert bool(np.isnan(rho[3:]).all())  # no spread; too few views
+    # ties share their mean rank
+    tied = evidence.rank_correlation(np.array([[1.0, 1.0, 2.0, 3.0]]), np.array([[1.0, 2.0, 3.0, 4.0]]),
+                                     np.ones((1, 4), bool))
+    assert float(tied[0]) == pytest.approx(np.corrcoef([1.5, 1.5, 3, 4], [1, 2, 3, 4])[0, 1])
+
+
+def test_a_bright_view_is_a_highlight_only_where_the_brightness_follows_the_light_it_mirrors():
+    """Two hits alike in the images (two bright views in the surface's colour): the one whose
+    bright views look, about the normal, towards the bright block keeps its evidence; the one
+    whose bright views look at the dark light (its views in another order) is shading or texture."""
     sun = _unit([1.0, 0.0, 1.0])
     env = _block_light(sun)
     red, bright = [0.4, 0.1, 0.1], [1.6, 0.4, 0.4]
@@ -259,10 +274,7 @@ def test_a_bright_view_is_a_highlight_only_where_it_mirrors_the_bright_light():
     # opposite the block at its elevation (their mirror direction is the block's)
     origins = np.array([[3 * np.cos(a), 3 * np.sin(a), 1.0] for a in np.linspace(0, 2, 5)]
                        + [3 * _unit([-1.0, 0.01, 1.0]), 3 * _unit([-1.0, -0.01, 1.0])])
-    kept = evidence.at_mirror(samples, positions, normals, origins, env, np.eye(3))
-    assert kept.tolist()[0]
-    # the second hit's views in another order: its bright views are cameras 0 and 1
-    samples.view[1] = torch.tensor([2, 3, 4, 5, 6, 0, 1])
+    samples.view[1] = torch.tensor([2, 3, 4, 5, 6, 0, 1])  # the second hit's bright views: cameras 0 and 1
     kept = evidence.at_mirror(samples, positions, normals, origins, env, np.eye(3))
     assert kept.tolist() == [True, False]
 
@@ -286,7 +298,7 @@ def test_a_learned_light_is_read_once_at_its_share_of_the_schedule_and_kept_on_r
                                                                                        monkeypatch):
     monkeypatch.setattr(evidence, "DIELECTRIC", -2.0)  # every highlight counts as a metal's
     monkeypatch.setattr(evidence, "METAL", -1.0)
-    monkeypatch.setattr(evidence, "MIRROR", 0.0)  # and every one sits about the light's mirror direction
+    monkeypatch.setattr(evidence, "MIRROR", -2.0)  # and every one follows the light it mirrors
     trainer = _trainer(learned_light_gold, tmp_path)
     assert trainer.prior.pending and "read_at_step" not in trainer.decisions_so_far()["prior"]
     reads = []

@@ -22,12 +22,12 @@ whole.
 
 Brightness alone also finds shading: a textured surface's pixel lands on another texel in another
 view, and a rough coloured surface turning towards a strong sun is bright in its own colour. A
-highlight is told by where it sits: about the mirror direction of the bright part of the light.
+highlight is told by where it sits: about the mirror direction of the bright parts of the light.
 Once the light is known (the capture's, or the learned one at `READ_AT` of the schedule, after
-which the light has its bright parts in place), a hit's evidence is kept only where the light
-seen about its bright view's mirror direction (the view reflected about the normal, the light
-averaged over `LOBE_ROWS` rows) is at least `MIRROR` times that about its median view's
-(`at_mirror`); the grid is built again from the hits that keep it (`PriorReading`).
+which the light has its bright parts in place), a hit's evidence is kept only where its brightness
+over its views follows the light seen about each view's mirror direction (the view reflected
+about the normal; the light averaged over `LOBE_ROWS` rows): a rank correlation of at least
+`MIRROR` (`at_mirror`). The grid is built again from the hits that keep it (`PriorReading`).
 
 A capture with no voxel below 1 fits exactly as without the rule; `benchmarks/results/prior_evidence/`.
 """
@@ -54,7 +54,7 @@ GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
 MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
 READ_AT = 0.2  # schedule share at which the highlights are read again against the learned light
-MIRROR = 2.0  # light about the bright view's mirror direction over the median view's from which it is a highlight
+MIRROR = 0.3  # rank correlation of a hit's brightness with the light about its views' mirror directions
 LOBE_ROWS = 16  # rows of the light averaged for the mirror directions (about 11 deg a texel)
 
 
@@ -161,19 +161,32 @@ def mirror_light(light: np.ndarray, positions: np.ndarray, normals: np.ndarray, 
     return light[np.clip((v * h).astype(np.int64), 0, h - 1), np.clip((u * wd).astype(np.int64), 0, wd - 1)]
 
 
+def rank_correlation(a: np.ndarray, b: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(P,) Spearman correlation of each row of a and b (P, K) over its valid entries (ties share
+    their mean rank; NaN with fewer than MIN_VIEWS or no spread)."""
+    from scipy.stats import rankdata
+
+    ranks = [np.where(valid, rankdata(np.where(valid, x, np.inf), axis=1), 0.0) for x in (a, b)]
+    count = valid.sum(1)
+    mean = [r.sum(1) / np.maximum(count, 1) for r in ranks]
+    da, db = (np.where(valid, r - m[:, None], 0.0) for r, m in zip(ranks, mean))
+    cov, var_a, var_b = (da * db).sum(1), (da * da).sum(1), (db * db).sum(1)
+    ok = (count >= MIN_VIEWS) & (var_a > 0) & (var_b > 0)
+    return np.where(ok, cov / np.sqrt(np.maximum(var_a * var_b, 1e-30)), np.nan)
+
+
 def at_mirror(samples: ViewSamples, positions: torch.Tensor, normals: torch.Tensor, origins: np.ndarray,
               env: torch.Tensor, to_env: np.ndarray) -> torch.Tensor:
-    """(P,) bool: each hit's bright view looks, about its mirror direction, at light at least MIRROR
-    times as bright as its median view does (`origins` (V, 3): every view's camera; `to_env`:
-    as in `mirror_light`)."""
-    bright, median = ranked_views(samples)
-    rows = torch.arange(len(bright))
+    """(P,) bool: each hit's brightness over its views follows the light about their mirror
+    directions (rank correlation at least MIRROR), as a highlight's does and shading's or a
+    texture's does not (`origins` (V, 3): every view's camera; `to_env`: as in `mirror_light`)."""
     light = lobe_light(env)
     p, n = positions.detach().cpu().double().numpy(), normals.detach().cpu().double().numpy()
-    view_b = samples.view[rows, bright].clamp_min(0).numpy()
-    view_m = samples.view[rows, median].clamp_min(0).numpy()
-    l_b, l_m = (mirror_light(light, p, n, origins[v], to_env) for v in (view_b, view_m))
-    return torch.as_tensor(l_b >= MIRROR * np.maximum(l_m, 1e-12))
+    view = samples.view.numpy()
+    mirrored = np.stack([mirror_light(light, p, n, origins[np.clip(view[:, k], 0, None)], to_env)
+                         for k in range(view.shape[1])], 1)
+    rho = rank_correlation(np.nan_to_num(samples.lum.numpy()), mirrored, view >= 0)
+    return torch.as_tensor(np.nan_to_num(rho, nan=-1.0) >= MIRROR)
 
 
 def metallic_weight(tint: torch.Tensor) -> torch.Tensor:
