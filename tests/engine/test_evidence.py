@@ -292,6 +292,11 @@ def test_mitsuba_renders_of_a_gold_s_highlights_sit_about_the_mirror_direction_o
     tint = torch.where(kept, tint, torch.full((), float("nan")))
     weight = evidence.WeightGrid.of_tints(pos, tint, torch.tensor(np.array(capture.mesh.bounds), dtype=torch.float32))(pos)
     assert float((weight < 1).float().mean()) > 0.15 and float(weight[weight < 1].median()) == 0.0
+    # a fit under the capture's own light reads it before the first step, once
+    pool, _ = trace_training_pixels(scene, capture, 0.5)
+    reading = evidence.PriorReading(scene, capture, pool, load_config(None, []), torch.as_tensor(capture.envmap))
+    assert not reading.pending and reading.grid is not None and reading.decision["choice"] == "weighed"
+    assert reading.decision["read_at_step"] is None and reading.decision["hits_at_mirror"] > 50
 
 
 def test_a_learned_light_is_read_once_at_its_share_of_the_schedule_and_kept_on_resume(learned_light_gold, tmp_path,
