@@ -65,15 +65,17 @@ def test_a_highlight_keeps_the_colour_of_a_metal_and_pales_on_a_dielectric():
     tint = evidence.highlight_tint(_samples([
         [red] * 6 + [[1.6, 0.4, 0.4]] * 2,  # a metal: the highlight is the surface's colour, brighter
         [red] * 6 + [[1.6, 1.3, 1.3]] * 2,  # a dielectric: the light's white added
+        [red] * 6 + [[0.55, 0.25, 0.25]] * 2,  # a dielectric's faint highlight (1.7 x): white added all the same
         [red] * 8,  # no highlight: no evidence
         [grey] * 6 + [[1.2, 1.2, 1.2]] * 2,  # a grey surface: no colour to keep
         [red] * 7 + [[1.6, 0.4, 0.4]],  # a highlight in one view only: a misregistered edge as likely
         [red, red, [1.6, 0.4, 0.4], None, None, None, None, None],  # seen in too few views
     ]))
     assert float(tint[0]) == pytest.approx(1.0, abs=1e-5)
-    assert 0.0 < float(tint[1]) < evidence.DIELECTRIC
-    assert bool(torch.isnan(tint[2:]).all())
-    assert evidence.metallic_weight(tint).tolist()[:3] == [0.0, 1.0, 1.0]
+    assert tint[1:3].tolist() == pytest.approx([0.0, 0.0], abs=1e-5)  # nothing of the colour kept
+    assert float(evidence.saturation(torch.tensor([0.55, 0.25, 0.25])) / evidence.saturation(torch.tensor(red))) > 0.55
+    assert bool(torch.isnan(tint[3:]).all())
+    assert evidence.metallic_weight(tint).tolist()[:4] == [0.0, 1.0, 1.0, 1.0]
 
 
 def test_a_hit_is_read_in_the_views_that_face_it_at_its_pixel(spheres):

@@ -10,7 +10,9 @@ them (unoccluded, within `FACING` of the normal, on opaque pixels: no silhouette
 what lies behind; `sample_views`). A hit gives evidence where it has a highlight (in `RANK` + 1
 views at least `HIGHLIGHT` times its median view's luminance: one bright view is as likely a
 misregistered shadow edge) on a coloured surface (the median view's chromatic saturation at least
-`COLOURED`); its evidence is the saturation the highlight keeps (`highlight_tint`). The tints are
+`COLOURED`); its evidence is how much of the surface's colour the highlight keeps, its tint
+(`highlight_tint`): white light added to a colour divides its saturation by the growth of the
+channel sum, so a dielectric's highlight, however faint, has tint 0 and a metal's 1. The tints are
 averaged over a coarse voxel grid on the object (`WeightGrid`, voxels where at least
 `MIN_EVIDENCE` hits and `MIN_SHARE` of the hits read give evidence: a few bright views of a
 painted surface that keep its colour, as on DTU scan24, are not a metal); a voxel's weight of
@@ -20,9 +22,10 @@ and 1 where there is no evidence (grey surfaces, no highlight: the images do not
 prior decides as before). Every hit of a step looks its voxel up. The roughness term is left
 whole.
 
-Brightness alone also finds shading: a textured surface's pixel lands on another texel in another
-view, and a rough coloured surface turning towards a strong sun is bright in its own colour. A
-highlight is told by where it sits: about the mirror direction of the bright parts of the light.
+Brightness alone also finds shading and texture: a pixel of one view lands on a texture's bright
+tone where another view's lands on its dark tone, and a shadow's edge moves within a pixel's
+footprint from view to view, both brighter in the surface's own colour. A highlight is told by
+where it sits: about the mirror direction of the bright parts of the light.
 Once the light is known (the capture's, or the learned one at `READ_AT` of the schedule, after
 which the light has its bright parts in place), a hit's evidence is kept only where its brightness
 over its views follows the light seen about each view's mirror direction (the view reflected
@@ -127,16 +130,22 @@ def ranked_views(samples: ViewSamples) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def highlight_tint(samples: ViewSamples) -> torch.Tensor:
-    """(P,) the saturation each hit's brightest view keeps from its median view, NaN where the hit
-    gives no evidence (seen in fewer than MIN_VIEWS views, no highlight, a grey surface)."""
+    """(P,) how much of its colour each hit's highlight keeps: 0 where the bright view is the
+    median view's colour plus white light (a dielectric's untinted reflection: the saturation falls
+    as the channel sum grows), 1 where it keeps the median view's saturation (a metal's); NaN where
+    the hit gives no evidence (seen in fewer than MIN_VIEWS views, no highlight, a grey surface)."""
     lum = samples.lum
     n = samples.valid.sum(1)
     bright, median = ranked_views(samples)
     rows = torch.arange(len(lum))
+    rgb_bright, rgb_median = samples.rgb[rows, bright], samples.rgb[rows, median]
     l_bright, l_median = lum[rows, bright], lum[rows, median]
-    s_bright, s_median = saturation(samples.rgb[rows, bright]), saturation(samples.rgb[rows, median])
+    s_bright, s_median = saturation(rgb_bright), saturation(rgb_median)
     evidence = (n >= MIN_VIEWS) & (l_bright >= HIGHLIGHT * l_median) & (l_median > 0) & (s_median >= COLOURED)
-    return torch.where(evidence, s_bright / s_median.clamp_min(1e-8), torch.full((), float("nan")))
+    # white added to a colour scales its saturation by the ratio of the channel sums
+    white = (rgb_median.clamp_min(0).sum(-1) / rgb_bright.clamp_min(0).sum(-1).clamp_min(1e-8)).clamp(max=0.95)
+    kept = (s_bright / s_median.clamp_min(1e-8) - white) / (1.0 - white)
+    return torch.where(evidence, kept, torch.full((), float("nan")))
 
 
 def lobe_light(env: torch.Tensor, rows: int = LOBE_ROWS) -> np.ndarray:
