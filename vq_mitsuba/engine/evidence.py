@@ -315,7 +315,7 @@ class PriorReading:
         self.grid = None if grid.full else grid
         if grid.full:
             self.decision = {**skips.decision(self.setting, "whole", f"{seen}; no voxel's highlights keep more than "
-                                              f"{DIELECTRIC:g} of its colour (median "
+                                              f"{DIELECTRIC:g} of its colour beyond white light's (median "
                                               + ("none" if record["tint_median"] is None
                                                  else f"{record['tint_median']:.2f}")
                                               + "): the metallic prior is whole"), **record}
@@ -323,7 +323,7 @@ class PriorReading:
                 messages.note(f"prior: {self.decision['reason']}")
             return
         reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
-                  f"saturation; the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
+                  f"(0: white light added, as a dielectric's; 1: all of it, as a metal's); the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
                   f"(off on {100 * record['share_off']:.0f} %, from a tint of {METAL:g}), mean weight "
                   f"{record['mean_weight']:.2f}")
         messages.note(f"prior: {reason}")
