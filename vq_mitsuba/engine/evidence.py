@@ -57,7 +57,7 @@ GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
 MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
 READ_AT = 0.2  # schedule share at which the highlights are read again against the learned light
-MIRROR = 0.3  # rank correlation of a hit's brightness with the light about its views' mirror directions
+MIRROR = 0.0  # rank correlation of a hit's brightness with the light about its views' mirror directions from which it is a highlight
 LOBE_ROWS = 16  # rows of the light averaged for the mirror directions (about 11 deg a texel)
 
 
