@@ -16,6 +16,7 @@ command, commit, machine and versions to --json.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 from pathlib import Path
 
@@ -73,10 +74,11 @@ def main(argv=None) -> int:
     lights = {"images alone": None, "true light": torch.as_tensor(true_light)}
     lights.update({f"learned ({run.name})": torch.as_tensor(load_envmap(run / "envmap.exr", hdr_only=False))
                    for run in args.runs})
+    images = evidence.PriorReading(scene, capture, pool, cfg, None)  # the views are read once
+    material, names = material_of_hits(args.dataset, images.pos.numpy())
     out = {}
     for label, env in lights.items():
-        reading = evidence.PriorReading(scene, capture, pool, cfg, None)
-        material, names = material_of_hits(args.dataset, reading.pos.numpy())
+        reading = copy.copy(images)  # `read` replaces its tint, grid and decision, never changes them in place
         if env is not None:
             reading.read(env, None)
         weight = reading.grid(reading.pos) if reading.grid is not None else torch.ones(len(reading.pos))

@@ -28,16 +28,6 @@ class _Read(BaseException):  # past the command's own error handling
     pass
 
 
-def rank_correlations(cos: np.ndarray, lum: np.ndarray, valid: np.ndarray, min_views: int) -> np.ndarray:
-    """(P,) Spearman correlation per hit over its valid views (NaN with fewer than `min_views` or no spread)."""
-    out = np.full(len(cos), np.nan)
-    for i in range(len(cos)):
-        c, v = cos[i][valid[i]], lum[i][valid[i]]
-        if len(c) >= min_views and c.std() > 0 and v.std() > 0:
-            out[i] = np.corrcoef(np.argsort(np.argsort(c)), np.argsort(np.argsort(v)))[0, 1]
-    return out
-
-
 def main(argv: list[str]) -> int:
     if len(argv) < 3 or argv[2] != "--":
         print(__doc__)
@@ -56,7 +46,7 @@ def main(argv: list[str]) -> int:
         origins = np.array([cam.origin for cam in capture.cameras])[np.maximum(views.view.numpy(), 0)]
         to_cam = origins - p[:, None]
         cos = (to_cam / np.linalg.norm(to_cam, axis=-1, keepdims=True) * n[:, None]).sum(-1)
-        rho = rank_correlations(cos, views.lum.numpy(), valid, evidence.MIN_VIEWS)
+        rho = evidence.rank_correlation(cos, views.lum.numpy(), valid)
         shown = ~np.isnan(evidence.highlight_tint(views).numpy())
         record.update({"hits": int((~np.isnan(rho)).sum()), "hits_with_highlight": int(shown.sum()),
                        "rho_median": float(np.nanmedian(rho)),
