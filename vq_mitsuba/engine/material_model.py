@@ -43,8 +43,13 @@ class MaterialModel:
         self.scene = scene_for_mesh(capture.mesh, env_init, capture.envmap_to_world)
         self.field, self.discrete = material_networks(cfg, capture.mesh, device)
         self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
-        self.prior_grid = None  # the metallic prior's weight over the object (`vq_mitsuba.engine.evidence`)
+        self.prior = None  # the metallic prior's reading over the object (`vq_mitsuba.engine.evidence.PriorReading`)
         self.pull = None  # a trial's pull: (flags per hit, glossy roughness) (`vq_mitsuba.engine.trials`)
+
+    @property
+    def prior_grid(self):
+        """The metallic prior's weight over the object as its reading stands now (None: whole)."""
+        return None if self.prior is None else self.prior.grid
 
     # --- parameters and state ---------------------------------------------------------------------
     def parameter_groups(self) -> list[dict]:

@@ -99,7 +99,7 @@ class Trainer:
             if not self.model.learn_env else f"train.trials = {t.trials}")
         self.prior = evidence.PriorReading(self.model.scene, capture, pool, cfg,
                                            None if self.model.learn_env else self.model.envmap())
-        self.model.prior_grid = self.prior.grid
+        self.model.prior = self.prior
 
     # --- state ----------------------------------------------------------------------------------
     def envmap(self) -> torch.Tensor:
@@ -181,7 +181,6 @@ class Trainer:
         self.data.load_state_dict(state["sampler"])
         self.ladder.load_state_dict(state["envmap"])
         self.prior.load_state_dict(state.get("prior"))
-        self.model.prior_grid = self.prior.grid
         if self.trials is not None:
             self.trials.load_state_dict(state.get("trial"), state["decisions"].get("trials"))
 
@@ -206,7 +205,6 @@ class Trainer:
             self.set_envmap_height(self.envmap_height(s.progress))
         if self.prior.due(s.progress):
             self.prior.read(model.envmap(), self.step)
-            model.prior_grid = self.prior.grid
         idx, weight = data.draw(self.step, self.gen)
         terms, rgb, per_pixel = self.loss_terms(idx, s, self.bounce_active(), weight)
         loss = sum(terms.values())
