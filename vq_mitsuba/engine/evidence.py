@@ -57,7 +57,7 @@ GRID = 24  # voxels along the object's longest side
 MIN_EVIDENCE = 3  # hits with a highlight that a voxel needs to give evidence
 MIN_SHARE = 0.35  # and the share of the voxel's hits read that they must be at least
 READ_AT = 0.2  # schedule share at which the highlights are read again against the learned light
-MIRROR = 0.0  # rank correlation of a hit's brightness with the light about its views' mirror directions from which it is a highlight
+MIRROR = 0.0  # rank correlation with the light about the views' mirror directions from which a hit has a highlight
 LOBE_ROWS = 16  # rows of the light averaged for the mirror directions (about 11 deg a texel)
 
 
@@ -323,7 +323,8 @@ class PriorReading:
                 messages.note(f"prior: {self.decision['reason']}")
             return
         reason = (f"{seen}, their highlights keeping a median {record['tint_median']:.2f} of the surface's colour "
-                  f"(0: white light added, as a dielectric's; 1: all of it, as a metal's); the metallic prior is weakened on {100 * record['share_weakened']:.0f} % of the hits "
+                  f"(0: white light added, as a dielectric's; 1: all of it, as a metal's); the metallic prior is "
+                  f"weakened on {100 * record['share_weakened']:.0f} % of the hits "
                   f"(off on {100 * record['share_off']:.0f} %, from a tint of {METAL:g}), mean weight "
                   f"{record['mean_weight']:.2f}")
         messages.note(f"prior: {reason}")
