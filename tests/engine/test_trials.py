@@ -165,7 +165,7 @@ def test_the_model_returns_only_declared_terms_each_weighted_by_its_key(learned_
     trainer.model.loss_dict = lambda *a: returned.append(loss_dict(*a)) or returned[-1]
     weighted, _, _ = trainer.loss_terms(idx, s, False, weight)
     raw = returned[0][0]
-    assert {"rec_c", "rec_d", "vq", "chr", "lam_c", "lam_d"} <= set(raw) <= set(losses.TERMS)
+    assert {"rec_c", "rec_d", "vq", "chr", "met", "lam_c", "lam_d"} <= set(raw) <= set(losses.TERMS)
     assert set(weighted) == set(raw)
     for name, value in raw.items():
         w = losses.weight_of(trainer.cfg, name, s.progress)

@@ -42,6 +42,21 @@ def test_chromaticity_loss_ignores_intensity_but_not_hue():
     assert float(losses.chromaticity_loss(c.flip(-1), c)) > 1e-2
 
 
+def test_metallic_agreement_moves_only_the_discrete_metallic():
+    """The term is the (weighted) mean squared difference, zero where the branches agree, and its
+    gradient reaches the discrete metallic alone (the continuous one is its target)."""
+    m_c = torch.tensor([0.0, 0.9, 0.5], requires_grad=True)
+    m_d = torch.tensor([0.4, 0.9, 0.3], requires_grad=True)
+    loss = losses.metallic_agreement(m_d, m_c)
+    assert math.isclose(float(loss), (0.16 + 0.0 + 0.04) / 3, rel_tol=1e-5)
+    loss.backward()
+    assert m_c.grad is None or float(m_c.grad.abs().sum()) == 0.0
+    assert torch.allclose(m_d.grad, 2.0 * (m_d.detach() - m_c.detach()) / 3)
+    weighted = losses.metallic_agreement(m_d.detach(), m_c.detach(), torch.tensor([0.0, 1.0, 3.0]))
+    assert math.isclose(float(weighted), 3.0 * 0.04 / 3, rel_tol=1e-5)
+    assert float(losses.metallic_agreement(m_c.detach(), m_c.detach())) == 0.0
+
+
 def test_colour_aware_smoothness_switches_off_across_colour_edges():
     a = {"basecolor": torch.tensor([[0.2, 0.4, 0.6]]), "metallic": torch.tensor([0.0]), "roughness": torch.tensor([0.5])}
     b = {"basecolor": torch.tensor([[0.4, 0.4, 0.6]]), "metallic": torch.tensor([1.0]), "roughness": torch.tensor([0.5])}

@@ -33,6 +33,7 @@ TERMS = {t.name: t for t in (
     Term("lam_c", "loss.w_lam", decay="loss.lam_decay"),  # w5: Lambertian prior, continuous branch
     Term("rec_d", "loss.w_rec_d"),  # w2: L2 reconstruction of the discrete branch
     Term("chr", "loss.w_chr"),  # w3: chromaticity
+    Term("met", "loss.w_met"),  # the discrete metallic against the continuous one
     Term("vq", "loss.w_vq"),  # w4: VQ (commitment) loss
     Term("lam_d", "loss.w_lam", decay="vq.lam_decay"),  # w5: Lambertian prior, discrete branch
     Term("sm", "loss.w_sm"),  # w6: colour-aware smoothness
@@ -157,6 +158,15 @@ def chromaticity_loss(basecolor_d: torch.Tensor, basecolor_c: torch.Tensor,
     `weight` (N,): importance weights of the points."""
     sq = (chromaticity(basecolor_d) - chromaticity(basecolor_c.detach())) ** 2
     return torch.mean(sq) if weight is None else torch.mean(weight[:, None] * sq)
+
+
+def metallic_agreement(metallic_d: torch.Tensor, metallic_c: torch.Tensor,
+                       weight: torch.Tensor | None = None) -> torch.Tensor:
+    """The discrete metallic keeps the continuous one's: where a rough surface renders alike as a
+    dielectric or as a dim metal, the continuous field's prior decides, and a codeword follows it
+    instead of drifting along the ambiguity. `weight` (N,): importance weights of the points."""
+    sq = (metallic_d - metallic_c.detach()) ** 2
+    return torch.mean(sq) if weight is None else torch.mean(weight * sq)
 
 
 def colour_aware_smoothness(brdf_a: dict, brdf_b: dict, rgb_a: torch.Tensor, rgb_b: torch.Tensor,
