@@ -138,7 +138,7 @@ class LossConfig:
     w_rec_c: float = setting(0.2, "w1: L2 reconstruction of the continuous branch")
     w_rec_d: float = setting(1.0, "w2: L2 reconstruction of the discrete branch")
     w_chr: float = setting(1.0, "w3: chromaticity of the discrete against the continuous basecolor")
-    w_met: float = setting(1.0, "squared difference of the discrete against the continuous metallic (0: off)")
+    w_met: float = setting(1.0, "squared difference of each hit's codeword metallic against the continuous one (0: off)")
     w_vq: float = setting(1.0, "w4: VQ (commitment) loss")
     w_lam: float = setting(1e-4, "w5: Lambertian prior (metallic towards 0, roughness towards 1)")
     lam_metallic: float = setting(2.0, "weight of the Lambertian prior's metallic term relative to its roughness term")

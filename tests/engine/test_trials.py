@@ -170,3 +170,21 @@ def test_the_model_returns_only_declared_terms_each_weighted_by_its_key(learned_
     for name, value in raw.items():
         w = losses.weight_of(trainer.cfg, name, s.progress)
         assert float(weighted[name].detach()) == pytest.approx(w * float(value.detach()), rel=1e-5, abs=1e-9), name
+
+
+def test_the_metallic_agreement_trains_the_discrete_decoder_alone(learned_light_sphere, tmp_path):
+    """L_met moves each codeword's metallic towards the continuous field's at its hits through the
+    discrete decoder only: no gradient reaches the shared encoder or the continuous decoder."""
+    trainer = _trainer(learned_light_sphere, tmp_path)
+    _steps(trainer, 6)
+    model = trainer.model
+    assert model.discrete_on
+    s = schedule_at(trainer.cfg, Progress(trainer.step, 0.0, 0.5, 0.0))
+    idx, weight = trainer.data.draw(trainer.step, trainer.gen)
+    terms, _, _ = model.loss_dict(trainer.data, idx, s, False, trainer.gen, weight)
+    trainer.optim.zero_grad(set_to_none=True)
+    terms["met"].backward()
+    assert float(terms["met"]) > 0
+    decoder = [p.grad for p in model.discrete.decoder.parameters()]
+    assert any(g is not None and float(g.abs().sum()) > 0 for g in decoder)
+    assert all(p.grad is None or float(p.grad.abs().sum()) == 0 for p in model.field.parameters())

@@ -192,7 +192,9 @@ class MaterialModel:
                                                                    None if weight is None else weight[:n_px])
             if not single:
                 terms["chr"] = losses.chromaticity_loss(od[brdf.BASECOLOR], oc[brdf.BASECOLOR], w_d)
-                terms["met"] = losses.metallic_agreement(od[brdf.METALLIC], oc[brdf.METALLIC], w_d)
+                # each hit's codeword's metallic, through the decoder alone: no pull on the latents
+                code_metallic = self.discrete.decode_codewords()[brdf.METALLIC][od["index"]]
+                terms["met"] = losses.metallic_agreement(code_metallic, oc[brdf.METALLIC], w_d)
             terms["vq"] = od["vq_loss"]
             terms["lam_d"] = self.lambertian(od, s, w_d, None if metal_w is None else metal_w[:n_d])
         pick = data.neighbours(gen)

@@ -225,10 +225,15 @@ class DiscreteBranch(nn.Module):
         out["vq_loss"] = loss
         return out
 
+    def decode_codewords(self) -> dict[str, torch.Tensor]:
+        """The BRDF each codeword decodes to (one material per codeword), differentiable in the
+        decoder alone."""
+        return self.decoder(self.vq.codebook.detach() * self.latent_scale)
+
     @torch.no_grad()
     def codeword_brdfs(self) -> dict[str, torch.Tensor]:
         """The BRDF each codeword decodes to (one material per codeword)."""
-        return self.decoder(self.vq.codebook * self.latent_scale)
+        return self.decode_codewords()
 
 
 def kmeans_codebook(latents: torch.Tensor, num_codes: int, seed: int = 0) -> torch.Tensor:
