@@ -42,19 +42,28 @@ def test_chromaticity_loss_ignores_intensity_but_not_hue():
     assert float(losses.chromaticity_loss(c.flip(-1), c)) > 1e-2
 
 
-def test_metallic_agreement_moves_only_the_discrete_metallic():
-    """The term is the (weighted) mean squared difference, zero where the branches agree, and its
-    gradient reaches the discrete metallic alone (the continuous one is its target)."""
+def test_metallic_agreement_moves_only_the_discrete_metallic_to_the_median():
+    """The term is the (weighted) mean absolute difference, zero where the branches agree; its
+    gradient reaches the discrete metallic alone, and one value shared by many points (a
+    codeword) is pulled to their median, not their mean."""
     m_c = torch.tensor([0.0, 0.9, 0.5], requires_grad=True)
     m_d = torch.tensor([0.4, 0.9, 0.3], requires_grad=True)
     loss = losses.metallic_agreement(m_d, m_c)
-    assert math.isclose(float(loss), (0.16 + 0.0 + 0.04) / 3, rel_tol=1e-5)
+    assert math.isclose(float(loss), (0.4 + 0.0 + 0.2) / 3, rel_tol=1e-5)
     loss.backward()
     assert m_c.grad is None or float(m_c.grad.abs().sum()) == 0.0
-    assert torch.allclose(m_d.grad, 2.0 * (m_d.detach() - m_c.detach()) / 3)
+    assert torch.allclose(m_d.grad, torch.tensor([1.0, 0.0, -1.0]) / 3)
     weighted = losses.metallic_agreement(m_d.detach(), m_c.detach(), torch.tensor([0.0, 1.0, 3.0]))
-    assert math.isclose(float(weighted), 3.0 * 0.04 / 3, rel_tol=1e-5)
-    assert float(losses.metallic_agreement(m_c.detach(), m_c.detach())) == 0.0
+    assert math.isclose(float(weighted), 3.0 * 0.2 / 3, rel_tol=1e-5)
+    # one codeword over eight points, two of them mixed edge points of a metal
+    targets = torch.tensor([0.0, 0.01, 0.02, 0.0, 0.01, 0.0, 0.9, 0.8])
+    code = torch.tensor(0.5, requires_grad=True)
+    opt = torch.optim.SGD([code], lr=0.01)
+    for _ in range(300):
+        opt.zero_grad()
+        losses.metallic_agreement(code.expand(8), targets).backward()
+        opt.step()
+    assert float(code) < 0.03 < float(targets.mean())
 
 
 def test_colour_aware_smoothness_switches_off_across_colour_edges():

@@ -162,11 +162,13 @@ def chromaticity_loss(basecolor_d: torch.Tensor, basecolor_c: torch.Tensor,
 
 def metallic_agreement(metallic_d: torch.Tensor, metallic_c: torch.Tensor,
                        weight: torch.Tensor | None = None) -> torch.Tensor:
-    """The discrete metallic keeps the continuous one's: where a rough surface renders alike as a
+    """The discrete metallic keeps the continuous one's: the mean absolute difference, whose
+    minimum puts each codeword at the median continuous metallic of its points (so a few mixed
+    points at a material's edge do not move it). Where a rough surface renders alike as a
     dielectric or as a dim metal, the continuous field's prior decides, and a codeword follows it
     instead of drifting along the ambiguity. `weight` (N,): importance weights of the points."""
-    sq = (metallic_d - metallic_c.detach()) ** 2
-    return torch.mean(sq) if weight is None else torch.mean(weight * sq)
+    diff = (metallic_d - metallic_c.detach()).abs()
+    return torch.mean(diff) if weight is None else torch.mean(weight * diff)
 
 
 def colour_aware_smoothness(brdf_a: dict, brdf_b: dict, rgb_a: torch.Tensor, rgb_b: torch.Tensor,
