@@ -138,7 +138,7 @@ class LossConfig:
     w_rec_c: float = setting(0.2, "w1: L2 reconstruction of the continuous branch")
     w_rec_d: float = setting(1.0, "w2: L2 reconstruction of the discrete branch")
     w_chr: float = setting(1.0, "w3: chromaticity of the discrete against the continuous basecolor")
-    w_met: float = setting(1.0, "squared difference of each hit's codeword metallic against the continuous one (0: off)")
+    w_met: float = setting(1.0, "absolute difference of each hit's codeword metallic from the continuous one (0: off)")
     w_vq: float = setting(1.0, "w4: VQ (commitment) loss")
     w_lam: float = setting(1e-4, "w5: Lambertian prior (metallic towards 0, roughness towards 1)")
     lam_metallic: float = setting(2.0, "weight of the Lambertian prior's metallic term relative to its roughness term")
@@ -171,8 +171,6 @@ class VQConfig:
     min_share: float = setting(0.005, "codewords chosen by fewer pixels than this share are not materials", "[0,1]")
     merge_tol: float = setting(
         0.1, "codewords decoding within this BRDF distance of a higher-ranked one are duplicates (0: off)")
-    pixel_share: float = setting(1.0, "share of each step's pixels on which the discrete branch is shaded and trained",
-                                 "(0,1]")
     joint_scale: float = setting(0.05, "share of the discrete branch's gradient that reaches the shared encoder",
                                        "(0,1]")
     lam_decay: float = setting(0.1, "Lambertian prior decay on the discrete branch (1: constant)", "(0,1]")

@@ -160,23 +160,18 @@ class MaterialModel:
         if not discrete_on:
             samples = self._render(data, hits, out, env, gen, bounce_fn)
         else:
-            # The discrete branch trains on the first vq.pixel_share of the step's pixels (drawn
-            # in random order, so a random subset of them).
-            n_px = len(target) if single else max(1, round(cfg.vq.pixel_share * len(target)))
-            n, n_d = len(hits), n_px * (len(hits) // len(target))
-            z = out["z"][:n_d]
-            z = z.detach() if ab.separate else scale_gradient(z, cfg.vq.joint_scale)
-            drop = None if ab.no_ranking else sample_drop_mask(n_d, self.rates, gen)
-            w_d = None if hit_weight is None else hit_weight[:n_d]
-            od = self.discrete(z, drop, weight=w_d)
+            z = out["z"].detach() if ab.separate else scale_gradient(out["z"], cfg.vq.joint_scale)
+            drop = None if ab.no_ranking else sample_drop_mask(z.shape[0], self.rates, gen)
+            od = self.discrete(z, drop, weight=hit_weight)
             # Both branches are shaded in one call. The discrete branch is lit by the envmap and
             # bounce that the continuous branch fits, without training them: a few materials
             # cannot explain a texture, and their residual would otherwise bend the shared light
             # (ablation.shared_light lets it).
+            n = len(hits)
             both = {k: torch.cat([out[k], od[k]]) for k in brdf.NAMES}
-            fixed = None if ab.shared_light else torch.arange(n + n_d, device=self.device) >= n
-            samples_both = self._render(data, torch.cat([hits, hits[:n_d]]), both, env, gen, bounce_fn, fixed)
-            samples, samples_d = samples_both[:n], data.pixel_means(samples_both[n:], n_px)
+            fixed = None if ab.shared_light else torch.arange(2 * n, device=self.device) >= n
+            samples_both = self._render(data, torch.cat([hits, hits]), both, env, gen, bounce_fn, fixed)
+            samples, samples_d = samples_both[:n], data.pixel_means(samples_both[n:], len(target))
         samples = data.pixel_means(samples, len(target))
         per_pixel = None
         if data.sampler is not None:
@@ -187,16 +182,14 @@ class MaterialModel:
             terms["rec_c"] = losses.reconstruction_l2_decorrelated(samples, target, gamma, weight)
         terms["lam_c"] = self.lambertian(out, s, hit_weight, metal_w)
         if discrete_on:
-            oc = {k: out[k][:n_d] for k in (brdf.BASECOLOR, brdf.METALLIC)}
-            terms["rec_d"] = losses.reconstruction_l2_decorrelated(samples_d, target[:n_px], gamma,
-                                                                   None if weight is None else weight[:n_px])
+            terms["rec_d"] = losses.reconstruction_l2_decorrelated(samples_d, target, gamma, weight)
             if not single:
-                terms["chr"] = losses.chromaticity_loss(od[brdf.BASECOLOR], oc[brdf.BASECOLOR], w_d)
+                terms["chr"] = losses.chromaticity_loss(od[brdf.BASECOLOR], out[brdf.BASECOLOR], hit_weight)
                 # each hit's codeword's metallic, through the decoder alone: no pull on the latents
                 code_metallic = self.discrete.decode_codewords()[brdf.METALLIC][od["index"]]
-                terms["met"] = losses.metallic_agreement(code_metallic, oc[brdf.METALLIC], w_d)
+                terms["met"] = losses.metallic_agreement(code_metallic, out[brdf.METALLIC], hit_weight)
             terms["vq"] = od["vq_loss"]
-            terms["lam_d"] = self.lambertian(od, s, w_d, None if metal_w is None else metal_w[:n_d])
+            terms["lam_d"] = self.lambertian(od, s, hit_weight, metal_w)
         pick = data.neighbours(gen)
         if pick is not None:
             oa, ob = self.field(pool.position[pick[:, 0]]), self.field(pool.position[pick[:, 1]])
