@@ -32,6 +32,7 @@ from bench_scenes import figure_text
 from bench_time_error import figures
 from provenance import command_line, describe, provenance, write_result
 from skip_study import add_dataset_arguments, ensure_cycles_dataset, fit_command, run_fit, warmup_fit
+from variants import parse_variant
 
 REPO = Path(__file__).resolve().parent.parent
 COLUMNS = [("wall_s", "wall s", ".0f"), ("startup_s", "start s", ".1f"), ("steps_s", "steps s", ".0f"),
@@ -41,15 +42,6 @@ COLUMNS = [("wall_s", "wall s", ".0f"), ("startup_s", "start s", ".1f"), ("steps
            ("basecolor_psnr", "basecolor", ".2f"),
            ("metallic_psnr", "metallic", ".2f"), ("roughness_psnr", "roughness", ".2f"),
            ("relit_psnr", "relit", ".2f"), ("seg_micro_f1", "F1", ".3f"), ("materials_found", "M", ".0f")]
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    if text == "default":
-        return "default", []
-    name, sep, items = text.partition("=")
-    if not sep or not items or "=" not in items:
-        raise SystemExit(f"variant {text!r}: write NAME=KEY=VALUE[,KEY=VALUE...] or default")
-    return name, items.split(",")
 
 
 def fit_one(name: str, data: Path, variant: str, overrides: list[str], seed: int, args) -> dict:

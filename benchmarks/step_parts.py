@@ -25,15 +25,7 @@ import time
 from pathlib import Path
 
 from provenance import describe, provenance, write_json
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    if text == "default":
-        return "default", []
-    name, sep, items = text.partition("=")
-    if not sep or "=" not in items:
-        raise SystemExit(f"variant {text!r}: write NAME=KEY=VALUE[,KEY=VALUE...] or default")
-    return name, items.split(",")
+from variants import parse_variant
 
 
 def time_steps(dataset: Path, overrides: list[str], steps: int, warmup: int) -> dict:
