@@ -45,6 +45,7 @@ from vq_mitsuba.errors import InputError
 RANGES: dict[str, tuple[typing.Callable[[float], bool], str]] = {
     ">0": (lambda v: v > 0, "> 0"),
     ">=0": (lambda v: v >= 0, ">= 0"),
+    ">1": (lambda v: v > 1, "> 1"),
     "[0,1]": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "(0,1]": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "[0,1)": (lambda v: 0 <= v < 1, "in [0, 1)"),
@@ -129,6 +130,16 @@ class EnvmapConfig:
     final_height: str = setting(
         "auto", "the learned envmap's last rung: auto stops at the rows the fitted roughness can resolve (read as "
                 "the fit goes on), full at envmap.height", ("auto", "full"))
+
+
+@dataclass
+class LampConfig:
+    """Point lamps fitted beside the envmap (a photograph's lamps at a finite distance)."""
+
+    count: int = setting(0, "point lamps fitted beside the envmap (0: the envmap alone)", "[0,2]")
+    distance: float = setting(2.0, "the lamps' starting distance from the object's centre, in object radii", ">1")
+    lr: float = setting(0.02, "Adam learning rate of the lamps' positions (object radii) and log-intensities",
+                        "(0,1]")
 
 
 @dataclass
@@ -334,6 +345,7 @@ class PoseConfig:
 class Config:
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     envmap: EnvmapConfig = dataclasses.field(default_factory=EnvmapConfig)
+    lamps: LampConfig = dataclasses.field(default_factory=LampConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     vq: VQConfig = dataclasses.field(default_factory=VQConfig)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)

@@ -17,7 +17,7 @@ from vq_mitsuba.engine.pixel_data import PixelData
 from vq_mitsuba.engine.schedule import StepSchedule
 from vq_mitsuba.errors import NumericalError
 from vq_mitsuba.models import losses
-from vq_mitsuba.models.fields import EnvironmentMap
+from vq_mitsuba.models.fields import EnvironmentMap, PointLamps
 from vq_mitsuba.models.fitted import material_networks
 from vq_mitsuba.models.vq import dropout_rates, kmeans_codebook, sample_drop_mask, scale_gradient
 from vq_mitsuba.render.shading import scene_for_mesh
@@ -41,6 +41,8 @@ class MaterialModel:
             self.fixed_env = torch.as_tensor(capture.envmap, device=device)
             env_init = capture.envmap
         self.scene = scene_for_mesh(capture.mesh, env_init, capture.envmap_to_world)
+        self.lamps = start_lamps(capture, cfg, mean_foreground).to(device) if cfg.lamps.count > 0 else None
+        self.scene.lamps = self.lamps
         self.field, self.discrete = material_networks(cfg, capture.mesh, device)
         self.rates = dropout_rates(cfg.vq.num_codes, cfg.vq.dropout_max, cfg.vq.protected).to(device)
         self.prior = None  # the metallic prior's reading over the object (`vq_mitsuba.engine.evidence.PriorReading`)
@@ -60,6 +62,8 @@ class MaterialModel:
             groups.append({"params": self.discrete.parameters(), "lr": cfg.train.lr})
         if self.learn_env:
             groups.append({"params": self.env_module.parameters(), "lr": cfg.envmap.lr})
+        if self.lamps is not None:
+            groups.append({"params": self.lamps.parameters(), "lr": cfg.lamps.lr})
         return groups
 
     def state_dict(self) -> dict:
@@ -67,7 +71,8 @@ class MaterialModel:
         return {"model": self.field.state_dict(),
                 "discrete": self.discrete.state_dict() if self.discrete is not None else None,
                 "envmap": self.env_module.state_dict() if self.learn_env else None,
-                "envmap_fixed": None if self.learn_env else torch.as_tensor(self.capture.envmap)}
+                "envmap_fixed": None if self.learn_env else torch.as_tensor(self.capture.envmap),
+                "lamps": None if self.lamps is None else self.lamps.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         """Networks and light from a checkpoint (the learned envmap already at the checkpoint's rows)."""
@@ -76,6 +81,8 @@ class MaterialModel:
             self.discrete.load_state_dict(state["discrete"])
         if self.learn_env:
             self.env_module.load_state_dict(state["envmap"])
+        if self.lamps is not None:
+            self.lamps.load_state_dict(state["lamps"])
 
     def envmap(self) -> torch.Tensor:
         return self.env_module() if self.learn_env else self.fixed_env
@@ -246,6 +253,26 @@ class MaterialModel:
     def roughness(self, positions: torch.Tensor) -> torch.Tensor:
         """The continuous field's roughness at `positions`."""
         return self.field(positions)[brdf.ROUGHNESS]
+
+
+def start_lamps(capture: Capture, cfg: Config, mean_foreground: float) -> PointLamps:
+    """`cfg.lamps.count` point lamps at `cfg.lamps.distance` object radii from the centre of the
+    mesh's bounding box: the first towards the cameras' mean position (where a capture's lamps
+    mostly stand), the others spread about it; each as bright as lights a white facing surface one
+    radius away to the capture's mean value."""
+    lo, hi = np.asarray(capture.mesh.bounds, dtype=np.float64)
+    center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
+    toward = np.mean([c.to_world[:3, 3] for c in capture.cameras], axis=0) - center
+    toward = toward / np.linalg.norm(toward) if np.linalg.norm(toward) > 1e-6 * radius else np.array([0.0, 0.0, 1.0])
+    side = np.cross(toward, [1.0, 0.0, 0.0] if abs(toward[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    dirs = []
+    for k in range(cfg.lamps.count):  # the first on the axis, the others on a cone of 60 deg about it
+        a = 2 * np.pi * k / max(cfg.lamps.count - 1, 1)
+        other = np.cos(a) * side + np.sin(a) * np.cross(toward, side)
+        dirs.append(toward if k == 0 else np.cos(np.pi / 3) * toward + np.sin(np.pi / 3) * other)
+    offsets = torch.tensor(np.array(dirs) * cfg.lamps.distance, dtype=torch.float32)
+    return PointLamps(center, radius, offsets, np.pi * max(mean_foreground, 1e-3) * radius ** 2)
 
 
 def mean_foreground(capture: Capture, alpha_threshold: float) -> float:

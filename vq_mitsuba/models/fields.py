@@ -154,3 +154,20 @@ class EnvironmentMap(nn.Module):
         dv = x[1:] - x[:-1]
         du = x - torch.roll(x, 1, dims=1)
         return torch.mean(dv**2) + torch.mean(du**2)
+
+
+class PointLamps(nn.Module):
+    """Learnable point lamps beside the envmap: world positions (K, 3), kept as offsets from the
+    object's centre in units of its radius (one learning rate fits any scale), and RGB radiant
+    intensities (K, 3), positive through exp(log-intensity)."""
+
+    def __init__(self, center, radius: float, offsets: torch.Tensor, intensity: float):
+        super().__init__()
+        self.register_buffer("center", torch.as_tensor(center, dtype=torch.float32).reshape(1, 3))
+        self.register_buffer("radius", torch.tensor(float(radius)))
+        self.offset = nn.Parameter(torch.as_tensor(offsets, dtype=torch.float32).reshape(-1, 3).clone())
+        self.log_intensity = nn.Parameter(torch.full((self.offset.shape[0], 3), math.log(max(intensity, 1e-8))))
+
+    def forward(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(positions (K, 3), intensities (K, 3)) in the world."""
+        return self.center + self.radius * self.offset, torch.exp(self.log_intensity)

@@ -313,6 +313,41 @@ def _shade_kernel(bsdf, ctx, textures: tuple, emitter, setup, light_lanes: bool)
     return shade
 
 
+def _lamp_kernels(scene, bsdf, ctx, textures: tuple, setup):
+    """The kernels of point lamps: `visible` (whether the segment from each point to its lamp is
+    free, without gradients) and `shade` (the BSDF at the lamp's direction times the radiance
+    arriving from it, both given per lane, differentiable in both and in the lanes' BRDF)."""
+    f = _flat
+    width = brdf.CHANNELS + 6
+
+    @dr.wrap(source="torch", target="drjit")
+    def visible(px, py, pz, nx, ny, nz, lx, ly, lz):
+        with dr.suspend_grad():
+            si = dr.zeros(mi.SurfaceInteraction3f, dr.width(f(px)))
+            si.p = mi.Point3f(f(px), f(py), f(pz))
+            si.n = mi.Normal3f(f(nx), f(ny), f(nz))
+            free = ~scene.ray_test(si.spawn_ray_to(mi.Point3f(f(lx), f(ly), f(lz))))
+            out = dr.select(free, 1.0, 0.0)
+            dr.eval(out)
+        return out
+
+    @dr.wrap(source="torch", target="drjit")
+    def shade(px, py, pz, nx, ny, nz, wx, wy, wz, lanes):
+        # `lanes`: the BRDF's channels, the world direction towards the lamp and the radiance
+        # arriving from it (I / d^2, zero where occluded), interleaved as `_shade_kernel` reads them
+        lanes, idx = f(lanes), dr.arange(mi.UInt32, dr.width(f(px))) * width
+        values = [dr.gather(mi.Float, lanes, idx + c, mode=dr.ReduceMode.Permute) for c in range(width)]
+        chans, d, li = values[:brdf.CHANNELS], values[brdf.CHANNELS:brdf.CHANNELS + 3], values[brdf.CHANNELS + 3:]
+        si = setup(px, py, pz, nx, ny, nz, wx, wy, wz, chans)
+        radiance = bsdf.eval(ctx, si, si.to_local(mi.Vector3f(*d))) * mi.Color3f(*li)
+        dr.eval(radiance)
+        for tex in textures:
+            tex.values = None
+        return radiance.x, radiance.y, radiance.z
+
+    return visible, shade
+
+
 @dataclass
 class Lanes:
     """Shading lanes: the points' position, normal and direction towards the viewer, as nine flat
@@ -361,6 +396,10 @@ class ShadingScene:
         self._sample = _sample_kernel(self.scene, self.bsdf, self.ctx, self.textures, setup)
         self._shade = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=True)
         self._shade_lit = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=False)
+        self._lamp_visible, self._lamp_shade = _lamp_kernels(self.scene, self.bsdf, self.ctx, self.textures, setup)
+        # Point lamps beside the envmap: None, or a callable giving their world positions (K, 3)
+        # and radiant intensities (K, 3) as torch tensors (differentiable where they are fitted).
+        self.lamps = None
 
     # -- primary visibility -------------------------------------------------------------
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
@@ -484,6 +523,32 @@ class ShadingScene:
             rgb = self._shade_lit(*lanes.geometry, torch.cat([lanes.chans, li], 1).reshape(-1), list(sampled))
         return torch.stack(rgb, -1)
 
+    def lamp_radiance(self, position: torch.Tensor, normal: torch.Tensor, wi: torch.Tensor, material: dict,
+                      fixed_light: torch.Tensor | None = None) -> torch.Tensor:
+        """Radiance (N, 3) towards `wi` from the point lamps (`self.lamps`), with their shadows:
+        differentiable in the material and, except at points where `fixed_light` (N,) is set, in
+        the lamps' positions and intensities. Zero without lamps."""
+        n = position.shape[0]
+        total = torch.zeros(n, 3, device=position.device)
+        if self.lamps is None or n == 0:
+            return total
+        lamp_pos, lamp_int = self.lamps()
+        lanes = self.lanes(position, normal, wi, material)
+        for k in range(lamp_pos.shape[0]):
+            lp, li = lamp_pos[k].expand(n, 3), lamp_int[k].expand(n, 3)
+            if fixed_light is not None:
+                keep = fixed_light.bool()[:, None]
+                lp, li = torch.where(keep, lp.detach(), lp), torch.where(keep, li.detach(), li)
+            to_lamp = lp - position
+            dist2 = (to_lamp * to_lamp).sum(-1, keepdim=True).clamp_min(1e-12)
+            with torch.no_grad():
+                free = self._lamp_visible(*(t[:, c].contiguous() for t in (position, normal, lp.detach())
+                                            for c in range(3)))
+            arriving = li / dist2 * free[:, None]
+            flat = torch.cat([lanes.chans, to_lamp * torch.rsqrt(dist2), arriving], 1).reshape(-1)
+            total = total + torch.stack(self._lamp_shade(*lanes.geometry, flat), -1)
+        return total
+
     def shade(self, hits_position, hits_normal, hits_wi, material: dict,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
               reduce: bool = True, material_fn=None, groups: int = 1,
@@ -512,6 +577,8 @@ class ShadingScene:
         sampled = self.sample(lanes, stratified_samples(n, spp, groups, generator, lanes.geometry[0].device))
         bounce = None if material_fn is None else self.bounce_light(sampled, material_fn, env_linear, generator)
         samples = self.radiance(lanes, sampled, env_linear, bounce, fixed).view(n, spp, 3)
+        if self.lamps is not None:  # a point lamp's light is one direction: once per point, not per sample
+            samples = samples + self.lamp_radiance(hits_position, hits_normal, hits_wi, material, fixed_light)[:, None]
         return samples.mean(1) if reduce else samples
 
 

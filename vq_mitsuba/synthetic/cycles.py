@@ -323,6 +323,9 @@ def make_scene_cycles(name: str, out_dir, resolution: int | None = None, n_train
     init_mitsuba()
     t_start = time.time()
     spec = synthetic.load_scene_spec(name)
+    if spec.get("lamps"):
+        raise InputError(None, f"scene '{name}' has point lamps, which the Cycles renderer does not place: "
+                               "render it with --renderer mitsuba")
     res = int(resolution or spec.get("resolution", 128))
     n_train = int(spec.get("n_train", 64) if n_train is None else n_train)
     n_test = int(spec.get("n_test", 16) if n_test is None else n_test)

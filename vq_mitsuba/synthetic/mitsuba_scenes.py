@@ -451,6 +451,7 @@ def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train
                    "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
                    "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
         "relight": relights,
+        **({"lamps": scene_lamps(spec)} if scene_lamps(spec) else {}),
         "worlds": {"json_and_mesh_ply": "Blender (Z up)", "xml_and_meshes_dir": "Mitsuba (Y up)",
                    "blender_from_mitsuba": r.tolist(),
                    "envmap_convention": "Blender lat-long; " + envmap_convention},
@@ -609,6 +610,31 @@ def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
     return base
 
 
+def scene_lamps(spec: dict) -> list[dict]:
+    """The spec's point lamps, `lamps: [{position: [x, y, z], intensity: [r, g, b] or a number}]` in
+    Blender world (radiant intensity, W/sr), checked: [] when it has none."""
+    lamps = spec.get("lamps") or []
+    out = []
+    for k, lamp in enumerate(lamps):
+        pos, inten = (lamp.get("position"), lamp.get("intensity")) if isinstance(lamp, dict) else (None, None)
+        inten = [inten] * 3 if isinstance(inten, (int, float)) else inten
+        ok = all(isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and np.isfinite(x)
+                                                                 for x in v) for v in (pos, inten))
+        if not ok or min(inten) < 0:
+            raise InputError(SCENES_DIR / f"{spec['name']}.yaml", f"lamp {k + 1} needs a position [x, y, z] and "
+                                                                 "an intensity [r, g, b] >= 0 (or one number)")
+        out.append({"position": [float(x) for x in pos], "intensity": [float(x) for x in inten]})
+    return out
+
+
+def _lamp_emitters(spec: dict) -> dict:
+    """Mitsuba `point` emitters of the spec's lamps (Mitsuba world)."""
+    r = R_BLENDER_FROM_MITSUBA
+    return {f"lamp_{k}": {"type": "point", "position": (np.asarray(lamp["position"]) @ r).tolist(),
+                          "intensity": {"type": "rgb", "value": lamp["intensity"]}}
+            for k, lamp in enumerate(scene_lamps(spec))}
+
+
 def _scene_with(base: dict, env: np.ndarray):
     """The scene `base` lit by the lat-long map `env` (Mitsuba world, identity to_world)."""
     import mitsuba as mi
@@ -655,7 +681,7 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
         dataset.write_view(cam.name, np.array(img), env)
         bar.update(1)
 
-    scene = _scene_with(base, env_train)
+    scene = _scene_with(dict(base, **_lamp_emitters(spec)), env_train)  # relit views: the envmap alone
     for cam in train_mi + test_mi:
         render(scene, cam)
     rng = np.random.default_rng(seed + 1)

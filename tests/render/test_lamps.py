@@ -1,0 +1,127 @@
+"""Point lamps beside the envmap: Mitsuba's own `point` emitter per pixel, gradients of the lamps'
+positions and intensities against finite differences, and lamps that a fixed light does not train."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import mitsuba as mi
+
+from vq_mitsuba.backend import init_mitsuba
+from vq_mitsuba.data.cameras import Camera, camera_rays, look_at
+from vq_mitsuba.render.shading import ShadingScene
+
+init_mitsuba()
+
+BLACK = np.full((8, 16, 3), 1e-6, np.float32)  # an envmap that lights nothing
+BASE, METAL, ROUGH = [0.6, 0.4, 0.2], 0.3, 0.35
+
+
+def _sphere_on_slab():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    slab = trimesh.creation.box(extents=[3, 3, 0.1])
+    slab.apply_translation([0, 0, -0.6])
+    return trimesh.util.concatenate([sphere, slab])
+
+
+def _material(n):
+    return {"basecolor": torch.tensor([BASE]).expand(n, 3), "metallic": torch.full((n,), METAL),
+            "roughness": torch.full((n,), ROUGH)}
+
+
+@pytest.mark.cpu_inputs
+def test_point_lamp_matches_mitsubas_point_emitter_per_pixel(tmp_path):
+    """A sphere on a slab that it shadows, lit by one point lamp: each pixel's radiance equals
+    Mitsuba's `direct` render of the same scene with a `point` emitter, shadows included."""
+    mesh = _sphere_on_slab()
+    scene = ShadingScene(mesh.vertices, mesh.faces, BLACK, np.eye(4), normals=mesh.vertex_normals)
+    position, intensity = torch.tensor([[0.8, -0.6, 1.2]]), torch.tensor([[3.0, 2.0, 1.0]])
+    scene.lamps = lambda: (position, intensity)
+    cam = Camera("c", look_at([0, -2.5, 1.2], [0, 0, 0], [0, 0, 1]), 45.0, 48, 48)
+    hits = scene.trace(*camera_rays(cam))
+    v = hits.valid
+    ours = scene.shade(hits.position[v], hits.normal[v], hits.wi[v], _material(int(v.sum())),
+                       torch.tensor(BLACK), spp=2).numpy()
+    mesh.export(tmp_path / "m.ply")
+    bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": BASE}, "metallic": METAL, "roughness": ROUGH}
+    ref_scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "direct", "hide_emitters": True},
+        "m": {"type": "ply", "filename": str(tmp_path / "m.ply"), "bsdf": bsdf, "face_normals": False},
+        "l": {"type": "point", "position": position[0].tolist(), "intensity": {"type": "rgb", "value": intensity[0].tolist()}},
+    })
+    ref = np.array(mi.render(ref_scene, sensor=mi.load_dict(cam.to_mitsuba_dict(64)))).reshape(-1, 4)
+    inside = (ref[:, 3] > 0.999) & v.numpy()
+    full = np.zeros((len(ref), 3))
+    full[v.numpy()] = ours
+    a, b = full[inside], ref[inside, :3]
+    lit_a, lit_b = a.sum(1) > 1e-3, b.sum(1) > 1e-3
+    assert 0.2 < lit_b.mean() < 0.9  # some of the slab lies in the sphere's shadow, the rest is lit
+    assert np.mean(lit_a != lit_b) < 0.04  # shadow and terminator edges, antialiased in Mitsuba's render only
+    both = lit_a & lit_b
+    assert np.median(np.abs(a[both] - b[both]) / b[both]) < 0.01
+    np.testing.assert_allclose(a.mean(0), b.mean(0), rtol=0.02)
+
+
+def _points_on_sphere(n=200, seed=1):
+    rng = np.random.default_rng(seed)
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    wi = nrm + 0.5 * rng.normal(size=(n, 3))
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wi = np.where((wi * nrm).sum(1, keepdims=True) < 0.1, nrm, wi)
+    t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
+    return t(0.5 * nrm), t(nrm), t(wi)
+
+
+@pytest.mark.cpu_inputs
+def test_lamp_gradients_match_finite_differences():
+    """The gradients of a lamp's position and log-intensity, and of the material it lights, agree
+    with central differences (the lamp's light has no random sample: exact up to rounding)."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    scene = ShadingScene(sphere.vertices, sphere.faces, BLACK, np.eye(4), normals=sphere.vertex_normals)
+    p, n, wi = _points_on_sphere()
+    w = torch.tensor([0.5, 1.0, 2.0])
+    pos = torch.tensor([[0.7, -0.5, 0.9]], requires_grad=True)
+    log_i = torch.tensor([[1.0, 0.5, 0.2]], requires_grad=True)
+    base = torch.full((len(p), 3), 0.5, requires_grad=True)
+
+    def loss(pos, log_i, base):
+        scene.lamps = lambda: (pos, torch.exp(log_i))
+        mat = {"basecolor": base, "metallic": torch.full((len(p),), 0.2), "roughness": torch.full((len(p),), 0.4)}
+        return (scene.lamp_radiance(p, n, wi, mat) * w).sum()
+
+    loss(pos, log_i, base).backward()
+    eps = 1e-3
+    with torch.no_grad():
+        for k in range(3):
+            d = torch.zeros(1, 3)
+            d[0, k] = eps
+            fd = (loss(pos + d, log_i, base) - loss(pos - d, log_i, base)).item() / (2 * eps)
+            assert pos.grad[0, k].item() == pytest.approx(fd, rel=0.02, abs=1e-3), f"position {k}"
+            fd = (loss(pos, log_i + d, base) - loss(pos, log_i - d, base)).item() / (2 * eps)
+            assert log_i.grad[0, k].item() == pytest.approx(fd, rel=0.01), f"log-intensity {k}"
+        fd = (loss(pos, log_i, base + eps) - loss(pos, log_i, base - eps)).item() / (2 * eps)
+    assert base.grad.sum().item() == pytest.approx(fd, rel=0.01)
+    assert pos.grad.abs().sum() > 0 and log_i.grad.abs().min() > 0
+
+
+@pytest.mark.cpu_inputs
+def test_fixed_light_points_pass_no_gradient_to_the_lamps():
+    """Points shaded under a fixed light (the discrete branch's) are lit by the lamps alike but
+    train neither their position nor their intensity."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    scene = ShadingScene(sphere.vertices, sphere.faces, BLACK, np.eye(4), normals=sphere.vertex_normals)
+    p, n, wi = _points_on_sphere(64)
+    pos = torch.tensor([[0.7, -0.5, 0.9]], requires_grad=True)
+    log_i = torch.zeros(1, 3, requires_grad=True)
+    scene.lamps = lambda: (pos, torch.exp(log_i))
+    mat = _material(len(p))
+    free = scene.lamp_radiance(p, n, wi, mat)
+    fixed = scene.lamp_radiance(p, n, wi, mat, fixed_light=torch.ones(len(p), dtype=torch.bool))
+    assert torch.allclose(free, fixed) and free.abs().sum() > 0
+    fixed.sum().backward()
+    assert pos.grad is None or pos.grad.abs().sum() == 0
+    assert log_i.grad is None or log_i.grad.abs().sum() == 0
+    free.sum().backward()
+    assert pos.grad.abs().sum() > 0 and log_i.grad.abs().sum() > 0
