@@ -38,6 +38,7 @@ OUT_OF_RANGE = [
     (">=0", "loss.w_lam", "-1", "loss.w_lam must be >= 0"),
     ("[0,1]", "vq.decay", "1.5", "vq.decay must be in [0, 1]"),
     ("(0,1]", "vq.joint_scale", "0", "vq.joint_scale must be in (0, 1]"),
+    (">1", "lamps.distance", "1", "lamps.distance must be > 1"),
     ("[0,1)", "field.metallic_init", "1.0", "field.metallic_init must be in [0, 1)"),
     ("square", "train.pixel_jitter", "3", "train.pixel_jitter must be a square number or 0"),
     ("square>0", "render.aa", "0", "render.aa must be a square number > 0"),
@@ -89,7 +90,7 @@ def test_every_key_has_one_line_of_help_and_a_valid_range():
     check(Config())  # every default is inside its range
     check(_texel_config()())
     with pytest.raises(ValueError, match="unknown range"):
-        setting(1, "a count", ">1")
+        setting(1, "a count", ">2")
     with pytest.raises(ValueError, match="not one of"):
         setting("cube", "a shape", ("hull", "sphere"))
     with pytest.raises(ValueError, match="one line"):

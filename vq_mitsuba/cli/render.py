@@ -25,6 +25,8 @@ def add_parser(sub, shared) -> None:
     r.add_argument("--env-rotate", type=finite(1e6), default=0.0, metavar="DEG",
                    help="rotate the lighting about the up axis by DEG degrees")
     r.add_argument("--exposure", type=finite(64), default=0.0, metavar="EV", help="scale the lighting by 2^EV")
+    r.add_argument("--keep-lamps", action="store_true",
+                   help="light views under another --envmap with the run's fitted lamps too (default: the envmap alone)")
     r.add_argument("--spp", type=positive_int, help="samples per pixel (default: render.spp of the run's config)")
     r.set_defaults(func=run)
 
@@ -36,6 +38,6 @@ def run(args) -> int:
     refuse_file_output(args.output)
     size = load_config(None, capture_flags(args)).capture  # --downscale, --max-size
     out = render_run(args.run_dir, args.cameras, args.output, args.envmap, size, env_rotate_deg=args.env_rotate,
-                     exposure_ev=args.exposure, spp=args.spp)
+                     exposure_ev=args.exposure, spp=args.spp, keep_lamps=args.keep_lamps)
     print(f"rendered views in {out}/")
     return 0

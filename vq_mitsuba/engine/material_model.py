@@ -84,6 +84,18 @@ class MaterialModel:
         if self.lamps is not None:
             self.lamps.load_state_dict(state["lamps"])
 
+    @torch.no_grad()
+    def lamps_decision(self) -> dict:
+        """fit.json's `lamps`: what the light beside the envmap is and, with lamps, where they ended."""
+        from vq_mitsuba.engine.skips import decision
+
+        n = self.cfg.lamps.count
+        if self.lamps is None:
+            return decision(n, "none", "lamps.count = 0: the envmap alone lights the fit")
+        out = decision(n, "world", f"lamps.count = {n}: {n} point lamp(s) fixed in the world, fitted beside the envmap")
+        out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()} for p, i in zip(*self.lamps())]
+        return out
+
     def envmap(self) -> torch.Tensor:
         return self.env_module() if self.learn_env else self.fixed_env
 

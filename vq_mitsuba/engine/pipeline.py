@@ -270,6 +270,11 @@ def check_resumable(state: dict, cfg: Config, capture: Capture, path: Path) -> N
                                f"{str(cfg.vq.enabled).lower()}: resume with the run's own vq.enabled")
     if discrete is not None:
         load_module_state(discrete, state["discrete"], path, "discrete")
+    if (cfg.lamps.count > 0) != (state.get("lamps") is not None) or (
+            cfg.lamps.count > 0 and tuple(state["lamps"].get("offset", torch.zeros(0)).shape) != (cfg.lamps.count, 3)):
+        had = 0 if state.get("lamps") is None else len(state["lamps"].get("offset", []))
+        raise InputError(path, f"was fitted with lamps.count={had}, not {cfg.lamps.count}: resume with the run's own "
+                               "lamps.count")
     if (capture.envmap is None) != (state.get("envmap") is not None):
         raise InputError(path, "was fitted with " + ("a learned" if state.get("envmap") is not None else "the "
                                "capture's own") + " envmap, and the capture now says otherwise: resume with the "

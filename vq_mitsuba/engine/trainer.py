@@ -280,6 +280,7 @@ class Trainer:
         else:
             out["envmap"] = self.ladder.decision(self.model.envmap_rows)
         out["sampling"] = self.data.sampling_decision(cfg.train.sampling)
+        out["lamps"] = self.model.lamps_decision()
         return out
 
     def _loop_step(self, p: Progress) -> dict | None:

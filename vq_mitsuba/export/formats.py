@@ -118,7 +118,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
 
             env = fitted.envmap if envmap is None else envmap
             files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,
-                                  2 + fitted.cfg.train.bounces, name)
+                                  2 + fitted.cfg.train.bounces, name, fitted.lamps if envmap is None else None)
         if fmt != "mitsuba":  # Y-up formats: the lighting in Blender's convention (the XML holds its own frame)
             from vq_mitsuba.export.files import blender_envmap, write_envmap
 

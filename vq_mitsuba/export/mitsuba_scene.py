@@ -54,8 +54,10 @@ def sensor_xml(camera: Camera, spp: int, sensor_id: str | None = None) -> str:
 
 
 def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world: np.ndarray,
-                  cameras: Sequence[Camera], spp: int, max_depth: int, name: str = "object") -> list[Path]:
-    """OUT/scene.xml with OUT/NAME.ply, NAME_{basecolor,metallic,roughness}.exr and envmap.exr.
+                  cameras: Sequence[Camera], spp: int, max_depth: int, name: str = "object",
+                  lamps: np.ndarray | None = None) -> list[Path]:
+    """OUT/scene.xml with OUT/NAME.ply, NAME_{basecolor,metallic,roughness}.exr and envmap.exr;
+    `lamps` (K, 6: position, RGB intensity) become `point` emitters beside the envmap.
 
     Render a view with `mitsuba OUT/scene.xml` (first sensor) or
     `mi.render(mi.load_file(...), sensor=i)`; `-Dspp=N` sets the samples per pixel."""
@@ -85,6 +87,9 @@ def write_mitsuba(out: Path, baked: BakedMesh, envmap: np.ndarray, env_to_world:
         *[f'      <float name="{key}" value="{value:g}"/>' for key, value in FIXED.items()],
         "    </bsdf></bsdf>",
         "  </shape>",
+        *[f'  <emitter type="point"><point name="position" x="{p[0]:.9g}" y="{p[1]:.9g}" z="{p[2]:.9g}"/>'
+          f'<rgb name="intensity" value="{p[3]:.9g}, {p[4]:.9g}, {p[5]:.9g}"/></emitter>'
+          for p in (() if lamps is None else np.asarray(lamps, dtype=np.float64))],
         '  <emitter type="envmap"><string name="filename" value="envmap.exr"/>',
         f'    <transform name="to_world"><matrix value="{_matrix(env_to_world)}"/></transform>',
         "  </emitter>",

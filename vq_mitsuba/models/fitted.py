@@ -33,6 +33,9 @@ class FittedModel:
     # The view-dependent residual of novel views under the capture's own light (None: the run has
     # none); renders under other light, of edits and exports leave it out (`render.views.Renderer`).
     residual: ResidualField | None = None
+    # Point lamps fitted beside the envmap, (K, 6): world position and RGB radiant intensity (None:
+    # the envmap alone); renders under the run's own light include them, relit ones leave them out.
+    lamps: np.ndarray | None = None
 
     @torch.no_grad()
     def materials_at(self, points: torch.Tensor, discrete: bool = False, ids: bool = True) -> dict[str, torch.Tensor]:

@@ -46,11 +46,12 @@ def new_folder(path: Path):
 
 def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Path | None = None,
                envmap_paths: Sequence[str | Path] = (), size: CaptureConfig | None = None,
-               env_rotate_deg: float = 0.0, exposure_ev: float = 0.0, spp: int | None = None) -> Path:
+               env_rotate_deg: float = 0.0, exposure_ev: float = 0.0, spp: int | None = None,
+               keep_lamps: bool = False) -> Path:
     """Render the run's views for every camera of `cameras_path` into `out_dir` (default
     RUN_DIR/renders): the first lighting (the fitted envmap when `envmap_paths` is empty) into it,
     each further one into OUT/<its file name>; then write OUT/render.json. Every input is checked
-    before any rendering. `size` is the capture section whose downscale and max_size shrink the
+    before any rendering. `keep_lamps`: the run's fitted lamps light the relit views too. `size` is the capture section whose downscale and max_size shrink the
     cameras' images. Returns the output folder."""
     size = size if size is not None else load_config(None).capture
     run = RunDir(run_dir)
@@ -63,15 +64,17 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
     if not envmap_paths:
         check_peak(fitted.envmap, run.dir / RunDir.ENVMAP, exposure_ev)
     names = lighting_names(envmap_paths)
+    own_light = not envmap_paths and env_rotate_deg == 0 and exposure_ev == 0  # the fitted lamps light it
     with new_folder(out):
         views.render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
                            env_rotate_deg=env_rotate_deg, exposure_ev=exposure_ev, spp=spp,
-                           more_envmaps=list(zip(names[1:], envmaps[1:])))
+                           more_envmaps=list(zip(names[1:], envmaps[1:])), keep_lamps=keep_lamps)
         write_json(out / RENDER_MARKER, {
             "run": str(run.dir.resolve()), "cameras": str(Path(cameras_path).resolve()),
             "envmap": str(Path(envmap_paths[0]).resolve()) if envmap_paths else "fitted",
             "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], envmap_paths[1:])},
             "env_rotate_deg": env_rotate_deg, "exposure_ev": exposure_ev, "views": [c.name for c in cameras],
+            "lamps": 0 if fitted.lamps is None or not (keep_lamps or own_light) else len(fitted.lamps),
             "downscale": size.downscale, "max_size": size.max_size,
         })
     return out

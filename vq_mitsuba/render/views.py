@@ -45,7 +45,7 @@ class Renderer:
     own material only."""
 
     def __init__(self, fitted: FittedModel, envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0,
-                 exposure_ev: float = 0.0):
+                 exposure_ev: float = 0.0, keep_lamps: bool = False):
         self.fitted = fitted
         env = fitted.envmap if envmap is None else envmap
         peak = float(np.max(env)) * 2.0 ** exposure_ev
@@ -58,6 +58,10 @@ class Renderer:
         self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
         own_light = envmap is None and env_rotate_deg == 0 and exposure_ev == 0
+        if fitted.lamps is not None and (own_light or keep_lamps):  # the fitted lamps, at this exposure
+            lamps = torch.as_tensor(fitted.lamps, dtype=torch.float32, device=self.env_t.device)
+            lamps = torch.cat([lamps[:, :3], lamps[:, 3:] * 2.0 ** exposure_ev], 1)
+            self.scene.lamps = lambda: (lamps[:, :3], lamps[:, 3:])
         self.residual = fitted.residual if own_light else None
 
     @torch.no_grad()
@@ -265,7 +269,7 @@ def write_view(out_dir: Path, name: str, images: dict[str, np.ndarray]) -> None:
 def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: str, out_dir: Path,
                  envmap: np.ndarray | None = None, env_rotate_deg: float = 0.0, exposure_ev: float = 0.0,
                  spp: int | None = None,
-                 more_envmaps: Sequence[tuple[str, np.ndarray]] = ()) -> None:
+                 more_envmaps: Sequence[tuple[str, np.ndarray]] = (), keep_lamps: bool = False) -> None:
     """Render every camera (given in world `cameras_world`) and write the per-view files.
 
     `more_envmaps`: (name, envmap) pairs of further lightings. Then the views under `envmap` go to
@@ -280,8 +284,8 @@ def render_views(fitted: FittedModel, cameras: Sequence[Camera], cameras_world: 
     # The loaders' names are file names already (vq_mitsuba.data.names); this keeps any other
     # caller's inside OUT_DIR and apart.
     files = view_names([cam.name for cam in cameras])
-    renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev)
-    others = [Renderer(fitted, env, env_rotate_deg, exposure_ev) for _, env in more_envmaps]
+    renderer = Renderer(fitted, envmap, env_rotate_deg, exposure_ev, keep_lamps)
+    others = [Renderer(fitted, env, env_rotate_deg, exposure_ev, keep_lamps) for _, env in more_envmaps]
     for cam, file_name in zip(messages.progress(cameras, desc="render"), files):
         images = renderer.render(convert_world(cam, cameras_world, fitted.world), spp=spp, relight=others)
         relit = images.pop("relit", [])

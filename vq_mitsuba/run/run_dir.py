@@ -161,7 +161,7 @@ def save_torch(obj, path: str | Path) -> Path:
     return write_atomic(path, lambda tmp: torch.save(obj, tmp))
 
 
-FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed")
+FITTED_PARTS = ("model", "discrete", "envmap", "envmap_fixed", "lamps")
 WORLDS = ("mitsuba", "blender")
 DEVICES_USED = ("cpu", "cuda")
 
@@ -607,13 +607,27 @@ class RunDir:
                 discrete = None
         envmap = _envmap_of(state, state_path)
         fitted = FittedModel(cfg, model, discrete, envmap, np.asarray(info["envmap_to_world"]), info["world"], mesh,
-                             int(state.get("step", -1)))
+                             int(state.get("step", -1)), lamps=_lamps_of(state, state_path))
         residual = self.residual_state(fitted.step, device) if checkpoint is None else None
         if residual is not None:
             fitted.residual = ResidualField(*mesh.bounds, finest=int(residual["finest"])).to(device)
             load_module_state(fitted.residual, residual, self.dir / self.RESIDUAL, "field")
             fitted.residual.eval()
         return fitted
+
+
+def _lamps_of(state: dict, path: Path) -> np.ndarray | None:
+    """The fitted point lamps of a state, (K, 6): world position and RGB intensity; None without."""
+    lamps = state.get("lamps")
+    if lamps is None:
+        return None
+    parts = [lamps.get(k) if isinstance(lamps, dict) else None for k in ("center", "radius", "offset", "log_intensity")]
+    if not all(torch.is_tensor(t) for t in parts) or parts[2].ndim != 2 or parts[2].shape[1] != 3 \
+            or parts[3].shape != parts[2].shape:
+        raise InputError(path, "its lamps are not point lamps (center, radius, offset, log_intensity): not a checkpoint "
+                               "of this run")
+    center, radius, offset, log_i = (t.detach().float().cpu() for t in parts)
+    return torch.cat([center.reshape(1, 3) + radius * offset, torch.exp(log_i)], 1).numpy()
 
 
 def _envmap_of(state: dict, path: Path) -> np.ndarray:
