@@ -130,3 +130,47 @@ def three_material_ids(positions: np.ndarray) -> np.ndarray:
     """Ground-truth material id (1..3) of surface points of `write_three_material_capture`."""
     centres = np.array([c for c, *_ in THREE_MATERIALS])
     return 1 + np.argmin(np.linalg.norm(positions[:, None, :] - centres[None], axis=-1), axis=1)
+
+
+def write_lamp_capture(out: Path, lamp: tuple = (0.9, 1.1, 0.6), intensity: float = 3.0, flash: bool = False,
+                       size: int = 32, n_views: int = 16, spp: int = 32) -> Path:
+    """A grey-white sphere (radius 0.5) on a slab, Mitsuba world (Y up), lit by a dim uniform sky and
+    a point lamp: at `lamp` in the world, or with `flash` at `lamp` in each view's camera frame.
+    The envmap is not in the XML (the fit learns it); returns the XML path."""
+    import mitsuba as mi
+    import trimesh
+
+    from vq_mitsuba.data.cameras import Camera, look_at
+    from vq_mitsuba.backend import init_mitsuba
+
+    init_mitsuba()
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    slab = trimesh.creation.box(extents=[2.0, 0.1, 2.0])
+    slab.apply_translation([0.0, -0.55, 0.0])
+    trimesh.util.concatenate([sphere, slab]).export(out / "mesh.ply")
+    bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": [0.7, 0.6, 0.5]}, "roughness": 0.6}
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
+        "shape": {"type": "ply", "filename": str(out / "mesh.ply"), "bsdf": bsdf, "face_normals": False},
+        "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.15, 0.15, 0.17]}},
+        "lamp": {"type": "point", "position": list(lamp), "intensity": {"type": "rgb", "value": [intensity] * 3}},
+    })
+    params = mi.traverse(scene)
+    sensors = []
+    for i in range(n_views):
+        a = 2 * np.pi * i / n_views
+        elevation = 0.35 + 0.5 * (i % 3) / 2
+        origin = 2.6 * np.array([np.cos(a) * np.cos(elevation), np.sin(elevation), np.sin(a) * np.cos(elevation)])
+        cam = Camera(f"view_{i:02d}", look_at(origin, [0, -0.1, 0], [0, 1, 0]), 45.0, size, size)
+        if flash:
+            params["lamp.position"] = type(params["lamp.position"])(*(cam.to_world[:3, :3] @ np.asarray(lamp)
+                                                                      + cam.to_world[:3, 3]).tolist())
+            params.update()
+        sensors.append(_render_view(scene, cam, spp, i, out))
+    xml = ('<scene version="3.0.0">\n' + "\n".join(sensors) + "\n"
+           '  <shape type="ply"><string name="filename" value="mesh.ply"/></shape>\n</scene>\n')
+    (out / "scene.xml").write_text(xml)
+    return out / "scene.xml"

@@ -137,6 +137,8 @@ class LampConfig:
     """Point lamps fitted beside the envmap (a photograph's lamps at a finite distance)."""
 
     count: int = setting(0, "point lamps fitted beside the envmap (0: the envmap alone)", "[0,2]")
+    frame: str = setting("world", "where the lamps stand: fixed in the world, or riding with each view's camera "
+                                  "(a flash)", ("world", "camera"))
     distance: float = setting(2.0, "the lamps' starting distance from the object's centre, in object radii", ">1")
     lr: float = setting(0.02, "Adam learning rate of the lamps' positions (object radii) and log-intensities",
                         "(0,1]")

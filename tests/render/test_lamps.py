@@ -37,7 +37,7 @@ def test_point_lamp_matches_mitsubas_point_emitter_per_pixel(tmp_path):
     mesh = _sphere_on_slab()
     scene = ShadingScene(mesh.vertices, mesh.faces, BLACK, np.eye(4), normals=mesh.vertex_normals)
     position, intensity = torch.tensor([[0.8, -0.6, 1.2]]), torch.tensor([[3.0, 2.0, 1.0]])
-    scene.lamps = lambda: (position, intensity)
+    scene.lamps = lambda views: (position, intensity)
     cam = Camera("c", look_at([0, -2.5, 1.2], [0, 0, 0], [0, 0, 1]), 45.0, 48, 48)
     hits = scene.trace(*camera_rays(cam))
     v = hits.valid
@@ -87,7 +87,7 @@ def test_lamp_gradients_match_finite_differences():
     base = torch.full((len(p), 3), 0.5, requires_grad=True)
 
     def loss(pos, log_i, base):
-        scene.lamps = lambda: (pos, torch.exp(log_i))
+        scene.lamps = lambda views: (pos, torch.exp(log_i))
         mat = {"basecolor": base, "metallic": torch.full((len(p),), 0.2), "roughness": torch.full((len(p),), 0.4)}
         return (scene.lamp_radiance(p, n, wi, mat) * w).sum()
 
@@ -115,7 +115,7 @@ def test_fixed_light_points_pass_no_gradient_to_the_lamps():
     p, n, wi = _points_on_sphere(64)
     pos = torch.tensor([[0.7, -0.5, 0.9]], requires_grad=True)
     log_i = torch.zeros(1, 3, requires_grad=True)
-    scene.lamps = lambda: (pos, torch.exp(log_i))
+    scene.lamps = lambda views: (pos, torch.exp(log_i))
     mat = _material(len(p))
     free = scene.lamp_radiance(p, n, wi, mat)
     fixed = scene.lamp_radiance(p, n, wi, mat, fixed_light=torch.ones(len(p), dtype=torch.bool))
@@ -145,11 +145,11 @@ def test_renders_under_the_fitted_light_include_the_lamps_and_relit_ones_leave_t
     """A run's lamps light its renders under its own light (as Mitsuba's `direct` with a `point`
     emitter does), not those under another envmap unless `keep_lamps`; an exposure scales them."""
     from vq_mitsuba.config import load_config
-    from vq_mitsuba.models.fitted import FittedModel
+    from vq_mitsuba.models.fitted import FittedLamps, FittedModel
     from vq_mitsuba.render.views import Renderer
 
     mesh = _sphere_on_slab()
-    lamps = np.array([[0.8, -0.6, 1.2, 3.0, 2.0, 1.0]])
+    lamps = FittedLamps(np.array([[0.8, -0.6, 1.2]]), np.array([[3.0, 2.0, 1.0]]))
     fitted = FittedModel(load_config(None, ["train.bounces=0"]), _Constant(), None, BLACK, np.eye(4), "mitsuba", mesh,
                          0, lamps=lamps)
     cam = Camera("c", look_at([0, -2.5, 1.2], [0, 0, 0], [0, 0, 1]), 45.0, 24, 24)
@@ -182,7 +182,7 @@ def test_exported_mitsuba_scene_holds_the_lamps(tmp_path):
     assert len(emitters) == 1
     image = np.array(mi.render(scene, spp=16))
     ours = ShadingScene(sphere.vertices, sphere.faces, BLACK, np.eye(4), normals=sphere.vertex_normals)
-    ours.lamps = lambda: (torch.tensor(lamps[:, :3], dtype=torch.float32), torch.tensor(lamps[:, 3:], dtype=torch.float32))
+    ours.lamps = lambda views: (torch.tensor(lamps[:, :3], dtype=torch.float32), torch.tensor(lamps[:, 3:], dtype=torch.float32))
     hits = ours.trace(*camera_rays(cam))
     v = hits.valid
     mat = {"basecolor": torch.full((int(v.sum()), 3), 0.5), "metallic": torch.zeros(int(v.sum())),
@@ -190,3 +190,48 @@ def test_exported_mitsuba_scene_holds_the_lamps(tmp_path):
     rgb = ours.shade(hits.position[v], hits.normal[v], hits.wi[v], mat, torch.tensor(BLACK), spp=2).numpy()
     inside = image.reshape(-1, image.shape[-1])[v.numpy(), :3]
     np.testing.assert_allclose(inside.mean(0), rgb.mean(0), rtol=0.05)
+
+
+def test_lamps_that_ride_with_the_camera_stand_at_each_views_camera():
+    """A camera lamp's position is its offset (object radii) in the frame of the view's camera; a
+    world lamp's is the centre plus its offset, whatever the view."""
+    from vq_mitsuba.models.fields import PointLamps
+
+    cams = np.stack([look_at([0, -2.5, 1.2], [0, 0, 0], [0, 0, 1]), look_at([2.0, 1.0, 0.5], [0, 0, 0], [0, 0, 1])])
+    offsets = torch.tensor([[0.0, 0.2, 0.0], [0.1, 0.0, 0.0]])
+    flash = PointLamps([0.1, 0.2, 0.3], 0.5, offsets, 2.0, camera_to_world=cams)
+    views = torch.tensor([1, 0, 1])
+    pos, inten = flash(views)
+    assert pos.shape == (2, 3, 3) and torch.allclose(inten, torch.full((2, 3), 2.0))
+    for k in range(2):
+        for j, v in enumerate(views.tolist()):
+            want = cams[v][:3, :3] @ (0.5 * offsets[k].numpy()) + cams[v][:3, 3]
+            np.testing.assert_allclose(pos[k, j].detach().numpy(), want, atol=1e-6)
+    with pytest.raises(ValueError, match="views"):
+        flash(None)
+    world = PointLamps([0.1, 0.2, 0.3], 0.5, offsets, 2.0)
+    np.testing.assert_allclose(world(views)[0].detach().numpy(), [0.1, 0.2, 0.3] + 0.5 * offsets.numpy(), atol=1e-6)
+
+
+@pytest.mark.cpu_inputs
+def test_a_fitted_flash_lights_each_render_from_its_camera():
+    """A run's flash (a lamp in the camera's frame) renders each view as a world lamp standing at
+    that view's camera would."""
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.models.fitted import FittedLamps, FittedModel
+    from vq_mitsuba.render.views import Renderer
+
+    mesh = _sphere_on_slab()
+    cfg = load_config(None, ["train.bounces=0"])
+    offset, intensity = np.array([[0.1, 0.3, 0.0]]), np.array([[5.0, 4.0, 3.0]])
+    flash = FittedModel(cfg, _Constant(), None, BLACK, np.eye(4), "mitsuba", mesh, 0,
+                        lamps=FittedLamps(offset, intensity, in_camera=True))
+    for eye in ([0, -2.5, 1.2], [2.0, 1.0, 0.8]):
+        cam = Camera("c", look_at(eye, [0, 0, 0], [0, 0, 1]), 45.0, 16, 16)
+        at = cam.to_world[:3, :3] @ offset[0] + cam.to_world[:3, 3]
+        world = FittedModel(cfg, _Constant(), None, BLACK, np.eye(4), "mitsuba", mesh, 0,
+                            lamps=FittedLamps(at[None], intensity))
+        a = Renderer(flash).render(cam, spp=4, aa=1, seed=0)["rgb"]
+        b = Renderer(world).render(cam, spp=4, aa=1, seed=0)["rgb"]
+        assert a.mean() > 0.01
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)

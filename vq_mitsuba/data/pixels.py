@@ -32,6 +32,10 @@ class PixelPool:
     def __len__(self) -> int:
         return self.position.shape[0]
 
+    def views_of(self, idx: torch.Tensor) -> torch.Tensor:
+        """The view index of the hits `idx` (on the hits' device; `view` itself stays on the CPU)."""
+        return self.view[idx.to(self.view.device)].to(self.position.device)
+
 
 def trace_training_pixels(scene, capture: Capture, alpha_threshold: float, jitter: int = 0,
                           seed: int = 0, max_hits: int = 0) -> tuple[PixelPool, dict]:

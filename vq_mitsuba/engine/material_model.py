@@ -92,8 +92,15 @@ class MaterialModel:
         n = self.cfg.lamps.count
         if self.lamps is None:
             return decision(n, "none", "lamps.count = 0: the envmap alone lights the fit")
-        out = decision(n, "world", f"lamps.count = {n}: {n} point lamp(s) fixed in the world, fitted beside the envmap")
-        out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()} for p, i in zip(*self.lamps())]
+        where = "fixed in the world" if self.cfg.lamps.frame == "world" else "riding with the camera"
+        out = decision(n, self.cfg.lamps.frame, f"lamps.count = {n}: {n} point lamp(s) {where}, fitted beside the "
+                                                 "envmap")
+        lamps = self.lamps
+        position = lamps()[0] if not bool(lamps.in_camera) else lamps.radius * lamps.offset * torch.tensor([1.0, 1.0, 0.0])
+        out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()}
+                        for p, i in zip(position, torch.exp(lamps.log_intensity))]
+        if bool(lamps.in_camera):
+            out["position_frame"] = "each view's camera (Mitsuba camera space: +Z forward, +Y up, +X left)"
         return out
 
     def envmap(self) -> torch.Tensor:
@@ -149,7 +156,8 @@ class MaterialModel:
         independent halves for the decorrelated loss."""
         p = data.pool
         return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material, env, self.cfg.train.spp,
-                                generator=gen, reduce=False, material_fn=bounce_fn, groups=2, fixed_light=fixed_light)
+                                generator=gen, reduce=False, material_fn=bounce_fn, groups=2, fixed_light=fixed_light,
+                                views=p.views_of(idx))
 
     def lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None,
                    metallic_scale: torch.Tensor | None = None) -> torch.Tensor:
@@ -242,7 +250,8 @@ class MaterialModel:
             idx = torch.cat([idx, idx])
         gen = torch.Generator(device=self.device).manual_seed(seed)
         rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats, self.envmap().detach(),
-                               cfg.train.spp, generator=gen, material_fn=self.field if bounce else None)
+                               cfg.train.spp, generator=gen, material_fn=self.field if bounce else None,
+                               views=pool.views_of(idx))
         target = pool.rgb[data.held]
         return sum(float(losses.reconstruction_l2(data.pixel_means(branch, len(target)), target, cfg.loss.gamma))
                    for branch in rgb.split(len(hits)))
@@ -268,19 +277,28 @@ class MaterialModel:
 
 
 def start_lamps(capture: Capture, cfg: Config, mean_foreground: float) -> PointLamps:
-    """`cfg.lamps.count` point lamps at `cfg.lamps.distance` object radii from the centre of the
-    mesh's bounding box: the first towards the cameras' mean position (where a capture's lamps
-    mostly stand), the others spread about it; each as bright as lights a white facing surface one
-    radius away to the capture's mean value."""
+    """`cfg.lamps.count` point lamps. Fixed in the world: at `cfg.lamps.distance` object radii from
+    the centre of the mesh's bounding box, the first towards the cameras' mean position (where a
+    capture's lamps mostly stand), the others on a cone of 60 deg about it. Riding with the camera:
+    at the camera, the others a radius to its sides. Each as bright as lights a white facing
+    surface at the lamps' distance to the capture's mean value."""
     lo, hi = np.asarray(capture.mesh.bounds, dtype=np.float64)
     center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
-    toward = np.mean([c.to_world[:3, 3] for c in capture.cameras], axis=0) - center
+    eyes = np.array([c.to_world[:3, 3] for c in capture.cameras])
+    n = cfg.lamps.count
+    if cfg.lamps.frame == "camera":
+        offsets = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])[:n]
+        distance = max(float(np.median(np.linalg.norm(eyes - center, axis=1))) - radius, 0.5 * radius)
+        return PointLamps(center, radius, torch.tensor(offsets, dtype=torch.float32),
+                          np.pi * max(mean_foreground, 1e-3) * distance ** 2,
+                          camera_to_world=np.array([c.to_world for c in capture.cameras]))
+    toward = eyes.mean(0) - center
     toward = toward / np.linalg.norm(toward) if np.linalg.norm(toward) > 1e-6 * radius else np.array([0.0, 0.0, 1.0])
     side = np.cross(toward, [1.0, 0.0, 0.0] if abs(toward[0]) < 0.9 else [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
     dirs = []
-    for k in range(cfg.lamps.count):  # the first on the axis, the others on a cone of 60 deg about it
-        a = 2 * np.pi * k / max(cfg.lamps.count - 1, 1)
+    for k in range(n):
+        a = 2 * np.pi * k / max(n - 1, 1)
         other = np.cos(a) * side + np.sin(a) * np.cross(toward, side)
         dirs.append(toward if k == 0 else np.cos(np.pi / 3) * toward + np.sin(np.pi / 3) * other)
     offsets = torch.tensor(np.array(dirs) * cfg.lamps.distance, dtype=torch.float32)

@@ -74,6 +74,22 @@ def check_texture_size(texture_size, name: str = "the texture size") -> int:
     return int(texture_size)
 
 
+def world_lamps(fitted, fitted_light: bool) -> np.ndarray | None:
+    """The run's lamps fixed in the world as (K, 6) rows (position, RGB intensity) for an export
+    under its fitted light; None otherwise. Lamps that ride with the camera have no place in a
+    scene file: a warning says they are left out."""
+    lamps = fitted.lamps
+    if lamps is None or not fitted_light:
+        return None
+    if lamps.in_camera:
+        from vq_mitsuba.errors import warn
+
+        warn(f"the run's {len(lamps.position)} lamp(s) ride with the camera (a flash): the exported scene has no "
+             "camera to hang them on and leaves them out")
+        return None
+    return np.concatenate([lamps.position, lamps.intensity], 1)
+
+
 def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size: int = 1024,
                branch: str = "continuous", envmap_path: str | Path | None = None) -> dict:
     """Write the export into OUT_DIR and return its summary (also OUT_DIR/export.json)."""
@@ -118,7 +134,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
 
             env = fitted.envmap if envmap is None else envmap
             files = write_mitsuba(out, baked, env, fitted.envmap_to_world, cameras, fitted.cfg.render.spp,
-                                  2 + fitted.cfg.train.bounces, name, fitted.lamps if envmap is None else None)
+                                  2 + fitted.cfg.train.bounces, name, world_lamps(fitted, envmap is None))
         if fmt != "mitsuba":  # Y-up formats: the lighting in Blender's convention (the XML holds its own frame)
             from vq_mitsuba.export.files import blender_envmap, write_envmap
 

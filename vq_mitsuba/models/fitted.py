@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -20,6 +20,27 @@ if TYPE_CHECKING:
 
 
 @dataclass
+class FittedLamps:
+    """Point lamps fitted beside the envmap: positions (K, 3) in the run's world or, `in_camera`, in
+    the frame of the camera that sees the scene (a flash; Mitsuba camera space), and RGB radiant
+    intensities (K, 3)."""
+
+    position: np.ndarray
+    intensity: np.ndarray
+    in_camera: bool = False
+
+    def light(self, camera_to_world: np.ndarray, scale: float, device) -> Callable:
+        """The lamps as a shading scene's `lamps` (`render.shading.ShadingScene`) for a view whose
+        camera is `camera_to_world` (4, 4), their intensities times `scale`."""
+        position = np.asarray(self.position, dtype=np.float64)
+        if self.in_camera:
+            position = position @ np.asarray(camera_to_world)[:3, :3].T + np.asarray(camera_to_world)[:3, 3]
+        p = torch.as_tensor(position, dtype=torch.float32, device=device)
+        i = torch.as_tensor(np.asarray(self.intensity) * scale, dtype=torch.float32, device=device)
+        return lambda views=None: (p, i)
+
+
+@dataclass
 class FittedModel:
     cfg: Config
     model: ContinuousMaterial  # the continuous branch (encoder + decoders), eval mode
@@ -33,9 +54,9 @@ class FittedModel:
     # The view-dependent residual of novel views under the capture's own light (None: the run has
     # none); renders under other light, of edits and exports leave it out (`render.views.Renderer`).
     residual: ResidualField | None = None
-    # Point lamps fitted beside the envmap, (K, 6): world position and RGB radiant intensity (None:
-    # the envmap alone); renders under the run's own light include them, relit ones leave them out.
-    lamps: np.ndarray | None = None
+    # Point lamps fitted beside the envmap (None: the envmap alone); renders under the run's own
+    # light include them, relit ones leave them out.
+    lamps: FittedLamps | None = None
 
     @torch.no_grad()
     def materials_at(self, points: torch.Tensor, discrete: bool = False, ids: bool = True) -> dict[str, torch.Tensor]:

@@ -397,8 +397,9 @@ class ShadingScene:
         self._shade = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=True)
         self._shade_lit = _shade_kernel(self.bsdf, self.ctx, self.textures, self.emitter, setup, light_lanes=False)
         self._lamp_visible, self._lamp_shade = _lamp_kernels(self.scene, self.bsdf, self.ctx, self.textures, setup)
-        # Point lamps beside the envmap: None, or a callable giving their world positions (K, 3)
-        # and radiant intensities (K, 3) as torch tensors (differentiable where they are fitted).
+        # Point lamps beside the envmap: None, or a callable of the points' view indices (or None)
+        # giving the lamps' world positions, (K, 3) or per point (K, N, 3), and radiant intensities
+        # (K, 3) as torch tensors (differentiable where they are fitted).
         self.lamps = None
 
     # -- primary visibility -------------------------------------------------------------
@@ -493,10 +494,11 @@ class ShadingScene:
                                      [u[i] for i in range(5)]))
 
     def bounce_light(self, sampled: list[torch.Tensor], material_fn, env_linear: torch.Tensor,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+                     generator: torch.Generator | None = None, views: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance (N, 3) arriving along each lane's BSDF sample where it meets the object: that
         point's direct light, shaded with `material_fn` (world points (M, 3) -> BRDF inputs); zero
-        elsewhere. Incoming light for the step, without gradients."""
+        elsewhere. Incoming light for the step, without gradients. `views` (N,): each lane's view (for
+        lamps that ride with the camera)."""
         hit = torch.nonzero(sampled[self.SAMPLED.index("hit")] > 0.5)[:, 0]
         li = torch.zeros(len(sampled[0]), 3, device=sampled[0].device)
         if len(hit) > 0:
@@ -505,7 +507,8 @@ class ShadingScene:
             # The bounce light is incoming light for this step, not trained through: its
             # gradients cost a second backward pass for little (benchmarks/results/fit_speed).
             with torch.no_grad():
-                li = li.index_put((hit,), self.shade(p2, n2, wi2, material_fn(p2), env_linear, 1, generator))
+                li = li.index_put((hit,), self.shade(p2, n2, wi2, material_fn(p2), env_linear, 1, generator,
+                                                     views=None if views is None else views[hit]))
         return li
 
     def radiance(self, lanes: "Lanes", sampled: list[torch.Tensor], env_linear: torch.Tensor,
@@ -524,15 +527,16 @@ class ShadingScene:
         return torch.stack(rgb, -1)
 
     def lamp_radiance(self, position: torch.Tensor, normal: torch.Tensor, wi: torch.Tensor, material: dict,
-                      fixed_light: torch.Tensor | None = None) -> torch.Tensor:
+                      fixed_light: torch.Tensor | None = None, views: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance (N, 3) towards `wi` from the point lamps (`self.lamps`), with their shadows:
         differentiable in the material and, except at points where `fixed_light` (N,) is set, in
-        the lamps' positions and intensities. Zero without lamps."""
+        the lamps' positions and intensities. `views` (N,): the view each point is seen in (lamps
+        that ride with the camera stand at that view's camera). Zero without lamps."""
         n = position.shape[0]
         total = torch.zeros(n, 3, device=position.device)
         if self.lamps is None or n == 0:
             return total
-        lamp_pos, lamp_int = self.lamps()
+        lamp_pos, lamp_int = self.lamps(None if views is None else views.to(position.device))
         lanes = self.lanes(position, normal, wi, material)
         for k in range(lamp_pos.shape[0]):
             lp, li = lamp_pos[k].expand(n, 3), lamp_int[k].expand(n, 3)
@@ -552,7 +556,7 @@ class ShadingScene:
     def shade(self, hits_position, hits_normal, hits_wi, material: dict,
               env_linear: torch.Tensor, spp: int, generator: torch.Generator | None = None,
               reduce: bool = True, material_fn=None, groups: int = 1,
-              fixed_light: torch.Tensor | None = None) -> torch.Tensor:
+              fixed_light: torch.Tensor | None = None, views: torch.Tensor | None = None) -> torch.Tensor:
         """Outgoing radiance (N, 3) towards `wi` at N points, averaged over `spp` sample pairs
         (or every sample, (N, spp, 3), when reduce=False).
 
@@ -567,6 +571,7 @@ class ShadingScene:
         true pass no gradient to the envmap (several materials are shaded in one call, some of them
         lit by a light they do not train). The bounce light
         carries no gradient: neither into `material_fn` nor into the envmap through it.
+        `views` (N,): the view each point is seen in, for lamps that ride with the camera.
         """
         n = hits_position.shape[0]
         rep = lambda t: t.repeat_interleave(spp, dim=0).contiguous()  # noqa: E731
@@ -575,10 +580,12 @@ class ShadingScene:
         fixed = None if fixed_light is None else rep(fixed_light.float())
         self.set_light(env_linear)
         sampled = self.sample(lanes, stratified_samples(n, spp, groups, generator, lanes.geometry[0].device))
-        bounce = None if material_fn is None else self.bounce_light(sampled, material_fn, env_linear, generator)
+        bounce = None if material_fn is None else self.bounce_light(
+            sampled, material_fn, env_linear, generator, None if views is None else rep(views))
         samples = self.radiance(lanes, sampled, env_linear, bounce, fixed).view(n, spp, 3)
         if self.lamps is not None:  # a point lamp's light is one direction: once per point, not per sample
-            samples = samples + self.lamp_radiance(hits_position, hits_normal, hits_wi, material, fixed_light)[:, None]
+            samples = samples + self.lamp_radiance(hits_position, hits_normal, hits_wi, material, fixed_light,
+                                                   views)[:, None]
         return samples.mean(1) if reduce else samples
 
 

@@ -58,10 +58,9 @@ class Renderer:
         self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
         own_light = envmap is None and env_rotate_deg == 0 and exposure_ev == 0
-        if fitted.lamps is not None and (own_light or keep_lamps):  # the fitted lamps, at this exposure
-            lamps = torch.as_tensor(fitted.lamps, dtype=torch.float32, device=self.env_t.device)
-            lamps = torch.cat([lamps[:, :3], lamps[:, 3:] * 2.0 ** exposure_ev], 1)
-            self.scene.lamps = lambda: (lamps[:, :3], lamps[:, 3:])
+        # the fitted lamps (at this exposure), placed for each view's camera in `render`
+        self.lamps = fitted.lamps if own_light or keep_lamps else None
+        self.lamp_scale = 2.0 ** exposure_ev
         self.residual = fitted.residual if own_light else None
 
     @torch.no_grad()
@@ -87,6 +86,9 @@ class Renderer:
         lights = [self, *relight]
         if any(r.fitted is not self.fitted for r in relight):
             raise ValueError("relight renderers must render the same fitted run")
+        for light in lights:
+            light.scene.lamps = None if light.lamps is None else \
+                light.lamps.light(camera.to_world, light.lamp_scale, self.env_t.device)
         self._trace_passes(camera, sums, lights, aa, max(2, spp // aa), seed)
         return sums.images(camera.height, camera.width, aa)
 

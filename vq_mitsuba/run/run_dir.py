@@ -50,7 +50,7 @@ from vq_mitsuba import messages
 from vq_mitsuba.config import Config, load_config, read_yaml, save_config
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models.material_edits import Edit
-from vq_mitsuba.models.fitted import FittedModel, material_networks
+from vq_mitsuba.models.fitted import FittedLamps, FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock
 from vq_mitsuba.errors import WriteError, as_write_error  # WriteError: re-exported
@@ -616,18 +616,20 @@ class RunDir:
         return fitted
 
 
-def _lamps_of(state: dict, path: Path) -> np.ndarray | None:
-    """The fitted point lamps of a state, (K, 6): world position and RGB intensity; None without."""
+def _lamps_of(state: dict, path: Path) -> FittedLamps | None:
+    """The fitted point lamps of a state; None without."""
     lamps = state.get("lamps")
     if lamps is None:
         return None
-    parts = [lamps.get(k) if isinstance(lamps, dict) else None for k in ("center", "radius", "offset", "log_intensity")]
+    keys = ("center", "radius", "offset", "log_intensity", "in_camera")
+    parts = [lamps.get(k) if isinstance(lamps, dict) else None for k in keys]
     if not all(torch.is_tensor(t) for t in parts) or parts[2].ndim != 2 or parts[2].shape[1] != 3 \
-            or parts[3].shape != parts[2].shape:
-        raise InputError(path, "its lamps are not point lamps (center, radius, offset, log_intensity): not a checkpoint "
-                               "of this run")
-    center, radius, offset, log_i = (t.detach().float().cpu() for t in parts)
-    return torch.cat([center.reshape(1, 3) + radius * offset, torch.exp(log_i)], 1).numpy()
+            or parts[3].shape != parts[2].shape or parts[0].numel() != 3:
+        raise InputError(path, f"its lamps are not point lamps ({', '.join(keys)}): not a checkpoint of this run")
+    center, radius, offset, log_i = (t.detach().float().cpu() for t in parts[:4])
+    in_camera = bool(parts[4])
+    position = radius * offset * torch.tensor([1.0, 1.0, 0.0]) if in_camera else radius * offset + center.reshape(1, 3)
+    return FittedLamps(position.numpy(), torch.exp(log_i).numpy(), in_camera)
 
 
 def _envmap_of(state: dict, path: Path) -> np.ndarray:

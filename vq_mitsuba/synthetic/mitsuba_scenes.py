@@ -611,8 +611,10 @@ def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
 
 
 def scene_lamps(spec: dict) -> list[dict]:
-    """The spec's point lamps, `lamps: [{position: [x, y, z], intensity: [r, g, b] or a number}]` in
-    Blender world (radiant intensity, W/sr), checked: [] when it has none."""
+    """The spec's point lamps, `lamps: [{position: [x, y, z], intensity: [r, g, b] or a number,
+    frame: world or camera}]` (radiant intensity, W/sr), checked: [] when it has none. A lamp's
+    position is in Blender world, or with `frame: camera` in the frame of the camera of each view
+    (Mitsuba camera space: +X left, +Y up, +Z forward): a flash that rides with the camera."""
     lamps = spec.get("lamps") or []
     out = []
     for k, lamp in enumerate(lamps):
@@ -620,19 +622,37 @@ def scene_lamps(spec: dict) -> list[dict]:
         inten = [inten] * 3 if isinstance(inten, (int, float)) else inten
         ok = all(isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and np.isfinite(x)
                                                                  for x in v) for v in (pos, inten))
-        if not ok or min(inten) < 0:
-            raise InputError(SCENES_DIR / f"{spec['name']}.yaml", f"lamp {k + 1} needs a position [x, y, z] and "
-                                                                 "an intensity [r, g, b] >= 0 (or one number)")
-        out.append({"position": [float(x) for x in pos], "intensity": [float(x) for x in inten]})
+        frame = lamp.get("frame", "world") if isinstance(lamp, dict) else None
+        if not ok or min(inten) < 0 or frame not in ("world", "camera"):
+            raise InputError(SCENES_DIR / f"{spec['name']}.yaml", f"lamp {k + 1} needs a position [x, y, z], an "
+                                                                 "intensity [r, g, b] >= 0 (or one number) and a frame "
+                                                                 "world or camera")
+        out.append({"position": [float(x) for x in pos], "intensity": [float(x) for x in inten], "frame": frame})
     return out
 
 
 def _lamp_emitters(spec: dict) -> dict:
-    """Mitsuba `point` emitters of the spec's lamps (Mitsuba world)."""
+    """Mitsuba `point` emitters of the spec's lamps (Mitsuba world; those that ride with the camera
+    are placed for each view by `_place_camera_lamps`)."""
     r = R_BLENDER_FROM_MITSUBA
-    return {f"lamp_{k}": {"type": "point", "position": (np.asarray(lamp["position"]) @ r).tolist(),
+    return {f"lamp_{k}": {"type": "point", "position": (np.asarray(lamp["position"]) @ r).tolist()
+                          if lamp["frame"] == "world" else [0.0, 0.0, 0.0],
                           "intensity": {"type": "rgb", "value": lamp["intensity"]}}
             for k, lamp in enumerate(scene_lamps(spec))}
+
+
+def _place_camera_lamps(params, spec: dict, cam: Camera) -> None:
+    """Move the spec's lamps that ride with the camera to `cam` (Mitsuba world) in the scene's
+    parameters `params`."""
+    moved = False
+    for k, lamp in enumerate(scene_lamps(spec)):
+        if lamp["frame"] == "camera":
+            key = f"lamp_{k}.position"
+            params[key] = type(params[key])(*(np.asarray(cam.to_world)[:3, :3] @ lamp["position"]
+                                              + np.asarray(cam.to_world)[:3, 3]).tolist())
+            moved = True
+    if moved:
+        params.update()
 
 
 def _scene_with(base: dict, env: np.ndarray):
@@ -676,6 +696,8 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
     dataset = DatasetDir(out)
 
     def render(scene, cam: Camera, env: str | None = None):
+        if env is None:  # the training light: its lamps, the flash at this view's camera
+            _place_camera_lamps(mi.traverse(scene), spec, cam)
         img = mi.render(scene, sensor=sensors[cam.name], seed=counter[0] % (2**32))
         counter[0] += 1
         dataset.write_view(cam.name, np.array(img), env)
