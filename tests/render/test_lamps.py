@@ -235,3 +235,42 @@ def test_a_fitted_flash_lights_each_render_from_its_camera():
         b = Renderer(world).render(cam, spp=4, aa=1, seed=0)["rgb"]
         assert a.mean() > 0.01
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_glb_holds_the_lamps_as_punctual_lights(tmp_path):
+    """`export --format gltf` writes world lamps as KHR_lights_punctual point lights at their
+    positions turned into the file's axes, colour and intensity (cd at 683 lm/W) from their RGB
+    intensity; the Khronos validator, where installed, finds nothing wrong."""
+    import json
+    import shutil
+    import struct
+    import subprocess
+    from pathlib import Path
+
+    from vq_mitsuba.export.bake import BakedMesh
+    from vq_mitsuba.export.gltf import write_glb
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    v = np.asarray(sphere.vertices, np.float32)
+    baked = BakedMesh(v, np.asarray(sphere.faces), np.asarray(sphere.vertex_normals, np.float32),
+                      np.full((len(v), 2), 0.5, np.float32), np.full((4, 4, 3), 0.5, np.float32),
+                      np.zeros((4, 4), np.float32), np.full((4, 4), 0.5, np.float32), None, np.ones((4, 4), bool))
+    axes = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    lamps = np.array([[0.8, -0.6, 1.2, 3.0, 2.0, 1.0]])
+    glb = write_glb(tmp_path / "o.glb", baked, axes, "o", lamps)
+    data = glb.read_bytes()
+    length, = struct.unpack("<I", data[12:16])
+    doc = json.loads(data[20:20 + length])
+    assert doc["extensionsUsed"] == ["KHR_lights_punctual"]
+    (light,) = doc["extensions"]["KHR_lights_punctual"]["lights"]
+    assert light["type"] == "point" and light["color"] == pytest.approx([1.0, 2 / 3, 1 / 3])
+    assert light["intensity"] == pytest.approx(683.0 * 3.0)
+    node = doc["nodes"][1]
+    assert node["extensions"]["KHR_lights_punctual"]["light"] == 0 and doc["scenes"][0]["nodes"] == [0, 1]
+    assert node["translation"] == pytest.approx((axes @ lamps[0, :3]).tolist())
+    root = Path(__file__).resolve().parents[2]
+    validator = root / ".node" / "node_modules" / "gltf-validator"
+    if shutil.which("node") is not None and validator.is_dir():
+        report = json.loads(subprocess.run(["node", str(root / "tools" / "validate_gltf.js"), str(glb)], check=True,
+                                           capture_output=True, text=True).stdout)
+        assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]

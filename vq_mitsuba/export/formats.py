@@ -124,7 +124,7 @@ def export_run(run_dir: str | Path, fmt: str, out_dir: str | Path, texture_size:
         if fmt == "gltf":
             from vq_mitsuba.export.gltf import write_glb
 
-            files = [write_glb(out / f"{name}.glb", baked, axes, name)]
+            files = [write_glb(out / f"{name}.glb", baked, axes, name, world_lamps(fitted, envmap is None))]
         elif fmt == "obj":
             from vq_mitsuba.export.obj import write_obj
 

@@ -3,7 +3,9 @@
 basecolor is an sRGB texture; metallic and roughness share one linear texture (roughness in G,
 metallic in B), as the specification asks. glTF's roughness is the same perceptual roughness
 as Mitsuba's `principled` (alpha = roughness^2). Axes are Y up, in the capture's own world
-(`files.export_axes`).
+(`files.export_axes`). Fitted point lamps become `KHR_lights_punctual` point lights: their colour
+the RGB intensity over its largest channel, their intensity that channel in candela at 683 lm/W
+(the factor Blender's importer divides by again).
 """
 
 from __future__ import annotations
@@ -22,14 +24,29 @@ from vq_mitsuba.export.files import png_bytes, texture_images
 FLOAT, UINT32 = 5126, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
+LUMENS_PER_WATT = 683.0  # radiant (W/sr) to luminous (cd) intensity, as glTF importers convert back
 
 
 def _pad4(data: bytes, fill: bytes = b"\0") -> bytes:
     return data + fill * (-len(data) % 4)
 
 
-def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "object") -> Path:
-    """`path` holding the baked mesh turned by `axes` (3, 3), run world -> the file's axes."""
+def _lights(lamps: np.ndarray | None, rot: np.ndarray) -> tuple[list[dict], list[dict]]:
+    """(KHR_lights_punctual's lights, their nodes) of lamps (K, 6: run-world position, RGB intensity)."""
+    lights, nodes = [], []
+    for k, lamp in enumerate(() if lamps is None else np.asarray(lamps, np.float64)):
+        peak = float(max(lamp[3:].max(), 1e-12))
+        lights.append({"type": "point", "name": f"lamp_{k}", "color": (lamp[3:] / peak).tolist(),
+                       "intensity": LUMENS_PER_WATT * peak})
+        nodes.append({"name": f"lamp_{k}", "translation": (rot @ lamp[:3]).tolist(),
+                      "extensions": {"KHR_lights_punctual": {"light": k}}})
+    return lights, nodes
+
+
+def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "object",
+              lamps: np.ndarray | None = None) -> Path:
+    """`path` holding the baked mesh turned by `axes` (3, 3), run world -> the file's axes, and the
+    point `lamps` (K, 6: position, RGB intensity) as lights."""
     rot = np.asarray(axes, np.float64)
     positions = (baked.vertices.astype(np.float64) @ rot.T).astype(np.float32)
     normals = baked.normals.astype(np.float64) @ rot.T
@@ -49,11 +66,12 @@ def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
         padded = _pad4(blob)
         body += padded
         offset += len(padded)
+    lights, light_nodes = _lights(lamps, rot)
     doc = {
         "asset": {"version": "2.0", "generator": "vq-mitsuba"},
         "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "name": name}],
+        "scenes": [{"nodes": list(range(1 + len(light_nodes)))}],
+        "nodes": [{"mesh": 0, "name": name}, *light_nodes],
         "meshes": [{"name": name, "primitives": [{
             "attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2}, "indices": 3, "material": 0}]}],
         "materials": [{"name": f"{name}_material", "doubleSided": True, "pbrMetallicRoughness": {
@@ -74,6 +92,9 @@ def write_glb(path: Path, baked: BakedMesh, axes: np.ndarray, name: str = "objec
         "bufferViews": views,
         "buffers": [{"byteLength": len(body)}],
     }
+    if lights:
+        doc["extensionsUsed"] = ["KHR_lights_punctual"]
+        doc["extensions"] = {"KHR_lights_punctual": {"lights": lights}}
     js = _pad4(json.dumps(doc, separators=(",", ":")).encode(), b" ")
     total = 12 + 8 + len(js) + 8 + len(body)
     data = (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
