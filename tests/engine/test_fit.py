@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from tiny_scene import write_sphere_capture
+from tiny_scene import write_lamp_capture, write_sphere_capture
 from vq_mitsuba.cli import main
 from vq_mitsuba.config import load_config
 from vq_mitsuba.errors import InputError
@@ -376,3 +376,57 @@ def test_a_mesh_far_too_large_for_the_cameras_is_warned_about(tmp_path, capsys):
         fit(capture, tmp_path / "huge", cfg)
     assert "the mesh" not in capsys.readouterr().out  # a warning, not a result on stdout
 
+
+
+def _lamp_fit(tmp_path, frame: str, lamp: tuple, intensity: float, extra=()):
+    """A short continuous fit of `write_lamp_capture` with one lamp of `frame`: (fitted run, fit.json)."""
+    from vq_mitsuba.run.run_dir import RunDir
+
+    xml = write_lamp_capture(tmp_path / "cap", lamp=lamp, intensity=intensity, flash=frame == "camera")
+    cfg = load_config(None, ["train.iterations=400", "train.batch_rays=1024", "train.spp=8", "lamps.count=1",
+                             f"lamps.frame={frame}", "residual.iterations=0", *extra], preset="continuous")
+    fit(xml, tmp_path / "run", cfg)
+    run = RunDir(tmp_path / "run")
+    return run.load(), json.loads((tmp_path / "run" / "fit.json").read_text())
+
+
+@pytest.mark.slow  # about 20 s: CI runs it after the default suite (.ci/run)
+def test_fit_recovers_a_lamp_in_the_world(tmp_path):
+    """A sphere on a slab under a dim sky and a point lamp (Mitsuba's path tracer): the fit places
+    the lamp within 10 % of the object's size and its power within 20 %, and fit.json says so."""
+    lamp = np.array([0.9, 1.1, 0.6])
+    fitted, summary = _lamp_fit(tmp_path, "world", tuple(lamp), 3.0)
+    size = float(np.linalg.norm(np.ptp(np.asarray(fitted.mesh.bounds), axis=0)))
+    assert not fitted.lamps.in_camera
+    assert np.linalg.norm(fitted.lamps.position[0] - lamp) < 0.1 * size
+    assert abs(fitted.lamps.intensity[0].mean() / 3.0 - 1) < 0.2
+    decision = summary["decisions"]["lamps"]
+    assert decision["choice"] == "world"
+    np.testing.assert_allclose(decision["lamps"][0]["position"], fitted.lamps.position[0], atol=1e-5)
+
+
+@pytest.mark.slow  # about 20 s: CI runs it after the default suite (.ci/run)
+def test_fit_recovers_a_flash(tmp_path):
+    """The same scene lit by a flash 0.3 above each camera's lens: the fitted lamp rides with the
+    camera, its power within 20 % and its place within 10 % of the object's size (it starts at the
+    lens: on this rough sphere a flash's small offset from the lens barely shows, and the fit
+    keeps it there rather than trading it for power)."""
+    flash = np.array([0.0, 0.3, 0.0])
+    fitted, summary = _lamp_fit(tmp_path, "camera", tuple(flash), 8.0)
+    size = float(np.linalg.norm(np.ptp(np.asarray(fitted.mesh.bounds), axis=0)))
+    assert fitted.lamps.in_camera and summary["decisions"]["lamps"]["choice"] == "camera"
+    assert np.linalg.norm(fitted.lamps.position[0] - flash) < 0.1 * size
+    assert abs(fitted.lamps.intensity[0].mean() / 8.0 - 1) < 0.2
+
+
+def test_resume_refuses_another_lamp_count(tmp_path):
+    """A checkpoint fitted without lamps is not resumed with lamps.count=1 (nor the other way):
+    the message names the checkpoint and the key."""
+    xml = write_sphere_capture(tmp_path / "cap", size=12, n_views=3, spp=4, known_envmap=False)
+    run = tmp_path / "run"
+    assert main(["fit", str(xml), "-o", str(run), "--quiet", "--set", "train.iterations=2",
+                 "--set", "train.batch_rays=64", "--set", "residual.iterations=0", "--preset", "continuous"]) == 0
+    with pytest.raises(InputError, match="lamps.count=0, not 1") as err:
+        fit(xml, run, load_config(None, ["train.iterations=4", "train.batch_rays=64", "lamps.count=1"],
+                                  preset="continuous"), resume=True)
+    assert err.value.path.name == "checkpoint.pt"
