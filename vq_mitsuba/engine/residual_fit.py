@@ -18,13 +18,14 @@ one view alone shows (its noise, its own exposure) scores well on other pixels o
 worse from new viewpoints, so it is scored on views it never saw. They are scored every
 `steps / CHECKS` steps and the best field is kept, the untrained (zero) one included, so the
 residual never makes the views it was not fitted on worse.
-The fit stops after `PATIENCE` scores in a row below the best. Until a score beats the zero field by
-`MIN_GAIN_DB`, the scores come every `FIRST_GAP` steps, and when none of the first `PATIENCE` does,
-there is nothing to learn (a capture the physically based render already explains, such as a scene
+The fit stops after `PATIENCE` scores in a row below the best. Until `CONFIRM` scores in a row beat
+the zero field by `MIN_GAIN_DB`, the scores come every `FIRST_GAP` steps, and when that has not
+happened within the first `PATIENCE`, there is nothing to learn (a capture the physically based render already explains, such as a scene
 rendered by a path tracer): the zero field is kept and the fit stops after a few seconds. A smaller
 gain is not trusted: the targets' Monte Carlo noise, through the gamma encoding's curvature, pays
 a brighter field a few tenths of a dB on the kept-aside hits that novel views do not confirm
-(`benchmarks/results/fit_minutes/`). The step runs eagerly until then
+(`benchmarks/results/fit_minutes/`), and a single early score above it, gone by the next, was such
+noise too: a field kept there cost novel views of a lamp-lit scene 3.5 dB (`benchmarks/results/lamps/`). The step runs eagerly until then
 and is compiled (`vq_mitsuba.compiled`) when `COMPILE_FROM` full batches are left, so a residual
 with nothing to learn, or little to do, never waits for the compiler.
 
@@ -66,7 +67,8 @@ MIN_STEPS = 50
 CHECKS = 10  # times the kept-aside hits are scored during the fit: the best field is kept ...
 PATIENCE = 3  # ... and the fit stops after this many scores in a row below the best
 FIRST_GAP = 30  # steps between scores at most until a score beats the zero field by MIN_GAIN_DB ...
-MIN_GAIN_DB = 0.5  # ... which tells that there is something to learn
+MIN_GAIN_DB = 0.5  # ... in CONFIRM scores in a row, which tells that there is something to learn
+CONFIRM = 2
 FIRST_SHARE = 0.15  # share of the fitted hits rendered (and drawn) until then, at least ...
 FIRST_MIN_HITS = 1 << 17  # ... this many (all of a smaller pool)
 COMPILE_FROM = 1000  # steps of BATCH hits left that pay for compiling the step (about 16 s the first time)
@@ -154,8 +156,9 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     before = check_psnr()  # the untrained field adds nothing
     zero = copy.deepcopy(field.state_dict())
     best = {"psnr": before, "step": 0, "state": zero, "worse": 0}
-    # learning: a score has beaten the zero field by MIN_GAIN_DB; scores: how many were taken
-    state = {"learning": False, "compiled": False, "scores": 0}
+    # learning: CONFIRM scores in a row have beaten the zero field by MIN_GAIN_DB (gains: how many in
+    # a row so far); scores: how many were taken
+    state = {"learning": False, "compiled": False, "scores": 0, "gains": 0}
     curve = [(0, 0.0, before)]  # (steps, seconds, kept-aside PSNR) at each score
 
     def step(p: Progress) -> None:
@@ -175,7 +178,8 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
             best.update(psnr=now, step=done, state=copy.deepcopy(field.state_dict()), worse=0)
         else:
             best["worse"] += 1
-        if not state["learning"] and best["step"] > 0 and best["psnr"] >= before + MIN_GAIN_DB:
+        state["gains"] = state["gains"] + 1 if now >= before + MIN_GAIN_DB else 0
+        if not state["learning"] and state["gains"] >= CONFIRM:
             state["learning"] = True
             state["compiled"] = batch == BATCH * scale and steps - done >= COMPILE_FROM
             rest = fit_ids[len(first):]
