@@ -420,8 +420,8 @@ def test_fit_recovers_a_flash(tmp_path):
 
 
 def test_resume_refuses_another_lamp_count(tmp_path):
-    """A checkpoint fitted without lamps is not resumed with lamps.count=1 (nor the other way):
-    the message names the checkpoint and the key."""
+    """A checkpoint fitted without lamps is not resumed with lamps.count=1, nor one fitted with a
+    lamp in the world with a flash: the message names the checkpoint and the key."""
     xml = write_sphere_capture(tmp_path / "cap", size=12, n_views=3, spp=4, known_envmap=False)
     run = tmp_path / "run"
     assert main(["fit", str(xml), "-o", str(run), "--quiet", "--set", "train.iterations=2",
@@ -430,3 +430,9 @@ def test_resume_refuses_another_lamp_count(tmp_path):
         fit(xml, run, load_config(None, ["train.iterations=4", "train.batch_rays=64", "lamps.count=1"],
                                   preset="continuous"), resume=True)
     assert err.value.path.name == "checkpoint.pt"
+    lamp_run = tmp_path / "lamp_run"
+    assert main(["fit", str(xml), "-o", str(lamp_run), "--quiet", "--set", "train.iterations=2", "--set", "lamps.count=1",
+                 "--set", "train.batch_rays=64", "--set", "residual.iterations=0", "--preset", "continuous"]) == 0
+    with pytest.raises(InputError, match="lamps.frame=world, not camera"):
+        fit(xml, lamp_run, load_config(None, ["train.iterations=4", "train.batch_rays=64", "lamps.count=1",
+                                              "lamps.frame=camera"], preset="continuous"), resume=True)

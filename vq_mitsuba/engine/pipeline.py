@@ -275,6 +275,10 @@ def check_resumable(state: dict, cfg: Config, capture: Capture, path: Path) -> N
         had = 0 if state.get("lamps") is None else len(state["lamps"].get("offset", []))
         raise InputError(path, f"was fitted with lamps.count={had}, not {cfg.lamps.count}: resume with the run's own "
                                "lamps.count")
+    if cfg.lamps.count > 0 and bool(state["lamps"].get("in_camera", False)) != (cfg.lamps.frame == "camera"):
+        had = "camera" if bool(state["lamps"].get("in_camera", False)) else "world"
+        raise InputError(path, f"was fitted with lamps.frame={had}, not {cfg.lamps.frame}: resume with the run's own "
+                               "lamps.frame")
     if (capture.envmap is None) != (state.get("envmap") is not None):
         raise InputError(path, "was fitted with " + ("a learned" if state.get("envmap") is not None else "the "
                                "capture's own") + " envmap, and the capture now says otherwise: resume with the "
