@@ -217,7 +217,9 @@ class EditorSession:
                 from vq_mitsuba.data.envmaps import load_envmap
 
                 envmap = load_envmap(self.envmap_dir / lighting.envmap)
-            self._renderers = {key: Renderer(self.fitted, envmap, lighting.rotate_deg, lighting.exposure_ev)}
+            # the run's lamps light its own envmap, turned or brighter too
+            self._renderers = {key: Renderer(self.fitted, envmap, lighting.rotate_deg, lighting.exposure_ev,
+                                             keep_lamps=envmap is None)}
         return self._renderers[key]
 
     def _watched(self) -> bool:
@@ -343,6 +345,7 @@ class EditorSession:
                 "modes": [m for m in display_modes() if m != "segmentation" or self.num_materials],
                 "mode": self.mode,
                 "envmaps": self.envmaps(), "lighting": vars(self.lighting),
+                "lamps": 0 if self.fitted.lamps is None else len(self.fitted.lamps.position),
                 "materials": self._materials_now(materials, edits, self.selection),
                 "inputs": editor_inputs(),
                 "presets": sorted(material_library()),

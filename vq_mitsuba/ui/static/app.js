@@ -65,6 +65,8 @@ function applyState(s) {
   fillSelect($("view"), views, s.view, (v) => `${v.value} (${v.split})`);
   fillSelect($("mode"), s.modes, s.mode);
   fillSelect($("envmap"), s.envmaps, s.lighting.envmap);
+  $("lamps").hidden = !s.lamps;
+  $("lamps").textContent = s.lamps ? `+ ${s.lamps} fitted lamp${s.lamps > 1 ? "s" : ""} with the fitted envmap` : "";
   fillSelect($("preset"), s.presets);
   buildInputs(s.inputs);
   const ul = $("materials");
