@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from provenance import provenance, write_json
+from variants import labelled_runs
 
 # Blender world = R @ Mitsuba world (vq_mitsuba.data.cameras.BLENDER_ENV_TO_WORLD's rotation)
 R_BLENDER_FROM_MITSUBA = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -71,13 +72,10 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args(argv)
     out = {}
-    for item in args.runs:
-        label, sep, path = item.partition("=")
-        run = Path(path if sep else item)
-        row = read_run(run)
-        out[label if sep else run.name] = row
+    for label, run in labelled_runs(args.runs):
+        out[label] = row = read_run(run)
         figures = ", ".join(f"{k} {v:.2f}" for k, v in row["figures"].items() if v is not None)
-        print(f"{label if sep else run}: {row['seconds']} s, M {row['M']}, lamps {row['lamps_fitted']}; {figures}")
+        print(f"{label}: {row['seconds']} s, M {row['M']}, lamps {row['lamps_fitted']}; {figures}")
         for lamp in row["lamps"]:
             print(f"  {lamp['frame']} lamp: position {lamp['position']} (true {lamp['true_position']}, error "
                   f"{100 * lamp['position_error_of_size']:.1f} % of the size), power x{lamp['power_ratio']:.3f}")

@@ -19,6 +19,7 @@ import json
 from pathlib import Path
 
 from provenance import provenance, write_json
+from variants import labelled_runs
 
 FIGURES = ("novel_view", "basecolor", "metallic", "roughness")
 
@@ -56,12 +57,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="write the tables here")
     args = parser.parse_args(argv)
     out = {}
-    for item in args.runs:
-        label, sep, path = item.partition("=")
-        run = Path(path if sep else item)
-        row = read_run(run)
-        out[label if sep else run.name] = row
-        print(f"{label if sep else run}: M {row['M']}, " + ", ".join(f"{k} {v:.2f}" for k, v in row["figures"].items()))
+    for label, run in labelled_runs(args.runs):
+        out[label] = row = read_run(run)
+        print(f"{label}: M {row['M']}, " + ", ".join(f"{k} {v:.2f}" for k, v in row["figures"].items()))
         for name, m in row["materials"].items():
             codes = "; ".join(f"{d['metallic']:.3f}/{d['roughness']:.2f} ({100 * d['pixel_share']:.0f} %)"
                               for d in m["discrete"])

@@ -13,3 +13,16 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     if not sep or not items or "=" not in items:
         raise SystemExit(f"variant {text!r}: write NAME=KEY=VALUE[,KEY=VALUE...] or default")
     return name, items.split(",")
+
+
+def labelled_runs(items: list[str]):
+    """(label, run folder) of each `[LABEL=]RUN` on a command line (the label: the folder's name
+    when none is given)."""
+    from pathlib import Path
+
+    out = []
+    for item in items:
+        label, sep, path = item.partition("=")
+        run = Path(path if sep else item)
+        out.append((label if sep else run.name, run))
+    return out
