@@ -137,8 +137,8 @@ class LampConfig:
     """Point lamps fitted beside the envmap (a photograph's lamps at a finite distance)."""
 
     count: int = setting(0, "point lamps fitted beside the envmap (0: the envmap alone)", "[0,2]")
-    frame: str = setting("world", "where the lamps stand: fixed in the world, or at each view's camera (a flash, "
-                                  "lamps.count 1)", ("world", "camera"))
+    frame: str = setting("world", "where the lamps stand: fixed in the world, or riding with each view's camera "
+                                  "(a flash)", ("world", "camera"))
     distance: float = setting(2.0, "the lamps' starting distance from the object's centre, in object radii", ">1")
     lr: float = setting(0.02, "Adam learning rate of the lamps' positions (object radii) and log-intensities",
                         "(0,1]")
@@ -639,9 +639,6 @@ def check(cfg, source=None, prefix: str | None = None) -> None:
     if isinstance(cfg, NeuSConfig) and (cfg.base_res < 2 or 0 < cfg.max_res < cfg.base_res):
         raise InputError(source, f"{prefix}base_res must be >= 2 and {prefix}max_res 0 or >= {prefix}base_res, got "
                                  f"{prefix}base_res={cfg.base_res}, {prefix}max_res={cfg.max_res}")
-    if isinstance(cfg, LampConfig) and cfg.frame == "camera" and cfg.count > 1:
-        raise InputError(source, f"{prefix}frame=camera fits one flash at the lens: {prefix}count must be 0 or 1, "
-                                 f"got {cfg.count}")
     if isinstance(cfg, CaptureConfig) and cfg.background_color:
         background_rgb(cfg, source)
 

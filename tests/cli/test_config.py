@@ -160,12 +160,3 @@ def test_texel_config_lives_with_the_baseline():
     TexelConfig = _texel_config()
     assert TexelConfig().lr_end_exponential == 0.1
     assert not hasattr(C, "TexelConfig")
-
-
-def test_a_flash_is_one_lamp():
-    """lamps.frame=camera fits one flash at the lens: two are refused, naming the keys and the layer."""
-    assert load_config(overrides=["lamps.count=1", "lamps.frame=camera"]).lamps.frame == "camera"
-    with pytest.raises(InputError, match=r"lamps\.frame=camera fits one flash at the lens: lamps\.count must be 0 or 1, "
-                                         r"got 2") as err:
-        load_config(overrides=["lamps.count=2", "lamps.frame=camera"])
-    assert str(err.value.path) == "--set"

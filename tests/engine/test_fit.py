@@ -407,11 +407,15 @@ def test_fit_recovers_a_lamp_in_the_world(tmp_path):
 
 @pytest.mark.slow  # about 20 s: CI runs it after the default suite (.ci/run)
 def test_fit_recovers_a_flash(tmp_path):
-    """The same scene lit by a flash 0.1 above each camera's lens: the fitted flash rides with the
-    camera, at its lens, its power within 20 %."""
-    fitted, summary = _lamp_fit(tmp_path, "camera", (0.0, 0.1, 0.0), 8.0)
+    """The same scene lit by a flash 0.3 above each camera's lens: the fitted lamp rides with the
+    camera, its power within 20 % and its place within 10 % of the object's size (it starts at the
+    lens: on this rough sphere a flash's small offset from the lens barely shows, and the fit
+    keeps it there rather than trading it for power)."""
+    flash = np.array([0.0, 0.3, 0.0])
+    fitted, summary = _lamp_fit(tmp_path, "camera", tuple(flash), 8.0)
+    size = float(np.linalg.norm(np.ptp(np.asarray(fitted.mesh.bounds), axis=0)))
     assert fitted.lamps.in_camera and summary["decisions"]["lamps"]["choice"] == "camera"
-    assert np.array_equal(fitted.lamps.position, np.zeros((1, 3)))
+    assert np.linalg.norm(fitted.lamps.position[0] - flash) < 0.1 * size
     assert abs(fitted.lamps.intensity[0].mean() / 8.0 - 1) < 0.2
 
 

@@ -193,20 +193,22 @@ def test_exported_mitsuba_scene_holds_the_lamps(tmp_path):
 
 
 def test_lamps_that_ride_with_the_camera_stand_at_each_views_camera():
-    """A flash stands at the lens of the view's camera and its place is not trained; a world lamp
-    is the centre plus its offset in object radii, whatever the view."""
+    """A camera lamp's position is its offset (object radii) in the frame of the view's camera; a
+    world lamp's is the centre plus its offset, whatever the view."""
     from vq_mitsuba.models.fields import PointLamps
 
     cams = np.stack([look_at([0, -2.5, 1.2], [0, 0, 0], [0, 0, 1]), look_at([2.0, 1.0, 0.5], [0, 0, 0], [0, 0, 1])])
-    flash = PointLamps([0.1, 0.2, 0.3], 0.5, torch.zeros(1, 3), 2.0, camera_to_world=cams)
+    offsets = torch.tensor([[0.0, 0.2, 0.0], [0.1, 0.0, 0.0]])
+    flash = PointLamps([0.1, 0.2, 0.3], 0.5, offsets, 2.0, camera_to_world=cams)
     views = torch.tensor([1, 0, 1])
     pos, inten = flash(views)
-    assert pos.shape == (1, 3, 3) and torch.allclose(inten, torch.full((1, 3), 2.0))
-    np.testing.assert_allclose(pos[0].numpy(), cams[views.numpy()][:, :3, 3], atol=1e-6)
-    assert [name for name, p in flash.named_parameters() if p.requires_grad] == ["log_intensity"]
+    assert pos.shape == (2, 3, 3) and torch.allclose(inten, torch.full((2, 3), 2.0))
+    for k in range(2):
+        for j, v in enumerate(views.tolist()):
+            want = cams[v][:3, :3] @ (0.5 * offsets[k].numpy()) + cams[v][:3, 3]
+            np.testing.assert_allclose(pos[k, j].detach().numpy(), want, atol=1e-6)
     with pytest.raises(ValueError, match="views"):
         flash(None)
-    offsets = torch.tensor([[0.0, 0.2, 0.0], [0.1, 0.0, -0.3]])
     world = PointLamps([0.1, 0.2, 0.3], 0.5, offsets, 2.0)
     np.testing.assert_allclose(world(views)[0].detach().numpy(), [0.1, 0.2, 0.3] + 0.5 * offsets.numpy(), atol=1e-6)
 

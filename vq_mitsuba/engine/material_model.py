@@ -63,7 +63,7 @@ class MaterialModel:
         if self.learn_env:
             groups.append({"params": self.env_module.parameters(), "lr": cfg.envmap.lr})
         if self.lamps is not None:
-            groups.append({"params": [p for p in self.lamps.parameters() if p.requires_grad], "lr": cfg.lamps.lr})
+            groups.append({"params": self.lamps.parameters(), "lr": cfg.lamps.lr})
         return groups
 
     def state_dict(self) -> dict:
@@ -96,11 +96,11 @@ class MaterialModel:
         out = decision(n, self.cfg.lamps.frame, f"lamps.count = {n}: {n} point lamp(s) {where}, fitted beside the "
                                                  "envmap")
         lamps = self.lamps
-        position = torch.zeros_like(lamps.offset) if bool(lamps.in_camera) else lamps()[0]
+        position = lamps()[0] if not bool(lamps.in_camera) else lamps.radius * lamps.offset * torch.tensor([1.0, 1.0, 0.0])
         out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()}
                         for p, i in zip(position, torch.exp(lamps.log_intensity))]
         if bool(lamps.in_camera):
-            out["position_frame"] = "each view's camera: at its lens"
+            out["position_frame"] = "each view's camera (Mitsuba camera space: +Z forward, +Y up, +X left)"
         return out
 
     def envmap(self) -> torch.Tensor:
@@ -280,14 +280,14 @@ def start_lamps(capture: Capture, cfg: Config, mean_foreground: float) -> PointL
     """`cfg.lamps.count` point lamps. Fixed in the world: at `cfg.lamps.distance` object radii from
     the centre of the mesh's bounding box, the first towards the cameras' mean position (where a
     capture's lamps mostly stand), the others on a cone of 60 deg about it. Riding with the camera:
-    one flash at the lens. Each as bright as lights a white facing surface at the lamps' distance
-    to the capture's mean value."""
+    at the camera, the others a radius to its sides. Each as bright as lights a white facing
+    surface at the lamps' distance to the capture's mean value."""
     lo, hi = np.asarray(capture.mesh.bounds, dtype=np.float64)
     center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
     eyes = np.array([c.to_world[:3, 3] for c in capture.cameras])
     n = cfg.lamps.count
     if cfg.lamps.frame == "camera":
-        offsets = np.zeros((n, 3))
+        offsets = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])[:n]
         distance = max(float(np.median(np.linalg.norm(eyes - center, axis=1))) - radius, 0.5 * radius)
         return PointLamps(center, radius, torch.tensor(offsets, dtype=torch.float32),
                           np.pi * max(mean_foreground, 1e-3) * distance ** 2,

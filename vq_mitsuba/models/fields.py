@@ -158,11 +158,12 @@ class EnvironmentMap(nn.Module):
 
 class PointLamps(nn.Module):
     """Learnable point lamps beside the envmap, each with an RGB radiant intensity (K, 3), positive
-    through exp(log-intensity). Fixed in the world, a lamp's position is an offset from the object's
-    centre in units of its radius (one learning rate fits any scale); riding with the camera (a
-    flash; `camera_to_world` (V, 4, 4), the capture's cameras), it stands at the lens of the camera
-    that sees a point, and its place is not fitted: a flash's offset from the lens barely changes
-    what the camera sees, and a learned one wanders on the gradient's noise."""
+    through exp(log-intensity), and a position kept as an offset in units of the object's radius
+    (one learning rate fits any scale): about the object's centre for lamps fixed in the world, or
+    in the frame of the camera that sees a point (Mitsuba camera space) for lamps that ride with
+    the camera (a flash); those need `camera_to_world` (V, 4, 4), the capture's cameras, and stay
+    in the camera's plane (a flash's depth from the lens trades against its intensity almost
+    exactly, so it is not fitted)."""
 
     def __init__(self, center, radius: float, offsets, intensity: float, camera_to_world=None):
         super().__init__()
@@ -171,16 +172,18 @@ class PointLamps(nn.Module):
         self.register_buffer("in_camera", torch.tensor(camera_to_world is not None))
         self.register_buffer("camera_to_world", torch.zeros(0, 4, 4) if camera_to_world is None else
                              torch.as_tensor(camera_to_world, dtype=torch.float32).reshape(-1, 4, 4))
-        self.offset = nn.Parameter(torch.as_tensor(offsets, dtype=torch.float32).reshape(-1, 3).clone(),
-                                   requires_grad=camera_to_world is None)
+        self.offset = nn.Parameter(torch.as_tensor(offsets, dtype=torch.float32).reshape(-1, 3).clone())
         self.log_intensity = nn.Parameter(torch.full((self.offset.shape[0], 3), math.log(max(intensity, 1e-8))))
 
     def forward(self, views: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(positions, intensities (K, 3)) in the world: positions (K, 3) for lamps fixed in the
         world, (K, N, 3) at the cameras of the points' `views` (N,) for lamps that ride with them."""
+        offset = self.radius * self.offset
+        if bool(self.in_camera):
+            offset = offset * offset.new_tensor([1.0, 1.0, 0.0])
         if not bool(self.in_camera):
-            return self.center + self.radius * self.offset, torch.exp(self.log_intensity)
+            return self.center + offset, torch.exp(self.log_intensity)
         if views is None:
             raise ValueError("lamps that ride with the camera need the views of the points they light")
-        eye = self.camera_to_world[views, :3, 3]
-        return eye[None].expand(self.offset.shape[0], -1, -1), torch.exp(self.log_intensity)
+        cam = self.camera_to_world[views]
+        return cam[None, :, :3, 3] + torch.einsum("nij,kj->kni", cam[:, :3, :3], offset), torch.exp(self.log_intensity)

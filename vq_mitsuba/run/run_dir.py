@@ -628,7 +628,7 @@ def _lamps_of(state: dict, path: Path) -> FittedLamps | None:
         raise InputError(path, f"its lamps are not point lamps ({', '.join(keys)}): not a checkpoint of this run")
     center, radius, offset, log_i = (t.detach().float().cpu() for t in parts[:4])
     in_camera = bool(parts[4])
-    position = torch.zeros_like(offset) if in_camera else radius * offset + center.reshape(1, 3)
+    position = radius * offset * torch.tensor([1.0, 1.0, 0.0]) if in_camera else radius * offset + center.reshape(1, 3)
     return FittedLamps(position.numpy(), torch.exp(log_i).numpy(), in_camera)
 
 
