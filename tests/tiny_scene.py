@@ -133,8 +133,8 @@ def three_material_ids(positions: np.ndarray) -> np.ndarray:
 
 
 def write_lamp_capture(out: Path, lamp: tuple = (0.9, 1.1, 0.6), intensity: float = 3.0, flash: bool = False,
-                       size: int = 32, n_views: int = 16, spp: int = 32) -> Path:
-    """A grey-white sphere (radius 0.5) on a slab, Mitsuba world (Y up), lit by a dim uniform sky and
+                       size: int = 32, n_views: int = 16, spp: int = 32, roughness: float = 0.6) -> Path:
+    """A grey-white sphere (radius 0.5) and slab of `roughness`, Mitsuba world (Y up), lit by a dim uniform sky and
     a point lamp: at `lamp` in the world, or with `flash` at `lamp` in each view's camera frame.
     The envmap is not in the XML (the fit learns it); returns the XML path."""
     import mitsuba as mi
@@ -150,7 +150,7 @@ def write_lamp_capture(out: Path, lamp: tuple = (0.9, 1.1, 0.6), intensity: floa
     slab = trimesh.creation.box(extents=[2.0, 0.1, 2.0])
     slab.apply_translation([0.0, -0.55, 0.0])
     trimesh.util.concatenate([sphere, slab]).export(out / "mesh.ply")
-    bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": [0.7, 0.6, 0.5]}, "roughness": 0.6}
+    bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": [0.7, 0.6, 0.5]}, "roughness": roughness}
     scene = mi.load_dict({
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
