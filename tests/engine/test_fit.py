@@ -404,6 +404,16 @@ def test_fit_recovers_a_lamp_in_the_world(tmp_path):
     decision = summary["decisions"]["lamps"]
     assert decision["choice"] == "world"
     np.testing.assert_allclose(decision["lamps"][0]["position"], fitted.lamps.position[0], atol=1e-5)
+    # render under the fitted light records the lamp that lit it; another envmap, none unless kept
+    from vq_mitsuba.data.imageio import write_exr
+    from vq_mitsuba.render.render_run import render_run
+
+    write_exr(tmp_path / "env.exr", np.full((8, 16, 3), 0.5, np.float32))
+    for name, envmaps, keep, lit in (("own", (), False, 1), ("relit", (tmp_path / "env.exr",), False, 0),
+                                     ("kept", (tmp_path / "env.exr",), True, 1)):
+        out = render_run(tmp_path / "run", tmp_path / "cap" / "scene.xml", tmp_path / name, envmaps, spp=2,
+                         keep_lamps=keep)
+        assert json.loads((out / "render.json").read_text())["lamps"] == lit, name
 
 
 @pytest.mark.slow  # about 10 s: CI runs it after the default suite (.ci/run)

@@ -51,8 +51,9 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
     """Render the run's views for every camera of `cameras_path` into `out_dir` (default
     RUN_DIR/renders): the first lighting (the fitted envmap when `envmap_paths` is empty) into it,
     each further one into OUT/<its file name>; then write OUT/render.json. Every input is checked
-    before any rendering. `keep_lamps`: the run's fitted lamps light the relit views too. `size` is the capture section whose downscale and max_size shrink the
-    cameras' images. Returns the output folder."""
+    before any rendering. `keep_lamps`: the run's fitted lamps light the relit views too. `size` is
+    the capture section whose downscale and max_size shrink the cameras' images. Returns the output
+    folder."""
     size = size if size is not None else load_config(None).capture
     run = RunDir(run_dir)
     out = Path(out_dir) if out_dir is not None else run.dir / RunDir.RENDERS
@@ -64,7 +65,8 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
     if not envmap_paths:
         check_peak(fitted.envmap, run.dir / RunDir.ENVMAP, exposure_ev)
     names = lighting_names(envmap_paths)
-    own_light = not envmap_paths and env_rotate_deg == 0 and exposure_ev == 0  # the fitted lamps light it
+    lamps = fitted.lamps if keep_lamps or views.own_lighting(envmaps[0] if envmaps else None, env_rotate_deg,
+                                                               exposure_ev) else None
     with new_folder(out):
         views.render_views(fitted, cameras, world, out, envmap=envmaps[0] if envmaps else None,
                            env_rotate_deg=env_rotate_deg, exposure_ev=exposure_ev, spp=spp,
@@ -74,7 +76,7 @@ def render_run(run_dir: str | Path, cameras_path: str | Path, out_dir: str | Pat
             "envmap": str(Path(envmap_paths[0]).resolve()) if envmap_paths else "fitted",
             "more_envmaps": {n: str(Path(p).resolve()) for n, p in zip(names[1:], envmap_paths[1:])},
             "env_rotate_deg": env_rotate_deg, "exposure_ev": exposure_ev, "views": [c.name for c in cameras],
-            "lamps": 0 if fitted.lamps is None or not (keep_lamps or own_light) else len(fitted.lamps),
+            "lamps": 0 if lamps is None else len(lamps.position),
             "downscale": size.downscale, "max_size": size.max_size,
         })
     return out

@@ -35,6 +35,11 @@ def rotate_about_up(env_to_world: np.ndarray, degrees: float) -> np.ndarray:
     return np.asarray(env_to_world) @ rot
 
 
+def own_lighting(envmap: np.ndarray | None, env_rotate_deg: float, exposure_ev: float) -> bool:
+    """A render under the run's own light (its envmap as fitted): its residual and its lamps light it."""
+    return envmap is None and env_rotate_deg == 0 and exposure_ev == 0
+
+
 class Renderer:
     """Renders views of a fitted run under its own lighting or another envmap.
 
@@ -57,7 +62,7 @@ class Renderer:
         to_world = rotate_about_up(fitted.envmap_to_world, env_rotate_deg)
         self.scene = scene_for_mesh(fitted.mesh, self.envmap, to_world)
         self.env_t = torch.as_tensor(self.envmap, device=fitted.model.center.device)
-        own_light = envmap is None and env_rotate_deg == 0 and exposure_ev == 0
+        own_light = own_lighting(envmap, env_rotate_deg, exposure_ev)
         # the fitted lamps (at this exposure), placed for each view's camera in `render`
         self.lamps = fitted.lamps if own_light or keep_lamps else None
         self.lamp_scale = 2.0 ** exposure_ev
