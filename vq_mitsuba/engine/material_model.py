@@ -95,11 +95,8 @@ class MaterialModel:
         where = "fixed in the world" if self.cfg.lamps.frame == "world" else "riding with the camera"
         out = decision(n, self.cfg.lamps.frame, f"lamps.count = {n}: {n} point lamp(s) {where}, fitted beside the "
                                                  "envmap")
-        lamps = self.lamps
-        position = lamps()[0] if not bool(lamps.in_camera) else lamps.radius * lamps.offset * torch.tensor([1.0, 1.0, 0.0])
-        out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()}
-                        for p, i in zip(position, torch.exp(lamps.log_intensity))]
-        if bool(lamps.in_camera):
+        out["lamps"] = [{"position": p.tolist(), "intensity": i.tolist()} for p, i in zip(*self.lamps.placement())]
+        if bool(self.lamps.in_camera):
             out["position_frame"] = "each view's camera (Mitsuba camera space: +Z forward, +Y up, +X left)"
         return out
 
@@ -157,7 +154,7 @@ class MaterialModel:
         p = data.pool
         return self.scene.shade(p.position[idx], p.normal[idx], p.wi[idx], material, env, self.cfg.train.spp,
                                 generator=gen, reduce=False, material_fn=bounce_fn, groups=2, fixed_light=fixed_light,
-                                views=p.views_of(idx))
+                                views=self.scene.lamp_views(p, idx))
 
     def lambertian(self, out: dict, s: StepSchedule, weight: torch.Tensor | None = None,
                    metallic_scale: torch.Tensor | None = None) -> torch.Tensor:
@@ -251,7 +248,7 @@ class MaterialModel:
         gen = torch.Generator(device=self.device).manual_seed(seed)
         rgb = self.scene.shade(pool.position[idx], pool.normal[idx], pool.wi[idx], mats, self.envmap().detach(),
                                cfg.train.spp, generator=gen, material_fn=self.field if bounce else None,
-                               views=pool.views_of(idx))
+                               views=self.scene.lamp_views(pool, idx))
         target = pool.rgb[data.held]
         return sum(float(losses.reconstruction_l2(data.pixel_means(branch, len(target)), target, cfg.loss.gamma))
                    for branch in rgb.split(len(hits)))

@@ -270,13 +270,13 @@ def check_resumable(state: dict, cfg: Config, capture: Capture, path: Path) -> N
                                f"{str(cfg.vq.enabled).lower()}: resume with the run's own vq.enabled")
     if discrete is not None:
         load_module_state(discrete, state["discrete"], path, "discrete")
-    if (cfg.lamps.count > 0) != (state.get("lamps") is not None) or (
-            cfg.lamps.count > 0 and tuple(state["lamps"].get("offset", torch.zeros(0)).shape) != (cfg.lamps.count, 3)):
-        had = 0 if state.get("lamps") is None else len(state["lamps"].get("offset", []))
+    lamps = state.get("lamps") or {}
+    had = len(lamps.get("offset", []))  # (K, 3): one row a lamp
+    if had != cfg.lamps.count:
         raise InputError(path, f"was fitted with lamps.count={had}, not {cfg.lamps.count}: resume with the run's own "
                                "lamps.count")
-    if cfg.lamps.count > 0 and bool(state["lamps"].get("in_camera", False)) != (cfg.lamps.frame == "camera"):
-        had = "camera" if bool(state["lamps"].get("in_camera", False)) else "world"
+    had = "camera" if bool(lamps.get("in_camera", False)) else "world"
+    if cfg.lamps.count > 0 and had != cfg.lamps.frame:
         raise InputError(path, f"was fitted with lamps.frame={had}, not {cfg.lamps.frame}: resume with the run's own "
                                "lamps.frame")
     if (capture.envmap is None) != (state.get("envmap") is not None):

@@ -47,7 +47,7 @@ def rank_materials(scene, model, discrete: DiscreteBranch, pool: PixelPool, env:
             od = discrete(z, n_codes=k)
             g = torch.Generator(device=device).manual_seed(cfg.train.seed + 2)
             rgb = scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], od, env, ERR_K_SPP, generator=g,
-                              groups=1, views=pool.views_of(sel))
+                              groups=1, views=scene.lamp_views(pool, sel))
             errs_k.append(float(losses.reconstruction_l2(rgb, pool.rgb[sel], cfg.loss.gamma)))
             if k == K:
                 usage = torch.bincount(od["index"], minlength=K).float().cpu() / n

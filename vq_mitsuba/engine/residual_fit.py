@@ -86,7 +86,7 @@ def physical_radiance(scene, model, pool: PixelPool, idx: torch.Tensor, env: tor
         sel = idx[s:s + chunk]
         out = model(pool.position[sel])
         parts.append(scene.shade(pool.position[sel], pool.normal[sel], pool.wi[sel], out, env, PREDICTION_SPP,
-                                 generator=generator, material_fn=field, views=pool.views_of(sel)))
+                                 generator=generator, material_fn=field, views=scene.lamp_views(pool, sel)))
     return torch.cat(parts)
 
 

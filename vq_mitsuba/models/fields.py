@@ -175,15 +175,21 @@ class PointLamps(nn.Module):
         self.offset = nn.Parameter(torch.as_tensor(offsets, dtype=torch.float32).reshape(-1, 3).clone())
         self.log_intensity = nn.Parameter(torch.full((self.offset.shape[0], 3), math.log(max(intensity, 1e-8))))
 
+    def placement(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(positions (K, 3): in the world, or in the camera's frame for lamps that ride with it;
+        intensities (K, 3))."""
+        offset = self.radius * self.offset
+        if bool(self.in_camera):
+            return offset * offset.new_tensor([1.0, 1.0, 0.0]), torch.exp(self.log_intensity)
+        return self.center + offset, torch.exp(self.log_intensity)
+
     def forward(self, views: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(positions, intensities (K, 3)) in the world: positions (K, 3) for lamps fixed in the
         world, (K, N, 3) at the cameras of the points' `views` (N,) for lamps that ride with them."""
-        offset = self.radius * self.offset
-        if bool(self.in_camera):
-            offset = offset * offset.new_tensor([1.0, 1.0, 0.0])
+        position, intensity = self.placement()
         if not bool(self.in_camera):
-            return self.center + offset, torch.exp(self.log_intensity)
+            return position, intensity
         if views is None:
             raise ValueError("lamps that ride with the camera need the views of the points they light")
         cam = self.camera_to_world[views]
-        return cam[None, :, :3, 3] + torch.einsum("nij,kj->kni", cam[:, :3, :3], offset), torch.exp(self.log_intensity)
+        return cam[None, :, :3, 3] + torch.einsum("nij,kj->kni", cam[:, :3, :3], position), intensity

@@ -526,6 +526,11 @@ class ShadingScene:
             rgb = self._shade_lit(*lanes.geometry, torch.cat([lanes.chans, li], 1).reshape(-1), list(sampled))
         return torch.stack(rgb, -1)
 
+    def lamp_views(self, pool, idx: torch.Tensor) -> torch.Tensor | None:
+        """The views of a pixel pool's hits `idx` (`data.pixels.PixelPool.views_of`) that `shade`
+        takes for the lamps; None without lamps (nothing to look up)."""
+        return None if self.lamps is None else pool.views_of(idx)
+
     def lamp_radiance(self, position: torch.Tensor, normal: torch.Tensor, wi: torch.Tensor, material: dict,
                       fixed_light: torch.Tensor | None = None, views: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance (N, 3) towards `wi` from the point lamps (`self.lamps`), with their shadows:

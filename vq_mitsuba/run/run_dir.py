@@ -50,6 +50,7 @@ from vq_mitsuba import messages
 from vq_mitsuba.config import Config, load_config, read_yaml, save_config
 from vq_mitsuba.errors import InputError, NumericalError, warn
 from vq_mitsuba.models.material_edits import Edit
+from vq_mitsuba.models.fields import PointLamps
 from vq_mitsuba.models.fitted import FittedLamps, FittedModel, material_networks
 from vq_mitsuba.models.residual import ResidualField
 from vq_mitsuba.run.lock import RunLock
@@ -621,15 +622,19 @@ def _lamps_of(state: dict, path: Path) -> FittedLamps | None:
     lamps = state.get("lamps")
     if lamps is None:
         return None
-    keys = ("center", "radius", "offset", "log_intensity", "in_camera")
+    keys = ("center", "radius", "offset", "log_intensity", "in_camera", "camera_to_world")
     parts = [lamps.get(k) if isinstance(lamps, dict) else None for k in keys]
     if not all(torch.is_tensor(t) for t in parts) or parts[2].ndim != 2 or parts[2].shape[1] != 3 \
             or parts[3].shape != parts[2].shape or parts[0].numel() != 3:
         raise InputError(path, f"its lamps are not point lamps ({', '.join(keys)}): not a checkpoint of this run")
-    center, radius, offset, log_i = (t.detach().float().cpu() for t in parts[:4])
     in_camera = bool(parts[4])
-    position = radius * offset * torch.tensor([1.0, 1.0, 0.0]) if in_camera else radius * offset + center.reshape(1, 3)
-    return FittedLamps(position.numpy(), torch.exp(log_i).numpy(), in_camera)
+    module = PointLamps(torch.zeros(3), 1.0, torch.zeros_like(parts[2]), 1.0,
+                        camera_to_world=parts[5].cpu() if in_camera else None)
+    load_module_state(module, {k: t.detach().float().cpu() if t.is_floating_point() else t.cpu()
+                               for k, t in zip(keys, parts)}, path, "lamps")
+    with torch.no_grad():
+        position, intensity = module.placement()
+    return FittedLamps(position.numpy(), intensity.numpy(), in_camera)
 
 
 def _envmap_of(state: dict, path: Path) -> np.ndarray:

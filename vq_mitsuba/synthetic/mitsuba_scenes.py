@@ -96,6 +96,7 @@ def load_scene_spec(name: str) -> dict:
         shape_names.add(s["name"])
         if s.get("material") not in names:
             raise InputError(path, f"shape {s['name']} uses unknown material {s.get('material')!r}")
+    spec["lamps"] = _checked_lamps(spec.get("lamps"), path)
     return spec
 
 
@@ -451,7 +452,7 @@ def scene_description(spec: dict, verts: np.ndarray, shape_info: dict, env_train
                    "sun_elevation_deg": envmaps.SKY_SUN_ELEVATION_DEG if env_train_name == "sky" else None,
                    "sun_azimuth_deg": envmaps.SKY_SUN_AZIMUTH_DEG if env_train_name == "sky" else None},
         "relight": relights,
-        **({"lamps": scene_lamps(spec)} if scene_lamps(spec) else {}),
+        **({"lamps": spec["lamps"]} if spec.get("lamps") else {}),
         "worlds": {"json_and_mesh_ply": "Blender (Z up)", "xml_and_meshes_dir": "Mitsuba (Y up)",
                    "blender_from_mitsuba": r.tolist(),
                    "envmap_convention": "Blender lat-long; " + envmap_convention},
@@ -610,23 +611,21 @@ def _mitsuba_scene_dict(spec: dict, out: Path) -> dict:
     return base
 
 
-def scene_lamps(spec: dict) -> list[dict]:
-    """The spec's point lamps, `lamps: [{position: [x, y, z], intensity: [r, g, b] or a number,
+def _checked_lamps(lamps, path: Path) -> list[dict]:
+    """A spec's point lamps, `lamps: [{position: [x, y, z], intensity: [r, g, b] or a number,
     frame: world or camera}]` (radiant intensity, W/sr), checked: [] when it has none. A lamp's
     position is in Blender world, or with `frame: camera` in the frame of the camera of each view
     (Mitsuba camera space: +X left, +Y up, +Z forward): a flash that rides with the camera."""
-    lamps = spec.get("lamps") or []
     out = []
-    for k, lamp in enumerate(lamps):
+    for k, lamp in enumerate(lamps or []):
         pos, inten = (lamp.get("position"), lamp.get("intensity")) if isinstance(lamp, dict) else (None, None)
         inten = [inten] * 3 if isinstance(inten, (int, float)) else inten
         ok = all(isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and np.isfinite(x)
                                                                  for x in v) for v in (pos, inten))
         frame = lamp.get("frame", "world") if isinstance(lamp, dict) else None
         if not ok or min(inten) < 0 or frame not in ("world", "camera"):
-            raise InputError(SCENES_DIR / f"{spec['name']}.yaml", f"lamp {k + 1} needs a position [x, y, z], an "
-                                                                 "intensity [r, g, b] >= 0 (or one number) and a frame "
-                                                                 "world or camera")
+            raise InputError(path, f"lamp {k + 1} needs a position [x, y, z], an intensity [r, g, b] >= 0 (or one "
+                                   "number) and a frame world or camera")
         out.append({"position": [float(x) for x in pos], "intensity": [float(x) for x in inten], "frame": frame})
     return out
 
@@ -638,21 +637,18 @@ def _lamp_emitters(spec: dict) -> dict:
     return {f"lamp_{k}": {"type": "point", "position": (np.asarray(lamp["position"]) @ r).tolist()
                           if lamp["frame"] == "world" else [0.0, 0.0, 0.0],
                           "intensity": {"type": "rgb", "value": lamp["intensity"]}}
-            for k, lamp in enumerate(scene_lamps(spec))}
+            for k, lamp in enumerate(spec.get("lamps", []))}
 
 
 def _place_camera_lamps(params, spec: dict, cam: Camera) -> None:
     """Move the spec's lamps that ride with the camera to `cam` (Mitsuba world) in the scene's
-    parameters `params`."""
-    moved = False
-    for k, lamp in enumerate(scene_lamps(spec)):
+    parameters `params` (`mi.traverse` of the scene)."""
+    for k, lamp in enumerate(spec.get("lamps", [])):
         if lamp["frame"] == "camera":
             key = f"lamp_{k}.position"
             params[key] = type(params[key])(*(np.asarray(cam.to_world)[:3, :3] @ lamp["position"]
                                               + np.asarray(cam.to_world)[:3, 3]).tolist())
-            moved = True
-    if moved:
-        params.update()
+    params.update()
 
 
 def _scene_with(base: dict, env: np.ndarray):
@@ -695,8 +691,10 @@ def _render_views(name: str, spec: dict, out: Path, base: dict, sensors: dict, c
 
     dataset = DatasetDir(out)
 
+    flash = any(lamp["frame"] == "camera" for lamp in spec.get("lamps", []))
+
     def render(scene, cam: Camera, env: str | None = None):
-        if env is None:  # the training light: its lamps, the flash at this view's camera
+        if env is None and flash:  # the training light: the flash at this view's camera
             _place_camera_lamps(mi.traverse(scene), spec, cam)
         img = mi.render(scene, sensor=sensors[cam.name], seed=counter[0] % (2**32))
         counter[0] += 1
