@@ -3,6 +3,7 @@ added by `render` under the capture's own light only."""
 
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -206,27 +207,37 @@ def test_resuming_a_fitted_run_fits_a_missing_or_earlier_residual_again(view_dep
     assert (copy / RunDir.RESIDUAL).stat().st_mtime_ns == before
 
 
+class _Pool(SimpleNamespace):
+    """The parts of a `PixelPool` the residual's fit reads."""
+
+    def __len__(self):
+        return len(self.rgb)
+
+    def views_of(self, idx):
+        return self.view[idx]
+
+
+def _random_pool(n: int, gen: torch.Generator):
+    """(a pool of `n` random hits seen from 20 views, a function drawing `n` random unit vectors)."""
+    unit = lambda: torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)  # noqa: E731
+    normal = unit()
+    return _Pool(position=torch.rand(n, 3, generator=gen), normal=normal,
+                 wi=torch.nn.functional.normalize(normal + 0.5 * unit(), dim=-1),
+                 rgb=0.05 + 0.9 * torch.rand(n, 3, generator=gen),
+                 view=torch.randint(0, 20, (n,), generator=gen)), unit
+
+
 def test_a_residual_with_nothing_to_learn_stops_within_a_few_early_scores(monkeypatch):
     """Targets the physically based radiance already gives up to pixel noise (a scene rendered by
     the model itself): no field beats the zero one by MIN_GAIN_DB, and the fit stops after PATIENCE
     scores FIRST_GAP steps apart, eagerly (the compiler is never waited for), long before its
     planned steps."""
-    from types import SimpleNamespace
-
     from vq_mitsuba.config import load_config
     from vq_mitsuba.engine import residual_fit
 
-    class Pool(SimpleNamespace):
-        def __len__(self):
-            return len(self.rgb)
-
     gen = torch.Generator().manual_seed(3)
     n = 20000
-    unit = lambda: torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)  # noqa: E731
-    normal = unit()
-    pool = Pool(position=torch.rand(n, 3, generator=gen), normal=normal,
-                wi=torch.nn.functional.normalize(normal + 0.5 * unit(), dim=-1),
-                rgb=0.05 + 0.9 * torch.rand(n, 3, generator=gen), view=torch.randint(0, 20, (n,), generator=gen))
+    pool, unit = _random_pool(n, gen)
     rendered = []
 
     def physical(scene, model, pool, idx, env, cfg, generator):
@@ -271,3 +282,41 @@ def test_the_residual_is_scored_on_whole_views_it_is_not_fitted_on():
     one = torch.zeros(1, dtype=torch.long)
     fit_ids, check_ids = split_check_hits(one, gen)  # a single hit: fitted, none to score
     assert fit_ids.tolist() == [0] and len(check_ids) == 0
+
+
+def test_a_kept_field_goes_on_over_the_kept_aside_views(monkeypatch):
+    """Once a field is kept for what it learned, it trains FINISH_SHARE of the planned steps more over
+    every hit: the kept-aside views' hits past those scored are rendered too, and the field returned
+    is not the one scored."""
+    from vq_mitsuba.config import load_config
+    from vq_mitsuba.engine import residual_fit
+
+    gen = torch.Generator().manual_seed(5)
+    n = 20000
+    pool, _ = _random_pool(n, gen)
+    rendered, kept = [], {}
+
+    def physical(scene, model, pool, idx, env, cfg, generator):  # the targets miss a smooth term
+        rendered.append(idx.clone())
+        return (pool.rgb[idx] - 0.3 * pool.position[idx, :1] * pool.wi[idx, 2:].abs()).clamp_min(0.0)
+
+    monkeypatch.setattr(residual_fit, "physical_radiance", physical)
+    monkeypatch.setattr(residual_fit, "FIRST_MIN_HITS", 1000)
+    monkeypatch.setattr(residual_fit, "CHECK_MAX_HITS", 500)  # fewer than the kept-aside views' hits
+    load = residual_fit.ResidualField.load_state_dict
+
+    def remember(self, state, *args, **kwargs):
+        kept["state"] = {k: v.clone() for k, v in state.items()}
+        return load(self, state, *args, **kwargs)
+
+    monkeypatch.setattr(residual_fit.ResidualField, "load_state_dict", remember)
+    cfg = load_config(None, ["residual.iterations=300"])
+    field, info = residual_fit.fit_residual(None, None, pool, torch.ones(4, 8, 3),
+                                            ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), cfg)
+    assert info["learned"] and info["check_hits"] == 500
+    assert info["finish_steps"] == round(residual_fit.FINISH_SHARE * info["planned_iterations"]) > 0
+    # every hit's radiance rendered, each once
+    every = torch.cat(rendered)
+    assert info["rendered_hits"] == n == len(every) == len(torch.unique(every))
+    moved = [not torch.equal(v, kept["state"][k]) for k, v in field.state_dict().items()]
+    assert any(moved)

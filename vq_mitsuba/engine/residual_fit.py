@@ -17,7 +17,10 @@ hits of `CHECK_SHARE` of the views are kept aside (`split_check_hits`): a field 
 one view alone shows (its noise, its own exposure) scores well on other pixels of that view and
 worse from new viewpoints, so it is scored on views it never saw. They are scored every
 `steps / CHECKS` steps and the best field is kept, the untrained (zero) one included, so the
-residual never makes the views it was not fitted on worse.
+residual never makes the views it was not fitted on worse. A field kept for what it learned then
+goes on for `FINISH_SHARE` of the steps over every hit, the kept-aside views' too, so that novel
+views get every viewpoint the capture has (fit.json's `finish_steps`; its kept-aside scores are
+those of the field it chose).
 The fit stops after `PATIENCE` scores in a row below the best. Until `CONFIRM` scores in a row beat
 the zero field by `MIN_GAIN_DB`, the scores come every `FIRST_GAP` steps, and when that has not
 happened within the first `PATIENCE`, there is nothing to learn (a capture the physically based render already explains, such as a scene
@@ -71,6 +74,7 @@ MIN_GAIN_DB = 0.5  # ... in CONFIRM scores in a row, which tells that there is s
 CONFIRM = 2
 FIRST_SHARE = 0.15  # share of the fitted hits rendered (and drawn) until then, at least ...
 FIRST_MIN_HITS = 1 << 17  # ... this many (all of a smaller pool)
+FINISH_SHARE = 0.1  # of the planned steps: the kept field's last steps, over every hit (the kept-aside views' too)
 COMPILE_FROM = 1000  # steps of BATCH hits left that pay for compiling the step (about 16 s the first time)
 
 
@@ -119,7 +123,7 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     n = min(len(pool), RESIDUAL_HITS * scale)
     idx = torch.randperm(len(pool), generator=gen, device=device)[:n]
     target = pool.rgb[idx]
-    fit_ids, check_ids = split_check_hits(pool.view[idx], gen)
+    fit_ids, check_ids = split_check_hits(pool.views_of(idx), gen)
     # the physically based radiance, rendered first for the kept-aside hits and FIRST_SHARE of the
     # fitted ones (the early steps draw from those), the rest once there is something to learn
     first = fit_ids[:max(FIRST_MIN_HITS, math.ceil(FIRST_SHARE * len(fit_ids)))]
@@ -198,9 +202,31 @@ def fit_residual(scene, model, pool: PixelPool, env: torch.Tensor, bounds, cfg: 
     if not state["learning"]:  # a gain under MIN_GAIN_DB is not trusted: the zero field is kept
         best.update(psnr=before, step=0, state=zero)
     field.load_state_dict(best["state"])
+    finish_steps = 0
+    if state["learning"]:
+        # the kept field goes on over every hit, the kept-aside views' too: they served the choice,
+        # and novel views gain from every viewpoint the field has learned
+        aside = torch.ones(n, dtype=torch.bool, device=device)
+        aside[fit_ids] = False
+        aside[check_ids] = False  # rendered already
+        rest = torch.nonzero(aside).squeeze(1)
+        if len(rest):
+            physical[rest] = physical_radiance(scene, model, pool, idx[rest], env, cfg, gen)
+        start = best["step"] / steps  # the learning rate goes on from the kept step's to the end's
+        finish_steps = max(1, round(FINISH_SHARE * steps))
+
+        def finish(p: Progress) -> None:
+            for g in optim.param_groups:
+                g["lr"] = g["base"] * LR_END ** (start + (1 - start) * p.step_share)
+            (compiled if state["compiled"] else gradients)(torch.randint(0, n, (batch,), generator=gen, device=device))
+            optim.step()
+
+        with messages.quiet():
+            Loop("residual", Budget(finish_steps), finish).run()
     field.eval()
     info = {"iterations": done.steps, "planned_iterations": steps, "kept_step": best["step"], "hits": n, "batch": batch,
-            "check_hits": len(check_ids), "rendered_hits": len(check_ids) + len(drawn["ids"]),
+            "check_hits": len(check_ids), "rendered_hits": n if finish_steps else len(check_ids) + len(drawn["ids"]),
+            "finish_steps": finish_steps,
             "finest_cells": int(field.finest), "prediction_spp": PREDICTION_SPP,
             "step": compiled.state if state["compiled"] else "eager", "learned": state["learning"],
             "seconds": time.perf_counter() - t0, "psnr_check_hits_before": before,
