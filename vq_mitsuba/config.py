@@ -47,6 +47,7 @@ RANGES: dict[str, tuple[typing.Callable[[float], bool], str]] = {
     ">=0": (lambda v: v >= 0, ">= 0"),
     ">1": (lambda v: v > 1, "> 1"),
     "[0,1]": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "-1|[0,1]": (lambda v: v == -1 or 0 <= v <= 1, "-1 or in [0, 1]"),
     "(0,1]": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "[0,1)": (lambda v: 0 <= v < 1, "in [0, 1)"),
     ">=2": (lambda v: v >= 2, ">= 2"),
@@ -288,7 +289,8 @@ class NeuSConfig:
     sdf_layers: int = setting(0, "hidden layers of the SDF MLP (0: auto, 1 with the fine grid, else 2)", "[0,2]")
     geo_features: int = setting(15, "SDF-network features passed to the colour network")
     reflect: bool = setting(True, "the colour network sees the reflected view direction instead of the view direction")
-    coarse_to_fine: float = setting(0.3, "share of training over which finer grid levels fade in", "[0,1]")
+    coarse_to_fine: float = setting(-1.0, "share of training over which finer grid levels fade in (-1: auto, 0 with the "
+                                          "fine grid, else 0.3)", "-1|[0,1]")
     init: str = setting("hull", "SDF initialisation: hull (smoothed visual-hull distance) or sphere",
                                 ("hull", "sphere"))
     init_radius: float = setting(0.0, "radius of the sphere initialisation (normalised box units; 0: 0.6 with "

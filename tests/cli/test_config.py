@@ -39,6 +39,7 @@ OUT_OF_RANGE = [
     ("[0,1]", "vq.decay", "1.5", "vq.decay must be in [0, 1]"),
     ("(0,1]", "vq.joint_scale", "0", "vq.joint_scale must be in (0, 1]"),
     (">1", "lamps.distance", "1", "lamps.distance must be > 1"),
+    ("-1|[0,1]", "neus.coarse_to_fine", "-0.5", r"neus.coarse_to_fine must be -1 or in [0, 1]"),
     ("[0,1)", "field.metallic_init", "1.0", "field.metallic_init must be in [0, 1)"),
     ("square", "train.pixel_jitter", "3", "train.pixel_jitter must be a square number or 0"),
     ("square>0", "render.aa", "0", "render.aa must be a square number > 0"),
@@ -71,7 +72,7 @@ def test_the_validator_refuses_each_range_kind_and_names_the_layer(kind, key, ba
 def test_every_range_kind_is_exercised_and_the_edges_are_inside():
     assert set(C.RANGES) - {"any"} <= {kind for kind, *_ in OUT_OF_RANGE}
     cfg = load_config(overrides=["train.pixel_jitter=0", "render.aa=1", "vq.joint_scale=1", "field.metallic_init=0",
-                                 "vq.decay=0", "loss.w_lam=0", "neus.init=sphere", "neus.init_variance=-2",
+                                 "vq.decay=0", "loss.w_lam=0", "neus.init=sphere", "neus.coarse_to_fine=1", "neus.init_variance=-2",
                                  "capture.background_color=1,0.5,0"])
     assert cfg.train.pixel_jitter == 0 and cfg.neus.init_variance == -2
     # A section alone is checked under its own name.

@@ -20,6 +20,7 @@ from vq_mitsuba.config import NeuSConfig, load_config
 from vq_mitsuba.geometry.neus import grid_kernel
 from vq_mitsuba.geometry.mesh import clean_mesh, component_sizes, marching_cubes, mesh_metrics, smooth_vertex_normals
 from vq_mitsuba.data.cameras import camera_rays
+from vq_mitsuba.geometry.neus.networks import COARSE_TO_FINE, COARSE_TO_FINE_FINE
 from vq_mitsuba.geometry.neus import (COARSE_GRID, FINE_GRID, HASH_PRIMES, MASKED_GRID, ColorNetwork, DenseGrid,
                                       NeuSModel, hull_box, choose_grid, rate_spread, reconstruct, train)
 from vq_mitsuba.geometry.neus import NeuS, neus_for
@@ -245,6 +246,10 @@ def test_the_grid_is_finer_when_the_object_spans_more_pixels():
     # the fine grid's photos are seen about once: one hidden SDF layer there, two elsewhere
     assert (cfg_large.sdf_layers, grid_large["sdf_layers"], cfg_small.sdf_layers) == (1, 1, 2)
     assert choose_grid(replace(auto, sdf_layers=2), large, center, half)[0].sdf_layers == 2
+    # ... and every grid level from the first step there, the finer levels fading in elsewhere
+    assert (cfg_large.coarse_to_fine, grid_large["coarse_to_fine"], cfg_small.coarse_to_fine) == (
+        COARSE_TO_FINE_FINE, 0.0, COARSE_TO_FINE) and COARSE_TO_FINE > 0
+    assert choose_grid(replace(auto, coarse_to_fine=0.5), large, center, half)[0].coarse_to_fine == 0.5
     # without masks the background model shares the steps: the coarse grid whatever the size
     cfg_free, grid_free = choose_grid(auto, large, center, half, masks=False)
     assert (cfg_free.levels, cfg_free.max_res) == COARSE_GRID and "without masks" in grid_free["reason"]

@@ -35,6 +35,11 @@ FINE_GRID_FROM_PX = 256
 # over: on tabletop one layer gave worse normals at equal steps and equal ones at equal time;
 # benchmarks/results/neus_step/).
 SDF_LAYERS_FINE, SDF_LAYERS = 1, 2
+# Share of training over which the finer grid levels fade in when neus.coarse_to_fine is -1 (auto):
+# none with the fine grid, whose photographs NeuS sees about once (every level from the first step
+# rendered DTU scan24's and scan37's held-out photos better in the same 480 s), 0.3 otherwise (the
+# synthetic captures' grid, where it was chosen; benchmarks/results/neus_converges/).
+COARSE_TO_FINE_FINE, COARSE_TO_FINE = 0.0, 0.3
 
 
 def corner_weights(f: torch.Tensor, du_dp: torch.Tensor | None = None) -> torch.Tensor:

@@ -19,8 +19,8 @@ from vq_mitsuba.data.cameras import camera_rays
 from vq_mitsuba.errors import InputError
 from vq_mitsuba.geometry.neus.framing import bounding_sphere, box_footprint_px, uses_background_model
 from vq_mitsuba.geometry.neus.hull import hull_box, hull_sdf
-from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, FINE_GRID, FINE_GRID_FROM_PX, MASKED_GRID, SDF_LAYERS,
-                                             SDF_LAYERS_FINE)
+from vq_mitsuba.geometry.neus.networks import (COARSE_GRID, COARSE_TO_FINE, COARSE_TO_FINE_FINE, FINE_GRID,
+                                             FINE_GRID_FROM_PX, MASKED_GRID, SDF_LAYERS, SDF_LAYERS_FINE)
 from vq_mitsuba.geometry.neus.renderer import Box, NeuS, TrainingRays, _threads, encode_srgb
 from vq_mitsuba.backend import torch_device
 
@@ -57,13 +57,15 @@ def neus_for(capture, cfg: NeuSConfig, sphere: tuple | None = None, support: tup
 
 def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
                 masks: bool = True) -> tuple[NeuSConfig, dict]:
-    """The config with neus.levels and neus.max_res decided (when 0), and what decided them;
-    `masks` False: NeuS trains without masks (the coarse grid whatever the size)."""
+    """The config with neus.levels, neus.max_res, neus.sdf_layers (when 0) and neus.coarse_to_fine
+    (when -1) decided, and what decided them; `masks` False: NeuS trains without masks (the coarse
+    grid whatever the size)."""
     footprint = box_footprint_px(cameras, center, half)
     fine = masks and footprint > FINE_GRID_FROM_PX
     levels, max_res = FINE_GRID if fine else MASKED_GRID if masks else COARSE_GRID
+    fade = cfg.coarse_to_fine if cfg.coarse_to_fine >= 0 else COARSE_TO_FINE_FINE if fine else COARSE_TO_FINE
     chosen = replace(cfg, levels=cfg.levels or levels, max_res=cfg.max_res or max_res,
-                     sdf_layers=cfg.sdf_layers or (SDF_LAYERS_FINE if fine else SDF_LAYERS))
+                     sdf_layers=cfg.sdf_layers or (SDF_LAYERS_FINE if fine else SDF_LAYERS), coarse_to_fine=fade)
     if cfg.levels and cfg.max_res:
         reason = "neus.levels and neus.max_res given"
     elif not masks:
@@ -72,7 +74,8 @@ def choose_grid(cfg: NeuSConfig, cameras, center: np.ndarray, half: float,
         reason = (f"the box spans {footprint:.0f} px in the median view ({'over' if fine else 'at most'} "
                   f"{FINE_GRID_FROM_PX})")
     return chosen, {"levels": chosen.levels, "max_res": chosen.max_res, "hash_log2": chosen.hash_log2,
-                    "sdf_layers": chosen.sdf_layers, "box_footprint_px": footprint, "reason": reason}
+                    "sdf_layers": chosen.sdf_layers, "coarse_to_fine": chosen.coarse_to_fine,
+                    "box_footprint_px": footprint, "reason": reason}
 
 
 def _dilated(occ: torch.Tensor, device) -> torch.Tensor:
